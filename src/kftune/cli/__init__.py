@@ -1,0 +1,65 @@
+"""The ``kftune`` command: one subcommand per verb, ``main() -> int``.
+
+Each subcommand lives in its own module with ``register(subparsers)``, which adds its parser
+and sets ``func`` to a callable ``(args) -> int``. This module only wires them together and
+maps errors to exit codes.
+
+Exit codes:
+    0  success
+    1  the job ran but failed (e.g. every evaluation failed, a filter diverged)
+    2  usage error: bad command-line options (argparse's convention)
+    3  bad input: a data file, manifest, configuration or study file is unusable
+    130 interrupted (Ctrl-C); whatever finished has been saved
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from kftune import __version__
+from kftune.errors import KftuneError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_BAD_INPUT = 3
+EXIT_INTERRUPTED = 130
+
+#: Subcommand modules, in the order ``--help`` lists them.
+SUBCOMMANDS: tuple[str, ...] = ("demo",)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser (exposed for tests and documentation)."""
+    parser = argparse.ArgumentParser(
+        prog="kftune",
+        description="Automatic tuning of Kalman filters — a sideslip UKF tuned by two-stage "
+        "Bayesian optimisation with a Student-t process surrogate.",
+    )
+    parser.add_argument("--version", action="version", version=f"kftune {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in SUBCOMMANDS:
+        importlib.import_module(f"kftune.cli.{name}").register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        print("kftune: interrupted; finished work has been saved", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except KftuneError as exc:
+        print(f"kftune: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,36 @@
+"""Exception types shared by every layer; the CLI maps them to exit codes."""
+
+from __future__ import annotations
+
+
+class KftuneError(Exception):
+    """Base class of errors kftune raises on purpose (bad input, bad options)."""
+
+
+class DataError(KftuneError, ValueError):
+    """Input data are unusable. The message names the file, column and row at fault
+    (where they exist) and what was expected."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        file: str | None = None,
+        column: str | None = None,
+        row: int | None = None,
+    ) -> None:
+        where = []
+        if file is not None:
+            where.append(f"file {file}")
+        if column is not None:
+            where.append(f"column {column!r}")
+        if row is not None:
+            where.append(f"row {row}")
+        super().__init__(f"{', '.join(where)}: {message}" if where else message)
+        self.file = file
+        self.column = column
+        self.row = row
+
+
+class ConfigError(KftuneError, ValueError):
+    """An option or configuration value is invalid; the message names it."""

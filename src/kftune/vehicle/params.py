@@ -1,0 +1,186 @@
+"""Vehicle parameters of the single-track (bicycle) model with Dugoff axle forces.
+
+All quantities are SI. The parameter object is frozen: a filter or tuning run can hold it
+without copying, and two runs with equal parameters are guaranteed to see the same model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+import numpy as np
+
+#: Gravitational acceleration [m/s²].
+G = 9.81
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Single-track model parameters.
+
+    Attributes:
+        m: vehicle mass [kg].
+        Iz: yaw moment of inertia about the CG [kg·m²].
+        a: distance CG → front axle [m] (often written l_f).
+        b: distance CG → rear axle [m] (often written l_r).
+        h: CG height above ground [m]; drives longitudinal load transfer.
+        C_af: front-axle cornering stiffness [N/rad] (both tyres together).
+        C_ar: rear-axle cornering stiffness [N/rad] (both tyres together).
+        C_x: longitudinal slip stiffness per axle [N] (Dugoff; only matters with wheel slip).
+        mu: tyre–road friction coefficient [-], in (0, 2].
+        track_f: front track width [m] (informational; the single-track model lumps the axle).
+        track_r: rear track width [m] (informational).
+        steering_ratio: hand-wheel angle / road-wheel angle [-], used to convert recorded
+            hand-wheel angles; ``None`` when the data already hold the road-wheel angle.
+        name: a label for reports.
+    """
+
+    m: float
+    Iz: float
+    a: float
+    b: float
+    h: float
+    C_af: float
+    C_ar: float
+    C_x: float = 1.0e5
+    mu: float = 1.0
+    track_f: float = 1.5
+    track_r: float = 1.5
+    steering_ratio: float | None = None
+    name: str = "vehicle"
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if f.name in ("name", "steering_ratio"):
+                continue
+            value = getattr(self, f.name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"VehicleParams.{f.name} must be a finite number, got {value!r}")
+        positive = ("m", "Iz", "a", "b", "C_af", "C_ar", "C_x", "track_f", "track_r")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(
+                    f"VehicleParams.{name} must be > 0 (SI units), got {getattr(self, name)!r}"
+                )
+        if self.h < 0:
+            raise ValueError(f"VehicleParams.h (CG height) must be >= 0 m, got {self.h!r}")
+        if not 0.0 < self.mu <= 2.0:
+            raise ValueError(f"VehicleParams.mu must be in (0, 2], got {self.mu!r}")
+        if self.steering_ratio is not None and not (
+            math.isfinite(self.steering_ratio) and self.steering_ratio > 0
+        ):
+            raise ValueError(
+                f"VehicleParams.steering_ratio must be > 0 or None, got {self.steering_ratio!r}"
+            )
+
+    @property
+    def L(self) -> float:
+        """Wheelbase a + b [m]."""
+        return self.a + self.b
+
+    @property
+    def understeer_gradient(self) -> float:
+        """Linear understeer gradient K_us = m/L·(b/C_af − a/C_ar) [rad/(m/s²)].
+
+        Positive means understeer (Gillespie, *Fundamentals of Vehicle Dynamics*, Eq. 6-15,
+        with axle stiffnesses).
+        """
+        return self.m / self.L * (self.b / self.C_af - self.a / self.C_ar)
+
+    def to_array(self) -> np.ndarray:
+        """Pack the model parameters for the compiled kernels.
+
+        Returns:
+            (9,) float64 array ``[m, Iz, a, b, h, C_af, C_ar, C_x, mu]`` (indices in
+            :data:`PARAM_INDEX`).
+        """
+        return np.array(
+            [self.m, self.Iz, self.a, self.b, self.h, self.C_af, self.C_ar, self.C_x, self.mu],
+            dtype=np.float64,
+        )
+
+    def replace(self, **changes: Any) -> VehicleParams:
+        """Return a copy with some fields changed (validated again)."""
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict, suitable for JSON/TOML manifests."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> VehicleParams:
+        """Build from a dict, refusing unknown keys with a message that names them."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(
+                f"unknown vehicle parameter(s) {unknown}; expected some of {sorted(known)}"
+            )
+        return cls(**data)
+
+
+#: Index of each parameter in :meth:`VehicleParams.to_array`.
+PARAM_INDEX = {"m": 0, "Iz": 1, "a": 2, "b": 3, "h": 4, "C_af": 5, "C_ar": 6, "C_x": 7, "mu": 8}
+
+
+def _revs_250lm() -> VehicleParams:
+    # ../shared/data/revs-250lm/README.md: the parameters of the authors' own KF
+    # (Leanza, Reina & Blanco-Claraco 2021). μ and h are not given reliably there; μ = 1.2
+    # sits in the 1.0–1.3 range it quotes for a race car, h = 0.35 m is an assumption for a
+    # low race car (it only enters through longitudinal load transfer).
+    m = 982.0
+    return VehicleParams(
+        m=m,
+        Iz=m / 12.0 * (1.7**2 + 4.09**2),
+        a=1.33,
+        b=1.07,
+        h=0.35,
+        C_af=70.0e3,
+        C_ar=120.0e3,
+        mu=1.2,
+        track_f=1.35,
+        track_r=1.35,
+        steering_ratio=None,
+        name="revs-250lm race car",
+    )
+
+
+def _bmw_320i() -> VehicleParams:
+    # CommonRoad vehicle parameter set 2 (BMW 320i; Althoff & Würsching, "CommonRoad:
+    # Vehicle Models", 2020): m, I_z, a, b, h_cg, T_f, T_r as given there. The axle
+    # cornering stiffnesses are those of the reference dataset's plant tyres at static
+    # load (see kftune.data.generate), i.e. what an engineer would identify on the car.
+    return VehicleParams(
+        m=1093.2952334674046,
+        Iz=1791.5995300122856,
+        a=1.1561957064,
+        b=1.4227170936,
+        h=0.5748689544,
+        C_af=110.0e3,
+        C_ar=125.0e3,
+        C_x=1.5e5,
+        mu=1.0,
+        track_f=1.38684,
+        track_r=1.36398,
+        steering_ratio=15.0,
+        name="BMW 320i (CommonRoad parameter set 2)",
+    )
+
+
+#: Named presets; ``PRESETS[name]()`` is not needed — they are built once.
+PRESETS: dict[str, VehicleParams] = {
+    "revs-250lm": _revs_250lm(),
+    "bmw-320i": _bmw_320i(),
+}
+
+
+def preset(name: str) -> VehicleParams:
+    """Return a named preset, with a clear error listing the known names."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown vehicle preset {name!r}; known presets: {sorted(PRESETS)}"
+        ) from None

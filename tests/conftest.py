@@ -1,0 +1,39 @@
+"""Shared test fixtures.
+
+The real recording lives outside the repository, in ``../shared/data`` next to the checkout
+(override with the environment variable ``KFTUNE_SHARED_DATA``). Tests that need it use the
+``shared_data`` fixture and skip cleanly when it is absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path:
+    """Where ``../shared/data`` is expected (it may not exist)."""
+    env = os.environ.get("KFTUNE_SHARED_DATA")
+    return Path(env) if env else REPO_ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """Path of ``../shared/data``; skips the test when it is absent."""
+    path = shared_data_dir()
+    if not path.is_dir():
+        pytest.skip(f"shared data folder not present ({path.name} beside the repository)")
+    return path
+
+
+@pytest.fixture
+def revs_dir(shared_data: Path) -> Path:
+    """The real race-car recording; skips when absent."""
+    path = shared_data / "revs-250lm"
+    if not (path / "t.txt").is_file():
+        pytest.skip("revs-250lm recording not present")
+    return path
