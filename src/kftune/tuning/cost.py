@@ -1,0 +1,150 @@
+"""Tuning costs: the paper's weighted NRMSE (Eq. 14–15) and a NIS consistency cost.
+
+The functions here are pure and work on plain arrays, so they can be checked by hand. The
+tuning problem (:mod:`kftune.tuning.problem`) extracts the channels from filter runs and
+calls them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from kftune.errors import ConfigError
+
+#: Channels a cost can weigh: sideslip (against the reference sensor), yaw rate, lateral
+#: acceleration and longitudinal speed (against their measurements).
+CHANNELS: tuple[str, ...] = ("beta", "r", "ay", "vx")
+
+#: Paper Table III: W1 = 5 (β), W2 = 1 (yaw rate), W3 = 1 (ay).
+PAPER_WEIGHTS: Mapping[str, float] = {"beta": 5.0, "r": 1.0, "ay": 1.0}
+
+
+def _paper_weights() -> dict[str, float]:
+    return dict(PAPER_WEIGHTS)
+
+
+@dataclass(frozen=True)
+class CostSpec:
+    """Which cost to minimise.
+
+    Attributes:
+        kind: ``"nrmse"`` — the paper's J = Σ_j W_j·E_j (Eq. 14) over the weighted channels;
+            ``"nis"`` — the consistency cost |log(mean NIS / n_z)| of Chen et al. (2018),
+            which needs no reference sensor.
+        weights: channel → weight W_j ≥ 0 (``"nrmse"`` only); channels from
+            :data:`CHANNELS`.
+    """
+
+    kind: Literal["nrmse", "nis"] = "nrmse"
+    weights: Mapping[str, float] = field(default_factory=_paper_weights)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("nrmse", "nis"):
+            raise ConfigError(f"cost kind must be 'nrmse' or 'nis', got {self.kind!r}")
+        unknown = sorted(set(self.weights) - set(CHANNELS))
+        if unknown:
+            raise ConfigError(f"unknown cost channel(s) {unknown}; expected some of {CHANNELS}")
+        for name, w in self.weights.items():
+            if not (isinstance(w, (int, float)) and math.isfinite(w) and w >= 0):
+                raise ConfigError(
+                    f"cost weight for {name!r} must be a finite number >= 0, got {w!r}"
+                )
+        if self.kind == "nrmse" and not any(w > 0 for w in self.weights.values()):
+            raise ConfigError("at least one cost weight must be > 0")
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Channels with a positive weight, in :data:`CHANNELS` order."""
+        return tuple(c for c in CHANNELS if self.weights.get(c, 0.0) > 0)
+
+
+def nrmse(estimate: np.ndarray, reference: np.ndarray) -> float:
+    """Normalised RMSE of one channel in one manoeuvre (paper Eq. 15).
+
+    NRMSE = sqrt(mean((X̂ − X)²)) / max|X|.
+
+    Args:
+        estimate: (N,) estimated signal.
+        reference: (N,) reference (measured) signal, same unit.
+    """
+    estimate = np.asarray(estimate, dtype=float)
+    reference = np.asarray(reference, dtype=float)
+    if estimate.shape != reference.shape or estimate.ndim != 1 or estimate.size == 0:
+        raise ValueError(
+            f"estimate and reference must be non-empty 1-D arrays of equal length, got "
+            f"{estimate.shape} and {reference.shape}"
+        )
+    scale = float(np.max(np.abs(reference)))
+    if not scale > 0:
+        raise ValueError("cannot normalise: the reference signal is identically zero")
+    return float(np.sqrt(np.mean((estimate - reference) ** 2)) / scale)
+
+
+def pooled_error(nrmse_values: Sequence[float], n_samples: Sequence[int]) -> float:
+    """Pool per-manoeuvre NRMSEs by sample count (paper Eq. 14):
+
+    E_j = sqrt( Σ_i NRMSE_{j,i}² · N_i / Σ_i N_i ).
+
+    Args:
+        nrmse_values: (M,) NRMSE of one channel in each of M manoeuvres.
+        n_samples: (M,) sample counts N_i.
+    """
+    e = np.asarray(nrmse_values, dtype=float)
+    n = np.asarray(n_samples, dtype=float)
+    if e.shape != n.shape or e.ndim != 1 or e.size == 0:
+        raise ValueError(f"need equal-length non-empty 1-D inputs, got {e.shape} and {n.shape}")
+    if np.any(n <= 0):
+        raise ValueError("sample counts must be positive")
+    return float(np.sqrt(np.sum(e**2 * n) / np.sum(n)))
+
+
+def weighted_cost(
+    channel_nrmse: Mapping[str, Sequence[float]],
+    n_samples: Sequence[int],
+    weights: Mapping[str, float],
+) -> tuple[float, dict[str, float]]:
+    """The paper's cost J = Σ_j W_j·E_j (Eq. 14).
+
+    Args:
+        channel_nrmse: channel → (M,) NRMSE per manoeuvre, for every weighted channel.
+        n_samples: (M,) sample counts.
+        weights: channel → W_j; channels with weight 0 are ignored.
+
+    Returns:
+        (J, {channel: E_j}).
+    """
+    pooled: dict[str, float] = {}
+    total = 0.0
+    for channel, w in weights.items():
+        if w == 0:
+            continue
+        if channel not in channel_nrmse:
+            raise ValueError(f"no NRMSE values for weighted channel {channel!r}")
+        pooled[channel] = pooled_error(channel_nrmse[channel], n_samples)
+        total += w * pooled[channel]
+    return total, pooled
+
+
+def nis_cost(nis: Sequence[np.ndarray], n_z: int) -> float:
+    """Consistency cost from the normalised innovation squared (Chen et al., FUSION 2018).
+
+    For a consistent filter E[NIS] = n_z, so J_NIS = |log(mean NIS / n_z)| is 0 at
+    consistency and grows as the filter becomes over- or under-confident. The mean is taken
+    over all samples of all manoeuvres.
+
+    Args:
+        nis: per manoeuvre, (N_i,) NIS values.
+        n_z: measurement dimension.
+    """
+    values = np.concatenate([np.asarray(v, dtype=float).ravel() for v in nis])
+    if values.size == 0:
+        raise ValueError("no NIS values")
+    mean = float(np.mean(values))
+    if not (math.isfinite(mean) and mean > 0):
+        return math.inf
+    return abs(math.log(mean / n_z))
