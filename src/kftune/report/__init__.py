@@ -1,1 +1,144 @@
-"""kftune.report."""
+"""Reports: paper-style tables and figures from stored experiment results.
+
+``write_report(results, directory)`` writes ``report.md``, ``figures/*.png`` and
+``tables/*.csv``; it reads nothing but the results, so a report can always be rebuilt.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from kftune.report import plots
+from kftune.report.results import ExperimentResults, MethodRun
+from kftune.report.tables import (
+    Table,
+    cost_table,
+    kpi_table,
+    per_manoeuvre_table,
+    relative_improvement,
+)
+
+__all__ = ["ExperimentResults", "MethodRun", "Table", "all_tables", "write_report"]
+
+
+def all_tables(results: ExperimentResults) -> dict[str, Table]:
+    """The report's tables by file stem."""
+    tables = {"cost": cost_table(results)}
+    splits = {s for m in results.methods for s in m.averages}
+    for split in ("train", "test"):
+        if split in splits:
+            tables[f"kpi_{split}"] = kpi_table(results, split)
+    tables["per_manoeuvre"] = per_manoeuvre_table(results)
+    tables["parameters"] = _parameter_table(results)
+    return tables
+
+
+def _parameter_table(results: ExperimentResults) -> Table:
+    names = sorted({p for m in results.methods for p in m.params})
+    rows = tuple(
+        (m.label, *(float(m.params.get(p, math.nan)) for p in names)) for m in results.methods
+    )
+    return Table(title="Tuned parameters", header=("Method", *names), rows=rows)
+
+
+def write_report(results: ExperimentResults, directory: str | Path) -> Path:
+    """Write the Markdown report with its figures and CSV tables.
+
+    Returns:
+        Path of ``report.md``.
+    """
+    out = Path(directory)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    (out / "tables").mkdir(parents=True, exist_ok=True)
+    tables = all_tables(results)
+    for stem, table in tables.items():
+        table.write_csv(out / "tables" / f"{stem}.csv")
+
+    keys = {m.key for m in results.methods}
+    figures: list[tuple[str, str, str]] = []  # (file, heading, caption)
+    plots.save(plots.convergence(results), out / "figures" / "convergence.png")
+    figures.append(
+        (
+            "convergence.png",
+            "Convergence (cf. paper Fig. 6)",
+            "Best training cost against cost evaluations and against wall time.",
+        )
+    )
+    if {"ga", "tsbo-tsp"} <= keys and relative_improvement(results):
+        plots.save(plots.improvement(results), out / "figures" / "improvement_test.png")
+        figures.append(
+            (
+                "improvement_test.png",
+                "TSBO-tSP against GA per manoeuvre (cf. paper Fig. 7)",
+                "Relative RMSE improvement of the TSBO-tSP-tuned UKF over the GA-tuned one "
+                "on every test manoeuvre, for β, yaw rate and ay.",
+            )
+        )
+    for name in results.traces:
+        stem = f"beta_{_slug(name)}.png"
+        shown = tuple(k for k in ("ga", "tsbo-tsp") if k in keys)
+        plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
+        kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
+        figures.append(
+            (
+                stem,
+                f"Sideslip estimate, {name}"
+                + (f" ({kind})" if kind else "")
+                + " (cf. paper Figs. 8–10)",
+                "β estimated by the GA- and TSBO-tSP-tuned filters against the reference.",
+            )
+        )
+    if results.cost_slice:
+        plots.save(plots.cost_slice(results), out / "figures" / "cost_slice.png")
+        figures.append(
+            (
+                "cost_slice.png",
+                "Surrogate fits of the cost (cf. paper Fig. 2)",
+                "A one-dimensional slice of the training cost through the TSBO-tSP optimum, "
+                "with GP and Student-t process fits to a few of its points.",
+            )
+        )
+
+    md = [f"# kftune report — {results.meta.get('dataset', {}).get('name', 'dataset')}", ""]
+    md += _meta_lines(results.meta)
+    for stem in ("cost", "kpi_train", "kpi_test", "parameters"):
+        if stem in tables:
+            md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
+    for file, heading, caption in figures:
+        md += [f"## {heading}", "", caption, "", f"![{heading}](figures/{file})", ""]
+    md += [
+        "Per-manoeuvre metrics of every method: `tables/per_manoeuvre.csv`; "
+        "all numbers: `results.json`.",
+        "",
+    ]
+    path = out / "report.md"
+    path.write_text("\n".join(md))
+    return path
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def _meta_lines(meta: dict) -> list[str]:
+    lines = []
+    ds = meta.get("dataset", {})
+    if ds:
+        lines.append(
+            f"- Dataset: **{ds.get('name', '?')}** — {ds.get('n_train', '?')} training and "
+            f"{ds.get('n_test', '?')} test manoeuvres"
+            + (f", vehicle: {ds['vehicle']}" if "vehicle" in ds else "")
+        )
+    for key, label in (
+        ("cost", "Cost"),
+        ("parameters", "Tuned parameters"),
+        ("R", "Measurement noise R (from sensor statistics)"),
+        ("seed", "Seed"),
+        ("created", "Created"),
+        ("kftune_version", "kftune version"),
+        ("machine", "Machine"),
+    ):
+        if key in meta:
+            lines.append(f"- {label}: {meta[key]}")
+    return [*lines, ""]

@@ -1,0 +1,158 @@
+"""Paper-style figures (Figs. 2, 6, 7, 8–10), drawn with matplotlib's Agg backend.
+
+Every function takes stored :class:`~kftune.report.results.ExperimentResults` and returns a
+matplotlib ``Figure``; :func:`save` writes it as PNG and closes it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.figure import Figure
+
+from kftune.report.results import ExperimentResults
+from kftune.report.tables import CHANNEL_METRICS, relative_improvement
+
+#: Fixed colours per method so every figure agrees.
+COLOURS = {
+    "manual": "#7f7f7f",
+    "ga": "#d62728",
+    "tsbo-gp": "#1f77b4",
+    "tsbo-tsp": "#2ca02c",
+    "tsbo-robust": "#9467bd",
+    "random": "#8c564b",
+    "reference": "#000000",
+}
+
+
+def _colour(key: str) -> str | None:
+    return COLOURS.get(key)
+
+
+def save(fig: Figure, path: str | Path, dpi: int = 130) -> Path:
+    """Write a figure as PNG and release it."""
+    path = Path(path)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def convergence(results: ExperimentResults) -> Figure:
+    """Fig. 6: best cost so far against evaluations (left) and against wall time (right)."""
+    fig, (ax_n, ax_t) = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for m in results.methods:
+        best = m.best_so_far()
+        if m.n_evals <= 1:  # a fixed point (manual tuning): a reference line
+            for ax in (ax_n, ax_t):
+                ax.axhline(m.best_cost, color=_colour(m.key), ls=":", label=m.label)
+            continue
+        n = np.arange(1, best.size + 1)
+        ax_n.step(n, best, where="post", color=_colour(m.key), label=m.label)
+        ax_t.step(m.history_time_s, best, where="post", color=_colour(m.key), label=m.label)
+    ax_n.set_xlabel("cost evaluations")
+    ax_t.set_xlabel("tuning wall time [s]")
+    ax_t.set_xscale("log")
+    ax_n.set_ylabel("best cost J [-]")
+    for ax in (ax_n, ax_t):
+        ax.set_yscale("log")
+        ax.grid(True, which="both", alpha=0.3)
+    ax_n.legend(fontsize=8)
+    fig.suptitle("Convergence of the tuning methods (training set)")
+    return fig
+
+
+def improvement(
+    results: ExperimentResults,
+    baseline: str = "ga",
+    method: str = "tsbo-tsp",
+    split: str = "test",
+    manoeuvres: list[str] | None = None,
+) -> Figure:
+    """Fig. 7: per-manoeuvre relative RMSE improvement of ``method`` over ``baseline``."""
+    rel = relative_improvement(results, baseline, method, split)
+    names = [n for n in (manoeuvres or list(rel)) if n in rel]
+    x = np.arange(len(names))
+    width = 0.8 / len(CHANNEL_METRICS)
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(names) + 2), 3.8))
+    for i, (metric, label) in enumerate(CHANNEL_METRICS.items()):
+        values = [rel[n][metric] for n in names]
+        ax.bar(x + (i - 1) * width, values, width, label=f"RMSE {label}")
+    ax.axhline(0.0, color="black", lw=0.8)
+    ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
+    ax.set_ylabel("relative improvement [%]")
+    b, m = results.method(baseline).label, results.method(method).label
+    ax.set_title(f"{m} vs {b}, {split} set (positive: {m} better)")
+    ax.legend(fontsize=8)
+    ax.grid(True, axis="y", alpha=0.3)
+    return fig
+
+
+def beta_trace(
+    results: ExperimentResults, manoeuvre: str, methods: tuple[str, ...] = ("ga", "tsbo-tsp")
+) -> Figure:
+    """Figs. 8–10: sideslip estimate against the reference in one manoeuvre, with errors."""
+    tr = results.traces[manoeuvre]
+    t = tr["t"]
+    ref = np.degrees(tr["beta_ref"])
+    fig, (ax, ax_e) = plt.subplots(
+        2, 1, figsize=(8, 4.8), sharex=True, gridspec_kw={"height_ratios": [2, 1]}
+    )
+    ax.plot(t, ref, color=COLOURS["reference"], lw=1.4, label="reference")
+    for key in methods:
+        if f"beta_{key}" not in tr:
+            continue
+        est = np.degrees(tr[f"beta_{key}"])
+        label = results.method(key).label
+        ax.plot(t, est, color=_colour(key), lw=1.0, label=label)
+        ax_e.plot(t, est - ref, color=_colour(key), lw=0.9, label=label)
+    kind = results.meta.get("manoeuvres", {}).get(manoeuvre, {}).get("kind", "")
+    ax.set_title(f"Sideslip angle, {manoeuvre}" + (f" ({kind})" if kind else ""))
+    ax.set_ylabel("β [deg]")
+    ax.legend(fontsize=8)
+    ax_e.axhline(0.0, color="black", lw=0.6)
+    ax_e.set_ylabel("error [deg]")
+    ax_e.set_xlabel("time [s]")
+    for a in (ax, ax_e):
+        a.grid(True, alpha=0.3)
+    return fig
+
+
+def cost_slice(results: ExperimentResults) -> Figure:
+    """Fig. 2: a one-dimensional slice of the cost with the GP and tSP fits (±2 std)."""
+    sl = results.cost_slice
+    if not sl:
+        raise ValueError("these results hold no cost slice")
+    grid = np.asarray(sl["grid"], dtype=float)
+    cost = np.asarray(sl["cost"], dtype=float)
+    idx = np.asarray(sl["sample_index"], dtype=int)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(grid, cost, color="black", lw=1.0, label="cost J (dense evaluation)")
+    ax.plot(grid[idx], cost[idx], "ko", ms=5, label="surrogate training points")
+    styles = {"gp": ("tsbo-gp", "GP"), "tsp": ("tsbo-tsp", "tSP")}
+    for name, fit in sl.get("fits", {}).items():
+        key, label = styles.get(name, (name, name))
+        mean = np.asarray(fit["mean"], dtype=float)
+        std = np.asarray(fit["std"], dtype=float)
+        colour = _colour(key)
+        ax.plot(grid, mean, color=colour, lw=1.4, label=f"{label} mean")
+        ax.fill_between(
+            grid, mean - 2 * std, mean + 2 * std, color=colour, alpha=0.18, label=f"{label} ±2 std"
+        )
+    if sl.get("log_scale", True):
+        ax.set_xscale("log")
+    lo, hi = np.nanmin(cost), np.nanmax(cost)
+    if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
+        pad = 0.25 * (hi - lo)
+        ax.set_ylim(lo - pad, hi + pad)
+    ax.set_xlabel(f"{sl['parameter']} (other parameters at the TSBO-tSP optimum)")
+    ax.set_ylabel("cost J [-]")
+    ax.set_title("GP and Student-t process fits of a slice of the cost")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    return fig

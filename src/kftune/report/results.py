@@ -1,0 +1,194 @@
+"""The stored results of a tuning experiment: what ``compare`` writes and ``report`` reads.
+
+A results directory holds ``results.json`` (everything but long signals) and
+``traces.npz`` (β time series for the figures). The report is a pure function of these two
+files, so ``kftune report`` rebuilds identical tables without re-running anything.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kftune.errors import DataError
+
+RESULTS_FILE = "results.json"
+TRACES_FILE = "traces.npz"
+SCHEMA_VERSION = 1
+
+
+@dataclass
+class MethodRun:
+    """One tuning method's run and the evaluation of its tuned filter.
+
+    Attributes:
+        key: method identifier (``"tsbo-tsp"``, ``"ga"``, ...).
+        label: name for tables and legends (``"TSBO - tSP"``).
+        params: tuned parameters in natural units (e.g. ``{"q_vx": 1e-3, ...}``).
+        best_cost: best training cost J found [-].
+        n_evals: number of cost evaluations (failed ones included).
+        wall_time_s: wall time of the whole tuning run [s].
+        history_cost: (n_evals,) cost of each evaluation in order (NaN where it failed).
+        history_time_s: (n_evals,) wall time since the start when each evaluation finished [s].
+        metrics: split → manoeuvre name → metric → value. Metrics: the β KPIs
+            ``rmse, mae, rmse_non, mae_non`` [deg] and channel RMSEs ``rmse_beta`` [deg],
+            ``rmse_r`` [deg/s], ``rmse_ay`` [m/s²].
+        averages: split → KPI → value averaged over the split's manoeuvres.
+        extra: free-form, JSON-serialisable (stage per evaluation, failures, ...).
+    """
+
+    key: str
+    label: str
+    params: dict[str, float]
+    best_cost: float
+    n_evals: int
+    wall_time_s: float
+    history_cost: list[float]
+    history_time_s: list[float]
+    metrics: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+    averages: dict[str, dict[str, float]] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def best_so_far(self) -> np.ndarray:
+        """(n_evals,) running minimum of the cost, ignoring failed evaluations (NaN
+        until the first success)."""
+        costs = np.asarray(self.history_cost, dtype=float)
+        filled = np.where(np.isfinite(costs), costs, np.inf)
+        best = np.minimum.accumulate(filled) if filled.size else filled
+        return np.where(np.isfinite(best), best, np.nan)
+
+
+@dataclass
+class ExperimentResults:
+    """Everything a report needs.
+
+    Attributes:
+        meta: dataset, vehicle, configuration, versions, date.
+        methods: the runs, in report order (manual first, the proposed method last).
+        cost_slice: optional one-dimensional slice of the cost with surrogate fits (Fig. 2):
+            keys ``parameter``, ``grid`` (natural units), ``cost``, ``sample_index`` and per
+            surrogate ``{"mean": [...], "std": [...]}`` under ``fits``.
+        traces: manoeuvre name → signal name → (N,) array; signals ``t`` [s],
+            ``beta_ref`` [rad] and ``beta_<method key>`` [rad].
+    """
+
+    meta: dict[str, Any]
+    methods: list[MethodRun]
+    cost_slice: dict[str, Any] | None = None
+    traces: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+    def method(self, key: str) -> MethodRun:
+        """The run of a method, by key."""
+        for m in self.methods:
+            if m.key == key:
+                return m
+        raise KeyError(f"no method {key!r} in results; have {[m.key for m in self.methods]}")
+
+    def save(self, directory: str | Path) -> Path:
+        """Write ``results.json`` and ``traces.npz`` into ``directory`` (created)."""
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        doc = {
+            "schema": SCHEMA_VERSION,
+            "meta": self.meta,
+            "methods": [asdict(m) for m in self.methods],
+            "cost_slice": self.cost_slice,
+        }
+        (out / RESULTS_FILE).write_text(json.dumps(_jsonable(doc), indent=1) + "\n")
+        flat = {
+            f"{man}::{sig}": np.asarray(arr)
+            for man, sigs in self.traces.items()
+            for sig, arr in sigs.items()
+        }
+        np.savez_compressed(out / TRACES_FILE, **flat)
+        return out
+
+    @classmethod
+    def load(cls, directory: str | Path) -> ExperimentResults:
+        """Read a results directory written by :meth:`save`."""
+        src = Path(directory)
+        path = src / RESULTS_FILE
+        if not path.is_file():
+            raise DataError(
+                f"no {RESULTS_FILE} here; expected a results directory written by 'kftune compare'",
+                file=str(src),
+            )
+        try:
+            doc = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise DataError(f"not valid JSON ({exc})", file=str(path)) from None
+        if doc.get("schema") != SCHEMA_VERSION:
+            raise DataError(
+                f"results schema {doc.get('schema')!r} is not the supported {SCHEMA_VERSION}",
+                file=str(path),
+            )
+        methods = [_method_from_json(m) for m in doc["methods"]]
+        traces: dict[str, dict[str, np.ndarray]] = {}
+        if (src / TRACES_FILE).is_file():
+            with np.load(src / TRACES_FILE) as npz:
+                for key in npz.files:
+                    man, sig = key.split("::", 1)
+                    traces.setdefault(man, {})[sig] = npz[key]
+        return cls(
+            meta=doc["meta"],
+            methods=methods,
+            cost_slice=_numbers(doc["cost_slice"]) if doc.get("cost_slice") else None,
+            traces=traces,
+        )
+
+
+def _jsonable(obj: Any) -> Any:
+    """Convert numpy scalars/arrays and non-finite floats for strict JSON (NaN → null,
+    ±inf → "inf"/"-inf")."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        if math.isnan(f):
+            return None
+        if math.isinf(f):
+            return "inf" if f > 0 else "-inf"
+        return f
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def _numbers(obj: Any) -> Any:
+    """Inverse of :func:`_jsonable` inside numeric containers: null → NaN, "inf" → inf."""
+    if isinstance(obj, dict):
+        return {k: _numbers(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_numbers(v) for v in obj]
+    if obj is None:
+        return math.nan
+    if obj == "inf":
+        return math.inf
+    if obj == "-inf":
+        return -math.inf
+    return obj
+
+
+_NUMERIC_FIELDS = (
+    "params",
+    "best_cost",
+    "wall_time_s",
+    "history_cost",
+    "history_time_s",
+    "metrics",
+    "averages",
+)
+
+
+def _method_from_json(doc: dict[str, Any]) -> MethodRun:
+    """A :class:`MethodRun` from its JSON form (numeric fields restored, ``extra`` as is)."""
+    return MethodRun(**{k: _numbers(v) if k in _NUMERIC_FIELDS else v for k, v in doc.items()})

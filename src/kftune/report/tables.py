@@ -1,0 +1,168 @@
+"""Paper-style tables (Tables V–VII) as plain rows, rendered to Markdown and CSV.
+
+A table is a header plus rows of cells; numbers stay numbers until rendering, so the same
+table feeds the Markdown report, the CSV files and ``--json`` output.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from kftune.report.results import ExperimentResults
+from kftune.tuning.kpi import KPI_NAMES
+
+KPI_LABELS = {
+    "rmse": "RMSE [deg]",
+    "mae": "MAE [deg]",
+    "rmse_non": "RMSE_NON [deg]",
+    "mae_non": "MAE_NON [deg]",
+}
+
+#: Channel RMSE metrics compared in Fig. 7, with their labels.
+CHANNEL_METRICS = {"rmse_beta": "β", "rmse_r": "yaw rate", "rmse_ay": "ay"}
+
+
+@dataclass(frozen=True)
+class Table:
+    """A titled table. ``bold`` marks (row, column) cells holding the best value."""
+
+    title: str
+    header: tuple[str, ...]
+    rows: tuple[tuple[object, ...], ...]
+    bold: frozenset[tuple[int, int]] = frozenset()
+
+    def to_markdown(self, digits: int = 3) -> str:
+        """GitHub-flavoured Markdown, best values in bold."""
+        lines = [
+            "| " + " | ".join(self.header) + " |",
+            "|" + "|".join(" --- " for _ in self.header) + "|",
+        ]
+        for i, row in enumerate(self.rows):
+            cells = []
+            for j, cell in enumerate(row):
+                text = _fmt(cell, digits)
+                cells.append(f"**{text}**" if (i, j) in self.bold else text)
+            lines.append("| " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+    def write_csv(self, path: str | Path) -> None:
+        """Write header and rows (full precision) to a CSV file."""
+        with open(path, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(self.header)
+            for row in self.rows:
+                writer.writerow(["" if _isnan(c) else c for c in row])
+
+    def to_records(self) -> list[dict[str, object]]:
+        """Rows as dicts keyed by the header (for JSON)."""
+        return [dict(zip(self.header, row)) for row in self.rows]
+
+
+def _isnan(x: object) -> bool:
+    return isinstance(x, float) and math.isnan(x)
+
+
+def _fmt(x: object, digits: int) -> str:
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return str(x)
+    if isinstance(x, int):
+        return str(x)
+    if math.isnan(x):
+        return "–"
+    if x != 0 and (abs(x) < 10 ** (-digits) or abs(x) >= 1e6):
+        return f"{x:.{digits - 1}e}"
+    return f"{x:.{digits}f}"
+
+
+def _best_cells(rows: Sequence[Sequence[object]], first_col: int) -> frozenset[tuple[int, int]]:
+    """(row, col) of the smallest finite value in each row, from ``first_col`` on."""
+    bold = set()
+    for i, row in enumerate(rows):
+        values = [
+            (v, j)
+            for j, v in enumerate(row)
+            if j >= first_col and isinstance(v, float) and math.isfinite(v)
+        ]
+        if values:
+            best = min(v for v, _ in values)
+            bold.update((i, j) for v, j in values if v == best)
+    return frozenset(bold)
+
+
+def cost_table(results: ExperimentResults) -> Table:
+    """Paper Table V: best training cost, evaluations and tuning time per method."""
+    rows = []
+    for m in results.methods:
+        per_eval = m.wall_time_s / m.n_evals * 1e3 if m.n_evals else math.nan
+        rows.append((m.label, float(m.best_cost), int(m.n_evals), float(m.wall_time_s), per_eval))
+    bold = {(i, 1) for i, _ in enumerate(rows) if rows[i][1] == min(r[1] for r in rows)}
+    return Table(
+        title="Best cost and tuning effort (training set; cf. paper Table V)",
+        header=("Method", "Best cost J [-]", "Evaluations", "Tuning time [s]", "Time/eval [ms]"),
+        rows=tuple(rows),
+        bold=frozenset(bold),
+    )
+
+
+def kpi_table(results: ExperimentResults, split: str) -> Table:
+    """Paper Tables VI (``split="train"``) and VII (``"test"``): average β KPIs."""
+    rows = tuple(
+        (
+            KPI_LABELS[k],
+            *(float(m.averages.get(split, {}).get(k, math.nan)) for m in results.methods),
+        )
+        for k in KPI_NAMES
+    )
+    which = "training" if split == "train" else "test"
+    number = "VI" if split == "train" else "VII"
+    return Table(
+        title=f"Average sideslip KPIs on the {which} set (cf. paper Table {number})",
+        header=("KPI", *(m.label for m in results.methods)),
+        rows=rows,
+        bold=_best_cells(rows, first_col=1),
+    )
+
+
+def per_manoeuvre_table(results: ExperimentResults) -> Table:
+    """Every metric of every method on every manoeuvre (long format, for CSV)."""
+    metrics = (*KPI_NAMES, *CHANNEL_METRICS)
+    rows = []
+    for m in results.methods:
+        for split, per in m.metrics.items():
+            for name, values in per.items():
+                rows.append(
+                    (m.key, split, name, *(float(values.get(k, math.nan)) for k in metrics))
+                )
+    return Table(
+        title="Per-manoeuvre metrics",
+        header=("method", "split", "manoeuvre", *metrics),
+        rows=tuple(rows),
+    )
+
+
+def relative_improvement(
+    results: ExperimentResults, baseline: str = "ga", method: str = "tsbo-tsp", split: str = "test"
+) -> dict[str, dict[str, float]]:
+    """Per-manoeuvre relative improvement of ``method`` over ``baseline`` (paper Fig. 7).
+
+    improvement = 100·(RMSE_baseline − RMSE_method)/RMSE_baseline [%] for the channels of
+    :data:`CHANNEL_METRICS`; positive means ``method`` is better.
+
+    Returns:
+        manoeuvre → channel metric → improvement [%].
+    """
+    base = results.method(baseline).metrics.get(split, {})
+    new = results.method(method).metrics.get(split, {})
+    out: dict[str, dict[str, float]] = {}
+    for name in base:
+        if name not in new:
+            continue
+        out[name] = {}
+        for metric in CHANNEL_METRICS:
+            b, n = base[name].get(metric, math.nan), new[name].get(metric, math.nan)
+            out[name][metric] = 100.0 * (b - n) / b if b > 0 else math.nan
+    return out

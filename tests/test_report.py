@@ -1,0 +1,168 @@
+"""Report: results round trip, tables by hand, figures written."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from kftune.errors import DataError
+from kftune.report import ExperimentResults, MethodRun, all_tables, write_report
+from kftune.report.tables import relative_improvement
+
+
+def _metrics(scale: float) -> dict:
+    return {
+        "skidpad-1": {
+            "rmse": 0.5 * scale,
+            "mae": 1.0 * scale,
+            "rmse_non": 0.6 * scale,
+            "mae_non": 1.0 * scale,
+            "rmse_beta": 0.5 * scale,
+            "rmse_r": 0.2 * scale,
+            "rmse_ay": 0.3 * scale,
+        },
+        "slalom-1": {
+            "rmse": 0.3 * scale,
+            "mae": 0.8 * scale,
+            "rmse_non": math.nan,
+            "mae_non": math.nan,
+            "rmse_beta": 0.3 * scale,
+            "rmse_r": 0.1 * scale,
+            "rmse_ay": 0.2 * scale,
+        },
+    }
+
+
+@pytest.fixture
+def results() -> ExperimentResults:
+    t = np.linspace(0, 5, 501)
+    runs = []
+    for key, label, scale, n in (
+        ("manual", "Manual", 2.0, 1),
+        ("ga", "GA", 1.0, 30),
+        ("tsbo-tsp", "TSBO - tSP", 0.8, 12),
+    ):
+        costs = list(np.linspace(2.0, scale, n))
+        if n > 3:
+            costs[2] = math.nan  # a failed evaluation
+        runs.append(
+            MethodRun(
+                key=key,
+                label=label,
+                params={"q_vx": 1e-3 * scale, "q_vy": 1e-5},
+                best_cost=scale,
+                n_evals=n,
+                wall_time_s=0.1 * n,
+                history_cost=costs,
+                history_time_s=list(0.1 * np.arange(1, n + 1)),
+                metrics={"test": _metrics(scale)},
+                averages={
+                    "train": {
+                        "rmse": scale,
+                        "mae": 2 * scale,
+                        "rmse_non": math.nan,
+                        "mae_non": 1.0,
+                    },
+                    "test": {"rmse": scale, "mae": 2 * scale, "rmse_non": scale, "mae_non": 1.0},
+                },
+                extra={"stage": [None] * n},
+            )
+        )
+    grid = np.logspace(-6, 0, 20)
+    return ExperimentResults(
+        meta={
+            "dataset": {"name": "synthetic", "n_train": 1, "n_test": 2},
+            "manoeuvres": {"skidpad-1": {"kind": "skidpad", "split": "test"}},
+        },
+        methods=runs,
+        cost_slice={
+            "parameter": "q_vy",
+            "grid": grid.tolist(),
+            "cost": (1 + np.log10(grid) ** 2 / 10).tolist(),
+            "sample_index": [0, 5, 10],
+            "fits": {
+                "gp": {"mean": np.ones(20).tolist(), "std": np.full(20, 0.1).tolist()},
+                "tsp": {"mean": np.ones(20).tolist(), "std": np.full(20, 0.2).tolist()},
+            },
+        },
+        traces={
+            "skidpad-1": {
+                "t": t,
+                "beta_ref": 0.01 * np.sin(t),
+                "beta_ga": 0.011 * np.sin(t),
+                "beta_tsbo-tsp": 0.0105 * np.sin(t),
+            }
+        },
+    )
+
+
+def test_save_load_round_trip(results, tmp_path):
+    results.save(tmp_path)
+    # strict JSON: no NaN/Infinity tokens
+    json.loads(
+        (tmp_path / "results.json").read_text(),
+        parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"),
+    )
+    back = ExperimentResults.load(tmp_path)
+    assert [m.key for m in back.methods] == ["manual", "ga", "tsbo-tsp"]
+    ga = back.method("ga")
+    assert (
+        math.isnan(ga.history_cost[2])
+        and ga.history_cost[:2] == results.method("ga").history_cost[:2]
+    )
+    assert math.isnan(ga.metrics["test"]["slalom-1"]["rmse_non"])
+    assert ga.extra == {"stage": [None] * 30}
+    np.testing.assert_array_equal(
+        back.traces["skidpad-1"]["beta_ga"], results.traces["skidpad-1"]["beta_ga"]
+    )
+    assert back.cost_slice["sample_index"] == [0, 5, 10]
+
+
+def test_load_errors_name_the_file(tmp_path):
+    with pytest.raises(DataError, match=r"results\.json"):
+        ExperimentResults.load(tmp_path)
+    (tmp_path / "results.json").write_text("{not json")
+    with pytest.raises(DataError, match="not valid JSON"):
+        ExperimentResults.load(tmp_path)
+
+
+def test_best_so_far_skips_failures(results):
+    best = results.method("ga").best_so_far()
+    assert best[2] == best[1]  # the failed evaluation does not change the running best
+    assert np.all(np.diff(best) <= 0)
+
+
+def test_tables(results):
+    tables = all_tables(results)
+    cost = tables["cost"]
+    assert cost.rows[2][:3] == ("TSBO - tSP", 0.8, 12)
+    assert (2, 1) in cost.bold  # lowest cost in bold
+    kpi = tables["kpi_test"]
+    assert kpi.header == ("KPI", "Manual", "GA", "TSBO - tSP")
+    assert kpi.rows[0] == ("RMSE [deg]", 2.0, 1.0, 0.8)
+    assert (0, 3) in kpi.bold and (3, 1) in kpi.bold and (3, 2) in kpi.bold  # ties all bold
+    md = tables["kpi_train"].to_markdown()
+    assert "| RMSE_NON [deg] | – | – | – |" in md
+    rel = relative_improvement(results)
+    assert rel["skidpad-1"]["rmse_beta"] == pytest.approx(20.0)
+
+
+def test_write_report_writes_everything(results, tmp_path):
+    path = write_report(results, tmp_path / "rep")
+    text = path.read_text()
+    for fig in ("convergence.png", "improvement_test.png", "beta_skidpad-1.png", "cost_slice.png"):
+        assert (tmp_path / "rep" / "figures" / fig).stat().st_size > 5000
+        assert f"figures/{fig}" in text
+    for csv in ("cost", "kpi_train", "kpi_test", "per_manoeuvre", "parameters"):
+        assert (tmp_path / "rep" / "tables" / f"{csv}.csv").is_file()
+    # rebuilding from the stored results gives identical tables
+    results.save(tmp_path / "res")
+    path2 = write_report(ExperimentResults.load(tmp_path / "res"), tmp_path / "rep2")
+    assert path2.read_text() == text
+    for csv in ("cost", "kpi_test", "per_manoeuvre"):
+        assert (tmp_path / "rep2" / "tables" / f"{csv}.csv").read_text() == (
+            tmp_path / "rep" / "tables" / f"{csv}.csv"
+        ).read_text()
