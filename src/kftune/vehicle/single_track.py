@@ -96,13 +96,13 @@ def pack_params(p: VehicleParams | ArrayLike) -> np.ndarray:
     for name, i in PARAM_INDEX.items():
         v = arr[i]
         if not math.isfinite(v):
-            raise ValueError(f"params[{i}] ({name}) must be finite, got {v!r}")
+            raise ValueError(f"params[{i}] ({name}) must be finite, got {float(v)}")
         if name in _POSITIVE and v <= 0:
-            raise ValueError(f"params[{i}] ({name}) must be > 0 (SI units), got {v!r}")
+            raise ValueError(f"params[{i}] ({name}) must be > 0 (SI units), got {float(v)}")
     if arr[PARAM_INDEX["h"]] < 0:
-        raise ValueError(f"params[4] (h) must be >= 0 m, got {arr[4]!r}")
+        raise ValueError(f"params[4] (h) must be >= 0 m, got {float(arr[4])}")
     if not 0.0 < arr[PARAM_INDEX["mu"]] <= 2.0:
-        raise ValueError(f"params[8] (mu) must be in (0, 2], got {arr[8]!r}")
+        raise ValueError(f"params[8] (mu) must be in (0, 2], got {float(arr[8])}")
     return arr
 
 

@@ -39,7 +39,7 @@ def _check_finite(name: str, value: np.ndarray) -> None:
         bad = np.argwhere(~np.isfinite(np.atleast_1d(value)))[0]
         raise ValueError(
             f"dugoff_lateral_force: {name} must be finite, got "
-            f"{np.atleast_1d(value)[tuple(bad)]!r} at index {tuple(int(i) for i in bad)}"
+            f"{float(np.atleast_1d(value)[tuple(bad)])} at index {tuple(int(i) for i in bad)}"
         )
 
 

@@ -1,0 +1,628 @@
+"""Unscented Kalman filter for vehicle sideslip: compiled entry points and a numpy reference.
+
+Model (paper Sec. V, :mod:`kftune.vehicle.single_track`): x = [Vx, Vy, r], u = [δ, ax],
+z = [Vx, ay, r]; additive Gaussian process and measurement noise with diagonal
+Q = diag(q) and R = diag(r) (variances in SI units: q in (m/s)², (m/s)², (rad/s)² per
+step; r in (m/s)², (m/s²)², (rad/s)²).
+
+Time convention (the same in the kernel, the reference path and the tests' FilterPy run):
+
+* sample k carries u[k] and z[k] (taken at t_k = k·dt);
+* step 0 has no prediction: the prior at t_0 is (x0, P0) and is updated with z[0];
+* step k ≥ 1 predicts t_{k−1} → t_k through one RK4 step with u[k−1] held over the
+  interval (zero-order hold), then updates with z[k], the measurement model using u[k]
+  (ay depends on δ and, through the load transfer, on ax at t_k);
+* the sigma points of the update are redrawn from the predicted (x̄, P̄) (as FilterPy's
+  ``UnscentedKalmanFilter.predict`` does), not reused from the prediction.
+
+Defaults: x0 = [z[0, Vx], 0, z[0, r]] (no lateral velocity at the start) and
+P0 = diag(r_Vx, (0.05·z[0, Vx])², r_r): the measured states as uncertain as their sensors,
+Vy with a standard deviation of 5 % of the speed (a sideslip of about 3°).
+
+Outputs per step k: the posterior state x⁺_k, diag P⁺_k, the estimated measurements
+z_hat_k = h(x⁺_k, u_k) (the tuning cost compares their ay and r columns), the innovation
+z_k − ẑ⁻_k (ẑ⁻_k the unscented prediction of the measurement) and its normalised square
+NIS_k = (z_k − ẑ⁻_k)ᵀ S_k⁻¹ (z_k − ẑ⁻_k).
+
+Robustness: see :mod:`kftune.filters._kernel` — covariance repair by jitter, and divergence
+reported as ``diverged``/``diverged_step`` with NaN rows from that step on, never an
+exception. Bad inputs are refused before the run with a ``ValueError`` naming the argument,
+the row and what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from kftune.filters import _kernel
+from kftune.filters.sigma_points import (
+    UKFSettings,
+    merwe_weights,
+    unscented_transform,
+)
+from kftune.vehicle.params import VehicleParams
+from kftune.vehicle.single_track import measure, pack_params, step_rk4
+
+__all__ = [
+    "P0_VY_SPEED_FRACTION",
+    "FilterDiverged",
+    "UKFBatchResult",
+    "UKFResult",
+    "UnscentedKalmanFilter",
+    "default_initial_state",
+    "run_ukf",
+    "run_ukf_batch",
+    "run_ukf_linear",
+    "run_ukf_reference",
+]
+
+#: Default prior standard deviation of Vy as a fraction of the first measured Vx [-].
+P0_VY_SPEED_FRACTION = 0.05
+
+_U_COLS = ("delta", "ax")
+_Z_COLS = ("Vx", "ay", "r")
+_Q_UNITS = "[(m/s)², (m/s)², (rad/s)²] for [Vx, Vy, r]"
+_R_UNITS = "[(m/s)², (m/s²)², (rad/s)²] for [Vx, ay, r]"
+
+
+# --------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class UKFResult:
+    """One UKF run over a manoeuvre of N samples.
+
+    Attributes:
+        x: (N, 3) posterior states [Vx m/s, Vy m/s, r rad/s].
+        P_diag: (N, 3) diagonal of the posterior covariance [(m/s)², (m/s)², (rad/s)²].
+        z_hat: (N, 3) estimated measurements h(x⁺_k, u_k) [Vx m/s, ay m/s², r rad/s].
+        innovation: (N, 3) z_k − ẑ⁻_k (prior measurement prediction), same units as z.
+        nis: (N,) normalised innovation squared [-] (χ² with 3 dof when consistent).
+        diverged: True when the filter diverged (see ``diverged_step``).
+        diverged_step: first step whose outputs are invalid (rows ≥ it are NaN); −1 if none.
+        n_repairs: number of covariance factorisations that needed jitter.
+    """
+
+    x: np.ndarray
+    P_diag: np.ndarray
+    z_hat: np.ndarray
+    innovation: np.ndarray
+    nis: np.ndarray
+    diverged: bool
+    diverged_step: int
+    n_repairs: int = 0
+
+    @property
+    def beta(self) -> np.ndarray:
+        """(N,) estimated sideslip angle atan2(Vy, Vx) [rad]."""
+        return np.arctan2(self.x[:, 1], self.x[:, 0])
+
+
+@dataclass(frozen=True, eq=False)
+class UKFBatchResult:
+    """B UKF runs (one per noise setting) over the same manoeuvre.
+
+    Attributes are those of :class:`UKFResult` with a leading axis B: x, P_diag, z_hat,
+    innovation (B, N, 3); nis (B, N); diverged (B,) bool; diverged_step (B,) int (−1 if
+    none); n_repairs (B,) int.
+    """
+
+    x: np.ndarray
+    P_diag: np.ndarray
+    z_hat: np.ndarray
+    innovation: np.ndarray
+    nis: np.ndarray
+    diverged: np.ndarray
+    diverged_step: np.ndarray
+    n_repairs: np.ndarray
+
+    @property
+    def beta(self) -> np.ndarray:
+        """(B, N) estimated sideslip angles [rad]."""
+        return np.arctan2(self.x[..., 1], self.x[..., 0])
+
+    def __len__(self) -> int:
+        return self.x.shape[0]
+
+    def __getitem__(self, b: int) -> UKFResult:
+        """The b-th run as a :class:`UKFResult` (views, no copies)."""
+        return UKFResult(
+            x=self.x[b],
+            P_diag=self.P_diag[b],
+            z_hat=self.z_hat[b],
+            innovation=self.innovation[b],
+            nis=self.nis[b],
+            diverged=bool(self.diverged[b]),
+            diverged_step=int(self.diverged_step[b]),
+            n_repairs=int(self.n_repairs[b]),
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Input validation (all before the run; messages name argument, row and expectation)
+# --------------------------------------------------------------------------------------
+
+
+def _first_bad(mask: np.ndarray) -> tuple[int, ...]:
+    return tuple(int(i) for i in np.argwhere(mask)[0])
+
+
+def _check_table(name: str, value: ArrayLike, cols: tuple[str, ...], units: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{name} must be a numeric array of shape (N, {len(cols)}): {exc}"
+        ) from None
+    if arr.ndim != 2 or arr.shape[1] != len(cols) or arr.shape[0] < 1:
+        raise ValueError(
+            f"{name} must have shape (N, {len(cols)}) with N >= 1, columns "
+            f"[{', '.join(cols)}] {units}; got shape {arr.shape}"
+        )
+    finite = np.isfinite(arr)
+    if not finite.all():
+        row, col = _first_bad(~finite)
+        raise ValueError(
+            f"{name}[{row}, {col}] ({cols[col]}) is {float(arr[row, col])}; all {name} values "
+            "must be finite"
+        )
+    return np.ascontiguousarray(arr)
+
+
+def _check_manoeuvre(
+    u: ArrayLike, z: ArrayLike, dt: float, *, positive_vx: bool = True
+) -> tuple[np.ndarray, np.ndarray, float]:
+    u_arr = _check_table("u", u, _U_COLS, "[rad, m/s²]")
+    z_arr = _check_table("z", z, _Z_COLS, "[m/s, m/s², rad/s]")
+    if u_arr.shape[0] != z_arr.shape[0]:
+        raise ValueError(
+            f"u and z must have the same number of rows (one per sample); got u with "
+            f"{u_arr.shape[0]} rows and z with {z_arr.shape[0]} rows"
+        )
+    if positive_vx:
+        bad = z_arr[:, 0] <= 0
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise ValueError(
+                f"z[{row}, 0] (Vx) = {float(z_arr[row, 0])} m/s; the measured longitudinal speed "
+                "must be > 0 (the single-track slip-angle model is for forward driving)"
+            )
+    try:
+        dt_f = float(dt)
+    except (TypeError, ValueError):
+        raise ValueError(f"dt must be a number (sample time in s), got {dt!r}") from None
+    if not (math.isfinite(dt_f) and dt_f > 0):
+        raise ValueError(f"dt must be a finite sample time > 0 s, got {dt!r}")
+    return u_arr, z_arr, dt_f
+
+
+def _check_noise(
+    name: str, value: ArrayLike, units: str, *, strictly_positive: bool, batch: bool
+) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    want = "(B, 3)" if batch else "(3,)"
+    ok_shape = (
+        (arr.ndim == 2 and arr.shape[1] == 3 and arr.shape[0] >= 1)
+        if batch
+        else (arr.shape == (3,))
+    )
+    if not ok_shape:
+        raise ValueError(
+            f"{name} must have shape {want}: the diagonal of the covariance, variances "
+            f"{units}; got shape {arr.shape}"
+        )
+    finite = np.isfinite(arr)
+    if not finite.all():
+        idx = _first_bad(~finite)
+        raise ValueError(f"{name}{list(idx)} is {float(arr[idx])}; variances must be finite")
+    bad = arr <= 0 if strictly_positive else arr < 0
+    if bad.any():
+        idx = _first_bad(bad)
+        need = "> 0" if strictly_positive else ">= 0"
+        raise ValueError(f"{name}{list(idx)} = {float(arr[idx])}; variances {units} must be {need}")
+    return np.ascontiguousarray(arr)
+
+
+def default_initial_state(z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Default prior (x0, P0) at step 0 from the first measurement (module docstring).
+
+    Args:
+        z: (N, 3) measurements; r: (3,) measurement variances.
+
+    Returns:
+        x0 (3,) = [z[0,0], 0, z[0,2]], P0 (3, 3) = diag(r[0], (0.05·z[0,0])², r[2]).
+    """
+    vx0 = float(z[0, 0])
+    x0 = np.array([vx0, 0.0, float(z[0, 2])])
+    P0 = np.diag([float(r[0]), (P0_VY_SPEED_FRACTION * vx0) ** 2, float(r[2])])
+    return x0, P0
+
+
+def _check_prior(
+    x0: ArrayLike | None,
+    P0: ArrayLike | None,
+    z: np.ndarray,
+    r: np.ndarray,
+    *,
+    positive_vx: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    dx0, dP0 = default_initial_state(z, r) if positive_vx else (np.zeros(3), np.eye(3))
+    if x0 is None:
+        x_arr = dx0
+    else:
+        x_arr = np.asarray(x0, dtype=np.float64)
+        if x_arr.shape != (3,):
+            raise ValueError(f"x0 must have shape (3,) [Vx, Vy, r], got shape {x_arr.shape}")
+        if not np.isfinite(x_arr).all():
+            raise ValueError(f"x0 must be finite, got {x_arr.tolist()}")
+        if positive_vx and not x_arr[0] > 0:
+            raise ValueError(f"x0[0] (Vx) must be > 0 m/s, got {float(x_arr[0])}")
+    if P0 is None:
+        P_arr = dP0
+    else:
+        P_arr = np.asarray(P0, dtype=np.float64)
+        if P_arr.shape == (3,):
+            P_arr = np.diag(P_arr)
+        if P_arr.shape != (3, 3):
+            raise ValueError(
+                f"P0 must be a (3, 3) covariance or a (3,) diagonal, got shape {P_arr.shape}"
+            )
+        if not np.isfinite(P_arr).all():
+            raise ValueError("P0 must be finite")
+        if not np.allclose(P_arr, P_arr.T, rtol=1e-10, atol=0.0):
+            raise ValueError("P0 must be symmetric")
+        try:
+            np.linalg.cholesky(P_arr)
+        except np.linalg.LinAlgError:
+            raise ValueError(
+                f"P0 must be positive definite, got eigenvalues {np.linalg.eigvalsh(P_arr)}"
+            ) from None
+    return np.ascontiguousarray(x_arr), np.ascontiguousarray(P_arr)
+
+
+def _check_run(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    x0: ArrayLike | None,
+    P0: ArrayLike | None,
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:
+    """All checks of one single-track run: (params, u, z, dt, q, r, x0, P0) as arrays."""
+    u_arr, z_arr, dt_f = _check_manoeuvre(u, z, dt)
+    mp = pack_params(params)
+    q_arr = _check_noise("q", q, _Q_UNITS, strictly_positive=False, batch=False)
+    r_arr = _check_noise("r", r, _R_UNITS, strictly_positive=True, batch=False)
+    x_arr, P_arr = _check_prior(x0, P0, z_arr, r_arr)
+    return mp, u_arr, z_arr, dt_f, q_arr, r_arr, x_arr, P_arr
+
+
+def _weights(settings: UKFSettings) -> tuple[float, float, float, float]:
+    if not isinstance(settings, UKFSettings):
+        raise ValueError(f"settings must be a UKFSettings, got {type(settings).__name__}")
+    wm, wc = merwe_weights(3, settings)
+    return float(wm[0]), float(wc[0]), float(wm[1]), math.sqrt(3 + settings.lam(3))
+
+
+# --------------------------------------------------------------------------------------
+# Compiled entry points
+# --------------------------------------------------------------------------------------
+
+
+def _alloc(shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    return (
+        np.empty((*shape, 3)),
+        np.empty((*shape, 3)),
+        np.empty((*shape, 3)),
+        np.empty((*shape, 3)),
+        np.empty(shape),
+    )
+
+
+def _run_single(
+    model: int,
+    mp: np.ndarray,
+    u: np.ndarray,
+    z: np.ndarray,
+    dt: float,
+    q: np.ndarray,
+    r: np.ndarray,
+    x0: np.ndarray,
+    P0: np.ndarray,
+    settings: UKFSettings,
+) -> UKFResult:
+    wm0, wc0, wi, c = _weights(settings)
+    out = _alloc((u.shape[0],))
+    div, rep = _kernel.run_kernel(model, mp, u, z, dt, q, r, x0, P0, wm0, wc0, wi, c, *out)
+    return UKFResult(*out, diverged=div >= 0, diverged_step=int(div), n_repairs=int(rep))
+
+
+def run_ukf(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    *,
+    x0: ArrayLike | None = None,
+    P0: ArrayLike | None = None,
+    settings: UKFSettings = UKFSettings(),  # noqa: B008 (frozen, immutable default)
+) -> UKFResult:
+    """Run the compiled UKF over one manoeuvre.
+
+    Args:
+        u: (N, 2) inputs [δ rad, ax m/s²].
+        z: (N, 3) measurements [Vx m/s (> 0), ay m/s², r rad/s].
+        dt: sample time [s], > 0.
+        params: vehicle parameters (or their packed (9,) array).
+        q: (3,) process-noise variances, diagonal of Q, ≥ 0 [(m/s)², (m/s)², (rad/s)²].
+        r: (3,) measurement-noise variances, diagonal of R, > 0 [(m/s)², (m/s²)², (rad/s)²].
+        x0: (3,) prior mean at step 0; default [z[0,0], 0, z[0,2]].
+        P0: (3, 3) or (3,) prior covariance at step 0; default diag(r₀, (0.05·Vx₀)², r₂).
+        settings: sigma-point parameters.
+
+    Returns:
+        :class:`UKFResult`. See the module docstring for the time convention.
+
+    Raises:
+        ValueError: bad input (message names the argument, row and what was expected).
+    """
+    return _run_single(
+        _kernel.MODEL_SINGLE_TRACK, *_check_run(u, z, dt, params, q, r, x0, P0), settings
+    )
+
+
+def run_ukf_batch(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    *,
+    x0: ArrayLike | None = None,
+    P0: ArrayLike | None = None,
+    settings: UKFSettings = UKFSettings(),  # noqa: B008
+) -> UKFBatchResult:
+    """Run B noise settings over one manoeuvre in one call, in parallel over B.
+
+    Args:
+        u, z, dt, params, x0, P0, settings: as :func:`run_ukf` (shared by all runs; the
+            default P0 uses each run's own r).
+        q: (B, 3) process-noise variances.
+        r: (B, 3) or (3,) measurement-noise variances (broadcast to every run).
+
+    Returns:
+        :class:`UKFBatchResult`; ``result[b]`` equals ``run_ukf(..., q[b], r[b])``.
+    """
+    u_arr, z_arr, dt_f = _check_manoeuvre(u, z, dt)
+    mp = pack_params(params)
+    q_arr = _check_noise("q", q, _Q_UNITS, strictly_positive=False, batch=True)
+    n_sets = q_arr.shape[0]
+    r_in = np.asarray(r, dtype=np.float64)
+    if r_in.ndim == 1:
+        r_arr = _check_noise("r", r_in, _R_UNITS, strictly_positive=True, batch=False)
+        r_arr = np.ascontiguousarray(np.broadcast_to(r_arr, (n_sets, 3)))
+    else:
+        r_arr = _check_noise("r", r_in, _R_UNITS, strictly_positive=True, batch=True)
+        if r_arr.shape[0] != n_sets:
+            raise ValueError(
+                f"r must have shape (3,) or (B, 3) with B = {n_sets} (the rows of q), "
+                f"got shape {r_arr.shape}"
+            )
+    # the default P0 uses each run's own r, so priors are per run
+    x_init = np.empty((n_sets, 3))
+    P_init = np.empty((n_sets, 3, 3))
+    for b in range(n_sets):
+        if b == 0 or P0 is None:
+            xb, pb = _check_prior(x0, P0, z_arr, r_arr[b])
+        x_init[b], P_init[b] = xb, pb
+    wm0, wc0, wi, c = _weights(settings)
+    xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
+    div = np.empty(n_sets, dtype=np.int64)
+    rep = np.empty(n_sets, dtype=np.int64)
+    _kernel.run_kernel_batch(
+        _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
+        x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep,
+    )  # fmt: skip
+    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep)
+
+
+def run_ukf_linear(
+    u: ArrayLike,
+    z: ArrayLike,
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    D: ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    x0: ArrayLike,
+    P0: ArrayLike,
+    *,
+    settings: UKFSettings = UKFSettings(),  # noqa: B008
+) -> UKFResult:
+    """The compiled UKF on a linear-Gaussian 3-state model (verification against a KF).
+
+    x_k = F·x_{k−1} + G·u_{k−1} + w,  z_k = H·x_k + D·u_k + v, same time convention as
+    :func:`run_ukf`. For a linear model the UKF is exactly the Kalman filter.
+
+    Args:
+        u: (N, 2); z: (N, 3); F, H: (3, 3); G, D: (3, 2); q, r: (3,); x0: (3,);
+        P0: (3, 3) or (3,).
+    """
+    u_arr = _check_table("u", u, ("u0", "u1"), "")
+    z_arr = _check_table("z", z, ("z0", "z1", "z2"), "")
+    if u_arr.shape[0] != z_arr.shape[0]:
+        raise ValueError(
+            f"u and z must have the same number of rows, got {u_arr.shape[0]} and {z_arr.shape[0]}"
+        )
+    mats = []
+    for name, m, shape in (("F", F, (3, 3)), ("G", G, (3, 2)), ("H", H, (3, 3)), ("D", D, (3, 2))):
+        arr = np.asarray(m, dtype=np.float64)
+        if arr.shape != shape or not np.isfinite(arr).all():
+            raise ValueError(f"{name} must be a finite array of shape {shape}, got {arr.shape}")
+        mats.append(arr.ravel())
+    mp = np.ascontiguousarray(np.concatenate(mats))
+    q_arr = _check_noise("q", q, "", strictly_positive=False, batch=False)
+    r_arr = _check_noise("r", r, "", strictly_positive=True, batch=False)
+    x_arr, P_arr = _check_prior(x0, P0, z_arr, r_arr, positive_vx=False)
+    return _run_single(
+        _kernel.MODEL_LINEAR, mp, u_arr, z_arr, 1.0, q_arr, r_arr, x_arr, P_arr, settings
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Readable reference path (numpy; the tests compare the kernel with it)
+# --------------------------------------------------------------------------------------
+
+
+class FilterDiverged(RuntimeError):
+    """Raised by :class:`UnscentedKalmanFilter` when a covariance cannot be repaired."""
+
+
+def _cholesky_repaired(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Symmetrise P and factorise it, adding escalating jitter when needed.
+
+    Returns (L, P_used, repaired); raises FilterDiverged when no jitter up to
+    ``JITTER_MAX``·max(diag) helps. Same policy as the kernel's ``chol3_repair``.
+    """
+    P = 0.5 * (P + P.T)
+    if not np.isfinite(P).all():
+        raise FilterDiverged("covariance is not finite")
+    try:
+        return np.linalg.cholesky(P), P, False
+    except np.linalg.LinAlgError:
+        pass
+    scale = float(np.max(np.diag(P)))
+    jitter = _kernel.JITTER_START * scale
+    while scale > 0 and jitter <= _kernel.JITTER_MAX * scale * 1.0000001:
+        Pj = P + jitter * np.eye(P.shape[0])
+        try:
+            return np.linalg.cholesky(Pj), Pj, True
+        except np.linalg.LinAlgError:
+            jitter *= 10.0
+    raise FilterDiverged("covariance is not positive definite and jitter does not repair it")
+
+
+class UnscentedKalmanFilter:
+    """Readable UKF with additive noise (numpy; generic model).
+
+    Args:
+        fx: process model ``fx(X, u) -> X'`` for sigma points X of shape (m, n).
+        hx: measurement model ``hx(X, u) -> Z`` of shape (m, dim_z).
+        Q: (n, n) process-noise covariance; R: (dim_z, dim_z) measurement-noise covariance.
+        x0: (n,) prior mean; P0: (n, n) prior covariance.
+        settings: sigma-point parameters.
+
+    Usage: ``update(z0, u0)`` first, then ``predict(u_{k−1}); update(z_k, u_k)`` per step
+    (the time convention of :func:`run_ukf`). ``x``/``P`` hold the current estimate.
+    """
+
+    def __init__(
+        self,
+        fx: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        hx: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        Q: np.ndarray,
+        R: np.ndarray,
+        x0: np.ndarray,
+        P0: np.ndarray,
+        settings: UKFSettings = UKFSettings(),  # noqa: B008
+    ) -> None:
+        self.fx, self.hx = fx, hx
+        self.Q, self.R = np.asarray(Q, dtype=float), np.asarray(R, dtype=float)
+        self.x = np.array(x0, dtype=float)
+        self.P = np.array(P0, dtype=float)
+        self.settings = settings
+        self.wm, self.wc = merwe_weights(self.x.shape[0], settings)
+        self.n_repairs = 0
+        self.y = np.zeros(self.R.shape[0])  # innovation of the last update
+        self.S = self.R.copy()  # innovation covariance of the last update
+        self.nis = math.nan
+
+    def _points(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        L, P_used, repaired = _cholesky_repaired(P)
+        self.n_repairs += int(repaired)
+        n = self.x.shape[0]
+        c = math.sqrt(n + self.settings.lam(n))
+        return np.vstack([self.x, self.x + c * L.T, self.x - c * L.T]), P_used
+
+    def predict(self, u: np.ndarray) -> None:
+        """x̄, P̄ = UT(f(χ(x, P), u)) + Q  (van der Merwe 2004, Alg. 6, time update)."""
+        sigmas, _ = self._points(self.P)
+        self.x, self.P = unscented_transform(self.fx(sigmas, u), self.wm, self.wc, self.Q)
+
+    def update(self, z: np.ndarray, u: np.ndarray) -> None:
+        """Measurement update with sigma points redrawn from (x̄, P̄) (ibid., meas. update)."""
+        sigmas, self.P = self._points(self.P)
+        zs = self.hx(sigmas, u)
+        z_pred, S = unscented_transform(zs, self.wm, self.wc, self.R)
+        Pxz = ((sigmas - self.x) * self.wc[:, None]).T @ (zs - z_pred)
+        Ls, _, repaired = _cholesky_repaired(S)
+        self.n_repairs += int(repaired)
+        S_inv = np.linalg.inv(Ls @ Ls.T)  # S, jittered if it had to be
+        K = Pxz @ S_inv
+        self.y = z - z_pred
+        self.S = S
+        self.nis = float(self.y @ S_inv @ self.y)
+        self.x = self.x + K @ self.y
+        self.P = self.P - K @ S @ K.T
+        _, self.P, repaired = _cholesky_repaired(self.P)
+        self.n_repairs += int(repaired)
+
+
+def run_ukf_reference(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    *,
+    x0: ArrayLike | None = None,
+    P0: ArrayLike | None = None,
+    settings: UKFSettings = UKFSettings(),  # noqa: B008
+) -> UKFResult:
+    """:func:`run_ukf` through :class:`UnscentedKalmanFilter` and the numpy model (slow)."""
+    p, u_arr, z_arr, dt_f, q_arr, r_arr, x_arr, P_arr = _check_run(u, z, dt, params, q, r, x0, P0)
+    ukf = UnscentedKalmanFilter(
+        fx=lambda X, uk: step_rk4(X, uk, p, dt_f),
+        hx=lambda X, uk: measure(X, uk, p),
+        Q=np.diag(q_arr),
+        R=np.diag(r_arr),
+        x0=x_arr,
+        P0=P_arr,
+        settings=settings,
+    )
+    n = u_arr.shape[0]
+    out = [np.full((n, 3), np.nan) for _ in range(4)]
+    nis = np.full(n, np.nan)
+    for k in range(n):
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):
+                if k > 0:
+                    ukf.predict(u_arr[k - 1])
+                ukf.update(z_arr[k], u_arr[k])
+                z_hat = measure(ukf.x, u_arr[k], p)
+        except (FilterDiverged, ValueError):  # ValueError: the model met a non-finite state
+            return UKFResult(*out, nis, diverged=True, diverged_step=k, n_repairs=ukf.n_repairs)
+        if not (np.isfinite(ukf.x).all() and ukf.x[0] > 0 and math.isfinite(ukf.nis)):
+            return UKFResult(*out, nis, diverged=True, diverged_step=k, n_repairs=ukf.n_repairs)
+        out[0][k] = ukf.x
+        out[1][k] = np.diag(ukf.P)
+        out[2][k] = z_hat
+        out[3][k] = ukf.y
+        nis[k] = ukf.nis
+    return UKFResult(*out, nis, diverged=False, diverged_step=-1, n_repairs=ukf.n_repairs)
