@@ -149,6 +149,8 @@ def test_batch_equals_single_runs(manoeuvre):
             for name in ("x", "P_diag", "z_hat", "innovation", "nis"):
                 np.testing.assert_array_equal(getattr(one, name), getattr(single, name))
             assert one.diverged == single.diverged and one.diverged_step == single.diverged_step
+    one_set = run_ukf_batch(*args, q[:1], r[0])  # B = 1 takes the sequential path
+    np.testing.assert_array_equal(one_set.x[0], run_ukf(*args, q[0], r[0]).x)
 
 
 # ------------------------------------------------------------------ linear model ----------

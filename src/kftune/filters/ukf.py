@@ -433,10 +433,16 @@ def run_ukf_batch(
     xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
     div = np.empty(n_sets, dtype=np.int64)
     rep = np.empty(n_sets, dtype=np.int64)
-    _kernel.run_kernel_batch(
-        _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
-        x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep,
-    )  # fmt: skip
+    if n_sets == 1:  # no thread start-up for a single set
+        div[0], rep[0] = _kernel.run_kernel(
+            _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
+            x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
+        )  # fmt: skip
+    else:
+        _kernel.run_kernel_batch(
+            _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
+            x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep,
+        )  # fmt: skip
     return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep)
 
 
