@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
+from kftune.bo._linalg import single_threaded_blas
 from kftune.bo.base import Predictive, Surrogate
 from kftune.bo.kernels import Kernel, make_kernel, squared_differences
 
@@ -211,16 +212,32 @@ class BoxSurrogate(Surrogate):
         self._S = squared_differences(self._Xn, self._Xn)
 
     # ------------------------------------------------------------------ Surrogate API
-    def fit(self, X: np.ndarray, y: np.ndarray) -> BoxSurrogate:
+    def fit(self, X: np.ndarray, y: np.ndarray, *, theta: np.ndarray | None = None) -> BoxSurrogate:
         """Fit the hyperparameters by multi-start L-BFGS-B on the log marginal likelihood
         and condition on (X (n, d), y (n,)). Never raises on n = 1, duplicated points or
-        constant y; raises ValueError on malformed or non-finite input."""
+        constant y; raises ValueError on malformed or non-finite input.
+
+        ``theta``: (p,) log-space hyperparameters (layout: :meth:`theta_names`) to use as
+        they are instead of optimising them (the restart RNG is then not advanced); the
+        outputs are still standardised and, for ``mean="constant"``, the mean profiled.
+        """
+        with single_threaded_blas():
+            return self._fit(X, y, theta)
+
+    def _fit(self, X: np.ndarray, y: np.ndarray, theta: np.ndarray | None) -> BoxSurrogate:
         X, y = self._check_Xy(X, y)
         self._d = X.shape[1]
         self._y_center, self._y_scale = self._standardisation(y)
         self._set_data(X, y)
         spec = self._theta_spec(self._d)
         p = len(spec.names)
+        if theta is not None:
+            th = np.asarray(theta, dtype=float)
+            if th.shape != (p,) or not np.isfinite(th).all():
+                raise ValueError(
+                    f"theta must be {p} finite log-space values {spec.names}, got {theta!r}"
+                )
+            return self._finish_fit(th.copy(), spec, math.nan)
         starts: list[np.ndarray] = []
         if self.warm_start and self._theta is not None and self._theta.shape == (p,):
             starts.append(np.clip(self._theta, spec.bounds[:, 0], spec.bounds[:, 1]))
@@ -250,9 +267,12 @@ class BoxSurrogate(Surrogate):
             f = float(res.fun)
             if f < best_f and f < _FAILED_NLL:  # strict: the earliest start wins ties
                 best_f, best_theta = f, np.asarray(res.x, dtype=float).copy()
-        self._theta = best_theta
-        self._last_nll = best_f
-        if not self._condition_standardised(best_theta, None):
+        return self._finish_fit(best_theta, spec, best_f)
+
+    def _finish_fit(self, theta: np.ndarray, spec: ThetaSpec, nll: float) -> BoxSurrogate:
+        self._theta = theta
+        self._last_nll = nll
+        if not self._condition_standardised(theta, None):
             # Unreachable with a finite theta (the jitter ladder ends at 1e-4·σ_f²);
             # kept so a pathological case degrades to the default rather than raising.
             self._theta = spec.default.copy()
@@ -269,7 +289,9 @@ class BoxSurrogate(Surrogate):
             raise RuntimeError(f"{type(self).__name__}.condition called before fit")
         X, y = self._check_Xy(X, y)
         self._set_data(X, y)
-        if not self._condition_standardised(self._theta, self._mean_s):
+        with single_threaded_blas():
+            ok = self._condition_standardised(self._theta, self._mean_s)
+        if not ok:
             raise RuntimeError("conditioning failed: kernel matrix not factorisable")
         return self
 
@@ -278,7 +300,8 @@ class BoxSurrogate(Surrogate):
         if not self._fitted:
             raise RuntimeError(f"{type(self).__name__}.predict called before fit")
         X = self._check_X(X, "X")
-        mean, var, dof = self._predict_standardised(self._normalise(X))
+        with single_threaded_blas():
+            mean, var, dof = self._predict_standardised(self._normalise(X))
         return Predictive(self._y_center + self._y_scale * mean, (self._y_scale**2) * var, dof)
 
     @property
@@ -349,7 +372,8 @@ class BoxSurrogate(Surrogate):
         th = self._theta if theta is None else np.asarray(theta, dtype=float)
         if th is None:
             raise RuntimeError("no theta given and the model is not fitted")
-        f, g = self._nll_and_grad(th)
+        with single_threaded_blas():
+            f, g = self._nll_and_grad(th)
         ll = -f if math.isfinite(f) else -math.inf
         return (ll, -g) if eval_gradient else ll
 

@@ -158,7 +158,7 @@ def _incomplete_beta_cf(a: float, b: float, x: np.ndarray) -> np.ndarray:
             c = np.where(np.abs(c) < _TINY, _TINY, c)
             delta = d * c
             h = h * delta
-        if np.all(np.abs(delta - 1.0) < 1e-16):
+        if np.all(np.abs(delta - 1.0) <= 1e-15):
             break
     return h
 

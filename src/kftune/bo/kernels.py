@@ -72,15 +72,16 @@ class Kernel(ABC):
         d = S.shape[0]
         inv_l2 = np.exp(-2.0 * theta[:d])
         sf2 = math.exp(theta[d])
-        D = S * inv_l2[:, None, None]  # (d, n1, n2): D_i = (x_i − x'_i)²/ℓ_i²
-        r2 = D.sum(axis=0)
+        # r² = Σ_i D_i with D_i = (x_i − x'_i)²/ℓ_i² (one gemv over the (d, n1·n2) stack)
+        r2 = (inv_l2 @ S.reshape(d, -1)).reshape(S.shape[1:])
         kappa, neg2dk = self._profile(r2)
         K = sf2 * kappa
         if not gradient:
             return K, None
         dK = np.empty((d + 1, *r2.shape))
         # ∂r²/∂log ℓ_i = −2 D_i, so ∂K/∂log ℓ_i = σ_f² (dκ/dr²)(−2 D_i) = σ_f² (−2dκ/dr²) D_i.
-        np.multiply(D, sf2 * neg2dk, out=dK[:d])
+        np.multiply(S, inv_l2[:, None, None], out=dK[:d])
+        dK[:d] *= sf2 * neg2dk
         dK[d] = K  # ∂K/∂log σ_f² = K
         return K, dK
 

@@ -17,27 +17,30 @@ it is a deterministic function of θ (Newton always starts at f = 0), which keep
 bit-reproducible.
 
 Non-log-concavity. W = −∇∇ log p(y|f) is negative for residuals r² > νσ², so R&W's
-symmetric B = I + W½KW½ does not exist. Everything is written instead with K = L Lᵀ and
-A = I + LᵀWL (symmetric, positive definite exactly when K⁻¹ + W is, i.e. at a strict
-local maximum of the posterior):
+symmetric B = I + W½KW½ does not exist. As GPML's ``infLaplace`` does in that case,
+everything is written with the non-symmetric I + KW and its LU factors (partial pivoting),
+which never needs K⁻¹ (K is often nearly singular for smooth kernels):
 
-    (K⁻¹ + W)⁻¹ = L A⁻¹ Lᵀ,   (I + KW)⁻¹ = L A⁻¹ L⁻¹,   |I + KW| = |A|,
-    (K + W⁻¹)⁻¹ = K⁻¹ − L⁻ᵀ A⁻¹ L⁻¹.
+    (K⁻¹ + W)⁻¹ = (I + KW)⁻¹ K,   (K + W⁻¹)⁻¹ = W (I + KW)⁻¹,   |B| = |I + KW|.
 
-Mode finding: Newton on Ψ(f) = log p(y|f) − ½ fᵀK⁻¹f (R&W Alg. 3.1 in the above form),
-with W clipped to max(W, 0) whenever K⁻¹ + W is not positive definite (a positive-definite
-modification, so every step is an ascent direction) and step halving until Ψ increases.
+Whether K⁻¹ + W is positive definite (a strict local maximum) is tested by a Cholesky of
+I + LᵀWL with K = L Lᵀ.
+
+Mode finding: Newton on Ψ(f) = log p(y|f) − ½ fᵀK⁻¹f (R&W Alg. 3.1):
+f_new = (I + KW)⁻¹ K b, a_new = K⁻¹f_new = b − W f_new with b = W f + ∇log p, W clipped to
+max(W, 0) whenever K⁻¹ + W is not positive definite (a positive-definite modification, so
+every step is an ascent direction), and step halving until Ψ increases.
 
 Approximate log marginal likelihood (R&W eq. 3.32): log q(y) = −½ f̂ᵀK⁻¹f̂ + log p(y|f̂)
-− ½ log|A|. Its gradient (R&W eq. 5.21–5.24, with a = K⁻¹f̂, C = L A⁻¹ Lᵀ):
+− ½ log|B|. Its gradient (R&W eq. 5.21–5.24, with a = K⁻¹f̂, C = (K⁻¹ + W)⁻¹):
 
-    kernel θ_j:  ½ aᵀ∂K a − ½ tr((K⁻¹ − L⁻ᵀA⁻¹L⁻¹) ∂K) + s2ᵀ (I + KW)⁻¹ ∂K a,
+    kernel θ_j:  ½ aᵀ∂K a − ½ tr((K + W⁻¹)⁻¹ ∂K) + s2ᵀ (I + KW)⁻¹ ∂K a,
     likelihood θ: Σ ∂log p_i/∂θ − ½ Σ C_ii ∂W_ii/∂θ + s2ᵀ C ∂(∇ log p)/∂θ,
     s2_i = ∂ log q/∂f̂_i = ½ C_ii ∂³ log p/∂f_i³
 
-(the implicit terms through f̂(θ); checked against finite differences in the tests).
-Predictions are of the latent f, Gaussian: mean k*ᵀa, variance k** − vᵀ(I − A⁻¹)v with
-v = L⁻¹k* (R&W eq. 3.21 and 3.24 in the above form).
+(the implicit terms through f̂(θ); R&W print eq. 5.23 with the opposite sign, GPML's code
+has this one; checked against finite differences in the tests). Predictions are of the
+latent f, Gaussian: mean k*ᵀa, variance k** − k*ᵀ W (I + KW)⁻¹ k* (R&W eq. 3.21, 3.24).
 """
 
 from __future__ import annotations
@@ -47,19 +50,16 @@ from typing import Any
 
 import numpy as np
 from scipy.linalg import lapack
-from scipy.special import digamma, gammaln
+from scipy.special import digamma, poch
 
 from kftune.bo._linalg import (
-    cho_inverse,
-    cho_solve,
     cholesky_jitter,
-    solve_lower,
-    solve_upper_t,
 )
 from kftune.bo._model import BoxSurrogate, ThetaSpec, _check_positive_pair, log_box
 from kftune.bo.kernels import squared_differences
 
-_MAX_NEWTON = 100
+_MAX_NEWTON = 50
+_MAX_HALVINGS = 30
 
 
 def _student_t_derivatives(
@@ -72,8 +72,7 @@ def _student_t_derivatives(
     a = nu * sigma * sigma
     q = a + r * r
     logp = (
-        gammaln(0.5 * (nu + 1.0))
-        - gammaln(0.5 * nu)
+        math.log(poch(0.5 * nu, 0.5))  # log Γ((ν+1)/2) − log Γ(ν/2), exact for large ν
         - 0.5 * math.log(nu * math.pi)
         - math.log(sigma)
         - 0.5 * (nu + 1.0) * np.log1p(r * r / a)
@@ -160,8 +159,8 @@ class RobustGaussianProcess(BoxSurrogate):
                 f"{likelihood_dof_bounds!r}"
             )
         self.noise_scale_bounds = _check_positive_pair("noise_scale_bounds", noise_scale_bounds)
-        self._L: np.ndarray | None = None
-        self._LA: np.ndarray | None = None
+        self._lu: tuple[np.ndarray, np.ndarray] | None = None
+        self._W: np.ndarray | None = None
         self._a: np.ndarray | None = None
         self._laplace_converged = True
 
@@ -212,7 +211,7 @@ class RobustGaussianProcess(BoxSurrogate):
         y = self._ys
         n = y.shape[0]
         K, dK = self.kernel.from_squared_differences(theta[: d + 1], self._S, gradient=gradient)
-        L, jitter = cholesky_jitter(K)
+        L, jitter = cholesky_jitter(K)  # only to test K⁻¹ + W for definiteness
         if L is None:
             return -math.inf, None, None
         if jitter:
@@ -230,55 +229,69 @@ class RobustGaussianProcess(BoxSurrogate):
         converged = False
         for _ in range(_MAX_NEWTON):
             _, g, W, _ = _student_t_derivatives(y - f, nu, sigma)
-            # Converged when ∇Ψ = ∇log p − K⁻¹f = g − a vanishes (relative to g): the
-            # implicit gradient terms assume an exact mode, so Ψ's own stall is not enough.
-            if float(np.max(np.abs(g - a))) <= 1e-11 * (1.0 + float(np.max(np.abs(g)))):
-                converged = True
-                break
-            LA = _chol_A(L, W, eye)
-            if LA is None:  # K⁻¹ + W indefinite: positive-definite modification of W
-                W = np.maximum(W, 0.0)
-                LA = _chol_A(L, W, eye)
-                if LA is None:
-                    return -math.inf, None, None
+            if W.min() < 0.0 and not _is_posterior_definite(L, W, eye):
+                W = np.maximum(W, 0.0)  # positive-definite modification: an ascent direction
+            lu = _lu(eye + K * W)
+            if lu is None:
+                return -math.inf, None, None
             b = W * f + g
-            # a_new = K⁻¹ (K⁻¹ + W)⁻¹ b = L⁻ᵀ A⁻¹ Lᵀ b
-            da = solve_upper_t(L, cho_solve(LA, L.T @ b)) - a
+            # Newton: f_new = (K⁻¹ + W)⁻¹ b = (I + KW)⁻¹ K b and a_new = K⁻¹ f_new = b − W f_new
+            # (no solve with the possibly ill-conditioned K).
+            f_new = _lu_solve(lu, K @ b)
+            df = f_new - f
+            da = (b - W * f_new) - a
+            # Converged when the Newton step in f (to first order the distance to the mode)
+            # is at rounding level.
+            small = float(np.max(np.abs(df))) <= 1e-10 * (1.0 + float(np.max(np.abs(f))))
             # Step halving until Ψ increases; near the mode the gain is below Ψ's rounding
             # error, so a step that loses no more than that is accepted too.
             tol = 1e-13 * (1.0 + abs(psi))
             step = 1.0
-            while True:
+            for _halving in range(_MAX_HALVINGS):
                 a_try = a + step * da
-                f_try = K @ a_try
+                f_try = f + step * df
                 psi_try = psi_of(a_try, f_try)
                 if psi_try >= psi - tol:
                     break
                 step *= 0.5
-                if step < 1e-10:
-                    break
-            if not psi_try >= psi - tol:
-                break  # no ascent along the Newton direction: give up (flagged below)
+            else:
+                converged = small
+                break  # no ascent along the Newton direction
             a, f, psi = a_try, f_try, psi_try
+            if small:
+                converged = True
+                break
         self._laplace_converged = converged
         r = y - f
         logp, g, W, d3 = _student_t_derivatives(r, nu, sigma)
-        LA = _chol_A(L, W, eye)
-        if LA is None:  # not a strict local maximum: the approximation is undefined
+        defined = W.min() >= 0.0 or _is_posterior_definite(L, W, eye)
+        if not defined:  # not a strict local maximum: the approximation is undefined
+            self._laplace_converged = False
+            if gradient:
+                return -math.inf, None, None
+            # Conditioning only (a fit that ended here): predict with the positive-definite
+            # modification rather than fail; the likelihood itself stays −inf.
+            W = np.maximum(W, 0.0)
+        lu = _lu(eye + K * W)
+        if lu is None:
             return -math.inf, None, None
-        log_q = float(logp.sum() - 0.5 * a @ f - np.sum(np.log(np.diag(LA))))
-        cache = {"L": L, "LA": LA, "a": a, "jitter": jitter}
+        cache = {"lu": lu, "W": W, "a": a, "jitter": jitter}
+        if not defined:
+            return -math.inf, None, cache
+        # log|B| = log|I + KW| from the LU factors (positive at a strict maximum).
+        log_det_B = float(np.sum(np.log(np.abs(np.diag(lu[0])))))
+        log_q = float(logp.sum() - 0.5 * a @ f - 0.5 * log_det_B)
         if not gradient:
             return log_q, None, cache
         assert dK is not None
-        Ainv = cho_inverse(LA)
-        Linv = solve_lower(L, eye)
-        LAinvLt = L @ Ainv  # L A⁻¹
-        C = LAinvLt @ L.T  # (K⁻¹ + W)⁻¹
+        Q = _lu_solve(lu, eye)  # (I + KW)⁻¹
+        C = Q @ K  # (K⁻¹ + W)⁻¹
+        C = 0.5 * (C + C.T)
+        R = W[:, None] * Q  # (K + W⁻¹)⁻¹ = W (I + KW)⁻¹
+        R = 0.5 * (R + R.T)
         diagC = np.diag(C)
         s2 = 0.5 * diagC * d3  # ∂ log q / ∂ f̂
-        m = solve_upper_t(L, Ainv @ (L.T @ s2))  # (I + KW)⁻ᵀ s2 = L⁻ᵀ A⁻¹ Lᵀ s2
-        R = Linv.T @ (eye - Ainv) @ Linv  # (K + W⁻¹)⁻¹
+        m = Q.T @ s2  # (I + KW)⁻ᵀ s2
         M = 0.5 * np.outer(a, a) - 0.5 * R + 0.5 * (np.outer(m, a) + np.outer(a, m))
         grad = np.empty_like(theta)
         grad[: d + 1] = dK.reshape(d + 1, -1) @ M.ravel()
@@ -299,22 +312,21 @@ class RobustGaussianProcess(BoxSurrogate):
         _, _, cache = self._laplace(theta, gradient=False)
         if cache is None:
             return False
-        self._L, self._LA, self._a = cache["L"], cache["LA"], cache["a"]
+        self._lu, self._W, self._a = cache["lu"], cache["W"], cache["a"]
         self._jitter = cache["jitter"]
         self._mean_s = 0.0
         return True
 
     def _predict_standardised(self, Xn: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        assert self._Xn is not None and self._theta is not None and self._L is not None
-        assert self._LA is not None and self._a is not None
+        assert self._Xn is not None and self._theta is not None and self._lu is not None
+        assert self._W is not None and self._a is not None
         d = self._d or 0
         theta_k = self._theta[: d + 1]
         Ks, _ = self.kernel.from_squared_differences(theta_k, squared_differences(self._Xn, Xn))
         mean = Ks.T @ self._a  # R&W eq. 3.21: k*ᵀ ∇log p(y|f̂) = k*ᵀ K⁻¹ f̂
-        v = solve_lower(self._L, Ks)
-        u = solve_lower(self._LA, v)
-        # R&W eq. 3.24: k** − k*ᵀ(K + W⁻¹)⁻¹k* = k** − vᵀv + vᵀA⁻¹v
-        var = math.exp(theta_k[d]) - np.einsum("ij,ij->j", v, v) + np.einsum("ij,ij->j", u, u)
+        # R&W eq. 3.24: k** − k*ᵀ (K + W⁻¹)⁻¹ k*, with (K + W⁻¹)⁻¹ = W (I + KW)⁻¹
+        QKs = _lu_solve(self._lu, Ks)
+        var = math.exp(theta_k[d]) - np.einsum("ij,ij->j", Ks, self._W[:, None] * QKs)
         np.maximum(var, 0.0, out=var)
         return mean, var, math.inf
 
@@ -330,9 +342,22 @@ class RobustGaussianProcess(BoxSurrogate):
         }
 
 
-def _chol_A(L: np.ndarray, W: np.ndarray, eye: np.ndarray) -> np.ndarray | None:
-    """Lower Cholesky factor of A = I + Lᵀ diag(W) L, or None when A is not positive
-    definite (K⁻¹ + W indefinite)."""
-    A = eye + (L.T * W) @ L
-    LA, info = lapack.dpotrf(A, lower=1, clean=1)
-    return LA if info == 0 else None
+def _is_posterior_definite(L: np.ndarray, W: np.ndarray, eye: np.ndarray) -> bool:
+    """Whether K⁻¹ + diag(W) is positive definite, i.e. I + Lᵀ diag(W) L is (K = L Lᵀ)."""
+    _, info = lapack.dpotrf(eye + (L.T * W) @ L, lower=1, clean=0)
+    return info == 0
+
+
+def _lu(A: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """LU factors (LAPACK dgetrf, partial pivoting) of A, or None when A is singular."""
+    lu, piv, info = lapack.dgetrf(A)
+    return (lu, piv) if info == 0 else None
+
+
+def _lu_solve(lu: tuple[np.ndarray, np.ndarray], B: np.ndarray) -> np.ndarray:
+    """Solve A X = B from :func:`_lu` factors; B is (n,) or (n, k)."""
+    vec = B.ndim == 1
+    X, info = lapack.dgetrs(lu[0], lu[1], B[:, None] if vec else B)
+    if info != 0:  # pragma: no cover - only on malformed arguments
+        raise ValueError(f"dgetrs failed with info={info}")
+    return X[:, 0] if vec else X
