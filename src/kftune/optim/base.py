@@ -1,0 +1,278 @@
+"""The ask/tell core every optimiser shares (cf. Optuna's ``Study.ask``/``Study.tell``).
+
+An optimiser proposes points in the unit cube; :class:`Optimizer` maps them to natural
+units, hands them out as :class:`Trial` objects, validates what comes back, turns failures
+(an exception, NaN/inf, a timeout) into ``failed`` records, and keeps the history.
+:func:`kftune.minimize` is a thin loop on top::
+
+    opt = make_optimizer("tsbo-tsp", space, seed=0)
+    while not opt.done:
+        trial = opt.ask()
+        opt.tell(trial, fun(trial.x))          # or opt.tell(trial, state="failed", reason=…)
+
+Trials are handed out one at a time: ``ask`` refuses while a trial is pending (TSBO is
+sequential by construction; the population methods hand out their generation one by one).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from kftune.optim.result import COMPLETE, FAILED, EvalRecord, best_record, jsonable
+from kftune.optim.space import Space
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """What an optimiser's ``_propose`` returns.
+
+    Attributes:
+        u: (d,) point in the unit cube.
+        x: optional (d,) point in natural units; when given it is evaluated as is (e.g. fixed
+            manual points, which must not suffer a log10 round trip) and ``u`` is ignored.
+        stage, acquisition, hyperparameters, info: bookkeeping copied into the record
+            (see :class:`~kftune.optim.result.EvalRecord`).
+    """
+
+    u: np.ndarray
+    x: np.ndarray | None = None
+    stage: int | None = None
+    acquisition: str | None = None
+    hyperparameters: dict[str, Any] | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Trial:
+    """A point handed out by :meth:`Optimizer.ask`, waiting for its value.
+
+    Attributes:
+        number: 0-based position in the run.
+        x: (d,) point in natural units — pass this to the objective.
+        u: (d,) the same point in the unit cube.
+        params: ``{name: value}`` of ``x``.
+        stage, acquisition, hyperparameters, info: how it was chosen.
+        t_propose: [s] time ``ask`` took.
+    """
+
+    number: int
+    x: np.ndarray
+    u: np.ndarray
+    params: dict[str, float]
+    stage: int | None
+    acquisition: str | None
+    hyperparameters: dict[str, Any] | None
+    info: dict[str, Any]
+    t_propose: float
+
+
+class ExhaustedError(RuntimeError):
+    """``ask`` was called on an optimiser that has nothing left to propose."""
+
+
+class Optimizer(ABC):
+    """Base class of every optimiser: ask/tell bookkeeping on top of ``_propose``/``_observe``.
+
+    Subclasses implement :meth:`_propose` (next point in the unit cube) and :meth:`_observe`
+    (learn from a result; ``value is None`` means the evaluation failed) and may override
+    :meth:`_exhausted`. They must draw all randomness from ``self.rng`` (or from seeds
+    spawned from ``self.seed_sequence``) so that one seed reproduces a run.
+
+    Args:
+        space: the search space (anything :meth:`Space.coerce` accepts).
+        budget: maximum number of evaluations (failed ones count); ``None`` → the method's
+            default (``default_budget``).
+        seed: drives all randomness.
+    """
+
+    #: Registry name (``kftune.minimize(method=...)``).
+    method: ClassVar[str] = "base"
+    #: Budget used when ``budget=None``.
+    default_budget: ClassVar[int] = 40
+
+    def __init__(self, space: Any, *, budget: int | None = None, seed: int = 0) -> None:
+        self.space = Space.coerce(space)
+        if budget is None:
+            budget = self.default_budget
+        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 1:
+            raise ValueError(f"budget must be a positive integer, got {budget!r}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        self.budget = int(budget)
+        self.seed = int(seed)
+        self.seed_sequence = np.random.SeedSequence(self.seed)
+        self.rng = np.random.default_rng(self.seed_sequence.spawn(1)[0])
+        self._history: list[EvalRecord] = []
+        self._pending: Trial | None = None
+        self._n_asked = 0
+
+    # ------------------------------------------------------------------ subclass hooks
+    @abstractmethod
+    def _propose(self) -> Proposal:
+        """The next point to evaluate (only called when not :attr:`done`)."""
+
+    @abstractmethod
+    def _observe(self, trial: Trial, value: float | None) -> None:
+        """Learn from the result of ``trial``; ``value is None`` ⇔ the evaluation failed."""
+
+    def _exhausted(self) -> bool:
+        """True when the optimiser has nothing left to propose (budget aside)."""
+        return False
+
+    def options(self) -> dict[str, Any]:
+        """The settings that define this optimiser's behaviour (stored with a study and
+        compared on resume); subclasses extend it."""
+        return {}
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def done(self) -> bool:
+        """True once the budget is used or the optimiser is exhausted."""
+        return self._n_asked >= self.budget or self._exhausted()
+
+    @property
+    def history(self) -> tuple[EvalRecord, ...]:
+        """Every told evaluation, in order."""
+        return tuple(self._history)
+
+    @property
+    def n_evals(self) -> int:
+        """Number of told evaluations."""
+        return len(self._history)
+
+    @property
+    def best(self) -> EvalRecord | None:
+        """The best completed evaluation so far (None before the first success)."""
+        return best_record(self._history)
+
+    @property
+    def pending(self) -> Trial | None:
+        """The trial handed out by :meth:`ask` and not told yet."""
+        return self._pending
+
+    def ask(self) -> Trial:
+        """Propose the next point.
+
+        Raises:
+            RuntimeError: a trial is still pending (tell it first).
+            ExhaustedError: the budget is used or nothing is left to propose.
+        """
+        if self._pending is not None:
+            raise RuntimeError(
+                f"trial {self._pending.number} is still pending: tell its result before "
+                "asking for another point (optimisers hand out one trial at a time)"
+            )
+        if self.done:
+            raise ExhaustedError(
+                f"{self.method}: nothing left to propose "
+                f"({self._n_asked} of budget {self.budget} asked)"
+            )
+        t0 = time.perf_counter()
+        prop = self._propose()
+        t_propose = time.perf_counter() - t0
+        if prop.x is not None:
+            x = np.asarray(prop.x, dtype=float).reshape(self.space.dim)
+            u = np.clip(self.space.to_unit(x), 0.0, 1.0)
+        else:
+            u = np.asarray(prop.u, dtype=float).reshape(self.space.dim)
+            if not np.all(np.isfinite(u)):
+                raise RuntimeError(f"{self.method} proposed a non-finite point {u}")
+            u = np.clip(u, 0.0, 1.0)
+            x = self.space.from_unit(u)
+        trial = Trial(
+            number=self._n_asked,
+            x=x,
+            u=u,
+            params=self.space.as_dict(x),
+            stage=prop.stage,
+            acquisition=prop.acquisition,
+            hyperparameters=jsonable(prop.hyperparameters),
+            info=jsonable(dict(prop.info)),
+            t_propose=t_propose,
+        )
+        self._pending = trial
+        self._n_asked += 1
+        return trial
+
+    def tell(
+        self,
+        trial: Trial | int | Any,
+        value: float | None = None,
+        *,
+        state: str | None = None,
+        reason: str | None = None,
+        t_eval: float = 0.0,
+    ) -> EvalRecord:
+        """Report the result of the pending trial.
+
+        Args:
+            trial: the :class:`Trial`, its number, or its point ``x`` in natural units.
+            value: the objective value. ``None``, NaN or ±inf make the evaluation failed.
+            state: ``"complete"`` (default when a value is given) or ``"failed"``.
+            reason: why it failed (kept in the record).
+            t_eval: [s] how long the evaluation took (kept in the record).
+
+        Returns:
+            The :class:`EvalRecord` appended to :attr:`history`.
+        """
+        pending = self._resolve(trial)
+        if state not in (None, COMPLETE, FAILED):
+            raise ValueError(f"state must be {COMPLETE!r} or {FAILED!r}, got {state!r}")
+        val: float | None = None
+        if state == FAILED:
+            reason = reason or "failed"
+        elif value is None:
+            state, reason = FAILED, reason or "no value reported"
+        else:
+            try:
+                val = float(value)
+            except (TypeError, ValueError):
+                state, reason = FAILED, f"objective returned a non-number: {value!r}"
+            else:
+                if math.isfinite(val):
+                    state, reason = COMPLETE, None
+                else:
+                    state, reason, val = FAILED, f"non-finite value {val}", None
+        self._observe(pending, val)
+        rec = EvalRecord(
+            number=pending.number,
+            x=tuple(float(v) for v in pending.x),
+            u=tuple(float(v) for v in pending.u),
+            params=dict(pending.params),
+            value=val,
+            state=state,  # type: ignore[arg-type]
+            reason=reason,
+            stage=pending.stage,
+            acquisition=pending.acquisition,
+            hyperparameters=pending.hyperparameters,
+            t_propose=float(pending.t_propose),
+            t_eval=float(t_eval),
+            info=pending.info,
+        )
+        self._history.append(rec)
+        self._pending = None
+        return rec
+
+    def _resolve(self, trial: Trial | int | Any) -> Trial:
+        p = self._pending
+        if p is None:
+            raise RuntimeError("no trial is pending: call ask() before tell()")
+        if isinstance(trial, Trial):
+            ok = trial.number == p.number
+        elif isinstance(trial, (int, np.integer)) and not isinstance(trial, bool):
+            ok = int(trial) == p.number
+        else:
+            xa = np.asarray(trial, dtype=float)
+            ok = xa.shape == p.x.shape and bool(np.allclose(xa, p.x, rtol=1e-12, atol=0.0))
+        if not ok:
+            raise ValueError(
+                f"tell() got {trial!r}, which is not the pending trial {p.number} "
+                f"(x = {p.x.tolist()})"
+            )
+        return p
