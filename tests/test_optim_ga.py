@@ -1,0 +1,112 @@
+"""The MATLAB-style GA: its operators against their definitions, and the generation layout
+of the paper's settings (Table IV)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kftune.optim.ga import (
+    GeneticAlgorithm,
+    rank_scaling,
+    reflect_unit,
+    stochastic_uniform_selection,
+)
+
+
+def test_rank_scaling_is_inverse_sqrt_rank():
+    scores = np.array([3.0, 1.0, np.inf, 2.0])
+    e = rank_scaling(scores, n_parents=25)
+    raw = np.array([1 / np.sqrt(3), 1.0, 1 / np.sqrt(4), 1 / np.sqrt(2)])
+    np.testing.assert_allclose(e, 25 * raw / raw.sum())
+
+
+def test_stochastic_uniform_selection_floor_ceil_and_mean():
+    rng = np.random.default_rng(1)
+    e = rank_scaling(rng.random(15), 25)
+    counts_sum = np.zeros(15)
+    n_rep = 4000
+    for _ in range(n_rep):
+        idx = stochastic_uniform_selection(e, 25, rng)
+        assert idx.shape == (25,)
+        c = np.bincount(idx, minlength=15)
+        # Each individual is chosen floor(e_i) or ceil(e_i) times (equal-step wheel).
+        assert np.all(c >= np.floor(e) - 1e-9) and np.all(c <= np.ceil(e) + 1e-9)
+        counts_sum += c
+    # Unbiased: the average count equals the expectation (Monte Carlo, ±0.05).
+    np.testing.assert_allclose(counts_sum / n_rep, e, atol=0.05)
+
+
+def test_reflect_unit():
+    got = reflect_unit(np.array([-0.2, 1.3, 2.5, 0.4, -3.1]))
+    np.testing.assert_allclose(got, [0.2, 0.7, 0.5, 0.4, 0.9])
+
+
+def test_paper_settings_generation_layout():
+    ga = GeneticAlgorithm({"a": (0, 1), "b": (0, 1), "c": (0, 1)}, seed=3)
+    assert (ga.budget, ga.population_size, ga.generations) == (225, 15, 15)
+    assert (ga.n_elite, ga.n_xover, ga.n_mut) == (1, 11, 3)
+    prev_pop = None
+    by_gen: dict[int, list] = {}
+    while not ga.done:
+        t = ga.ask()
+        by_gen.setdefault(t.stage, []).append(t)
+        ga.tell(t, float(np.sum((t.u - 0.3) ** 2)))
+    assert ga.n_evals == 225
+    assert [len(by_gen[g]) for g in range(16)] == [15] + [14] * 15
+    assert [t.acquisition for t in by_gen[0]] == ["initial"] * 15
+    for g in range(1, 16):
+        origins = [t.acquisition for t in by_gen[g]]
+        assert origins == ["crossover"] * 11 + ["mutation"] * 3
+    # Crossover children take every gene from some individual of the previous generation
+    # (scattered crossover copies genes, it never blends them).
+    hist = ga.history
+    for g in range(1, 16):
+        prev_pop = _population(hist, by_gen, g - 1)
+        for t in by_gen[g][:11]:
+            for j in range(3):
+                assert np.any(np.isclose(prev_pop[:, j], t.u[j], rtol=0, atol=0))
+
+
+def _population(hist, by_gen, g):
+    """Points of generation g including its elite (the best of all before it)."""
+    pts = [t.u for t in by_gen[g]]
+    if g > 0:
+        n_before = 15 + 14 * (g - 1)
+        best = min(hist[:n_before], key=lambda r: r.value)
+        pts.append(np.array(best.u))
+    return np.array(pts)
+
+
+def test_elite_is_kept_so_generation_best_never_worsens():
+    ga = GeneticAlgorithm({"a": (0, 1), "b": (0, 1)}, seed=0)
+    vals = []
+    while not ga.done:
+        t = ga.ask()
+        if t.acquisition != "initial" and t.info["index"] == ga.n_elite:
+            # A new generation started: its elite carries the best score seen so far.
+            assert ga._scores[0] == min(vals)
+        v = float(np.sum((t.u - 0.7) ** 2))
+        ga.tell(t, v)
+        vals.append(v)
+    assert ga._scores.min() == min(vals)
+    assert min(vals) < 1e-2
+
+
+def test_failures_rank_last_and_run_goes_on():
+    ga = GeneticAlgorithm({"a": (0, 1)}, seed=0, budget=60)
+    while not ga.done:
+        t = ga.ask()
+        ga.tell(t, None if t.u[0] > 0.8 else float(t.u[0]))
+    assert ga.n_evals == 60
+    assert ga.best.value < 0.05
+    assert any(r.state == "failed" for r in ga.history)
+
+
+def test_bad_options():
+    with pytest.raises(ValueError, match=r"crossover_fraction"):
+        GeneticAlgorithm({"a": (0, 1)}, crossover_fraction=1.5)
+    with pytest.raises(ValueError, match=r"elite_count"):
+        GeneticAlgorithm({"a": (0, 1)}, elite_count=1.5)
+    with pytest.raises(ValueError, match=r"population_size"):
+        GeneticAlgorithm({"a": (0, 1)}, population_size=1)
