@@ -15,7 +15,7 @@ C, FZ, MU = 60_000.0, 4_000.0, 1.0
 
 
 def textbook_dugoff(alpha: float, Fz: float, C_a: float, mu: float, kappa: float, C_x: float):
-    """Dugoff as printed (Rajamani 2nd ed. Sec. 13.9, braking-slip sign), scalar, literal."""
+    """Dugoff as printed (Rajamani 2nd ed. Ch. 13, braking-slip sign), scalar, literal."""
     den = 2 * math.sqrt((C_x * kappa) ** 2 + (C_a * math.tan(alpha)) ** 2)
     if den == 0.0:
         return None  # undefined as printed (λ = ∞); the limit is the linear tyre, F_y = 0

@@ -47,7 +47,7 @@ def test_steady_state_yaw_rate_matches_understeer_gradient(name, speed):
     p = preset(name)
     delta = math.radians(0.1)
     vy, r = steady_state(p, speed, delta)
-    # Gillespie Eq. 6-15 / Rajamani Eq. 3.15: r = V·δ / (L + K_us·V²)
+    # linear bicycle model (Gillespie Ch. 6; Rajamani Ch. 3): r = V·δ / (L + K_us·V²)
     r_lin = speed * delta / (p.L + p.understeer_gradient * speed**2)
     assert r == pytest.approx(r_lin, rel=2e-5)
     # rear-axle slip balance of the linear model: Vy = b·r − a·m·V²·r / (L·C_ar)

@@ -11,8 +11,8 @@ for n = 3 with scalars so that the step loop allocates nothing:
       x⁺ = x̄ + Wᵀ·v            (= x̄ + P_xz·S⁻¹·y = x̄ + K·y)
       P⁺ = P̄ − Wᵀ·W            (= P̄ − P_xz·S⁻¹·P_xzᵀ = P̄ − K·S·Kᵀ)
       NIS = vᵀ·v               (= yᵀ·S⁻¹·y)
-  (Simon, *Optimal State Estimation*, 2006, Eq. 14.62 for the UKF update; Särkkä,
-  *Bayesian Filtering and Smoothing*, 2013, Alg. 5.14.)
+  (the UKF measurement update of Simon, *Optimal State Estimation*, 2006, Ch. 14, and
+  Särkkä, *Bayesian Filtering and Smoothing*, 2013, Ch. 5, rearranged.)
 
 Covariance repair: every covariance the filter factorises (P⁺ after each update, the
 predicted P̄ before the sigma points are redrawn, the innovation covariance S) goes through

@@ -1,7 +1,7 @@
 """Scaled sigma points and the unscented transform (readable numpy reference).
 
 Van der Merwe's scaled sigma points (van der Merwe, *Sigma-Point Kalman Filters for
-Probabilistic Inference in Dynamic State-Space Models*, PhD thesis, 2004, Eq. 3.86–3.88;
+Probabilistic Inference in Dynamic State-Space Models*, PhD thesis, 2004, Ch. 3;
 Wan & van der Merwe, "The unscented Kalman filter for nonlinear estimation", 2000), in the
 conventions of FilterPy's ``MerweScaledSigmaPoints``:
 
@@ -17,6 +17,7 @@ written out for n = 3.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,18 +32,19 @@ class UKFSettings:
     Attributes:
         alpha: spread of the sigma points [-], > 0. Default 1.0.
         beta: prior-distribution term of W_0^c [-]; 2 is optimal for a Gaussian prior
-            (van der Merwe 2004, Sec. 3.2.2). Default 2.0.
+            (van der Merwe 2004, Ch. 3). Default 2.0.
         kappa: secondary scaling [-], n + κ > 0. Default 0.0.
 
     Why these defaults for the 3-state sideslip model: κ = 3 − n = 0 makes n + κ = 3, which
     matches the fourth moment (kurtosis) of a Gaussian along each axis (Julier & Uhlmann,
-    "Unscented filtering and nonlinear estimation", Proc. IEEE 92(3), 2004, Sec. IV-B;
+    "Unscented filtering and nonlinear estimation", Proc. IEEE 92(3), 2004;
     FilterPy's suggestion too). With α = 1 this gives λ = 0: the points sit at x ± √3·σ,
     W_0^m = 0, W_i = 1/6 and W_0^c = 2 — every covariance weight is non-negative, so the
     predicted covariance is a sum of positive semi-definite terms plus Q and cannot lose
     definiteness in the transform itself. The often-quoted α = 1e-3 instead gives
     W_0^m ≈ −10⁶ and points 1.7e-3·σ from the mean: a near-linearisation that cancels
-    digits, and it would not see the Dugoff saturation that the points at ±√3·σ sample.
+    digits and samples the model only next to the mean, where the points at ±√3·σ reach
+    into the Dugoff saturation when the state is near it.
     """
 
     alpha: float = 1.0
@@ -52,7 +54,7 @@ class UKFSettings:
     def __post_init__(self) -> None:
         for name in ("alpha", "beta", "kappa"):
             v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
                 raise ValueError(f"UKFSettings.{name} must be a finite number, got {v!r}")
         if self.alpha <= 0:
             raise ValueError(f"UKFSettings.alpha must be > 0, got {self.alpha!r}")

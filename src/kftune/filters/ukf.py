@@ -36,6 +36,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -439,10 +440,16 @@ def run_ukf_batch(
             x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
         )  # fmt: skip
     else:
-        _kernel.run_kernel_batch(
-            _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
-            x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep,
-        )  # fmt: skip
+        # one set per chunk, handed out dynamically: a thread whose core is busy with another
+        # process then does fewer sets instead of holding up a static half of the batch
+        previous = numba.set_parallel_chunksize(1)
+        try:
+            _kernel.run_kernel_batch(
+                _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
+                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep,
+            )  # fmt: skip
+        finally:
+            numba.set_parallel_chunksize(previous)
     return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep)
 
 
@@ -566,7 +573,7 @@ class UnscentedKalmanFilter:
         return np.vstack([self.x, self.x + c * L.T, self.x - c * L.T]), P_used
 
     def predict(self, u: np.ndarray) -> None:
-        """x̄, P̄ = UT(f(χ(x, P), u)) + Q  (van der Merwe 2004, Alg. 6, time update)."""
+        """x̄, P̄ = UT(f(χ(x, P), u)) + Q  (van der Merwe 2004, Ch. 3, time update)."""
         sigmas, _ = self._points(self.P)
         self.x, self.P = unscented_transform(self.fx(sigmas, u), self.wm, self.wc, self.Q)
 

@@ -8,14 +8,14 @@ accelerometer's lateral acceleration [m/s²]. Paper Sec. V; DESIGN.md §3.
 Equations (body frame, planar, no aerodynamic or rolling-resistance terms — they are inside
 the measured ax):
 
-* slip angles (Rajamani, *Vehicle Dynamics and Control*, 2nd ed., Eq. 2.23–2.24, without
+* slip angles (Rajamani, *Vehicle Dynamics and Control*, 2nd ed., Ch. 2, without
   the small-angle approximation)
       α_f = δ − atan2(Vy + a·r, Vx),    α_r = −atan2(Vy − b·r, Vx)
 * axle loads with longitudinal load transfer (Gillespie, *Fundamentals of Vehicle
-  Dynamics*, Eq. 2-4/2-5 with the accelerometer's ax)
+  Dynamics*, Ch. 2, with the accelerometer's ax)
       Fz_f = m·(g·b − ax·h)/L,          Fz_r = m·(g·a + ax·h)/L
 * axle lateral forces by Dugoff with κ = 0 (:mod:`kftune.vehicle.tyre`)
-* Newton–Euler in the rotating body frame (Rajamani Eq. 2.27–2.28); an accelerometer
+* Newton–Euler in the rotating body frame (Rajamani Ch. 2); an accelerometer
   reads a = V̇ + ω × V, so with the measured ax
       V̇x = ax + r·Vy
       V̇y = (F_yf·cos δ + F_yr)/m − r·Vx

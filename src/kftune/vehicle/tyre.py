@@ -2,7 +2,7 @@
 
 Dugoff, Fancher & Segel, "An analysis of tire traction properties and their influence on
 vehicle dynamic performance", SAE 700377 (1970); in the form of Rajamani, *Vehicle Dynamics
-and Control*, 2nd ed., Sec. 13.9, with the braking-slip sign convention of DESIGN.md §3:
+and Control*, 2nd ed., Ch. 13 (tyre models), with the braking-slip sign convention of DESIGN.md §3:
 
     λ    = μ·Fz·(1 − κ) / (2·√((C_x·κ)² + (C_α·tan α)²))                 (Dugoff λ)
     f(λ) = (2 − λ)·λ  for λ < 1,   1  for λ ≥ 1
@@ -105,7 +105,7 @@ def _dugoff_unchecked(
     D = np.hypot(C_x * kappa, C_alpha * tan_a)
     cap = mu * load * (1.0 - kappa)  # = 2·λ·D
     linear = cap >= 2.0 * D  # λ ≥ 1 (also D = 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # unselected branch
         lam = cap / (2.0 * D)
         saturated = C_alpha * tan_a * mu * load * (1.0 - 0.5 * lam) / D
         lin = C_alpha * tan_a / (1.0 - kappa)
