@@ -25,7 +25,11 @@ the measured ax):
   brake split is unknown; it is second order in δ for the yaw moment).
 
 Discretisation: one classical RK4 step per sample with the input held over the step
-(zero-order hold).
+(zero-order hold). The lateral dynamics are stiff at low speed (eigenvalues of the order
+of −(C_af + C_ar)/(m·Vx) and −(a²·C_af + b²·C_ar)/(I_z·Vx)), and RK4's stability limit
+(|λ·dt| < 2.8 on the real axis) is crossed at about Vx = 1 m/s for the BMW preset at
+100 Hz (checked by simulation). Below that the Dugoff saturation keeps the states bounded,
+but the discrete model chatters; the sideslip filter is meant for driving speeds.
 
 The slip-angle formula uses atan2, defined for every (Vx, Vy) — sigma points with Vx ≤ 0
 stay finite — but the model is physical only for forward driving, Vx > 0.
