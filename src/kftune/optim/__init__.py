@@ -1,1 +1,34 @@
-"""kftune.optim."""
+"""kftune.optim — TSBO and its baselines behind one ask/tell interface; persistent studies.
+
+Knows nothing about vehicles or filters: it minimises a black box over a box.
+
+* :class:`Space`/:class:`Param` — named bounds, linear or log10, mapped to [0, 1]^d;
+* :class:`Optimizer` — ``ask() -> Trial``, ``tell(trial, value)``; one per method in
+  :data:`METHODS`, built with :func:`make_optimizer`;
+* :func:`minimize` — the loop on top, with failures, timeouts and SQLite studies;
+* :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind.
+"""
+
+from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
+from kftune.optim.minimize import METHODS, OptimizationInterrupted, make_optimizer, minimize
+from kftune.optim.result import EvalRecord, OptimizeResult
+from kftune.optim.space import Param, Space
+from kftune.optim.study import Study, StudyError, StudyInUseError
+
+__all__ = [
+    "METHODS",
+    "EvalRecord",
+    "ExhaustedError",
+    "OptimizationInterrupted",
+    "OptimizeResult",
+    "Optimizer",
+    "Param",
+    "Proposal",
+    "Space",
+    "Study",
+    "StudyError",
+    "StudyInUseError",
+    "Trial",
+    "make_optimizer",
+    "minimize",
+]

@@ -1,0 +1,323 @@
+"""``kftune.minimize``: the thin loop over ask/tell, with failures, timeouts and studies.
+
+Evaluation and failures
+    ``fun`` receives a ``(d,)`` array in natural units and returns a float. An exception
+    (any ``Exception``), a NaN/inf or non-numeric return value, or — when ``timeout`` is set
+    — a run longer than ``timeout`` seconds makes the evaluation *failed*: it is recorded
+    with its reason, the optimiser is told (TSBO imputes a pessimistic value and never
+    proposes the point again) and the run goes on.
+
+Timeouts
+    Only when ``timeout`` is given, evaluations run in one persistent worker process
+    (``fork`` start method on Linux, ``spawn`` elsewhere — then ``fun`` must be picklable).
+    A timed-out worker is killed and a fresh one started for the next evaluation; a worker
+    that dies (segfault, ``os._exit``) fails that evaluation likewise. Side effects of
+    ``fun`` stay in the worker. Without ``timeout`` ``fun`` runs in this process.
+
+Studies and resume
+    With ``storage="study.db"`` every proposal is committed before it is evaluated and every
+    result when it arrives (see :mod:`kftune.optim.study`). ``resume=True`` rebuilds the
+    optimiser by replaying the stored history through ask/tell with the same seed — each
+    replayed proposal must equal the stored one (to 1e-9 in the unit cube) — so no finished
+    evaluation is repeated and the final result equals that of an uninterrupted run; the
+    proposal that was in flight when the previous process stopped is evaluated again.
+
+Ctrl-C
+    ``KeyboardInterrupt`` stops the run after the study is saved and its lock released, and
+    is re-raised as :class:`OptimizationInterrupted` (a ``KeyboardInterrupt``) carrying the
+    partial :class:`OptimizeResult` in ``.result``. The interrupted evaluation stays
+    ``running`` in the study and is redone on resume.
+"""
+
+from __future__ import annotations
+
+import inspect
+import multiprocessing
+import signal
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from kftune.optim.base import Optimizer
+from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
+from kftune.optim.space import Space
+from kftune.optim.study import Study, StudyError
+
+#: Tolerance (unit cube, max-norm) for a replayed proposal to count as the stored one.
+REPLAY_ATOL = 1e-9
+
+
+def _registry() -> dict[str, tuple[type[Optimizer], dict[str, Any]]]:
+    from kftune.optim.baselines import ManualPoints, RandomSearch
+    from kftune.optim.ga import GeneticAlgorithm
+    from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE
+    from kftune.optim.tsbo import TSBO
+
+    return {
+        "tsbo-tsp": (TSBO, {"surrogate": "tsp"}),
+        "tsbo-gp": (TSBO, {"surrogate": "gp"}),
+        "tsbo-robust": (TSBO, {"surrogate": "robust-gp"}),
+        "ga": (GeneticAlgorithm, {}),
+        "random": (RandomSearch, {}),
+        "manual": (ManualPoints, {}),
+        "optuna-tpe": (OptunaTPE, {}),
+        "optuna-gp": (OptunaGP, {}),
+        "cma": (CMAES, {}),
+    }
+
+
+METHODS: tuple[str, ...] = (
+    "tsbo-tsp",
+    "tsbo-gp",
+    "tsbo-robust",
+    "ga",
+    "random",
+    "manual",
+    "optuna-tpe",
+    "optuna-gp",
+    "cma",
+)
+
+
+def make_optimizer(
+    method: str, space: Any, *, budget: int | None = None, seed: int = 0, **options: Any
+) -> Optimizer:
+    """Construct an optimiser by name (see :data:`METHODS`).
+
+    Raises:
+        ValueError: unknown method or an option the method does not have.
+        kftune.optim.peers.PeerUnavailableError: a peer's package is missing.
+    """
+    reg = _registry()
+    if method not in reg:
+        raise ValueError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+    cls, defaults = reg[method]
+    params = inspect.signature(cls.__init__).parameters
+    allowed = [n for n in params if n not in ("self", "space", "budget", "seed")]
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ValueError(f"method {method!r} has no option(s) {unknown}; its options: {allowed}")
+    clash = sorted(set(options) & set(defaults))
+    if clash:
+        raise ValueError(f"method {method!r} fixes {clash}; use another method name instead")
+    return cls(Space.coerce(space), budget=budget, seed=seed, **defaults, **options)
+
+
+class OptimizationInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`minimize`; ``.result`` holds what finished (already saved)."""
+
+    def __init__(self, result: OptimizeResult) -> None:
+        super().__init__(f"optimisation interrupted after {result.n_evals} evaluations")
+        self.result = result
+
+
+def minimize(
+    fun: Callable[[np.ndarray], float],
+    space: Any,
+    method: str = "tsbo-tsp",
+    *,
+    budget: int | None = None,
+    seed: int = 0,
+    storage: str | None = None,
+    resume: bool = False,
+    timeout: float | None = None,
+    callback: Callable[[EvalRecord], bool | None] | None = None,
+    **method_options: Any,
+) -> OptimizeResult:
+    """Minimise a black-box function over a box.
+
+    Args:
+        fun: objective; ``fun(x) -> float`` with ``x`` a ``(d,)`` array in natural units.
+        space: a :class:`Space`, ``{"name": (low, high[, "log10"])}`` or a sequence of
+            ``(low, high[, scale])``.
+        method: one of :data:`METHODS` (``"tsbo-tsp"``, ``"tsbo-gp"``, ``"tsbo-robust"``,
+            ``"ga"``, ``"random"``, ``"manual"``, ``"optuna-tpe"``, ``"optuna-gp"``,
+            ``"cma"``).
+        budget: evaluations (failed ones count); ``None`` → the method's default (TSBO 40 =
+            MAX_PE, GA 225, manual: its number of points, others 40).
+        seed: drives all randomness; same seed, same run.
+        storage: path of a SQLite study file, or ``None`` for no persistence.
+        resume: continue the study in ``storage`` (see the module docstring).
+        timeout: [s] per-evaluation time limit (runs ``fun`` in a worker process).
+        callback: called with every finished :class:`EvalRecord` (replayed ones too, in
+            order); returning ``True`` stops the run (status ``"stopped"``).
+        **method_options: passed to the optimiser (e.g. ``max_fe=10`` for TSBO,
+            ``population_size=20`` for GA, ``points=[...]`` for manual).
+
+    Returns:
+        :class:`OptimizeResult` with the best point, its value and the full history.
+
+    Raises:
+        OptimizationInterrupted: on Ctrl-C, after saving (``.result`` has the partial run).
+        kftune.optim.study.StudyInUseError: the study is open in another process.
+        kftune.optim.study.StudyError, kftune.errors.ConfigError: unusable study / settings.
+        ValueError: bad arguments.
+    """
+    if not callable(fun):
+        raise ValueError(f"fun must be callable, got {type(fun).__name__}")
+    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0):
+        raise ValueError(f"timeout must be a positive number of seconds or None, got {timeout!r}")
+    sp = Space.coerce(space)
+    opt = make_optimizer(method, sp, budget=budget, seed=seed, **method_options)
+    settings = {
+        "method": method,
+        "seed": opt.seed,
+        "budget": opt.budget,
+        "space": sp.to_dict(),
+        "options": opt.options(),
+    }
+    study = Study.open(storage, settings, resume=resume) if storage is not None else None
+    evaluator = _Evaluator(fun, timeout)
+    history: list[EvalRecord] = []
+    status = "completed"
+
+    def result(st: str) -> OptimizeResult:
+        return OptimizeResult.from_history(
+            history,
+            method=method,
+            seed=opt.seed,
+            budget=opt.budget,
+            status=st,
+            space=sp.to_dict(),
+            options=settings["options"],
+        )
+
+    try:
+        in_flight: list[float] | None = None
+        if study is not None:
+            stored, in_flight = study.records()
+            for rec in stored:
+                trial = opt.ask()
+                _check_replay(study, rec.number, trial.u, rec.u)
+                opt.tell(trial, rec.value, state=rec.state, reason=rec.reason, t_eval=rec.t_eval)
+                history.append(rec)
+                if callback is not None:
+                    callback(rec)
+        while not opt.done:
+            trial = opt.ask()
+            if in_flight is not None:
+                _check_replay(study, trial.number, trial.u, in_flight)
+                in_flight = None
+            if study is not None:
+                study.write_proposal(trial.number, [float(v) for v in trial.u])
+            value, reason, t_eval = evaluator(trial.x)
+            rec = opt.tell(
+                trial,
+                value,
+                state=FAILED if reason is not None else None,
+                reason=reason,
+                t_eval=t_eval,
+            )
+            if study is not None:
+                study.write_result(rec)
+            history.append(rec)
+            if callback is not None and callback(rec) is True:
+                status = "stopped"
+                break
+        if status == "completed" and opt.n_evals < opt.budget:
+            status = "exhausted"
+    except KeyboardInterrupt:
+        # ``finally`` below closes the study (releasing its lock) before this propagates.
+        raise OptimizationInterrupted(result("interrupted")) from None
+    finally:
+        evaluator.close()
+        if study is not None:
+            study.close()
+    return result(status)
+
+
+def _check_replay(study: Any, number: int, proposed: np.ndarray, stored: Any) -> None:
+    s = np.asarray(stored, dtype=float)
+    if s.shape != proposed.shape or not np.allclose(proposed, s, rtol=0.0, atol=REPLAY_ATOL):
+        raise StudyError(
+            f"study {study.path}: replay diverged at trial {number}: the optimiser now proposes "
+            f"u = {proposed.tolist()} where the study stored u = {s.tolist()}; the study was "
+            "made with different code or settings, or the objective was not deterministic"
+        )
+
+
+# ---------------------------------------------------------------------- evaluation
+class _Evaluator:
+    """Calls ``fun`` in-process, or in a worker process when a timeout is set."""
+
+    def __init__(self, fun: Callable[[np.ndarray], float], timeout: float | None) -> None:
+        self.fun = fun
+        self.timeout = timeout
+        self._proc: Any = None
+        self._conn: Any = None
+
+    def __call__(self, x: np.ndarray) -> tuple[Any, str | None, float]:
+        t0 = time.perf_counter()
+        if self.timeout is None:
+            try:
+                value = self.fun(np.array(x))
+            except Exception as exc:
+                return None, _describe(exc), time.perf_counter() - t0
+            return value, None, time.perf_counter() - t0
+        return (*self._call_worker(np.array(x)), time.perf_counter() - t0)
+
+    def _call_worker(self, x: np.ndarray) -> tuple[Any, str | None]:
+        if self._proc is None or not self._proc.is_alive():
+            self._start()
+        self._conn.send(x)
+        if not self._conn.poll(self.timeout):
+            self._kill()
+            return None, f"timeout after {self.timeout:g} s"
+        try:
+            kind, payload = self._conn.recv()
+        except (EOFError, OSError):
+            self._proc.join(5)
+            code = self._proc.exitcode
+            self._kill()
+            return None, f"evaluation process died (exit code {code})"
+        return (payload, None) if kind == "ok" else (None, payload)
+
+    def _start(self) -> None:
+        methods = multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context(
+            "fork" if sys.platform.startswith("linux") and "fork" in methods else "spawn"
+        )
+        parent, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_worker_loop, args=(self.fun, child), daemon=True)
+        self._proc.start()
+        child.close()
+        self._conn = parent
+
+    def _kill(self) -> None:
+        if self._proc is not None:
+            self._proc.kill()
+            self._proc.join(5)
+            self._proc = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def close(self) -> None:
+        self._kill()
+
+
+def _worker_loop(fun: Callable[[np.ndarray], float], conn: Any) -> None:  # pragma: no cover
+    """Body of the evaluation worker (runs in the child process)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business
+    while True:
+        try:
+            x = conn.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            value = fun(x)
+            try:
+                msg: tuple[str, Any] = ("ok", float(value))
+            except (TypeError, ValueError):
+                msg = ("error", f"objective returned a non-number: {value!r}")
+        except Exception as exc:
+            msg = ("error", _describe(exc))
+        conn.send(msg)
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

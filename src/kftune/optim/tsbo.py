@@ -1,0 +1,513 @@
+"""Two-Stage Bayesian Optimisation (paper Sec. IV; original algorithm: Torun et al.,
+IEEE TVLSI 2018), behind the ask/tell interface.
+
+The algorithm, in the unit cube ``[0, 1]^d`` (log10 parameters are linear there):
+
+* **Start**: evaluate the centre; split the root box into 2^d children (Alg. 1, first lines).
+* **Stage 1, fast exploration** (Alg. 1). Candidates are the centres of all current leaves
+  of the partition tree whose centre has not been evaluated. Each iteration fits the
+  surrogate on all data, scores every candidate with the acquisition function (AF), evaluates
+  the best candidate and splits its leaf into 2^d children (every side halved), so the
+  leaf list grows by 2^d − 1 per iteration.
+* **Acquisition choice**: EI and CBM (paper Eqs. 8–9) alternate, EI first, for the first
+  ``max_af`` AF-chosen iterations; afterwards the one with the larger *gain* is used to the
+  end of the run (stage 2 included). If stage 1 ends before ``max_af`` iterations, the
+  choice is made at the switch with the gains gathered so far.
+* **Switch** (Eq. 10): a counter n is incremented after every stage-1 evaluation after which
+  the incumbent q* moved by less than ``TR_FE = tr_fe·‖q*‖`` (natural units, Euclidean; an
+  incumbent that did not move at all always counts, so q* = 0 cannot block the switch) and
+  reset otherwise; stage 2 starts once n reaches ``max_fe``.
+* **Stage 2, pure exploitation** (Alg. 2, Eq. 11): the box ``[(1−α)q*, (1+α)q*]`` in natural
+  units — additive ``log10(1∓α)`` in log10 coordinates — clipped to the bounds, split into
+  3^d boxes; then the same loop, with 3^d splits (the centre child of a split keeps the
+  evaluated centre, so 3^d − 1 new candidates per iteration).
+* **Surrogate freeze**: after ``max_sm`` evaluations the surrogate's hyperparameters are no
+  longer re-optimised (see ``sm_freeze``). Stop after ``max_pe`` = ``budget`` evaluations.
+
+Decisions where the paper is silent (each is tested in ``tests/test_optim_tsbo.py``):
+
+``max_af`` (default 10)
+    Table III does not give MAX_AF. 10 AF-chosen iterations give each AF five turns and the
+    choice is made before the earliest possible switch (stage 1 lasts at least ``max_fe`` =
+    15 AF-chosen iterations), so stage 2 always runs with the chosen AF.
+*gain*
+    The realised improvement of the incumbent credited to the AF that chose the point:
+    ``gain_a = Σ max(0, y*_before − y)`` over the evaluations AF ``a`` chose (a failed
+    evaluation gains 0). The larger total wins; a tie (e.g. both 0) goes to EI. Realised
+    improvements are in the objective's units for both AFs, so they compare directly,
+    unlike the AF values themselves (EI is an expectation, CBM a bound).
+EI ranking
+    Candidates are ranked by ``log EI`` when ``kftune.bo.acquisition`` provides it: the same
+    argmax as EI wherever EI is representable, but far-away candidates whose EI underflows
+    to 0 stay ordered instead of tying.
+Ties
+    Candidates whose AF value is within 1e-9 (relative) of the best are tied; the seeded
+    RNG picks one (the first iteration, where all 2^d candidates are symmetric, needs this).
+Stage 1 exhausting the budget
+    In the faithful mode nothing is reserved: if the switch criterion has not fired when the
+    budget is used, the run ends in stage 1 (Alg. 1 has no budget test; Alg. 2 then runs zero
+    iterations). ``stage2_reserve`` (improved mode) forces the switch when only that share
+    of the budget is left.
+Stage-2 box
+    Eq. 11 per coordinate, clipped to [0, 1]. On a linear scale with q*_i = 0 the box has zero
+    width in that coordinate (all candidates share it) — the original's known weak spot,
+    kept in the faithful mode; ``min_box_halfwidth`` (improved mode) widens every side to at
+    least that half-width in the unit cube. If clipping moves the box off-centre, q* is no
+    longer a box centre and the root centre becomes a candidate like any other.
+Stage-2 data
+    Faithful: the stage-2 surrogate sees only q* and the stage-2 evaluations, in the box's
+    own normalised coordinates (stage 2 is a fresh TSBO on the box started from its evaluated
+    centre; the original drops the stage-1 data). Zero-width coordinates map to 0.5.
+    ``keep_stage1_data`` (improved mode) fits on every evaluation in global coordinates.
+MAX_SM freeze (``sm_freeze``)
+    ``"hyperparameters"`` (default): after ``max_sm`` evaluations the hyperparameters are
+    frozen but the model is still *conditioned* on new data (``Surrogate.condition``).
+    Reason: Alg. 2 says the tSP "is no more retrained", and in GPML (the paper's toolbox)
+    training is the hyperparameter optimisation (``minimize`` on the NLML), while every
+    prediction call conditions on the data passed to it; the freeze exists to save the
+    training cost, and conditioning costs nothing by comparison. ``"full"`` keeps the model
+    exactly as last fitted (new points are ignored) for those who read Alg. 2 literally.
+    The refit counter is the total number of evaluations n: the model is refitted before a
+    proposal iff n ≤ ``max_sm`` (Alg. 2: "if n_iter ≤ MAX_SM, train"), except that the
+    first stage-2 proposal always fits, since stage 2 changes the data and coordinates.
+Failed evaluations
+    Imputed with a pessimistic value for the surrogate: the worst successful value in the
+    surrogate's data (in the whole run if that has none; 0 if nothing succeeded yet). The
+    imputation is recomputed at every fit, so it follows the data's scale. The failed point
+    is never proposed again: its leaf is split like any evaluated leaf and candidates within
+    1e-9 (unit cube, max-norm) of any asked point are removed. The incumbent ignores failures.
+All candidates exhausted
+    Only possible with degenerate boxes. Then ``100·d`` uniform random points over the whole
+    unit cube (from the seeded RNG) are scored with the current AF instead; the record's
+    acquisition reads e.g. ``"EI-fallback"``.
+
+Modes: ``mode="faithful"`` (default) is the paper as above. ``mode="improved"`` sets
+``keep_stage1_data=True``, ``min_box_halfwidth=0.02`` and ``stage2_reserve=0.25`` (each can
+also be set alone); it is kept only where ``benchmarks/optimizers.py`` shows it better.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import numpy as np
+
+from kftune.optim.base import Optimizer, Proposal, Trial
+
+#: Distance (unit cube, max-norm) under which two points count as the same point.
+SAME_POINT_ATOL = 1e-9
+#: Relative tolerance for AF ties.
+TIE_RTOL = 1e-9
+_MODES = {
+    "faithful": {"keep_stage1_data": False, "min_box_halfwidth": 0.0, "stage2_reserve": 0.0},
+    "improved": {"keep_stage1_data": True, "min_box_halfwidth": 0.02, "stage2_reserve": 0.25},
+}
+_AFS = ("EI", "CBM")
+
+
+class PartitionTree:
+    """Leaves of a recursive partition of a box in the unit cube.
+
+    Attributes:
+        lo, hi: (L, d) corners of every node ever created (unit cube).
+        active: (L,) True for current leaves.
+        asked: (L,) True where the node's centre has been evaluated (or is pending).
+    """
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        self.lo = np.asarray(lo, dtype=float)[None, :].copy()
+        self.hi = np.asarray(hi, dtype=float)[None, :].copy()
+        self.active = np.array([True])
+        self.asked = np.array([False])
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(L, d) centres of all nodes."""
+        return 0.5 * (self.lo + self.hi)
+
+    def candidates(self) -> np.ndarray:
+        """Indices of leaves whose centre has not been evaluated."""
+        return np.flatnonzero(self.active & ~self.asked)
+
+    def split(self, i: int, k: int, asked_points: np.ndarray) -> np.ndarray:
+        """Split leaf ``i`` into k^d equal children (each side cut into k).
+
+        Args:
+            i: node index (must be an active leaf).
+            k: 2 (stage 1) or 3 (stage 2).
+            asked_points: (n, d) every point asked so far; children whose centre coincides
+                with one are marked ``asked``.
+
+        Returns:
+            Indices of the new children.
+        """
+        if not self.active[i]:
+            raise ValueError(f"node {i} is not a leaf")
+        lo, hi = self.lo[i], self.hi[i]
+        d = lo.size
+        edges = [lo[j] + (hi[j] - lo[j]) * np.arange(k + 1) / k for j in range(d)]
+        combos = np.array(list(itertools.product(range(k), repeat=d)))  # (k^d, d)
+        c_lo = np.stack([edges[j][combos[:, j]] for j in range(d)], axis=1)
+        c_hi = np.stack([edges[j][combos[:, j] + 1] for j in range(d)], axis=1)
+        centres = 0.5 * (c_lo + c_hi)
+        start = len(self.active)
+        self.lo = np.vstack([self.lo, c_lo])
+        self.hi = np.vstack([self.hi, c_hi])
+        self.active[i] = False
+        self.active = np.concatenate([self.active, np.ones(len(combos), dtype=bool)])
+        self.asked = np.concatenate([self.asked, coincides(centres, asked_points)])
+        return np.arange(start, start + len(combos))
+
+
+def coincides(points: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(m,) True where a row of ``points`` (m, d) lies within :data:`SAME_POINT_ATOL`
+    (max-norm) of a row of ``others`` (n, d)."""
+    if len(others) == 0 or len(points) == 0:
+        return np.zeros(len(points), dtype=bool)
+    out = np.zeros(len(points), dtype=bool)
+    for chunk in range(0, len(points), 4096):
+        p = points[chunk : chunk + 4096]
+        diff = np.abs(p[:, None, :] - others[None, :, :]).max(axis=2)
+        out[chunk : chunk + 4096] = (diff <= SAME_POINT_ATOL).any(axis=1)
+    return out
+
+
+def stage2_box(
+    space: Any, q_star: np.ndarray, alpha: float, min_halfwidth: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pure-exploitation box of paper Eq. 11 in unit-cube coordinates.
+
+    ``[(1−α)·q*_i, (1+α)·q*_i]`` in natural units (ordered, for negative q*_i); on a log10
+    scale this is ``u*_i + [log10(1−α), log10(1+α)] / (log10 hi − log10 lo)``. Each side is
+    then widened to at least ``min_halfwidth`` around u*_i and clipped to [0, 1].
+
+    Args:
+        space: the :class:`~kftune.optim.space.Space`.
+        q_star: (d,) incumbent in natural units.
+        alpha: relative half-width α (paper: 0.15), 0 < α < 1.
+        min_halfwidth: lower bound on each half-width in the unit cube (0 = paper).
+
+    Returns:
+        (lo, hi), each (d,), in the unit cube.
+    """
+    q = np.asarray(q_star, dtype=float)
+    u_star = space.to_unit(q)
+    lo = np.empty(space.dim)
+    hi = np.empty(space.dim)
+    for i, p in enumerate(space.params):
+        if p.log:
+            lo[i] = u_star[i] + math.log10(1.0 - alpha) / p.width
+            hi[i] = u_star[i] + math.log10(1.0 + alpha) / p.width
+        else:
+            a, b = sorted(((1.0 - alpha) * q[i], (1.0 + alpha) * q[i]))
+            lo[i] = (a - p.low) / p.width
+            hi[i] = (b - p.low) / p.width
+    lo = np.minimum(lo, u_star - min_halfwidth)
+    hi = np.maximum(hi, u_star + min_halfwidth)
+    return np.clip(lo, 0.0, 1.0), np.clip(hi, 0.0, 1.0)
+
+
+class TSBO(Optimizer):
+    """Two-stage Bayesian optimisation (see the module docstring for every decision).
+
+    Args:
+        space: search space.
+        budget: total evaluations = MAX_PE (paper: 40).
+        seed: drives the surrogate fits, tie-breaks and fallbacks.
+        surrogate: ``"tsp"`` (Student-t process, ν = 15), ``"gp"``, ``"robust-gp"``, or a
+            callable ``factory(seed=int) -> Surrogate``.
+        surrogate_options: keyword options for ``kftune.bo.make_surrogate``.
+        max_fe: MAX_FE, consecutive small moves that end stage 1 (paper: 15).
+        max_sm: MAX_SM, evaluations after which the surrogate is frozen; default
+            ``budget − 2`` (paper: 38 of 40).
+        max_af: MAX_AF, AF-chosen iterations of EI/CBM alternation (default 10).
+        beta: CBM exploration weight β (paper: 0.01).
+        alpha: stage-2 box half-width α, relative in natural units (paper: 0.15).
+        tr_fe: TR_FE as a fraction of ‖q*‖ (paper: 0.01).
+        mode: ``"faithful"`` or ``"improved"`` (presets for the three options below).
+        sm_freeze: ``"hyperparameters"`` or ``"full"``.
+        keep_stage1_data: stage-2 surrogate also fits the stage-1 data.
+        min_box_halfwidth: floor of the stage-2 half-width in the unit cube.
+        stage2_reserve: share of the budget reserved for stage 2.
+    """
+
+    method: ClassVar[str] = "tsbo"
+    default_budget: ClassVar[int] = 40
+
+    def __init__(
+        self,
+        space: Any,
+        *,
+        budget: int | None = None,
+        seed: int = 0,
+        surrogate: str | Callable[..., Any] = "tsp",
+        surrogate_options: dict[str, Any] | None = None,
+        max_fe: int = 15,
+        max_sm: int | None = None,
+        max_af: int = 10,
+        beta: float = 0.01,
+        alpha: float = 0.15,
+        tr_fe: float = 0.01,
+        mode: str = "faithful",
+        sm_freeze: str = "hyperparameters",
+        keep_stage1_data: bool | None = None,
+        min_box_halfwidth: float | None = None,
+        stage2_reserve: float | None = None,
+    ) -> None:
+        super().__init__(space, budget=budget, seed=seed)
+        if mode not in _MODES:
+            raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
+        if sm_freeze not in ("hyperparameters", "full"):
+            raise ValueError(f"sm_freeze must be 'hyperparameters' or 'full', got {sm_freeze!r}")
+        for name, val in (("max_fe", max_fe), ("max_af", max_af)):
+            if not isinstance(val, (int, np.integer)) or val < 1:
+                raise ValueError(f"{name} must be a positive integer, got {val!r}")
+        if max_sm is None:
+            max_sm = max(1, self.budget - 2)
+        if not isinstance(max_sm, (int, np.integer)) or max_sm < 1:
+            raise ValueError(f"max_sm must be a positive integer, got {max_sm!r}")
+        if not 0.0 < alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+        if not beta >= 0.0 or not tr_fe >= 0.0:
+            raise ValueError(f"beta and tr_fe must be >= 0, got {beta!r}, {tr_fe!r}")
+        preset = _MODES[mode]
+        self.mode = mode
+        self.keep_stage1_data = bool(
+            preset["keep_stage1_data"] if keep_stage1_data is None else keep_stage1_data
+        )
+        self.min_box_halfwidth = float(
+            preset["min_box_halfwidth"] if min_box_halfwidth is None else min_box_halfwidth
+        )
+        self.stage2_reserve = float(
+            preset["stage2_reserve"] if stage2_reserve is None else stage2_reserve
+        )
+        if not 0.0 <= self.min_box_halfwidth <= 0.5 or not 0.0 <= self.stage2_reserve < 1.0:
+            raise ValueError(
+                "min_box_halfwidth must be in [0, 0.5] and stage2_reserve in [0, 1); got "
+                f"{self.min_box_halfwidth!r}, {self.stage2_reserve!r}"
+            )
+        self.max_fe, self.max_sm, self.max_af = int(max_fe), int(max_sm), int(max_af)
+        self.beta, self.alpha, self.tr_fe = float(beta), float(alpha), float(tr_fe)
+        self.sm_freeze = sm_freeze
+        self.surrogate_name = surrogate if isinstance(surrogate, str) else _qualname(surrogate)
+        self.surrogate_options = dict(surrogate_options or {})
+        self.method = f"tsbo-{self.surrogate_name}" if isinstance(surrogate, str) else "tsbo"
+        surrogate_seed = int(self.seed_sequence.spawn(2)[1].generate_state(1)[0])
+        if isinstance(surrogate, str):
+            from kftune.bo import make_surrogate
+
+            self.surrogate = make_surrogate(
+                surrogate, seed=surrogate_seed, **self.surrogate_options
+            )
+        elif callable(surrogate):
+            self.surrogate = surrogate(seed=surrogate_seed, **self.surrogate_options)
+        else:
+            raise ValueError(f"surrogate must be a name or a factory, got {surrogate!r}")
+
+        d = self.space.dim
+        self.stage = 1
+        self.tree = PartitionTree(np.zeros(d), np.ones(d))
+        self._X = np.empty((0, d))  # every asked point (unit cube), told ones first
+        self._y: list[float | None] = []
+        self._stage_of: list[int] = []
+        self.small_moves = 0  # counter n of Eq. 10
+        self.af_iterations = 0
+        self.gains = {"EI": 0.0, "CBM": 0.0}
+        self.chosen_af: str | None = None
+        self.switch_at: int | None = None  # number of evaluations when stage 2 began
+        self.box: tuple[np.ndarray, np.ndarray] | None = None
+        self._stage2_fitted = False
+        self._last_fit_n: int | None = None
+
+    # ------------------------------------------------------------------ settings
+    def options(self) -> dict[str, Any]:
+        return {
+            "surrogate": self.surrogate_name,
+            "surrogate_options": self.surrogate_options,
+            "max_fe": self.max_fe,
+            "max_sm": self.max_sm,
+            "max_af": self.max_af,
+            "beta": self.beta,
+            "alpha": self.alpha,
+            "tr_fe": self.tr_fe,
+            "mode": self.mode,
+            "sm_freeze": self.sm_freeze,
+            "keep_stage1_data": self.keep_stage1_data,
+            "min_box_halfwidth": self.min_box_halfwidth,
+            "stage2_reserve": self.stage2_reserve,
+        }
+
+    # ------------------------------------------------------------------ data views
+    def _incumbent(self) -> tuple[int | None, float | None]:
+        """Index and value of the best successful evaluation (first on ties)."""
+        return self._incumbent_at(len(self._y))
+
+    def _surrogate_data(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, Callable]:
+        """(X in surrogate coordinates, imputed y, success mask, unit→surrogate map)."""
+        n = len(self._y)
+        idx = np.arange(n)
+        to_s: Callable[[np.ndarray], np.ndarray] = lambda u: u  # noqa: E731
+        if self.stage == 2 and not self.keep_stage1_data:
+            assert self.switch_at is not None and self.box is not None
+            q_i, _ = self._incumbent_at(self.switch_at)
+            idx = np.array([q_i, *range(self.switch_at, n)], dtype=int)
+            lo, hi = self.box
+            width = hi - lo
+            safe = np.where(width > 0, width, 1.0)
+
+            def to_s(u: np.ndarray) -> np.ndarray:
+                return np.where(width > 0, (u - lo) / safe, 0.5)
+
+        X = to_s(self._X[idx])
+        raw = [self._y[i] for i in idx]
+        ok = np.array([v is not None for v in raw])
+        if ok.any():
+            worst = max(v for v in raw if v is not None)
+        else:
+            all_ok = [v for v in self._y if v is not None]
+            worst = max(all_ok) if all_ok else 0.0
+        y = np.array([worst if v is None else v for v in raw], dtype=float)
+        return X, y, ok, to_s
+
+    def _incumbent_at(self, n: int) -> tuple[int | None, float | None]:
+        """Index and value of the best successful evaluation among the first ``n``."""
+        best_i, best_v = None, None
+        for i, v in enumerate(self._y[:n]):
+            if v is not None and (best_v is None or v < best_v):
+                best_i, best_v = i, v
+        return best_i, best_v
+
+    # ------------------------------------------------------------------ ask
+    def _current_af(self) -> str:
+        if self.chosen_af is not None:
+            return self.chosen_af
+        return _AFS[self.af_iterations % 2]
+
+    def _propose(self) -> Proposal:
+        n = len(self._y)
+        if n == 0:
+            return Proposal(
+                u=np.full(self.space.dim, 0.5),
+                stage=1,
+                acquisition="centre",
+                info={"leaf": 0},
+            )
+        X, y, ok, to_s = self._surrogate_data()
+        refit = n <= self.max_sm or (self.stage == 2 and not self._stage2_fitted)
+        if refit:
+            self.surrogate.fit(X, y)
+            self._last_fit_n = n
+            if self.stage == 2:
+                self._stage2_fitted = True
+        elif self.sm_freeze == "hyperparameters":
+            self.surrogate.condition(X, y)
+        tree = self.tree
+        leaves = tree.candidates()
+        af = self._current_af()
+        label = af
+        if leaves.size:
+            cand_u = tree.centres[leaves]
+        else:
+            cand_u = self.rng.random((100 * self.space.dim, self.space.dim))
+            label = f"{af}-fallback"
+        pred = self.surrogate.predict(to_s(cand_u))
+        incumbent = float(np.min(y[ok])) if ok.any() else float(np.min(y))
+        scores = self._score(af, pred, incumbent)
+        j = self._argmax(scores)
+        info: dict[str, Any] = {
+            "n_candidates": len(cand_u),
+            "af_value": float(scores[j]),
+            "refit": bool(refit),
+            "frozen": not refit,
+            "fit_n": self._last_fit_n,
+            "small_moves": self.small_moves,
+            "gains": dict(self.gains),
+        }
+        if leaves.size:
+            info["leaf"] = int(leaves[j])
+        return Proposal(
+            u=cand_u[j].copy(),
+            stage=self.stage,
+            acquisition=label,
+            hyperparameters=dict(self.surrogate.hyperparameters),
+            info=info,
+        )
+
+    def _score(self, af: str, pred: Any, incumbent: float) -> np.ndarray:
+        from kftune.bo import acquisition as acq
+
+        if af == "EI":
+            log_ei = getattr(acq, "log_expected_improvement", None)
+            if log_ei is not None:
+                return np.asarray(log_ei(pred, incumbent), dtype=float)
+            return np.asarray(acq.expected_improvement(pred, incumbent), dtype=float)
+        return np.asarray(acq.confidence_bound(pred, incumbent, beta=self.beta), dtype=float)
+
+    def _argmax(self, scores: np.ndarray) -> int:
+        s = np.where(np.isnan(scores), -np.inf, scores)
+        top = float(np.max(s))
+        if not np.isfinite(top):
+            tied = np.flatnonzero(s == top) if top > -np.inf else np.arange(len(s))
+        else:
+            tied = np.flatnonzero(s >= top - TIE_RTOL * max(abs(top), 1e-300))
+        return int(tied[0] if len(tied) == 1 else self.rng.choice(tied))
+
+    # ------------------------------------------------------------------ tell
+    def _observe(self, trial: Trial, value: float | None) -> None:
+        prev_i, best_before = self._incumbent()
+        self._X = np.vstack([self._X, trial.u[None, :]])
+        self._y.append(value)
+        self._stage_of.append(self.stage)
+        n = len(self._y)
+        leaf = trial.info.get("leaf")
+        if trial.acquisition == "centre":
+            self.tree.asked[0] = True
+            self.tree.split(0, 2, self._X)
+        elif leaf is not None:
+            self.tree.asked[leaf] = True
+            self.tree.split(leaf, 2 if self.stage == 1 else 3, self._X)
+        if self.stage == 2:
+            return
+        # --- acquisition gains (stage 1 alternation)
+        af = (trial.acquisition or "").split("-")[0]
+        if af in _AFS and self.chosen_af is None:
+            if value is not None and best_before is not None:
+                self.gains[af] += max(0.0, best_before - value)
+            self.af_iterations += 1
+            if self.af_iterations >= self.max_af:
+                self._choose_af()
+        # --- Eq. 10: consecutive small moves of the incumbent (natural units)
+        new_i, _ = self._incumbent()
+        if prev_i is not None and new_i is not None:
+            q_old = self.space.from_unit(self._X[prev_i])
+            q_new = self.space.from_unit(self._X[new_i])
+            dist = float(np.linalg.norm(q_new - q_old))
+            tr = self.tr_fe * float(np.linalg.norm(q_new))
+            self.small_moves = self.small_moves + 1 if (dist < tr or dist == 0.0) else 0
+        # --- switch
+        reserve = math.floor(self.stage2_reserve * self.budget)
+        forced = reserve > 0 and self.budget - n <= reserve
+        if new_i is not None and (self.small_moves >= self.max_fe or forced):
+            self._start_stage2(n, new_i)
+
+    def _choose_af(self) -> None:
+        self.chosen_af = "CBM" if self.gains["CBM"] > self.gains["EI"] else "EI"
+
+    def _start_stage2(self, n: int, q_index: int) -> None:
+        if self.chosen_af is None:
+            self._choose_af()
+        self.stage = 2
+        self.switch_at = n
+        q_star = self.space.from_unit(self._X[q_index])
+        lo, hi = stage2_box(self.space, q_star, self.alpha, self.min_box_halfwidth)
+        self.box = (lo, hi)
+        self.tree = PartitionTree(lo, hi)
+        self.tree.asked[0] = bool(coincides(self.tree.centres[:1], self._X)[0])
+        self.tree.split(0, 3, self._X)
+
+
+def _qualname(obj: Any) -> str:
+    return getattr(obj, "__qualname__", None) or type(obj).__qualname__

@@ -1,0 +1,174 @@
+"""The contract every optimiser keeps: bounds, budget, seed reproducibility, failures
+survived, and the ask/tell protocol. Peers whose package (or PyTorch) is missing skip."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from kftune.optim import METHODS, ExhaustedError, make_optimizer, minimize
+
+SPACE = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10"), "c": (0.0, 1.0)}
+BUDGET = 12
+
+
+def _available(method: str) -> bool:
+    if method.startswith("tsbo"):
+        try:
+            from kftune.bo import make_surrogate  # noqa: F401
+        except ImportError:
+            return False
+        return importlib.util.find_spec("kftune.bo.acquisition") is not None
+    if method.startswith("optuna"):
+        if importlib.util.find_spec("optuna") is None:
+            return False
+        return method != "optuna-gp" or importlib.util.find_spec("torch") is not None
+    if method == "cma":
+        return importlib.util.find_spec("cma") is not None
+    return True
+
+
+def _method(method: str) -> str:
+    if not _available(method):
+        pytest.skip(f"{method}: kftune.bo, optuna, torch or cma is not available")
+    return method
+
+
+def objective(x: np.ndarray) -> float:
+    """Smooth, minimum inside the box; uses the log10 parameter as log10."""
+    return float((x[0] - 1.0) ** 2 / 10 + (np.log10(x[1]) + 4.0) ** 2 + (x[2] - 0.3) ** 2)
+
+
+def _options(method: str) -> dict:
+    """Method options for the contract runs: two fixed points for manual; for TSBO no
+    surrogate restarts (the optimiser's contract is under test here, not fit quality, and
+    restarts multiply the fit time)."""
+    if method == "manual":
+        return {"points": [[0.0, 1e-3, 0.5], [1.0, 1e-4, 0.3]]}
+    if method.startswith("tsbo"):
+        return {"surrogate_options": {"n_restarts": 0}}
+    return {}
+
+
+def _run(method: str, seed: int, fun=objective, budget: int = BUDGET):
+    return minimize(fun, SPACE, method, budget=budget, seed=seed, **_options(method))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_bounds_and_budget(method):
+    method = _method(method)
+    calls = []
+
+    def fun(x):
+        calls.append(np.array(x))
+        return objective(x)
+
+    res = _run(method, 0, fun)
+    expected = 2 if method == "manual" else BUDGET
+    assert res.n_evals == len(calls) == expected
+    assert res.status == ("exhausted" if method == "manual" else "completed")
+    lows, highs = np.array([-5.0, 1e-10, 0.0]), np.array([10.0, 1.0, 1.0])
+    for r, x in zip(res.history, calls):
+        np.testing.assert_array_equal(np.array(r.x), x)
+        assert np.all(x >= lows) and np.all(x <= highs), (method, x)
+        assert all(0.0 <= v <= 1.0 for v in r.u)
+        assert r.state == "complete" and r.value == objective(x)
+    assert res.fun == min(r.value for r in res.history)
+    assert res.x is not None and objective(res.x) == res.fun
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_same_seed_same_run_other_seed_other_run(method):
+    method = _method(method)
+    r1, r2 = _run(method, 7), _run(method, 7)
+    assert [h.x for h in r1.history] == [h.x for h in r2.history]
+    assert [h.value for h in r1.history] == [h.value for h in r2.history]
+    assert [h.acquisition for h in r1.history] == [h.acquisition for h in r2.history]
+    if method != "manual":
+        r3 = _run(method, 8)
+        assert [h.x for h in r3.history] != [h.x for h in r1.history]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_failures_are_recorded_and_survived(method):
+    method = _method(method)
+
+    def flaky(x):
+        if x[0] > 6.0:
+            raise RuntimeError("filter diverged")
+        if x[2] > 0.8:
+            return float("nan")
+        return objective(x)
+
+    res = _run(method, 1, flaky, budget=16)
+    n = 2 if method == "manual" else 16
+    assert res.n_evals == n
+    for r in res.history:
+        x = np.array(r.x)
+        if x[0] > 6.0:
+            assert r.state == "failed" and r.value is None
+            assert r.reason == "RuntimeError: filter diverged"
+        elif x[2] > 0.8:
+            assert r.state == "failed" and r.reason == "non-finite value nan"
+        else:
+            assert r.state == "complete" and r.value == objective(x)
+    assert res.n_failed == sum(r.state == "failed" for r in res.history)
+    if res.fun is not None:
+        assert res.fun == min(r.value for r in res.history if r.ok)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_ask_tell_protocol(method):
+    method = _method(method)
+    opt = make_optimizer(method, SPACE, budget=3, seed=0, **_options(method))
+    with pytest.raises(RuntimeError, match=r"no trial is pending"):
+        opt.tell(0, 1.0)
+    t = opt.ask()
+    with pytest.raises(RuntimeError, match=r"still pending"):
+        opt.ask()
+    with pytest.raises(ValueError, match=r"not the pending trial"):
+        opt.tell(t.number + 5, 1.0)
+    # A trial can be told by its point in natural units, and a failure by state.
+    rec = opt.tell(t.x, state="failed", reason="sensor file missing")
+    assert rec.state == "failed" and rec.reason == "sensor file missing"
+    while not opt.done:
+        t = opt.ask()
+        opt.tell(t, objective(t.x))
+    with pytest.raises(ExhaustedError):
+        opt.ask()
+
+
+def test_unknown_method_and_option():
+    with pytest.raises(ValueError, match=r"unknown method 'nelder'.*tsbo-tsp"):
+        make_optimizer("nelder", SPACE)
+    with pytest.raises(ValueError, match=r"'ga' has no option.*'popsize'.*population_size"):
+        make_optimizer("ga", SPACE, popsize=3)
+    with pytest.raises(ValueError, match=r"budget must be a positive integer"):
+        make_optimizer("random", SPACE, budget=0)
+    with pytest.raises(ValueError, match=r"seed must be a non-negative integer"):
+        make_optimizer("random", SPACE, seed=-1)
+
+
+def test_manual_points_are_evaluated_exactly():
+    pts = [[0.5, 3.3e-7, 0.25]]
+    seen = []
+    res = minimize(lambda x: seen.append(x.copy()) or 1.0, SPACE, "manual", points=pts)
+    assert seen[0].tolist() == pts[0]  # no log10 round trip on the given point
+    assert res.n_evals == 1
+    with pytest.raises(ValueError, match=r"manual point 0.*outside"):
+        make_optimizer("manual", SPACE, points=[[20.0, 1e-3, 0.5]])
+
+
+def test_optuna_gp_without_torch_is_a_clear_error(monkeypatch):
+    real = importlib.util.find_spec
+
+    def fake(name, *a, **k):
+        return None if name == "torch" else real(name, *a, **k)
+
+    monkeypatch.setattr(importlib.util, "find_spec", fake)
+    from kftune.optim.peers import PeerUnavailableError
+
+    with pytest.raises(PeerUnavailableError, match=r"'optuna-gp' needs the package 'torch'"):
+        make_optimizer("optuna-gp", SPACE)

@@ -1,0 +1,333 @@
+"""Persistent studies and ``minimize``'s run control: exact resume, SIGKILL at random
+moments, one process per study, settings checks, Ctrl-C, timeouts, callbacks, JSON."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kftune.errors import ConfigError
+from kftune.optim import (
+    OptimizationInterrupted,
+    OptimizeResult,
+    StudyError,
+    StudyInUseError,
+    minimize,
+)
+from test_optim_contract import _method
+
+HERE = Path(__file__).resolve().parent
+WORKER = HERE / "optim_study_worker.py"
+sys.path.insert(0, str(HERE))
+from optim_study_worker import SPACE, method_options, objective  # noqa: E402
+
+
+def strip_timings(res: OptimizeResult) -> dict:
+    """The result as a dict without wall-clock timings (the only legitimate difference)."""
+    d = res.to_dict()
+    for h in d["history"]:
+        h.pop("t_propose")
+        h.pop("t_eval")
+    return d
+
+
+def rows(db: Path) -> list[tuple]:
+    with sqlite3.connect(db) as conn:
+        return conn.execute("SELECT number, state, u FROM trials ORDER BY number").fetchall()
+
+
+@pytest.mark.parametrize("method", ["ga", "random", "optuna-tpe", "cma", "tsbo-gp"])
+def test_stopped_then_resumed_equals_uninterrupted(tmp_path, method):
+    method = _method(method)
+    budget = 14
+    opts = method_options(method)
+    ref = minimize(objective, SPACE, method, budget=budget, seed=3, **opts)
+    db = tmp_path / "s.db"
+    part = minimize(
+        objective,
+        SPACE,
+        method,
+        budget=budget,
+        seed=3,
+        storage=str(db),
+        callback=lambda r: r.number == 5,
+        **opts,
+    )
+    assert part.status == "stopped" and part.n_evals == 6
+    assert [r[1] for r in rows(db)] == ["complete"] * 6
+    calls = []
+
+    def counted(x):
+        calls.append(x)
+        return objective(x)
+
+    res = minimize(
+        counted, SPACE, method, budget=budget, seed=3, storage=str(db), resume=True, **opts
+    )
+    assert len(calls) == budget - 6  # finished evaluations are not repeated
+    assert strip_timings(res) == strip_timings(ref)
+    # Resuming a finished study evaluates nothing and returns the same result.
+    again = minimize(
+        counted, SPACE, method, budget=budget, seed=3, storage=str(db), resume=True, **opts
+    )
+    assert len(calls) == budget - 6
+    assert again.to_dict() == res.to_dict()
+
+
+def test_interrupt_saves_and_in_flight_point_is_redone(tmp_path):
+    db = tmp_path / "s.db"
+    ref = minimize(objective, SPACE, "ga", budget=30, seed=1)
+
+    def interrupted(x):
+        if len(rows(db)) == 9:
+            raise KeyboardInterrupt
+        return objective(x)
+
+    with pytest.raises(OptimizationInterrupted) as info:
+        minimize(interrupted, SPACE, "ga", budget=30, seed=1, storage=str(db))
+    part = info.value.result
+    assert isinstance(info.value, KeyboardInterrupt)
+    assert part.status == "interrupted" and part.n_evals == 8
+    stored = rows(db)
+    assert [r[1] for r in stored] == ["complete"] * 8 + ["running"]
+    in_flight = json.loads(stored[8][2])
+    seen = []
+    res = minimize(
+        lambda x: seen.append(x.copy()) or objective(x),
+        SPACE,
+        "ga",
+        budget=30,
+        seed=1,
+        storage=str(db),
+        resume=True,
+    )
+    np.testing.assert_allclose(SpaceU(seen[0]), in_flight, atol=1e-12)
+    assert len(seen) == 30 - 8
+    assert strip_timings(res) == strip_timings(ref)
+
+
+def SpaceU(x):
+    from kftune.optim import Space
+
+    return Space.coerce(SPACE).to_unit(x)
+
+
+def test_existing_study_needs_resume_and_same_settings(tmp_path):
+    db = str(tmp_path / "s.db")
+    minimize(objective, SPACE, "random", budget=4, seed=0, storage=db)
+    with pytest.raises(StudyError, match=r"already exists \(4 evaluations.*resume=True"):
+        minimize(objective, SPACE, "random", budget=4, seed=0, storage=db)
+    cases = [
+        ({"method": "ga"}, "method"),
+        ({"seed": 1}, "seed"),
+        ({"budget": 5}, "budget"),
+        ({"space": {"a": (-5.0, 10.0), "q": (1e-9, 1.0, "log10")}}, "space"),
+    ]
+    for change, key in cases:
+        kw = {"method": "random", "budget": 4, "seed": 0, "space": SPACE, **change}
+        sp = kw.pop("space")
+        with pytest.raises(ConfigError, match=rf"created with {key} = .*this run asks for {key}"):
+            minimize(objective, sp, storage=db, resume=True, **kw)
+    db2 = str(tmp_path / "g.db")
+    minimize(objective, SPACE, "ga", budget=20, seed=0, storage=db2)
+    with pytest.raises(ConfigError, match=r"created with options = .*crossover_fraction"):
+        minimize(
+            objective,
+            SPACE,
+            "ga",
+            budget=20,
+            seed=0,
+            storage=db2,
+            resume=True,
+            crossover_fraction=0.5,
+        )
+
+
+def test_foreign_file_is_refused(tmp_path):
+    bad = tmp_path / "notes.db"
+    bad.write_text("not a database at all, just text " * 20)
+    with pytest.raises(StudyError, match=r"not a"):
+        minimize(objective, SPACE, "random", budget=2, storage=str(bad), resume=True)
+    other = tmp_path / "other.db"
+    with sqlite3.connect(other) as conn:
+        conn.execute("CREATE TABLE t (a)")
+    with pytest.raises(StudyError, match=r"not a kftune study"):
+        minimize(objective, SPACE, "random", budget=2, storage=str(other), resume=True)
+
+
+def test_study_in_use_gives_clear_error_and_lock_dies_with_process(tmp_path):
+    db = tmp_path / "s.db"
+    log = tmp_path / "log.txt"
+    proc = subprocess.Popen(
+        [sys.executable, str(WORKER), str(db), str(log), "0", "random", "200", "0.05"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        _wait_for(lambda: db.exists() and log.exists(), proc)
+        with pytest.raises(StudyInUseError, match=r"in use by another process"):
+            minimize(objective, SPACE, "random", budget=200, seed=5, storage=str(db), resume=True)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    # The OS released the lock with the killed process: the study opens and resumes.
+    res = minimize(objective, SPACE, "random", budget=200, seed=5, storage=str(db), resume=True)
+    assert res.n_evals == 200 and res.status == "completed"
+
+
+def _wait_for(cond, proc, limit=30.0, exit_ok=False):
+    t0 = time.time()
+    while not cond():
+        if proc.poll() is not None:
+            if exit_ok and proc.returncode == 0:
+                return
+            raise AssertionError(f"worker exited early: {proc.stderr.read().decode()}")
+        if time.time() - t0 > limit:
+            raise AssertionError("worker did not start")
+        time.sleep(0.02)
+
+
+@pytest.mark.parametrize(("method", "budget"), [("tsbo-tsp", 24), ("ga", 60)])
+def test_sigkill_at_random_moments_then_resume(tmp_path, method, budget):
+    """Kill the study's process with SIGKILL several times at random moments; after the last
+    resume the result equals the uninterrupted run's and no finished evaluation was redone."""
+    method = _method(method)
+    db, log = tmp_path / "s.db", tmp_path / "log.txt"
+    ref = minimize(objective, SPACE, method, budget=budget, seed=5, **method_options(method))
+    rng = np.random.default_rng(2024)
+    n_done_before: list[int] = []
+    kills = 0
+    for run_id in range(12):
+        n_done_before.append(len(_complete_u(db)) if db.exists() else 0)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                str(WORKER),
+                str(db),
+                str(log),
+                str(run_id),
+                method,
+                str(budget),
+                "0.02",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        if kills < 4:
+            # Wait for progress (imports take a while), then kill at a random moment.
+            n0 = n_done_before[-1]
+            _wait_for(
+                lambda n0=n0: db.exists() and len(_complete_u(db)) > n0, proc, 60, exit_ok=True
+            )
+            time.sleep(float(rng.uniform(0.0, 0.3)))
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGKILL)
+                kills += 1
+        proc.wait(timeout=120)
+        if proc.returncode == 0:
+            break
+        assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()
+    assert kills >= 3, "the worker finished before it could be killed several times"
+    res = OptimizeResult.from_dict(json.loads(Path(str(db) + ".result.json").read_text()))
+    assert strip_timings(res) == strip_timings(ref)
+    # Run r evaluated exactly the trials n_r, n_r+1, … in order, where n_r trials were
+    # complete when it started: nothing finished is redone, the in-flight one is.
+    stored_u = {n: u for n, _, u in _complete_u(db)}
+    assert sorted(stored_u) == list(range(budget))
+    from kftune.optim import Space
+
+    sp = Space.coerce(SPACE)
+    logged: dict[int, list] = {}
+    for line in log.read_text().splitlines():
+        run_id, xs = line.split(" ", 1)
+        logged.setdefault(int(run_id), []).append(sp.to_unit(np.array(json.loads(xs))))
+    for run_id, us in logged.items():
+        n_r = n_done_before[run_id]
+        expect = [stored_u[n_r + k] for k in range(len(us))]
+        np.testing.assert_allclose(us, expect, atol=1e-12)
+    # Progress was really interrupted: several runs each started with a different prefix.
+    assert len(set(n_done_before)) >= 3
+
+
+def _complete_u(db: Path) -> list[tuple]:
+    try:
+        with sqlite3.connect(db, timeout=5) as conn:
+            got = conn.execute("SELECT number, state, u FROM trials WHERE state = 'complete'")
+            return [(n, s, json.loads(u)) for n, s, u in got.fetchall()]
+    except sqlite3.OperationalError:  # table not created yet
+        return []
+
+
+def _slow(x):
+    time.sleep(0.5 if x[0] > 2.5 else 0.0)
+    return objective(x)
+
+
+def _die(x):
+    if x[0] > 2.5:
+        os._exit(3)
+    return objective(x)
+
+
+def test_timeout_and_dying_worker_fail_the_evaluation_only():
+    res = minimize(_slow, SPACE, "random", budget=8, seed=0, timeout=0.2)
+    assert res.n_evals == 8
+    for r in res.history:
+        if r.x[0] > 2.5:
+            assert r.state == "failed" and r.reason == "timeout after 0.2 s"
+        else:
+            assert r.state == "complete" and r.value == objective(np.array(r.x))
+    assert any(r.state == "failed" for r in res.history)
+    res = minimize(_die, SPACE, "random", budget=6, seed=0, timeout=10)
+    assert res.n_evals == 6
+    for r in res.history:
+        assert (r.state == "failed") == (r.x[0] > 2.5)
+        if r.state == "failed":
+            assert r.reason == "evaluation process died (exit code 3)"
+
+
+def test_callback_sees_every_record_and_result_is_strict_json(tmp_path):
+    seen = []
+    res = minimize(
+        lambda x: float("inf") if x[0] > 8 else objective(x),
+        SPACE,
+        "random",
+        budget=10,
+        seed=2,
+        callback=seen.append,
+    )
+    assert [r.number for r in seen] == list(range(10))
+    assert list(res.history) == seen
+    text = res.to_json()
+    assert "Infinity" not in text and "NaN" not in text
+    back = OptimizeResult.from_dict(json.loads(text))
+    assert back.to_dict() == res.to_dict()
+    np.testing.assert_array_equal(
+        res.best_so_far, np.minimum.accumulate(np.where(np.isnan(res.values), np.inf, res.values))
+    )
+
+
+def test_study_rows_written_before_and_after_each_evaluation(tmp_path):
+    db = tmp_path / "s.db"
+    states_during = []
+
+    def fun(x):
+        states_during.append([r[1] for r in rows(db)])
+        return objective(x)
+
+    minimize(fun, SPACE, "random", budget=3, seed=0, storage=str(db))
+    # While evaluation k runs, rows 0..k-1 are complete and row k is already stored.
+    assert states_during == [
+        ["running"],
+        ["complete", "running"],
+        ["complete", "complete", "running"],
+    ]
