@@ -96,3 +96,15 @@ def test_round_trip_unit_natural(specs):
     x = s.from_unit(np.array(u))
     assert s.contains(x)
     np.testing.assert_allclose(s.to_unit(x), u, atol=1e-9)
+
+
+def test_top_level_exports_are_lazy():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, kftune; assert 'kftune.optim' not in sys.modules; "
+        "from kftune import minimize, Space, OptimizeResult, EvalRecord, Param; "
+        "import kftune.optim as o; assert minimize is o.minimize and Space is o.Space"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -12,3 +12,26 @@ Data → filter → cost → optimiser → report, one direction:
 """
 
 __version__ = "0.1.0"
+
+# Top-level conveniences, imported lazily so that ``import kftune`` stays fast (PEP 562).
+_LAZY = {
+    "minimize": "kftune.optim.minimize",
+    "OptimizeResult": "kftune.optim.result",
+    "EvalRecord": "kftune.optim.result",
+    "Space": "kftune.optim.space",
+    "Param": "kftune.optim.space",
+}
+
+__all__ = ["EvalRecord", "OptimizeResult", "Param", "Space", "__version__", "minimize"]
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'kftune' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
