@@ -74,7 +74,7 @@ def test_laplace_mode_matches_a_generic_optimiser():
     scale = 1.4826 * np.median(np.abs(y - center))
     f_hat = (model.predict(X).mean - center) / scale
     np.testing.assert_allclose(f_hat, res.x, atol=1e-6)
-    assert model.hyperparameters["laplace_converged"]
+    assert model.laplace_converged
 
 
 def test_gaussian_likelihood_limit_equals_exact_gp():

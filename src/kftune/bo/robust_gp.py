@@ -52,13 +52,11 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.special import digamma, poch
 
-from kftune.bo._linalg import (
-    cholesky_jitter,
-)
+from kftune.bo._linalg import cho_solve, cholesky_jitter
 from kftune.bo._model import BoxSurrogate, ThetaSpec, _check_positive_pair, log_box
 from kftune.bo.kernels import squared_differences
 
-_MAX_NEWTON = 50
+_MAX_NEWTON = 200  # small noise scales need ~60 (clipped-W steps are first-order)
 _MAX_HALVINGS = 30
 
 
@@ -162,6 +160,7 @@ class RobustGaussianProcess(BoxSurrogate):
         self._lu: tuple[np.ndarray, np.ndarray] | None = None
         self._W: np.ndarray | None = None
         self._a: np.ndarray | None = None
+        self._last_a: np.ndarray | None = None  # warm start of the mode search
         self._laplace_converged = True
 
     # ------------------------------------------------------------------ hyperparameters
@@ -223,10 +222,30 @@ class RobustGaussianProcess(BoxSurrogate):
             logp, _, _, _ = _student_t_derivatives(y - f, nu, sigma)
             return float(logp.sum() - 0.5 * a @ f)
 
-        a = np.zeros(n)
-        f = np.zeros(n)
-        psi = psi_of(a, f)
+        # Start from the best (by Ψ) of: the prior mean; the Gaussian-likelihood posterior
+        # mean with the Student-t's variance (a far better start when σ is small, where the
+        # heavy-tailed Ψ is very flat far from the data); the previous evaluation's mode
+        # (GPML's infLaplace keeps it too: L-BFGS-B moves θ a little at a time). The last one
+        # is reset at every fit/condition, so a fit stays a deterministic function of its
+        # data, start and seed.
+        starts = [np.zeros(n)]
+        s2 = sigma * sigma * (nu / (nu - 2.0) if nu > 2.0 else 3.0)
+        Lg, _ = cholesky_jitter(K + s2 * eye)
+        if Lg is not None:
+            starts.append(cho_solve(Lg, y))
+        if self._last_a is not None and self._last_a.shape == (n,):
+            starts.append(self._last_a)
+        psi = -math.inf
+        for a0 in starts:
+            f0 = K @ a0
+            psi0 = psi_of(a0, f0)
+            if psi0 > psi:
+                a, f, psi = a0.copy(), f0, psi0
+        if not math.isfinite(psi):
+            return -math.inf, None, None
         converged = False
+        stalls = 0
+        prev_step_f = math.inf
         for _ in range(_MAX_NEWTON):
             _, g, W, _ = _student_t_derivatives(y - f, nu, sigma)
             if W.min() < 0.0 and not _is_posterior_definite(L, W, eye):
@@ -241,8 +260,9 @@ class RobustGaussianProcess(BoxSurrogate):
             df = f_new - f
             da = (b - W * f_new) - a
             # Converged when the Newton step in f (to first order the distance to the mode)
-            # is at rounding level.
-            small = float(np.max(np.abs(df))) <= 1e-10 * (1.0 + float(np.max(np.abs(f))))
+            # is at rounding level, or when 3 steps in a row that are already small have
+            # neither increased Ψ nor shrunk: the rounding floor of f̂ grows with cond(I + KW).
+            step_f = float(np.max(np.abs(df))) / (1.0 + float(np.max(np.abs(f))))
             # Step halving until Ψ increases; near the mode the gain is below Ψ's rounding
             # error, so a step that loses no more than that is accepted too.
             tol = 1e-13 * (1.0 + abs(psi))
@@ -255,13 +275,18 @@ class RobustGaussianProcess(BoxSurrogate):
                     break
                 step *= 0.5
             else:
-                converged = small
+                converged = step_f <= 1e-6
                 break  # no ascent along the Newton direction
+            # a stall: no gain beyond Ψ's rounding and steps no longer shrinking fast
+            stalling = psi_try - psi <= tol and step_f > 0.1 * prev_step_f
+            stalls = stalls + 1 if stalling else 0
+            prev_step_f = step_f
             a, f, psi = a_try, f_try, psi_try
-            if small:
+            if step_f <= 1e-10 or (stalls >= 3 and step_f <= 1e-6):
                 converged = True
                 break
         self._laplace_converged = converged
+        self._last_a = a.copy()
         r = y - f
         logp, g, W, d3 = _student_t_derivatives(r, nu, sigma)
         defined = W.min() >= 0.0 or _is_posterior_definite(L, W, eye)
@@ -308,6 +333,10 @@ class RobustGaussianProcess(BoxSurrogate):
             return math.inf, np.zeros_like(theta)
         return -log_q, -grad
 
+    def _set_data(self, X: np.ndarray, y: np.ndarray) -> None:
+        super()._set_data(X, y)
+        self._last_a = None  # new data: the mode search starts afresh
+
     def _condition_standardised(self, theta: np.ndarray, mean_s: float | None) -> bool:
         _, _, cache = self._laplace(theta, gradient=False)
         if cache is None:
@@ -338,8 +367,12 @@ class RobustGaussianProcess(BoxSurrogate):
             "likelihood_dof": float(nu),
             "likelihood_dof_fitted": self.fit_likelihood_dof,
             "inference": "laplace",
-            "laplace_converged": bool(self._laplace_converged),
         }
+
+    @property
+    def laplace_converged(self) -> bool:
+        """Whether the last Newton search for the posterior mode converged (diagnostic)."""
+        return bool(self._laplace_converged)
 
 
 def _is_posterior_definite(L: np.ndarray, W: np.ndarray, eye: np.ndarray) -> bool:
