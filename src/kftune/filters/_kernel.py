@@ -487,24 +487,8 @@ def run_kernel_batch(
     """
     for b in prange(q.shape[0]):
         d, nr = run_kernel(
-            model,
-            mp,
-            u,
-            z,
-            dt,
-            q[b],
-            r[b],
-            x_init[b],
-            P_init[b],
-            wm0,
-            wc0,
-            wi,
-            c,
-            out_x[b],
-            out_p[b],
-            out_zhat[b],
-            out_innov[b],
-            out_nis[b],
-        )
+            model, mp, u, z, dt, q[b], r[b], x_init[b], P_init[b], wm0, wc0, wi, c,
+            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b],
+        )  # fmt: skip
         out_div[b] = d
         out_rep[b] = nr
