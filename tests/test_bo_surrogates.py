@@ -19,6 +19,13 @@ from kftune.bo.acquisition import expected_improvement, log_expected_improvement
 NAMES = list(SURROGATES)
 
 
+def assert_same_predictive(a: Predictive, b: Predictive) -> None:
+    """Bit-identical predictives."""
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.variance, b.variance)
+    assert a.dof == b.dof
+
+
 def toy(n: int, d: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     X = rng.random((n, d))
@@ -89,11 +96,8 @@ def test_same_seed_same_fit_sequence_gives_bit_identical_predictions(name):
             out.append(model.fit(X[:n], y[:n]).predict(cand))
         return out
 
-    a, b = run(3), run(3)
-    for pa, pb in zip(a, b):
-        np.testing.assert_array_equal(pa.mean, pb.mean)
-        np.testing.assert_array_equal(pa.variance, pb.variance)
-        assert pa.dof == pb.dof
+    for pa, pb in zip(run(3), run(3)):
+        assert_same_predictive(pa, pb)
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -105,10 +109,7 @@ def test_state_round_trip_through_json_resumes_bit_identically(name):
     state = json.loads(json.dumps(original.get_state()))
     resumed = make_surrogate(name, seed=999).set_state(state)  # the seed is in the state
     # the next fit continues exactly where the original goes
-    p1 = original.fit(X, y).predict(cand)
-    p2 = resumed.fit(X, y).predict(cand)
-    np.testing.assert_array_equal(p1.mean, p2.mean)
-    np.testing.assert_array_equal(p1.variance, p2.variance)
+    assert_same_predictive(original.fit(X, y).predict(cand), resumed.fit(X, y).predict(cand))
     assert original.hyperparameters == resumed.hyperparameters
 
 
@@ -163,9 +164,7 @@ def test_bounds_map_the_box_to_the_unit_cube(name):
     boxed = make_surrogate(name, seed=5, bounds=np.c_[lo, widths]).fit(X * widths, y)
     unit = make_surrogate(name, seed=5).fit(X, y)
     cand = np.random.default_rng(7).random((30, 3))
-    pb, pu = boxed.predict(cand * widths), unit.predict(cand)
-    np.testing.assert_array_equal(pb.mean, pu.mean)
-    np.testing.assert_array_equal(pb.variance, pu.variance)
+    assert_same_predictive(boxed.predict(cand * widths), unit.predict(cand))
     np.testing.assert_allclose(
         boxed.hyperparameters["length_scales"],
         np.array(unit.hyperparameters["length_scales"]) * widths,

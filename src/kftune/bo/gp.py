@@ -63,8 +63,13 @@ class ExactSurrogate(BoxSurrogate):
             raise ValueError(f"mean must be one of {MEANS}, got {mean!r}")
         self.mean = mean
         self._L: np.ndarray | None = None
+        self._y1: np.ndarray | None = None  # [y, 1], the right-hand sides of the GLS mean
         self._alpha: np.ndarray | None = None
         self._beta: float = 0.0
+
+    def _set_data(self, X: np.ndarray, y: np.ndarray) -> None:
+        super()._set_data(X, y)
+        self._y1 = None
 
     # ------------------------------------------------------------------ hyperparameters
     def _base_spec(
@@ -95,15 +100,21 @@ class ExactSurrogate(BoxSurrogate):
     # ------------------------------------------------------------------ likelihood
     def _factorise(
         self, theta: np.ndarray, *, gradient: bool
-    ) -> tuple[np.ndarray | None, np.ndarray | None, float, float]:
-        """Cholesky of K + σ_n²I (+ jitter if needed). Returns (L, dK, noise, jitter)."""
+    ) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None, float, float]:
+        """Cholesky of K + σ_n²I (+ jitter if needed). Returns (L, (K, G) for the gradient
+        or None, noise, jitter); see :meth:`Kernel.contract_gradient`."""
         d = self._d or 0
         assert self._S is not None
-        K, dK = self.kernel.from_squared_differences(theta[: d + 1], self._S, gradient=gradient)
+        if gradient:
+            K, G = self.kernel.gram_for_gradient(theta[: d + 1], self._S)
+            parts: tuple[np.ndarray, np.ndarray] | None = (K.copy(), G)
+        else:
+            K, _ = self.kernel.from_squared_differences(theta[: d + 1], self._S)
+            parts = None
         noise = self._noise_variance(theta)
         K.flat[:: K.shape[0] + 1] += noise
         L, jitter = cholesky_jitter(K)
-        return L, dK, noise, jitter
+        return L, parts, noise, jitter
 
     def _residual_solve(
         self, L: np.ndarray, mean_s: float | None
@@ -113,7 +124,9 @@ class ExactSurrogate(BoxSurrogate):
         assert y is not None
         if mean_s is None and self.mean == "constant":
             # GLS estimate m̂ = 1ᵀK⁻¹y / 1ᵀK⁻¹1 (R&W eq. 2.42 with h(x) = 1).
-            sol = cho_solve(L, np.column_stack([y, np.ones_like(y)]))
+            if self._y1 is None or self._y1.shape[0] != y.shape[0]:
+                self._y1 = np.column_stack([y, np.ones_like(y)])
+            sol = cho_solve(L, self._y1)
             m = float(sol[:, 0].sum() / sol[:, 1].sum())
             alpha = sol[:, 0] - m * sol[:, 1]
         else:
@@ -130,8 +143,8 @@ class ExactSurrogate(BoxSurrogate):
 
     def _nll_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         d = self._d or 0
-        L, dK, noise, _ = self._factorise(theta, gradient=True)
-        if L is None or dK is None:
+        L, parts, noise, _ = self._factorise(theta, gradient=True)
+        if L is None or parts is None:
             return math.inf, np.zeros_like(theta)
         n = L.shape[0]
         _, alpha, beta = self._residual_solve(L, None)
@@ -140,7 +153,8 @@ class ExactSurrogate(BoxSurrogate):
         # differs only by w (see student_t.py).
         Wm = w * np.outer(alpha, alpha) - cho_inverse(L)
         grad = np.empty_like(theta)
-        grad[: d + 1] = 0.5 * (dK.reshape(d + 1, -1) @ Wm.ravel())
+        assert self._S is not None
+        grad[: d + 1] = 0.5 * self.kernel.contract_gradient(theta, self._S, *parts, Wm)
         k = d + 1
         if self.noise is None:
             grad[k] = 0.5 * noise * float(np.trace(Wm))  # ∂K/∂log σ_n² = σ_n² I

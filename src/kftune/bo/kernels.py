@@ -85,6 +85,31 @@ class Kernel(ABC):
         dK[d] = K  # ∂K/∂log σ_f² = K
         return K, dK
 
+    def gram_for_gradient(self, theta: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Kernel matrix K (n1, n2) and the factor G = −2σ_f²·dκ/dr² (n1, n2) that
+        :meth:`contract_gradient` needs, from squared differences S (d, n1, n2)."""
+        d = S.shape[0]
+        inv_l2 = np.exp(-2.0 * theta[:d])
+        r2 = (inv_l2 @ S.reshape(d, -1)).reshape(S.shape[1:])
+        kappa, neg2dk = self._profile(r2)
+        sf2 = math.exp(theta[d])
+        return sf2 * kappa, sf2 * neg2dk
+
+    @staticmethod
+    def contract_gradient(
+        theta: np.ndarray, S: np.ndarray, K: np.ndarray, G: np.ndarray, M: np.ndarray
+    ) -> np.ndarray:
+        """(d+1,) vector Σ_ab M_ab ∂K_ab/∂theta_j, without forming ∂K (d+1, n, n).
+
+        With ∂K/∂log ℓ_i = G ⊙ S_i/ℓ_i² and ∂K/∂log σ_f² = K (see
+        :meth:`from_squared_differences`); K and G from :meth:`gram_for_gradient`.
+        """
+        d = S.shape[0]
+        out = np.empty(d + 1)
+        out[:d] = np.exp(-2.0 * theta[:d]) * (S.reshape(d, -1) @ (M * G).ravel())
+        out[d] = float(np.vdot(M, K))
+        return out
+
     def matrix(self, theta: np.ndarray, X1: np.ndarray, X2: np.ndarray) -> np.ndarray:
         """(n1, n2) cross-covariance matrix between X1 (n1, d) and X2 (n2, d)."""
         K, _ = self.from_squared_differences(theta, squared_differences(X1, X2))
