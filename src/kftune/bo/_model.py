@@ -243,7 +243,7 @@ class BoxSurrogate(Surrogate):
                 raise ValueError(
                     f"theta must be {p} finite log-space values {spec.names}, got {theta!r}"
                 )
-            return self._finish_fit(th.copy(), spec, math.nan)
+            return self._finish_fit(th.copy(), spec)
         starts: list[np.ndarray] = []
         if self.warm_start and self._theta is not None and self._theta.shape == (p,):
             starts.append(np.clip(self._theta, spec.bounds[:, 0], spec.bounds[:, 1]))
@@ -273,16 +273,19 @@ class BoxSurrogate(Surrogate):
             f = float(res.fun)
             if f < best_f and f < _FAILED_NLL:  # strict: the earliest start wins ties
                 best_f, best_theta = f, np.asarray(res.x, dtype=float).copy()
-        return self._finish_fit(best_theta, spec, best_f)
+        return self._finish_fit(best_theta, spec)
 
-    def _finish_fit(self, theta: np.ndarray, spec: ThetaSpec, nll: float) -> BoxSurrogate:
+    def _finish_fit(self, theta: np.ndarray, spec: ThetaSpec) -> BoxSurrogate:
         self._theta = theta
-        self._last_nll = nll
         if not self._condition_standardised(theta, None):
-            # Unreachable with a finite theta (the jitter ladder ends at 1e-4·σ_f²);
-            # kept so a pathological case degrades to the default rather than raising.
+            # Not reached with finite data and theta (the jitter ladder ends at 1e-4·σ_f²);
+            # kept so that a pathological case degrades to the default hyperparameters.
             self._theta = spec.default.copy()
-            self._condition_standardised(self._theta, None)
+            if not self._condition_standardised(self._theta, None):
+                raise RuntimeError(
+                    f"{type(self).__name__}: the kernel matrix could not be factorised even "
+                    "with the default hyperparameters and the largest jitter"
+                )
         self._fitted = True
         self._n_fits += 1
         return self
