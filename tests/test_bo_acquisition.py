@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import integrate, stats
 
 from kftune.bo.acquisition import (
@@ -98,6 +100,22 @@ def test_t_ei_tends_to_gaussian_ei():
     }
     assert err[1e6] < err[1e4] / 50 and err[1e8] < err[1e6] / 50
     assert err[1e8] < 1e-5
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    z=st.floats(-40.0, 40.0),
+    nu=st.one_of(st.just(math.inf), st.floats(1.2, 1e4)),
+    scale=st.floats(1e-3, 1e3),
+)
+def test_ei_put_call_parity_and_jensen_bound(z, nu, scale):
+    # For a symmetric predictive, E[max(b − Y, 0)] − E[max(Y − b, 0)] = b − μ, and the second
+    # term is the EI of the mirrored problem: s·h(z) − s·h(−z) = s·z. Exercises the tail
+    # branch on one side and the direct formula on the other. Jensen: EI >= max(b − μ, 0).
+    ei = expected_improvement(t_pred(np.array([z, -z]), nu, scale), 0.0)
+    assert ei[0] - ei[1] == pytest.approx(scale * z, rel=1e-9, abs=1e-12 * scale)
+    assert ei[0] >= max(scale * z, 0.0) * (1 - 1e-12)
+    assert np.isfinite(log_expected_improvement(t_pred(np.array([z]), nu, scale), 0.0)[0])
 
 
 # ---------------------------------------------------------------- log-EI
