@@ -12,6 +12,7 @@ from sklearn.gaussian_process.kernels import ConstantKernel as C
 from sklearn.gaussian_process.kernels import Matern
 
 from kftune.bo import GaussianProcess, RobustGaussianProcess, StudentTProcess
+from test_bo_gp import fd_gradient
 
 LS = np.array([0.35, 0.6])
 SF2 = 1.4
@@ -28,15 +29,6 @@ def outlier_data(n: int = 25, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def robust_standardise(y: np.ndarray) -> np.ndarray:
     med = np.median(y)
     return (y - med) / (1.4826 * np.median(np.abs(y - med)))
-
-
-def fd_gradient(fun, theta: np.ndarray, h: float = 1e-5) -> np.ndarray:
-    g = np.empty_like(theta)
-    for j in range(theta.size):
-        e = np.zeros_like(theta)
-        e[j] = h
-        g[j] = (fun(theta + e) - fun(theta - e)) / (2 * h)
-    return g
 
 
 def neg_psi(f: np.ndarray, K: np.ndarray, ys: np.ndarray, nu: float, sigma: float) -> float:
