@@ -1,1 +1,58 @@
-"""kftune.data."""
+"""Manoeuvre data: the in-memory types, loading and validation, noise statistics, and the
+reference-data generator.
+
+Typical use::
+
+    from kftune.data import default_dataset, estimate_measurement_noise
+    ds = default_dataset()                 # the bundled 31 manoeuvres (8 train, 23 test)
+    m = ds.train[0]                        # a Manoeuvre: m.t, m.u (n, 2), m.z (n, 3), m.beta_ref
+    R = ds.r_default                       # (3,) variances [Vx, ay, r] from sensor statistics
+
+The generator (:mod:`kftune.data.generate`) needs the ``[simulate]`` extra and is imported
+lazily; everything else needs only numpy and scipy.
+"""
+
+from __future__ import annotations
+
+from kftune.data.io import (
+    REVS_MAPPING,
+    Source,
+    bundled_dataset_path,
+    default_dataset,
+    load_columns,
+    load_dataset,
+    load_mat,
+    load_revs,
+    open_dataset,
+    read_columns,
+    read_mat,
+    recording_to_dataset,
+    save_dataset,
+)
+from kftune.data.manoeuvre import KINDS, SPLITS, Dataset, Manoeuvre
+from kftune.data.noise import estimate_measurement_noise
+from kftune.data.validate import REQUIRED_CHANNELS, UNITS, validate_channels
+
+__all__ = [
+    "KINDS",
+    "REQUIRED_CHANNELS",
+    "REVS_MAPPING",
+    "SPLITS",
+    "UNITS",
+    "Dataset",
+    "Manoeuvre",
+    "Source",
+    "bundled_dataset_path",
+    "default_dataset",
+    "estimate_measurement_noise",
+    "load_columns",
+    "load_dataset",
+    "load_mat",
+    "load_revs",
+    "open_dataset",
+    "read_columns",
+    "read_mat",
+    "recording_to_dataset",
+    "save_dataset",
+    "validate_channels",
+]

@@ -1,0 +1,874 @@
+"""Reading and writing manoeuvre data.
+
+Three layouts are read; all of them are validated completely before a dataset is returned
+(:mod:`kftune.data.validate`), and every error names the file, the column and the row.
+
+1. **The kftune format** (:func:`load_dataset`, :func:`save_dataset`): a directory with
+   ``manifest.toml`` (or ``manifest.json``, same keys) and one CSV per manoeuvre (optionally
+   gzip-compressed, ``.csv.gz``). See "Data format" in the README and :data:`MANIFEST_KEYS`.
+2. **Column-per-file text** (:func:`load_columns`): a directory with one plain-text file per
+   signal, one value per line (lines starting with ``#`` or ``%`` are comments), all
+   aligned — the layout of many logger exports, e.g. the revs-250lm recording
+   (:func:`load_revs`).
+3. **MATLAB** ``.mat`` (v4–v7.2, through ``scipy.io.loadmat``) (:func:`load_mat`): one
+   variable per signal, at the top level or inside a struct.
+
+For 2 and 3 a *column mapping* says which source signal is which kftune channel and in
+which unit (``deg``→rad, ``km/h``→m/s, ``deg/s``→rad/s, ``g``→m/s², …); a long recording
+can be cut into segments split deterministically into training and test
+(:func:`recording_to_dataset`).
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import itertools
+import json
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
+from kftune.data.validate import (
+    CHANNEL_DIMENSION,
+    REQUIRED_CHANNELS,
+    SI_UNIT,
+    check_channel_name,
+    unit_factor,
+    validate_channels,
+)
+from kftune.errors import DataError
+from kftune.vehicle.params import VehicleParams, preset
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+#: Identifies a kftune manifest.
+FORMAT_TAG = "kftune-dataset"
+FORMAT_VERSION = 1
+
+#: Keys of a manifest and of each of its ``[[manoeuvres]]`` entries (others are refused).
+MANIFEST_KEYS = {
+    "format": "must be 'kftune-dataset'",
+    "format_version": "integer, 1",
+    "name": "dataset name",
+    "description": "free text (optional)",
+    "dt": "sample time [s]",
+    "vehicle": "table of VehicleParams fields (SI) or a preset name",
+    "units": "table column → unit (optional: SI assumed for the required channels)",
+    "meta": "free table: provenance (optional)",
+    "manoeuvres": "array of tables: name, kind, split, file, description (optional)",
+}
+MANOEUVRE_KEYS = ("name", "kind", "split", "file", "description")
+
+#: Manifest file names looked for in a dataset directory, in this order.
+MANIFEST_NAMES = ("manifest.toml", "manifest.json")
+
+
+# =============================================================================== writing
+def _toml_value(value: Any, key: str) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        if not math.isfinite(v):
+            raise ValueError(f"cannot write non-finite {key} = {v!r} to a manifest")
+        return repr(v)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)  # a valid TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v, key) for v in value) + "]"
+    raise ValueError(f"cannot write {key} = {value!r} ({type(value).__name__}) to a manifest")
+
+
+def _toml_table(table: Mapping[str, Any], prefix: str, lines: list[str]) -> None:
+    subtables = []
+    for key, value in table.items():
+        if value is None:
+            continue
+        if isinstance(value, Mapping):
+            subtables.append((key, value))
+        else:
+            lines.append(f"{_toml_key(key)} = {_toml_value(value, key)}")
+    for key, value in subtables:
+        name = f"{prefix}.{_toml_key(key)}" if prefix else _toml_key(key)
+        lines.append("")
+        lines.append(f"[{name}]")
+        _toml_table(value, name, lines)
+
+
+def _toml_key(key: str) -> str:
+    if key and all(c.isalnum() or c in "_-" for c in key):
+        return key
+    return json.dumps(key, ensure_ascii=False)
+
+
+def _format_csv(columns: Mapping[str, np.ndarray]) -> str:
+    """CSV text: a header row, then one row per sample; ``repr`` of each float, which
+    reads back to the identical double."""
+    names = list(columns)
+    cols = [[repr(v) for v in np.asarray(columns[n], dtype=np.float64).tolist()] for n in names]
+    out = io.StringIO()
+    out.write(",".join(names) + "\n")
+    for row in zip(*cols):
+        out.write(",".join(row))
+        out.write("\n")
+    return out.getvalue()
+
+
+def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True) -> Path:
+    """Write ``dataset`` in the kftune format: ``manifest.toml`` and one CSV per manoeuvre.
+
+    Files are byte-for-byte reproducible (gzip without timestamp or file name). Existing
+    files of the same names are overwritten; nothing else in ``directory`` is touched.
+
+    Args:
+        compress: write ``<name>.csv.gz`` (gzip) instead of ``<name>.csv``.
+
+    Returns:
+        The path of the manifest.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    units: dict[str, str] = {c: SI_UNIT[CHANNEL_DIMENSION[c]] for c in REQUIRED_CHANNELS}
+    extras = sorted({k for m in dataset.manoeuvres for k in m.extra})
+    for k in extras:
+        units[k] = _extra_unit(dataset, k)
+    entries = []
+    for m in dataset.manoeuvres:
+        missing = [k for k in extras if k not in m.extra]
+        if missing:
+            raise ValueError(
+                f"manoeuvre {m.name!r} lacks extra channel(s) {missing} that others have; "
+                "the format needs the same columns in every file"
+            )
+        file = f"{m.name}.csv.gz" if compress else f"{m.name}.csv"
+        text = _format_csv({c: m.channel(c) for c in (*REQUIRED_CHANNELS, *extras)})
+        data = text.encode("utf-8")
+        if compress:
+            buf = io.BytesIO()
+            with gzip.GzipFile(filename="", mode="wb", fileobj=buf, mtime=0, compresslevel=9) as gz:
+                gz.write(data)
+            data = buf.getvalue()
+        (directory / file).write_bytes(data)
+        entry = {"name": m.name, "kind": m.kind, "split": m.split, "file": file}
+        if m.description:
+            entry["description"] = m.description
+        entries.append(entry)
+    lines = [
+        '# kftune dataset manifest — see the README, section "Data format".',
+        f"format = {_toml_value(FORMAT_TAG, 'format')}",
+        f"format_version = {FORMAT_VERSION}",
+        f"name = {_toml_value(dataset.name, 'name')}",
+    ]
+    if dataset.description:
+        lines.append(f"description = {_toml_value(dataset.description, 'description')}")
+    lines.append(f"dt = {_toml_value(float(dataset.dt), 'dt')}")
+    _toml_table({"vehicle": dataset.vehicle.to_dict(), "units": units}, "", lines)
+    if dataset.meta:
+        _toml_table({"meta": _plain(dataset.meta)}, "", lines)
+    for entry in entries:
+        lines.append("")
+        lines.append("[[manoeuvres]]")
+        _toml_table(entry, "", lines)
+    manifest = directory / "manifest.toml"
+    manifest.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return manifest
+
+
+def _plain(value: Any) -> Any:
+    """Mapping proxies and tuples → dicts and lists (for the TOML writer)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _extra_unit(dataset: Dataset, name: str) -> str:
+    """Unit of an extra channel for the manifest: from ``meta['units']`` when given,
+    otherwise guessed from the name (kftune's own true-state channels)."""
+    declared = dataset.meta.get("units", {}) if isinstance(dataset.meta, Mapping) else {}
+    if name in declared:
+        return str(declared[name])
+    stem = name.split("_")[0]
+    guess = {
+        "vx": "m/s",
+        "vy": "m/s",
+        "r": "rad/s",
+        "ay": "m/s^2",
+        "ax": "m/s^2",
+        "beta": "rad",
+        "roll": "rad",
+        "pitch": "rad",
+        "delta": "rad",
+    }
+    return guess.get(stem, "1")
+
+
+# =============================================================================== reading
+def _read_manifest(path: Path) -> dict[str, Any]:
+    try:
+        if path.suffix == ".json":
+            data = json.loads(path.read_text(encoding="utf-8"))
+        else:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError("manifest not found", file=str(path)) from None
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(
+            f"manifest is not valid {path.suffix[1:].upper()}: {exc}", file=str(path)
+        ) from None
+    if not isinstance(data, dict):
+        raise DataError("manifest must be a table/object at the top level", file=str(path))
+    return data
+
+
+def _field(
+    data: Mapping[str, Any],
+    key: str,
+    kind: type | tuple[type, ...],
+    where: str,
+    file: str,
+    required: bool = True,
+) -> Any:
+    """A manifest field of the expected type (bool is not accepted as a number)."""
+    if key not in data:
+        if required:
+            raise DataError(f"field '{where}{key}' is missing", file=file)
+        return None
+    value = data[key]
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+        names = " or ".join(k.__name__ for k in kinds)
+        raise DataError(f"field '{where}{key}' must be {names}, got {value!r}", file=file)
+    return value
+
+
+def _find_manifest(path: Path) -> Path:
+    if path.is_dir():
+        for name in MANIFEST_NAMES:
+            if (path / name).is_file():
+                return path / name
+        raise DataError(
+            f"no {' or '.join(MANIFEST_NAMES)} in this directory (is it a kftune dataset?)",
+            file=str(path),
+        )
+    if not path.exists():
+        raise DataError("dataset not found", file=str(path))
+    return path
+
+
+def load_dataset(path: str | Path | None = None) -> Dataset:
+    """Load a dataset in the kftune format (``None``: the bundled default dataset).
+
+    Args:
+        path: a dataset directory, or its manifest file.
+
+    Raises:
+        DataError: anything wrong with the manifest or a manoeuvre file; names the file,
+            the field or column and the row. Nothing is returned half-loaded.
+    """
+    if path is None:
+        return default_dataset()
+    manifest = _find_manifest(Path(path))
+    mfile = str(manifest)
+    data = _read_manifest(manifest)
+    unknown = sorted(set(data) - set(MANIFEST_KEYS))
+    if unknown:
+        raise DataError(
+            f"unknown field(s) {unknown}; expected some of {list(MANIFEST_KEYS)}", file=mfile
+        )
+    if data.get("format") != FORMAT_TAG:
+        raise DataError(
+            f"field 'format' must be {FORMAT_TAG!r}, got {data.get('format')!r}", file=mfile
+        )
+    version = _field(data, "format_version", int, "", mfile)
+    if version != FORMAT_VERSION:
+        raise DataError(
+            f"format_version {version} is not supported (this is version {FORMAT_VERSION})",
+            file=mfile,
+        )
+    name = _field(data, "name", str, "", mfile)
+    description = _field(data, "description", str, "", mfile, required=False) or ""
+    dt = _field(data, "dt", (int, float), "", mfile)
+    if not 0.0 < dt <= 1.0:
+        raise DataError(f"field 'dt' must be in (0, 1] s, got {dt!r}", file=mfile)
+    vehicle = _vehicle_from(data.get("vehicle"), mfile)
+    units = _field(data, "units", dict, "", mfile, required=False) or {}
+    factors: dict[str, float] = {}
+    for col, unit in units.items():
+        check_channel_name(col, file=mfile)
+        if not isinstance(unit, str):
+            raise DataError(f"field 'units.{col}' must be a unit string, got {unit!r}", file=mfile)
+        factors[col] = unit_factor(unit, CHANNEL_DIMENSION.get(col), file=mfile, column=col)
+    for col in REQUIRED_CHANNELS:
+        factors.setdefault(col, 1.0)
+    meta = _field(data, "meta", dict, "", mfile, required=False) or {}
+    entries = _field(data, "manoeuvres", list, "", mfile)
+    if not entries:
+        raise DataError("field 'manoeuvres' is empty: a dataset needs at least one", file=mfile)
+    manoeuvres = []
+    seen: set[str] = set()
+    for i, entry in enumerate(entries):
+        where = f"manoeuvres[{i}]."
+        if not isinstance(entry, dict):
+            raise DataError(f"field 'manoeuvres[{i}]' must be a table, got {entry!r}", file=mfile)
+        extra_keys = sorted(set(entry) - set(MANOEUVRE_KEYS))
+        if extra_keys:
+            raise DataError(
+                f"unknown field(s) {extra_keys} in manoeuvres[{i}]; expected some of "
+                f"{list(MANOEUVRE_KEYS)}",
+                file=mfile,
+            )
+        m_name = _field(entry, "name", str, where, mfile)
+        if m_name in seen:
+            raise DataError(
+                f"manoeuvre name {m_name!r} appears twice (manoeuvres[{i}])", file=mfile
+            )
+        seen.add(m_name)
+        kind = _field(entry, "kind", str, where, mfile)
+        split = _field(entry, "split", str, where, mfile)
+        if split not in SPLITS:
+            raise DataError(
+                f"field manoeuvres[{i}].split must be one of {list(SPLITS)}, got {split!r}",
+                file=mfile,
+            )
+        rel = _field(entry, "file", str, where, mfile)
+        m_desc = _field(entry, "description", str, where, mfile, required=False) or ""
+        csv_path = manifest.parent / rel
+        if not csv_path.is_file():
+            raise DataError(f"manoeuvre {m_name!r} points at missing file {rel!r}", file=mfile)
+        channels = read_csv(csv_path, factors)
+        validate_channels(channels, file=str(csv_path), row_offset=2)
+        manoeuvres.append(
+            _manoeuvre(
+                channels,
+                name=m_name,
+                kind=kind,
+                split=split,
+                description=m_desc,
+                file=str(csv_path),
+            )
+        )
+    try:
+        return Dataset(name, vehicle, float(dt), tuple(manoeuvres), description, meta)
+    except DataError as exc:
+        raise DataError(str(exc), file=mfile) from None
+
+
+def _vehicle_from(value: Any, file: str) -> VehicleParams:
+    if isinstance(value, str):
+        try:
+            return preset(value)
+        except ValueError as exc:
+            raise DataError(f"field 'vehicle': {exc}", file=file) from None
+    if not isinstance(value, dict):
+        raise DataError(
+            "field 'vehicle' must be a table of VehicleParams fields or a preset name", file=file
+        )
+    try:
+        return VehicleParams.from_dict(value)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"field 'vehicle': {exc}", file=file) from None
+
+
+def _manoeuvre(
+    channels: Mapping[str, np.ndarray],
+    *,
+    name: str,
+    kind: str,
+    split: str,
+    description: str,
+    file: str,
+) -> Manoeuvre:
+    try:
+        return Manoeuvre(
+            name=name,
+            kind=kind,
+            split=split,
+            **{c: channels[c] for c in REQUIRED_CHANNELS},
+            extra={k: v for k, v in channels.items() if k not in REQUIRED_CHANNELS},
+            description=description,
+        )
+    except DataError as exc:
+        raise DataError(str(exc), file=file) from None
+
+
+def _open_text(path: Path) -> io.TextIOBase:
+    if path.name.endswith(".gz"):
+        return gzip.open(path, "rt", encoding="utf-8", newline="")
+    return open(path, encoding="utf-8", newline="")
+
+
+def read_csv(path: str | Path, factors: Mapping[str, float]) -> dict[str, np.ndarray]:
+    """Read one manoeuvre CSV of the kftune format into SI channels.
+
+    The header row names the columns; every column must be declared (``factors`` holds the
+    SI conversion factor of each declared column) and every required channel present.
+    Values are plain decimal numbers; the first malformed value is reported by column and
+    row (the header is row 1).
+    """
+    path = Path(path)
+    file = str(path)
+    try:
+        with _open_text(path) as fh:
+            text = fh.read()
+    except (OSError, EOFError, UnicodeDecodeError) as exc:
+        raise DataError(f"cannot read: {exc}", file=file) from None
+    lines = text.splitlines()
+    if not lines or not lines[0].strip():
+        raise DataError("empty file: expected a header row naming the columns", file=file, row=1)
+    header = [h.strip() for h in lines[0].split(",")]
+    for h in header:
+        check_channel_name(h, file=file)
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise DataError(f"duplicated column(s) {dup} in the header", file=file, row=1)
+    unknown = [h for h in header if h not in factors]
+    if unknown:
+        raise DataError(
+            "unknown column: not a kftune channel and not declared in the manifest's "
+            f"[units] table (required: {list(REQUIRED_CHANNELS)})",
+            file=file,
+            column=unknown[0],
+            row=1,
+        )
+    for c in REQUIRED_CHANNELS:
+        if c not in header:
+            raise DataError(
+                f"missing required column; the header has {header}", file=file, column=c, row=1
+            )
+    body = lines[1:]
+    while body and not body[-1].strip():
+        body.pop()
+    if not body:
+        raise DataError("no data rows after the header", file=file, row=2)
+    try:
+        with np.errstate(all="ignore"):
+            values = np.loadtxt(body, delimiter=",", dtype=np.float64, ndmin=2, comments=None)
+        if values.shape[1] != len(header):
+            raise ValueError("column count")
+    except ValueError:
+        values = _parse_rows(body, header, file)
+    return {h: values[:, j] * factors[h] for j, h in enumerate(header)}
+
+
+def _parse_rows(body: list[str], header: list[str], file: str) -> np.ndarray:
+    """Slow path that finds the first bad row of a CSV body (row numbers as in the file)."""
+    out = np.empty((len(body), len(header)))
+    for i, line in enumerate(body):
+        fields = line.split(",")
+        row = i + 2
+        if len(fields) != len(header):
+            raise DataError(
+                f"has {len(fields)} fields, the header has {len(header)}", file=file, row=row
+            )
+        for j, text in enumerate(fields):
+            try:
+                out[i, j] = float(text)
+            except ValueError:
+                raise DataError(
+                    f"cannot read {text.strip()!r} as a number",
+                    file=file,
+                    column=header[j],
+                    row=row,
+                ) from None
+    return out
+
+
+# ------------------------------------------------------------------- mapped recordings
+@dataclass(frozen=True)
+class Source:
+    """Where a kftune channel comes from in a user's recording.
+
+    Attributes:
+        name: the signal's name in the recording (file stem, or MATLAB variable / field).
+        unit: its unit, one of :data:`kftune.data.validate.UNITS` (converted to SI).
+    """
+
+    name: str
+    unit: str
+
+
+#: A column mapping: kftune channel → Source (or ``(name, unit)``, or just the name for SI).
+ColumnMapping = Mapping[str, "Source | tuple[str, str] | str"]
+
+
+def _normalise_mapping(mapping: ColumnMapping, file: str) -> dict[str, Source]:
+    out: dict[str, Source] = {}
+    for channel, src in mapping.items():
+        check_channel_name(channel, file=file)
+        dim = CHANNEL_DIMENSION.get(channel)
+        if isinstance(src, Source):
+            s = src
+        elif isinstance(src, str):
+            if dim is None:
+                raise DataError(
+                    f"extra channel {channel!r} needs a unit: give (name, unit)",
+                    file=file,
+                    column=channel,
+                )
+            s = Source(src, SI_UNIT[dim])
+        elif isinstance(src, (tuple, list)) and len(src) == 2:
+            s = Source(str(src[0]), str(src[1]))
+        else:
+            raise DataError(
+                f"mapping entry must be a name, (name, unit) or Source, got {src!r}",
+                file=file,
+                column=channel,
+            )
+        unit_factor(s.unit, dim, file=file, column=channel)
+        out[channel] = s
+    for c in REQUIRED_CHANNELS:
+        if c not in out:
+            raise DataError(
+                f"the column mapping gives no source for required channel {c!r} "
+                f"(required: {list(REQUIRED_CHANNELS)})",
+                file=file,
+                column=c,
+            )
+    return out
+
+
+def _read_value_file(path: Path) -> np.ndarray:
+    """One value per line; ``#``/``%`` comment lines allowed; errors name the line."""
+    file = str(path)
+    if not path.is_file():
+        raise DataError("file not found (named in the column mapping)", file=file)
+    try:
+        with np.errstate(all="ignore"):
+            values = np.loadtxt(path, dtype=np.float64, comments=("#", "%"), ndmin=1)
+        if values.ndim != 1:
+            raise ValueError("more than one column")
+        return values
+    except ValueError:
+        pass
+    out = []
+    for i, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines()):
+        text = line.strip()
+        if text.startswith(("#", "%")):
+            continue
+        if not text:
+            raise DataError("empty line inside the data", file=file, row=i + 1)
+        try:
+            out.append(float(text))
+        except ValueError:
+            raise DataError(f"cannot read {text!r} as one number", file=file, row=i + 1) from None
+    return np.asarray(out)
+
+
+def read_columns(
+    directory: str | Path, mapping: ColumnMapping, suffix: str = ".txt"
+) -> dict[str, np.ndarray]:
+    """Read and validate a column-per-file recording into SI channels.
+
+    Args:
+        directory: holds one file per signal (``<source name><suffix>``).
+        mapping: kftune channel → source (see :class:`Source`).
+
+    Returns:
+        channel → (n,) array in SI units, validated (rows reported as file line numbers).
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise DataError("recording directory not found", file=str(directory))
+    sources = _normalise_mapping(mapping, str(directory))
+    files: dict[str, str] = {}
+    channels: dict[str, np.ndarray] = {}
+    for channel, src in sources.items():
+        path = directory / (src.name if src.name.endswith(suffix) else src.name + suffix)
+        files[channel] = str(path)
+        channels[channel] = _read_value_file(path) * unit_factor(
+            src.unit, CHANNEL_DIMENSION.get(channel), file=str(path), column=channel
+        )
+    validate_channels(channels, file=str(directory), row_offset=1, files=files)
+    return channels
+
+
+def read_mat(
+    path: str | Path, mapping: ColumnMapping, struct: str | None = None
+) -> dict[str, np.ndarray]:
+    """Read and validate a MATLAB recording into SI channels.
+
+    Args:
+        path: a ``.mat`` file (v4–v7.2; v7.3/HDF5 is refused with advice).
+        mapping: kftune channel → source variable (or struct field) name and unit.
+        struct: dotted path of the struct holding the signals (``None``: top level).
+
+    Returns:
+        channel → (n,) array in SI units, validated (rows reported 1-based, as MATLAB).
+    """
+    from scipy import io as sio
+
+    path = Path(path)
+    file = str(path)
+    if not path.is_file():
+        raise DataError("file not found", file=file)
+    try:
+        data = sio.loadmat(str(path), simplify_cells=True)
+    except NotImplementedError:
+        raise DataError(
+            "MATLAB v7.3 (HDF5) files are not supported: save with save(..., '-v7')",
+            file=file,
+        ) from None
+    except (ValueError, TypeError, OSError) as exc:
+        raise DataError(f"not a readable MATLAB file: {exc}", file=file) from None
+    container: Any = data
+    if struct:
+        for part in struct.split("."):
+            if not isinstance(container, dict) or part not in container:
+                raise DataError(f"struct {struct!r} not found (no field {part!r})", file=file)
+            container = container[part]
+    if not isinstance(container, dict):
+        raise DataError(f"{struct or 'top level'} is not a struct", file=file)
+    sources = _normalise_mapping(mapping, file)
+    channels: dict[str, np.ndarray] = {}
+    for channel, src in sources.items():
+        if src.name not in container:
+            known = sorted(k for k in container if not k.startswith("__"))
+            raise DataError(
+                f"variable {src.name!r} not found; the file has {known}", file=file, column=channel
+            )
+        a = np.asarray(container[src.name])
+        if a.ndim == 2 and 1 in a.shape:
+            a = a.ravel()
+        if a.ndim != 1 or not np.issubdtype(a.dtype, np.number):
+            raise DataError(
+                f"variable {src.name!r} must be a numeric vector, got shape {a.shape} "
+                f"dtype {a.dtype}",
+                file=file,
+                column=channel,
+            )
+        channels[channel] = a.astype(np.float64) * unit_factor(
+            src.unit, CHANNEL_DIMENSION.get(channel), file=file, column=channel
+        )
+    validate_channels(channels, file=file, row_offset=1)
+    return channels
+
+
+def recording_to_dataset(
+    channels: Mapping[str, np.ndarray],
+    *,
+    name: str,
+    vehicle: VehicleParams,
+    segment_length: float | None = None,
+    train_every: int = 3,
+    description: str = "",
+    meta: Mapping[str, Any] | None = None,
+) -> Dataset:
+    """Turn one validated recording into a dataset, cut into segments.
+
+    Segmentation: ``k = max(1, round(duration / segment_length))`` segments of (nearly)
+    equal sample counts, named ``<name>-s01`` … (kind ``"segment"``); segment ``i``
+    (0-based) is *training* when ``i % train_every == 0`` and *test* otherwise — training
+    segments are spread over the whole recording (different laps, tyre temperatures) and
+    the split is a pure function of the recording's length. With ``segment_length=None``
+    the whole recording is one training manoeuvre.
+    """
+    t = np.asarray(channels["t"])
+    n = t.size
+    if train_every < 1:
+        raise ValueError(f"train_every must be >= 1, got {train_every!r}")
+    if segment_length is None:
+        bounds = [0, n]
+    else:
+        if not segment_length > 0:
+            raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
+        k = max(1, round(float(t[-1] - t[0]) / segment_length))
+        bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
+    manoeuvres = []
+    width = max(2, len(str(len(bounds) - 1)))
+    for i, (a, b) in enumerate(itertools.pairwise(bounds)):
+        seg = {c: np.asarray(v)[a:b] for c, v in channels.items()}
+        label = name if len(bounds) == 2 else f"{name}-s{i + 1:0{width}d}"
+        manoeuvres.append(
+            Manoeuvre(
+                name=label,
+                kind="segment",
+                split="train" if i % train_every == 0 else "test",
+                **{c: seg[c] for c in REQUIRED_CHANNELS},
+                extra={c: v for c, v in seg.items() if c not in REQUIRED_CHANNELS},
+                description=f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
+            )
+        )
+    dt = float(np.median(np.diff(t)))
+    return Dataset(name, vehicle, dt, tuple(manoeuvres), description, dict(meta or {}))
+
+
+def load_columns(
+    directory: str | Path,
+    mapping: ColumnMapping,
+    vehicle: VehicleParams,
+    *,
+    name: str | None = None,
+    segment_length: float | None = None,
+    train_every: int = 3,
+    suffix: str = ".txt",
+) -> Dataset:
+    """A column-per-file recording as a dataset (see :func:`read_columns` and
+    :func:`recording_to_dataset`)."""
+    directory = Path(directory)
+    channels = read_columns(directory, mapping, suffix)
+    return recording_to_dataset(
+        channels,
+        name=name or directory.name,
+        vehicle=vehicle,
+        segment_length=segment_length,
+        train_every=train_every,
+        meta={"source": directory.name},
+    )
+
+
+def load_mat(
+    path: str | Path,
+    mapping: ColumnMapping,
+    vehicle: VehicleParams,
+    *,
+    struct: str | None = None,
+    name: str | None = None,
+    segment_length: float | None = None,
+    train_every: int = 3,
+) -> Dataset:
+    """A MATLAB recording as a dataset (see :func:`read_mat` and
+    :func:`recording_to_dataset`)."""
+    path = Path(path)
+    channels = read_mat(path, mapping, struct)
+    return recording_to_dataset(
+        channels,
+        name=name or path.stem,
+        vehicle=vehicle,
+        segment_length=segment_length,
+        train_every=train_every,
+        meta={"source": path.name},
+    )
+
+
+# ------------------------------------------------------------------------------ revs
+#: Column mapping of the revs-250lm recording (Stanford Revs; Leanza, Reina &
+#: Blanco-Claraco 2021). Its traps, and how this mapping meets them:
+#: * ``yawRateFilt.txt`` is in deg/s although named like ``yawRate.txt`` (rad/s): the raw
+#:   ``yawRate`` is used; mapping ``yawRateFilt`` as rad/s is refused by validation
+#:   (|r| up to 34 "rad/s", and ay ≠ vx·r).
+#: * raw IMU channels (``axCG``, ``ayCG``, ``yawRate``) repeat ~12 % of their samples
+#:   (sample-and-hold of a slower logger): they are the measurements, kept as they are;
+#:   the INS-filtered ``*Filt`` channels are smoothed and would hide the noise R is
+#:   estimated from.
+#: * ``delta`` is already the mean road-wheel angle (no steering ratio to apply).
+#: * time starts at 149.99 s: kept (segments say where they are in the recording).
+#: * there are no wheel speeds: ``vx`` is the INS velocity (see :func:`load_revs`).
+REVS_MAPPING: dict[str, Source] = {
+    "t": Source("t", "s"),
+    "delta": Source("delta", "rad"),
+    "ax": Source("axCG", "m/s^2"),
+    "ay": Source("ayCG", "m/s^2"),
+    "r": Source("yawRate", "rad/s"),
+    "vx": Source("vx", "m/s"),
+    "beta_ref": Source("beta_true", "rad"),
+    "vy_ins": Source("vy", "m/s"),
+}
+#: Files whose presence marks a directory as the revs-250lm layout.
+REVS_MARKERS = ("t.txt", "ayCG.txt", "yawRate.txt", "beta_true.txt", "vx.txt")
+
+
+def load_revs(
+    directory: str | Path,
+    *,
+    segment_length: float = 30.0,
+    train_every: int = 3,
+    vx_noise: float = 0.05,
+    seed: int = 0,
+) -> Dataset:
+    """The revs-250lm race-car recording, loaded through the column-per-file path with its
+    vehicle parameters (preset ``"revs-250lm"``) and cut into training and test segments.
+
+    550 s at 100 Hz → 18 segments of ≈ 30.6 s named ``revs-250lm-s01`` … ``-s18``; segments
+    1, 4, 7, 10, 13, 16 (every third from the first) are training, the other 12 test
+    (see :func:`recording_to_dataset`).
+
+    The recording has no wheel speeds; as its README suggests, the Vx *measurement* is the
+    INS velocity plus white noise of σ = ``vx_noise`` m/s (the size of a wheel-speed
+    estimate's, drawn from ``numpy.random.default_rng(seed)``; 0 keeps the INS value). The
+    INS velocities stay available as extras ``vx_ins`` and ``vy_ins``. The reference β is
+    the INS sideslip ``beta_true`` (= atan2(vy, vx)).
+    """
+    directory = Path(directory)
+    channels = read_columns(directory, REVS_MAPPING)
+    if vx_noise < 0:
+        raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
+    channels["vx_ins"] = channels["vx"]
+    if vx_noise > 0:
+        rng = np.random.default_rng(seed)
+        channels["vx"] = channels["vx"] + rng.normal(0.0, vx_noise, channels["vx"].size)
+    return recording_to_dataset(
+        channels,
+        name="revs-250lm",
+        vehicle=preset("revs-250lm"),
+        segment_length=segment_length,
+        train_every=train_every,
+        description=(
+            "Stanford Revs race car, 550 s of track driving (Leanza, Reina & Blanco-Claraco, "
+            "Sensors 2021); INS sideslip reference; Vx = INS + noise"
+        ),
+        meta={
+            "source": "revs-250lm",
+            "vx_noise": vx_noise,
+            "seed": seed,
+            "units": {"vx_ins": "m/s", "vy_ins": "m/s"},
+        },
+    )
+
+
+# =========================================================================== bundled
+#: Name of the bundled dataset directory inside the package (``kftune/datasets/<name>``).
+DEFAULT_DATASET = "default"
+
+
+def bundled_dataset_path(name: str = DEFAULT_DATASET) -> Path:
+    """Directory of a dataset shipped inside the package."""
+    return Path(str(resources.files("kftune") / "datasets" / name))
+
+
+@lru_cache(maxsize=2)
+def default_dataset() -> Dataset:
+    """The bundled default dataset (generated by ``kftune dataset generate``), cached."""
+    path = bundled_dataset_path()
+    if not (path / "manifest.toml").is_file():
+        raise DataError(
+            "the bundled default dataset is missing from this installation; regenerate it "
+            "with `kftune dataset generate src/kftune/datasets/default`",
+            file=str(path),
+        )
+    return load_dataset(path)
+
+
+def open_dataset(spec: str | Path | None) -> Dataset:
+    """Open a dataset named on a command line.
+
+    ``None`` or ``"default"``: the bundled dataset; a directory or file with a kftune
+    manifest: :func:`load_dataset`; a directory in the revs-250lm layout: :func:`load_revs`.
+    """
+    if spec is None or str(spec) == DEFAULT_DATASET:
+        return default_dataset()
+    path = Path(spec)
+    if path.is_dir() and not any((path / n).is_file() for n in MANIFEST_NAMES):
+        if all((path / m).is_file() for m in REVS_MARKERS):
+            return load_revs(path)
+        raise DataError(
+            f"neither a kftune dataset ({' / '.join(MANIFEST_NAMES)}) nor the revs-250lm "
+            f"layout ({', '.join(REVS_MARKERS)})",
+            file=str(path),
+        )
+    return load_dataset(path)

@@ -1,0 +1,290 @@
+"""Validation of manoeuvre channels: every check names the file, column and row at fault.
+
+Channels (SI units once loaded):
+
+========== ======== ==================================================================
+name       unit     meaning
+========== ======== ==================================================================
+t          s        time, strictly increasing, regular sample time
+delta      rad      road-wheel steering angle (positive = left, ISO 8855)
+ax         m/s²     longitudinal acceleration (IMU, body axes)
+ay         m/s²     lateral acceleration (IMU, body axes, positive = left)
+r          rad/s    yaw rate (positive = counter-clockwise seen from above)
+vx         m/s      longitudinal speed measurement (wheel speeds, INS, …)
+beta_ref   rad      reference sideslip at the CG, atan2(vy, vx) (optical sensor / INS)
+========== ======== ==================================================================
+
+Extra channels (true states of a simulation, other sensors) may ride along; their names
+must be identifiers.
+
+Row numbers in messages are what the caller's file shows: :func:`validate_channels` adds
+``row_offset`` to the 0-based sample index (a CSV with a header passes 2, so the first
+data line is reported as row 2; a column-per-file text passes 1, a MATLAB array 1).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+
+import numpy as np
+
+from kftune.errors import DataError
+from kftune.vehicle.params import G
+
+#: Channels every manoeuvre must have, in file order.
+REQUIRED_CHANNELS: tuple[str, ...] = ("t", "delta", "ax", "ay", "r", "vx", "beta_ref")
+
+#: Physical dimension of each required channel.
+CHANNEL_DIMENSION: dict[str, str] = {
+    "t": "time",
+    "delta": "angle",
+    "ax": "acceleration",
+    "ay": "acceleration",
+    "r": "angular rate",
+    "vx": "speed",
+    "beta_ref": "angle",
+}
+
+#: Accepted unit names → (dimension, factor to SI).
+UNITS: dict[str, tuple[str, float]] = {
+    "s": ("time", 1.0),
+    "ms": ("time", 1e-3),
+    "rad": ("angle", 1.0),
+    "deg": ("angle", math.pi / 180.0),
+    "m/s^2": ("acceleration", 1.0),
+    "m/s2": ("acceleration", 1.0),
+    "m/s²": ("acceleration", 1.0),
+    "g": ("acceleration", G),
+    "rad/s": ("angular rate", 1.0),
+    "deg/s": ("angular rate", math.pi / 180.0),
+    "m/s": ("speed", 1.0),
+    "km/h": ("speed", 1.0 / 3.6),
+    "m": ("length", 1.0),
+    "1": ("dimensionless", 1.0),
+}
+
+#: Default SI unit of each dimension (what files of the kftune format declare).
+SI_UNIT: dict[str, str] = {
+    "time": "s",
+    "angle": "rad",
+    "acceleration": "m/s^2",
+    "angular rate": "rad/s",
+    "speed": "m/s",
+    "length": "m",
+    "dimensionless": "1",
+}
+
+#: Fewest samples a manoeuvre may have.
+MIN_SAMPLES = 100
+#: Relative tolerance of the sample time (each step within dt·(1 ± tol)).
+DT_TOLERANCE = 0.01
+
+# Plausibility limits in SI units, and what a violation usually means.
+_LIMITS: dict[str, tuple[float, float, str]] = {
+    "delta": (
+        -1.0,
+        1.0,
+        "a road-wheel angle beyond ±1 rad (57°): degrees, or a hand-wheel "
+        "angle without the steering ratio?",
+    ),
+    "beta_ref": (-0.8, 0.8, "a sideslip angle beyond ±0.8 rad (46°): degrees?"),
+    "r": (-3.0, 3.0, "a yaw rate beyond ±3 rad/s (172 °/s): deg/s declared as rad/s?"),
+    "ax": (-30.0, 30.0, "an acceleration beyond ±30 m/s² (3 g): wrong unit?"),
+    "ay": (-30.0, 30.0, "an acceleration beyond ±30 m/s² (3 g): wrong unit?"),
+    "vx": (-0.5, 100.0, "a speed beyond 100 m/s (360 km/h) or reversing: km/h declared as m/s?"),
+}
+
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: str) -> float:
+    """Factor that converts ``unit`` to SI, checking it measures ``dimension``.
+
+    Raises:
+        DataError: unknown unit, or a unit of another dimension (names file and column).
+    """
+    try:
+        dim, factor = UNITS[unit.strip()]
+    except (KeyError, AttributeError):
+        raise DataError(
+            f"unknown unit {unit!r}; expected one of {sorted(UNITS)}", file=file, column=column
+        ) from None
+    if dimension is not None and dim != dimension:
+        allowed = sorted(u for u, (d, _) in UNITS.items() if d == dimension)
+        raise DataError(
+            f"unit {unit!r} is a {dim} unit, but this channel is a {dimension}; "
+            f"expected one of {allowed}",
+            file=file,
+            column=column,
+        )
+    return factor
+
+
+def check_channel_name(name: str, *, file: str | None) -> None:
+    """Channel names must be identifiers (they become CSV headers and attributes)."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise DataError(
+            f"channel name {name!r} is not an identifier (letters, digits, _)",
+            file=file,
+            column=str(name),
+        )
+
+
+def validate_channels(
+    channels: Mapping[str, np.ndarray],
+    *,
+    file: str | None = None,
+    row_offset: int = 0,
+    min_samples: int = MIN_SAMPLES,
+    dt_tolerance: float = DT_TOLERANCE,
+    check_units: bool = True,
+    files: Mapping[str, str] | None = None,
+) -> float:
+    """Check one manoeuvre's channels (already in SI units) before anything uses them.
+
+    Checks, in this order: required channels present; channel names; 1-D and equal lengths;
+    at least ``min_samples`` samples; every value finite; time strictly increasing (no
+    duplicates); regular sample time within ``dt_tolerance``; plausible magnitudes (a yaw
+    rate that looks like deg/s, an angle that looks like degrees, km/h as m/s); and the
+    kinematic consistency ay ≈ vx·r in cornering, which catches ay in g or r in deg/s.
+
+    Args:
+        channels: name → (n,) array. file: reported in errors. row_offset: added to 0-based
+            indices in errors (see module docstring). files: per-channel file names that
+            replace ``file`` in errors about that channel (column-per-file layouts).
+
+    Returns:
+        The sample time dt [s] (median step).
+
+    Raises:
+        DataError: the first problem found, naming file, column and row.
+    """
+    for name in REQUIRED_CHANNELS:
+        if name not in channels:
+            raise DataError(
+                f"missing required channel; a manoeuvre needs {list(REQUIRED_CHANNELS)}",
+                file=_file_of(name, file, files),
+                column=name,
+            )
+    n = None
+    arrays: dict[str, np.ndarray] = {}
+    for name, values in channels.items():
+        check_channel_name(name, file=file)
+        a = np.asarray(values)
+        if a.ndim != 1:
+            raise DataError(
+                f"expected a 1-D array, got shape {a.shape}",
+                file=_file_of(name, file, files),
+                column=name,
+            )
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise DataError(
+                f"expected numbers, got dtype {a.dtype}",
+                file=_file_of(name, file, files),
+                column=name,
+            )
+        if n is None:
+            n = a.size
+        elif a.size != n:
+            first = next(iter(channels))
+            raise DataError(
+                f"has {a.size} samples but {first!r} has {n}: channels must have equal lengths",
+                file=_file_of(name, file, files),
+                column=name,
+                row=min(a.size, n) + row_offset,
+            )
+        arrays[name] = a.astype(np.float64, copy=False)
+    assert n is not None
+    if n < min_samples:
+        raise DataError(
+            f"manoeuvre too short: {n} samples, at least {min_samples} needed",
+            file=_file_of("t", file, files),
+            column="t",
+        )
+    for name, a in arrays.items():
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:
+            raise DataError(
+                f"value {a[bad[0]]!r} is not a finite number ({bad.size} such values)",
+                file=_file_of(name, file, files),
+                column=name,
+                row=int(bad[0]) + row_offset,
+            )
+    t = arrays["t"]
+    steps = np.diff(t)
+    bad = np.flatnonzero(steps <= 0.0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        what = "duplicated" if steps[bad[0]] == 0.0 else "decreasing"
+        raise DataError(
+            f"time is {what}: t = {t[k]!r} s after t = {t[k - 1]!r} s; time must be "
+            "strictly increasing",
+            file=_file_of("t", file, files),
+            column="t",
+            row=k + row_offset,
+        )
+    dt = float(np.median(steps))
+    if not 1e-4 <= dt <= 1.0:
+        raise DataError(
+            f"sample time {dt!r} s is outside [1e-4, 1] s: is time in ms?",
+            file=_file_of("t", file, files),
+            column="t",
+        )
+    bad = np.flatnonzero(np.abs(steps - dt) > dt_tolerance * dt)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise DataError(
+            f"irregular sample time: step {steps[bad[0]]!r} s from the previous row, the "
+            f"median step is {dt!r} s (tolerance {dt_tolerance:.0%}); resample the data "
+            "or split it at the gap",
+            file=_file_of("t", file, files),
+            column="t",
+            row=k + row_offset,
+        )
+    if check_units:
+        _check_magnitudes(arrays, file=file, row_offset=row_offset, files=files)
+    return dt
+
+
+def _file_of(column: str, file: str | None, files: Mapping[str, str] | None) -> str | None:
+    return files.get(column, file) if files else file
+
+
+def _check_magnitudes(
+    arrays: Mapping[str, np.ndarray],
+    *,
+    file: str | None,
+    row_offset: int,
+    files: Mapping[str, str] | None = None,
+) -> None:
+    for name, (lo, hi, hint) in _LIMITS.items():
+        a = arrays[name]
+        bad = np.flatnonzero((a < lo) | (a > hi))
+        if bad.size:
+            raise DataError(
+                f"implausible value {a[bad[0]]!r} (expected within [{lo:g}, {hi:g}] in SI "
+                f"units): {hint}",
+                file=_file_of(name, file, files),
+                column=name,
+                row=int(bad[0]) + row_offset,
+            )
+    # Kinematics: in cornering ay ≈ vx·r (steady state; v̇y is small on average). A ratio
+    # near 1/g means ay in g, near 180/π means r in deg/s declared as rad/s (or the reverse).
+    ay, vxr = arrays["ay"], arrays["vx"] * arrays["r"]
+    cornering = np.abs(vxr) >= 2.0
+    if np.count_nonzero(cornering) >= 50:
+        ratio = float(np.median(ay[cornering] / vxr[cornering]))
+        if not 0.5 <= ratio <= 2.0:
+            k = int(np.argmax(np.abs(vxr)))
+            raise DataError(
+                f"lateral acceleration and vx·yaw rate disagree: median ay/(vx·r) = "
+                f"{ratio:.3g} in cornering, expected ≈ 1 (is ay in g, r in deg/s or rad/s, vx "
+                f"in km/h? a negative ratio means ay and r use opposite sign conventions; "
+                f"ISO 8855: both positive to the left; at this row ay = {ay[k]:.4g}, "
+                f"vx·r = {vxr[k]:.4g})",
+                file=_file_of("ay", file, files),
+                column="ay",
+                row=k + row_offset,
+            )
