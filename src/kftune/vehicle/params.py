@@ -149,19 +149,29 @@ def _revs_250lm() -> VehicleParams:
 
 def _bmw_320i() -> VehicleParams:
     # CommonRoad vehicle parameter set 2 (BMW 320i; Althoff & Würsching, "CommonRoad:
-    # Vehicle Models", 2020): m, I_z, a, b, h_cg, T_f, T_r as given there. The axle
-    # cornering stiffnesses are those of the reference dataset's plant tyres at static
-    # load (see kftune.data.generate), i.e. what an engineer would identify on the car.
+    # Vehicle Models", 2020): m, I_z, a, b, h_cg, T_f, T_r as given there. The tyre numbers
+    # are what an engineer identifies on the reference dataset's plant (kftune.data.plant,
+    # default PlantSetup), i.e. the single-track model of the car the default data come from:
+    # - C_af, C_ar: slope of the plant's Pacejka tyres at zero slip and static load. Its
+    #   K_y = |p_ky1|·F_z per tyre, so per axle C = |p_ky1|·F_z,axle with the static axle
+    #   loads of init_mb, F_z,f = m_s·g·b/L + m_uf·g = 5852.1 N, F_z,r = 4873.1 N, and the
+    #   per-axle p_ky1 = −11 (front), −17 (rear): C_af = 64.37 kN/rad, C_ar = 82.84 kN/rad
+    #   (MultiBodyPlant.axle_cornering_stiffness()). Linear understeer gradient from these,
+    #   m/L·(b/C_af − a/C_ar) = 3.45e-3 rad/(m/s²); measured on the plant by a
+    #   constant-speed ramp steer (ISO 4138): 3.48e-3 rad/(m/s²) = 1.96 deg/g.
+    # - mu: the lateral peak friction p_dy1 = 1.0489 of the plant tyres (zero camber).
+    # - C_x: longitudinal slip stiffness p_kx1·F_z = 22.303·F_z at the mean static axle
+    #   load (5362.6 N); only used when wheel slip is measured.
     return VehicleParams(
         m=1093.2952334674046,
         Iz=1791.5995300122856,
         a=1.1561957064,
         b=1.4227170936,
         h=0.5748689544,
-        C_af=110.0e3,
-        C_ar=125.0e3,
-        C_x=1.5e5,
-        mu=1.0,
+        C_af=64.37e3,
+        C_ar=82.84e3,
+        C_x=119.6e3,
+        mu=1.05,
         track_f=1.38684,
         track_r=1.36398,
         steering_ratio=15.0,
