@@ -10,20 +10,32 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
 """
 
 from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
+from kftune.optim.baselines import ManualPoints, RandomSearch
+from kftune.optim.ga import GeneticAlgorithm
 from kftune.optim.minimize import METHODS, OptimizationInterrupted, make_optimizer, minimize
+from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
 from kftune.optim.space import Param, Space
 from kftune.optim.study import Study, StudyError, StudyInUseError
+from kftune.optim.tsbo import TSBO
 
 __all__ = [
+    "CMAES",
     "METHODS",
+    "TSBO",
     "EvalRecord",
     "ExhaustedError",
+    "GeneticAlgorithm",
+    "ManualPoints",
     "OptimizationInterrupted",
     "OptimizeResult",
     "Optimizer",
+    "OptunaGP",
+    "OptunaTPE",
     "Param",
+    "PeerUnavailableError",
     "Proposal",
+    "RandomSearch",
     "Space",
     "Study",
     "StudyError",
