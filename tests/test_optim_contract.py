@@ -172,3 +172,12 @@ def test_optuna_gp_without_torch_is_a_clear_error(monkeypatch):
 
     with pytest.raises(PeerUnavailableError, match=r"'optuna-gp' needs the package 'torch'"):
         make_optimizer("optuna-gp", SPACE)
+
+
+def test_trial_points_are_read_only_and_resume_needs_storage():
+    opt = make_optimizer("random", SPACE, seed=0)
+    t = opt.ask()
+    with pytest.raises(ValueError, match="read-only"):
+        t.x[0] = 1.0
+    with pytest.raises(ValueError, match="resume=True needs storage"):
+        minimize(objective, SPACE, "random", resume=True)

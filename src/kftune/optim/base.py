@@ -177,7 +177,7 @@ class Optimizer(ABC):
         prop = self._propose()
         t_propose = time.perf_counter() - t0
         if prop.x is not None:
-            x = np.asarray(prop.x, dtype=float).reshape(self.space.dim)
+            x = np.array(prop.x, dtype=float).reshape(self.space.dim)
             u = np.clip(self.space.to_unit(x), 0.0, 1.0)
         else:
             u = np.asarray(prop.u, dtype=float).reshape(self.space.dim)
@@ -185,6 +185,8 @@ class Optimizer(ABC):
                 raise RuntimeError(f"{self.method} proposed a non-finite point {u}")
             u = np.clip(u, 0.0, 1.0)
             x = self.space.from_unit(u)
+        u.setflags(write=False)
+        x.setflags(write=False)
         trial = Trial(
             number=self._n_asked,
             x=x,

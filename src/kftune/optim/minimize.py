@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import inspect
 import multiprocessing
+import os
 import signal
 import sys
 import time
@@ -121,7 +122,7 @@ def minimize(
     *,
     budget: int | None = None,
     seed: int = 0,
-    storage: str | None = None,
+    storage: str | os.PathLike[str] | None = None,
     resume: bool = False,
     timeout: float | None = None,
     callback: Callable[[EvalRecord], bool | None] | None = None,
@@ -142,8 +143,9 @@ def minimize(
         storage: path of a SQLite study file, or ``None`` for no persistence.
         resume: continue the study in ``storage`` (see the module docstring).
         timeout: [s] per-evaluation time limit (runs ``fun`` in a worker process).
-        callback: called with every finished :class:`EvalRecord` (replayed ones too, in
-            order); returning ``True`` stops the run (status ``"stopped"``).
+        callback: called with every finished :class:`EvalRecord`, in order — on resume the
+            replayed ones first — e.g. to drive a progress bar; returning ``True`` after a new
+            evaluation stops the run (status ``"stopped"``; ignored for replayed records).
         **method_options: passed to the optimiser (e.g. ``max_fe=10`` for TSBO,
             ``population_size=20`` for GA, ``points=[...]`` for manual).
 
@@ -160,6 +162,8 @@ def minimize(
         raise ValueError(f"fun must be callable, got {type(fun).__name__}")
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0):
         raise ValueError(f"timeout must be a positive number of seconds or None, got {timeout!r}")
+    if resume and storage is None:
+        raise ValueError("resume=True needs storage= (the study file to resume)")
     sp = Space.coerce(space)
     opt = make_optimizer(method, sp, budget=budget, seed=seed, **method_options)
     settings = {
