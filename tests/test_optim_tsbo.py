@@ -283,6 +283,9 @@ def test_degenerate_box_falls_back_to_random_candidates():
     np.testing.assert_allclose(hi - lo, 0.0)
     assert s2 and {r.acquisition for r in s2} <= {"EI-fallback", "CBM-fallback"}
     assert s2[0].info["n_candidates"] == 200
+    # fallback candidates are scored by a model of every evaluation, in unit coordinates
+    assert all(r.info["refit"] for r in s2)
+    np.testing.assert_allclose(opt.surrogate.fit_inputs[-1], [r.u for r in opt.history[:-1]])
     U = np.array([r.u for r in opt.history])
     assert len({tuple(u) for u in U}) == len(U)
     # the improved mode's half-width floor removes the degeneracy

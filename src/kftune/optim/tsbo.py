@@ -78,8 +78,10 @@ Failed evaluations
     1e-9 (unit cube, max-norm) of any asked point are removed. The incumbent ignores failures.
 All candidates exhausted
     Only possible with degenerate boxes. Then ``100·d`` uniform random points over the whole
-    unit cube (from the seeded RNG) are scored with the current AF instead; the record's
-    acquisition reads e.g. ``"EI-fallback"``.
+    unit cube (from the seeded RNG) are scored with the current AF instead, by a surrogate
+    refitted on every evaluation in unit-cube coordinates (box coordinates cannot tell
+    points apart along a zero-width side); the record's acquisition reads e.g.
+    ``"EI-fallback"``.
 
 Modes: ``mode="faithful"`` (default) is the paper as above. ``mode="improved"`` sets
 ``keep_stage1_data=True``, ``min_box_halfwidth=0.02`` and ``stage2_reserve=0.25`` (each can
@@ -312,7 +314,6 @@ class TSBO(Optimizer):
         self.tree = PartitionTree(np.zeros(d), np.ones(d))
         self._X = np.empty((0, d))  # every asked point (unit cube), told ones first
         self._y: list[float | None] = []
-        self._stage_of: list[int] = []
         self.small_moves = 0  # counter n of Eq. 10
         self.af_iterations = 0
         self.gains = {"EI": 0.0, "CBM": 0.0}
@@ -345,12 +346,17 @@ class TSBO(Optimizer):
         """Index and value of the best successful evaluation (first on ties)."""
         return self._incumbent_at(len(self._y))
 
-    def _surrogate_data(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, Callable]:
-        """(X in surrogate coordinates, imputed y, success mask, unit→surrogate map)."""
+    def _surrogate_data(
+        self, global_view: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Callable]:
+        """(X in surrogate coordinates, imputed y, success mask, unit→surrogate map).
+
+        Stage 2 of the faithful mode sees q* and the stage-2 points in box coordinates;
+        otherwise (or with ``global_view``) every point in unit-cube coordinates."""
         n = len(self._y)
         idx = np.arange(n)
         to_s: Callable[[np.ndarray], np.ndarray] = lambda u: u  # noqa: E731
-        if self.stage == 2 and not self.keep_stage1_data:
+        if self.stage == 2 and not self.keep_stage1_data and not global_view:
             assert self.switch_at is not None and self.box is not None
             q_i, _ = self._incumbent_at(self.switch_at)
             idx = np.array([q_i, *range(self.switch_at, n)], dtype=int)
@@ -395,8 +401,10 @@ class TSBO(Optimizer):
                 acquisition="centre",
                 info={"leaf": 0},
             )
-        X, y, ok, to_s = self._surrogate_data()
-        refit = n <= self.max_sm or (self.stage == 2 and not self._stage2_fitted)
+        leaves = self.tree.candidates()
+        fallback = leaves.size == 0
+        X, y, ok, to_s = self._surrogate_data(global_view=fallback)
+        refit = fallback or n <= self.max_sm or (self.stage == 2 and not self._stage2_fitted)
         if refit:
             self.surrogate.fit(X, y)
             self._last_fit_n = n
@@ -404,15 +412,13 @@ class TSBO(Optimizer):
                 self._stage2_fitted = True
         elif self.sm_freeze == "hyperparameters":
             self.surrogate.condition(X, y)
-        tree = self.tree
-        leaves = tree.candidates()
         af = self._current_af()
-        label = af
-        if leaves.size:
-            cand_u = tree.centres[leaves]
-        else:
+        if fallback:
             cand_u = self.rng.random((100 * self.space.dim, self.space.dim))
             label = f"{af}-fallback"
+        else:
+            cand_u = self.tree.centres[leaves]
+            label = af
         pred = self.surrogate.predict(to_s(cand_u))
         incumbent = float(np.min(y[ok])) if ok.any() else float(np.min(y))
         scores = self._score(af, pred, incumbent)
@@ -426,7 +432,7 @@ class TSBO(Optimizer):
             "small_moves": self.small_moves,
             "gains": dict(self.gains),
         }
-        if leaves.size:
+        if not fallback:
             info["leaf"] = int(leaves[j])
         return Proposal(
             u=cand_u[j].copy(),
@@ -460,7 +466,6 @@ class TSBO(Optimizer):
         prev_i, best_before = self._incumbent()
         self._X = np.vstack([self._X, trial.u[None, :]])
         self._y.append(value)
-        self._stage_of.append(self.stage)
         n = len(self._y)
         leaf = trial.info.get("leaf")
         if trial.acquisition == "centre":
