@@ -294,12 +294,12 @@ def default_catalogue() -> tuple[ManoeuvreSpec, ...]:
     """The 31 manoeuvres (8 training, 23 test) of the bundled reference set."""
     L, R = 1, -1
     train = (
-        braking_in_turn("train-01-braking-in-turn", "train", 100.0, 80.0, 4.0, L),
+        braking_in_turn("train-01-braking-in-turn", "train", 80.0, 80.0, 5.0, L),
         skidpad("train-02-skidpad", "train", 40.0, 8.0, 18.6, 40.0, L),
         j_turn("train-03-j-turn", "train", 80.0, 5.0, L),
         j_turn("train-04-j-turn", "train", 100.0, 7.5, R),
-        slalom("train-05-slalom", "train", 60.0, 18.0, 5.0, 8.0, L),
-        slalom("train-06-slalom", "train", 90.0, 36.0, 7.0, 5.0, R),
+        slalom("train-05-slalom", "train", 60.0, 18.0, 5.0, 10.0, L),
+        slalom("train-06-slalom", "train", 90.0, 36.0, 7.0, 7.0, R),
         lane_change("train-07-lane-change", "train", 72.0, L),
         lane_change("train-08-lane-change", "train", 80.0, R),
     )

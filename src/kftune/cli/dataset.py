@@ -1,0 +1,231 @@
+"""``kftune dataset``: generate the reference set, summarise a dataset, plot a manoeuvre.
+
+    kftune dataset generate OUT [--seed N] [--only NAME ...]
+    kftune dataset info [DATASET] [--json]
+    kftune dataset show [DATASET] [--manoeuvre NAME] [--out FILE.png]
+
+DATASET is a kftune dataset directory (or its manifest), a directory in the revs-250lm
+layout, or omitted / ``default`` for the bundled set.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kftune.data import Dataset, Manoeuvre, open_dataset, save_dataset
+
+
+def register(subparsers: Any) -> None:
+    """Add ``dataset`` and its verbs."""
+    parser = subparsers.add_parser(
+        "dataset",
+        help="generate, summarise or plot manoeuvre data",
+        description="Generate the reference dataset, summarise a dataset, plot a manoeuvre.",
+    )
+    verbs = parser.add_subparsers(dest="verb", metavar="VERB")
+    verbs.required = True
+
+    gen = verbs.add_parser(
+        "generate",
+        help="simulate the 31 reference manoeuvres and write them (needs [simulate])",
+        description="Simulate the reference manoeuvres on CommonRoad's multi-body model, "
+        "measure them with the sensor models and write a dataset in the kftune format. "
+        "The same seed gives the same bytes.",
+    )
+    gen.add_argument("out", type=Path, help="output directory (created if needed)")
+    gen.add_argument(
+        "--seed", type=int, default=None, help="sensor-noise seed (default: the bundled set's)"
+    )
+    gen.add_argument("--only", nargs="+", metavar="NAME", help="generate only these manoeuvres")
+    gen.add_argument("--quiet", action="store_true", help="no progress output")
+    gen.set_defaults(func=run_generate)
+
+    info = verbs.add_parser("info", help="summarise a dataset")
+    info.add_argument("dataset", nargs="?", default=None, help="dataset (default: bundled)")
+    info.add_argument("--json", action="store_true", help="print one JSON object instead")
+    info.set_defaults(func=run_info)
+
+    show = verbs.add_parser("show", help="plot one manoeuvre's signals to a PNG")
+    show.add_argument("dataset", nargs="?", default=None, help="dataset (default: bundled)")
+    show.add_argument(
+        "--manoeuvre", "-m", default=None, help="manoeuvre name (default: the first one)"
+    )
+    show.add_argument(
+        "--out", "-o", type=Path, default=None, help="PNG file (default: <manoeuvre>.png)"
+    )
+    show.set_defaults(func=run_show)
+
+
+# ------------------------------------------------------------------------------ generate
+def run_generate(args: argparse.Namespace) -> int:
+    """Simulate and write the reference dataset."""
+    from kftune.data.generate import DEFAULT_SEED, generate_dataset
+    from kftune.data.plant import SimulationError
+
+    seed = DEFAULT_SEED if args.seed is None else args.seed
+    start = time.perf_counter()
+
+    def progress(name: str, i: int, total: int) -> None:
+        if not args.quiet:
+            print(
+                f"[{time.perf_counter() - start:6.1f} s] {i + 1}/{total} {name}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    try:
+        dataset = generate_dataset(seed=seed, names=args.only, progress=progress)
+    except SimulationError as exc:
+        print(f"kftune: simulation failed: {exc}", file=sys.stderr)
+        return 1
+    except ValueError as exc:
+        print(f"kftune: error: {exc}", file=sys.stderr)
+        return 2
+    manifest = save_dataset(dataset, args.out)
+    elapsed = time.perf_counter() - start
+    print(
+        f"wrote {len(dataset)} manoeuvres ({sum(m.n for m in dataset.manoeuvres)} samples, "
+        f"seed {seed}) to {manifest.parent} in {elapsed:.1f} s"
+    )
+    return 0
+
+
+# ------------------------------------------------------------------------------ info
+def dataset_info(dataset: Dataset) -> dict[str, Any]:
+    """The summary ``kftune dataset info`` prints, as plain data."""
+    rows = dataset.summary()
+    splits = {}
+    for split in ("train", "test"):
+        ms = [m for m in dataset.manoeuvres if m.split == split]
+        if not ms:
+            continue
+        ay = np.concatenate([m.ay for m in ms])
+        beta = np.degrees(np.concatenate([m.beta_ref for m in ms]))
+        splits[split] = {
+            "manoeuvres": len(ms),
+            "samples": int(ay.size),
+            "duration_s": float(sum(m.duration for m in ms)),
+            "ay_min": float(ay.min()),
+            "ay_max": float(ay.max()),
+            "beta_min_deg": float(beta.min()),
+            "beta_max_deg": float(beta.max()),
+            "share_ay_ge_4": float(np.mean(np.abs(ay) >= 4.0)),
+        }
+    r = dataset.r_default
+    return {
+        "name": dataset.name,
+        "vehicle": dataset.vehicle.name,
+        "dt": dataset.dt,
+        "splits": splits,
+        "r_default": [float(v) for v in r],
+        "r_default_std": {
+            "vx_mps": float(np.sqrt(r[0])),
+            "ay_mps2": float(np.sqrt(r[1])),
+            "r_degps": float(np.degrees(np.sqrt(r[2]))),
+        },
+        "manoeuvres": rows,
+    }
+
+
+def run_info(args: argparse.Namespace) -> int:
+    """Print a dataset summary."""
+    dataset = open_dataset(args.dataset)
+    info = dataset_info(dataset)
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    print(
+        f"dataset {info['name']!r}: vehicle {info['vehicle']!r}, dt = {info['dt']:g} s, "
+        f"{len(dataset)} manoeuvres"
+    )
+    header = (
+        f"{'manoeuvre':34s} {'kind':16s} {'split':5s} {'dur[s]':>7s} {'n':>6s} "
+        f"{'ay min':>7s} {'ay max':>7s} {'β min°':>7s} {'β max°':>7s} {'|ay|≥4':>7s}"
+    )
+    print(header)
+    print("-" * len(header))
+    for row in info["manoeuvres"]:
+        print(
+            f"{row['name']:34s} {row['kind']:16s} {row['split']:5s} {row['duration']:7.1f} "
+            f"{row['n']:6d} {row['ay_min']:7.2f} {row['ay_max']:7.2f} "
+            f"{row['beta_min_deg']:7.2f} {row['beta_max_deg']:7.2f} "
+            f"{100 * row['share_ay_ge_4']:6.1f}%"
+        )
+    print("-" * len(header))
+    for split, s in info["splits"].items():
+        print(
+            f"{split:5s}: {s['manoeuvres']:3d} manoeuvres, {s['samples']:6d} samples "
+            f"({s['duration_s']:.0f} s), ay {s['ay_min']:.2f} … {s['ay_max']:.2f} m/s², "
+            f"β {s['beta_min_deg']:.2f} … {s['beta_max_deg']:.2f}°, "
+            f"|ay| ≥ 4 m/s² in {100 * s['share_ay_ge_4']:.1f} %"
+        )
+    sd = info["r_default_std"]
+    print(
+        f"R (high-pass statistics, σ): Vx {sd['vx_mps']:.4f} m/s, ay {sd['ay_mps2']:.4f} m/s², "
+        f"r {sd['r_degps']:.4f} °/s"
+    )
+    return 0
+
+
+# ------------------------------------------------------------------------------ show
+def plot_manoeuvre(m: Manoeuvre, path: Path) -> Path:
+    """Write a PNG with the manoeuvre's signals against time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = m.t - m.t[0]
+    fig, axes = plt.subplots(5, 1, figsize=(9, 10), sharex=True)
+    axes[0].plot(t, np.degrees(m.delta), lw=0.8)
+    axes[0].set_ylabel("δ road wheel [°]")
+    axes[1].plot(t, m.ay, lw=0.6, label="ay")
+    axes[1].plot(t, m.ax, lw=0.6, label="ax")
+    axes[1].axhline(4.0, color="grey", lw=0.5, ls=":")
+    axes[1].axhline(-4.0, color="grey", lw=0.5, ls=":")
+    axes[1].set_ylabel("acceleration [m/s²]")
+    axes[1].legend(loc="upper right", fontsize=8)
+    axes[2].plot(t, np.degrees(m.r), lw=0.6)
+    axes[2].set_ylabel("yaw rate [°/s]")
+    axes[3].plot(t, m.vx, lw=0.8, label="vx measured")
+    if "vx_true" in m.extra:
+        axes[3].plot(t, m.extra["vx_true"], lw=0.8, ls="--", label="vx true")
+        axes[3].legend(loc="upper right", fontsize=8)
+    axes[3].set_ylabel("speed [m/s]")
+    axes[4].plot(t, np.degrees(m.beta_ref), lw=0.6, label="β reference")
+    if "beta_true" in m.extra:
+        axes[4].plot(t, np.degrees(m.extra["beta_true"]), lw=0.8, ls="--", label="β true")
+        axes[4].legend(loc="upper right", fontsize=8)
+    axes[4].set_ylabel("sideslip β [°]")
+    axes[4].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
+    for ax in axes:
+        ax.grid(True, lw=0.3)
+    fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def run_show(args: argparse.Namespace) -> int:
+    """Plot one manoeuvre."""
+    dataset = open_dataset(args.dataset)
+    if args.manoeuvre is None:
+        m = dataset.manoeuvres[0]
+    else:
+        try:
+            m = dataset[args.manoeuvre]
+        except KeyError as exc:
+            print(f"kftune: error: {exc.args[0]}", file=sys.stderr)
+            return 2
+    out = args.out if args.out is not None else Path(f"{m.name}.png")
+    plot_manoeuvre(m, out)
+    print(f"wrote {out}")
+    return 0
