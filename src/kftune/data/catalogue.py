@@ -46,7 +46,7 @@ from kftune.data.simulate import Brake, Hold, ManoeuvreSpec, Phase, steady_state
 #: Wheelbase of the plant (CommonRoad parameter set 2: a + b) [m].
 WHEELBASE = 1.1561957064 + 1.4227170936
 #: Understeer gradient used to size amplitudes and by the drivers' feed-forward
-#: [rad/(m/s²)]; the plant's measured value with the default setup is ≈ 0.0035.
+#: [rad/(m/s²)]; the plant's measured value with the default setup is 0.00343.
 K_DRIVER = 0.0035
 #: Preview time of the lane-change driver [s] (a tight, test-driver-like line).
 LANE_CHANGE_PREVIEW = 0.6

@@ -80,22 +80,31 @@ class PlantSetup:
     that also stands in for steering compliance and roll steer, which the MB model lacks)
     and the rear a little; with them the plant's understeer gradient, measured by
     :func:`kftune.data.simulate.ramp_steer_understeer` (constant-speed ramp steer, ISO
-    4138), is about 1.9 deg/g, typical of a passenger car. Peak friction, curvature and the
-    combined-slip functions stay CommonRoad's.
+    4138), is 3.43e-3 rad/(m/s²) = 1.93 deg/g, typical of a passenger car. Peak friction,
+    curvature and the combined-slip functions stay CommonRoad's.
 
     ``K_tsf``/``K_tsr`` [N·m/rad] replace the model's auxiliary torsion roll stiffnesses per
     axle (anti-roll bars), in the model's own convention: *negative adds roll stiffness*
     (the parameter set has −6.9 and −2.6 kN·m/rad, "normally negative"). With those the body
     rolls about 9 deg/g, twice what a saloon with proper anti-roll bars does, and the
     roll-induced gravity error of a body-fixed accelerometer would be ~16 % of ay. The
-    defaults (stiffer, front-biased bars) give about 5 deg/g, measured on the ramp steer of
+    defaults (stiffer, front-biased bars) give 5.0 deg/g, measured on the ramp steer of
     :func:`kftune.data.simulate.ramp_steer_understeer`.
+
+    ``zero_lateral_offsets`` sets the lateral shifts ``p_hy1`` and ``p_vy1`` to 0. CommonRoad
+    applies them as ``sign(γ)·(p_hy1 + p_hy3·|γ|)`` and ``sign(γ)·F_z·(p_vy1 + p_vy3·|γ|)``
+    (Pacejka's MF has no sign(γ) there): a side force of 3.7 % of the wheel load that switches
+    sign when the camber γ crosses 0. Near γ = 0 that discontinuity makes the right-hand side
+    non-smooth and settles the car into a pull (0.3 °/s yaw rate with the wheel straight at
+    90 km/h). Without the constant parts, the camber terms p_hy3·γ and p_vy3·γ·F_z remain —
+    continuous and mirror-symmetric.
     """
 
     front_p_ky1: float = -11.0
     rear_p_ky1: float = -17.0
     K_tsf: float = -45.0e3
     K_tsr: float = -15.0e3
+    zero_lateral_offsets: bool = True
 
     def __post_init__(self) -> None:
         for name in ("front_p_ky1", "rear_p_ky1"):
@@ -115,7 +124,7 @@ class PlantSetup:
 
 
 #: CommonRoad's own tyres and roll stiffness (neutral steer, ~9 deg/g roll), for comparison.
-COMMONROAD_SETUP = PlantSetup(-21.92, -21.92, -6914.881688272133, -2643.6009520155308)
+COMMONROAD_SETUP = PlantSetup(-21.92, -21.92, -6914.881688272133, -2643.6009520155308, False)
 
 
 class _PerAxleTyreModule:
@@ -197,10 +206,11 @@ class MultiBodyPlant:
             K_tsr=self.setup.K_tsr,
         )
         self._init_mb = init_mb
+        offsets = {"p_hy1": 0.0, "p_vy1": 0.0} if self.setup.zero_lateral_offsets else {}
         self._tyre_module = _PerAxleTyreModule(
             tire_model,
-            replace(self.p.tire, p_ky1=self.setup.front_p_ky1),
-            replace(self.p.tire, p_ky1=self.setup.rear_p_ky1),
+            replace(self.p.tire, p_ky1=self.setup.front_p_ky1, **offsets),
+            replace(self.p.tire, p_ky1=self.setup.rear_p_ky1, **offsets),
         )
         # CommonRoad's own code object, run with a globals dict in which ``tireModel`` is
         # the per-axle module; the package itself is left untouched.
@@ -279,6 +289,7 @@ class MultiBodyPlant:
         Raises:
             SimulationError: a wheel's ground speed is below :data:`MIN_WHEEL_SPEED`.
         """
+        x = [float(v) for v in x]  # Python floats: numpy scalars would turn 1/0 into inf
         speeds = self.wheel_ground_speeds(x)
         for wheel, slowest in zip(("front-left", "front-right", "rear-left", "rear-right"), speeds):
             if slowest >= MIN_WHEEL_SPEED:  # written so that NaN fails too
@@ -291,7 +302,7 @@ class MultiBodyPlant:
             )
         tm = self._tyre_module
         tm.calls = 0
-        f = self._mb(list(x), [-steer_rate, accel], self.p)
+        f = self._mb(x, [-float(steer_rate), float(accel)], self.p)
         if tm.calls != 4:  # pragma: no cover - only if the package changes
             raise SimulationError(
                 f"CommonRoad's MB model called formula_lateral {tm.calls} times, expected 4 "

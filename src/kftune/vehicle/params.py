@@ -158,7 +158,7 @@ def _bmw_320i() -> VehicleParams:
     #   per-axle p_ky1 = −11 (front), −17 (rear): C_af = 64.37 kN/rad, C_ar = 82.84 kN/rad
     #   (MultiBodyPlant.axle_cornering_stiffness()). Linear understeer gradient from these,
     #   m/L·(b/C_af − a/C_ar) = 3.45e-3 rad/(m/s²); measured on the plant by a
-    #   constant-speed ramp steer (ISO 4138): 3.48e-3 rad/(m/s²) = 1.96 deg/g.
+    #   constant-speed ramp steer (ISO 4138): 3.43e-3 rad/(m/s²) = 1.93 deg/g.
     # - mu: the lateral peak friction p_dy1 = 1.0489 of the plant tyres (zero camber).
     # - C_x: longitudinal slip stiffness p_kx1·F_z = 22.303·F_z at the mean static axle
     #   load (5362.6 N); only used when wheel slip is measured.
