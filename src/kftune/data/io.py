@@ -456,6 +456,9 @@ def read_csv(path: str | Path, factors: Mapping[str, float]) -> dict[str, np.nda
         body.pop()
     if not body:
         raise DataError("no data rows after the header", file=file, row=2)
+    for i, line in enumerate(body):
+        if not line.strip():
+            raise DataError("empty line inside the data", file=file, row=i + 2)
     try:
         with np.errstate(all="ignore"):
             values = np.loadtxt(body, delimiter=",", dtype=np.float64, ndmin=2, comments=None)
@@ -549,25 +552,31 @@ def _read_value_file(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DataError("file not found (named in the column mapping)", file=file)
     try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"cannot read: {exc}", file=file) from None
+    while lines and not lines[-1].strip():
+        lines.pop()
+    rows = [i for i, line in enumerate(lines) if not line.lstrip().startswith(("#", "%"))]
+    for i in rows:
+        if not lines[i].strip():
+            raise DataError("empty line inside the data", file=file, row=i + 1)
+    data = [lines[i] for i in rows]
+    try:
         with np.errstate(all="ignore"):
-            values = np.loadtxt(path, dtype=np.float64, comments=("#", "%"), ndmin=1)
-        if values.ndim != 1:
-            raise ValueError("more than one column")
-        return values
+            values = np.loadtxt(data, dtype=np.float64, ndmin=1, comments=None)
+        if values.ndim == 1 and values.size == len(data):
+            return values
     except ValueError:
         pass
-    out = []
-    for i, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines()):
-        text = line.strip()
-        if text.startswith(("#", "%")):
-            continue
-        if not text:
-            raise DataError("empty line inside the data", file=file, row=i + 1)
+    out = np.empty(len(data))
+    for k, i in enumerate(rows):
+        text = lines[i].strip()
         try:
-            out.append(float(text))
+            out[k] = float(text)
         except ValueError:
             raise DataError(f"cannot read {text!r} as one number", file=file, row=i + 1) from None
-    return np.asarray(out)
+    return out
 
 
 def read_columns(

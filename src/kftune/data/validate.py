@@ -168,7 +168,6 @@ def validate_channels(
                 file=_file_of(name, file, files),
                 column=name,
             )
-    n = None
     arrays: dict[str, np.ndarray] = {}
     for name, values in channels.items():
         check_channel_name(name, file=file)
@@ -185,18 +184,18 @@ def validate_channels(
                 file=_file_of(name, file, files),
                 column=name,
             )
-        if n is None:
-            n = a.size
-        elif a.size != n:
-            first = next(iter(channels))
+        arrays[name] = a.astype(np.float64, copy=False)
+    # equal lengths: blame the first channel whose length differs from the most common one
+    sizes = [a.size for a in arrays.values()]
+    n = max(set(sizes), key=lambda s: (sizes.count(s), -sizes.index(s)))
+    for name, a in arrays.items():
+        if a.size != n:
             raise DataError(
-                f"has {a.size} samples but {first!r} has {n}: channels must have equal lengths",
+                f"has {a.size} samples, the other channels {n}: channels must have equal lengths",
                 file=_file_of(name, file, files),
                 column=name,
                 row=min(a.size, n) + row_offset,
             )
-        arrays[name] = a.astype(np.float64, copy=False)
-    assert n is not None
     if n < min_samples:
         raise DataError(
             f"manoeuvre too short: {n} samples, at least {min_samples} needed",

@@ -1,0 +1,241 @@
+"""Validation: every check fails with a DataError naming file, column and row; fuzzed
+loaders either load or raise DataError (never another exception, never silent NaN)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from kftune.data import Manoeuvre, load_dataset, read_columns, save_dataset, validate_channels
+from kftune.data.validate import REQUIRED_CHANNELS
+from kftune.errors import DataError
+from test_data_helpers import synthetic_channels, synthetic_dataset
+
+
+def _fails(channels, **kw) -> DataError:
+    with pytest.raises(DataError) as info:
+        validate_channels(channels, file="rec.csv", **kw)
+    return info.value
+
+
+def test_valid_channels_pass_and_return_dt():
+    assert validate_channels(synthetic_channels(), file="rec.csv") == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize("missing", REQUIRED_CHANNELS)
+def test_missing_channel(missing):
+    c = synthetic_channels()
+    del c[missing]
+    e = _fails(c)
+    assert e.column == missing and e.file == "rec.csv"
+    assert "missing required channel" in str(e)
+
+
+def test_unequal_lengths_name_column_and_row():
+    c = synthetic_channels(n=300)
+    c["ay"] = c["ay"][:250]
+    e = _fails(c, row_offset=2)
+    assert e.column == "ay" and e.row == 252
+    assert "equal lengths" in str(e)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("column", ["t", "r", "beta_ref", "vx"])
+def test_non_finite_values(bad, column):
+    c = synthetic_channels()
+    c[column] = c[column].copy()
+    c[column][123] = bad
+    e = _fails(c, row_offset=2)
+    assert (e.column, e.row) == (column, 125)
+    assert "not a finite number" in str(e)
+
+
+def test_duplicated_and_decreasing_time():
+    c = synthetic_channels()
+    c["t"][57] = c["t"][56]
+    e = _fails(c)
+    assert (e.column, e.row) == ("t", 57) and "duplicated" in str(e)
+    c = synthetic_channels()
+    c["t"][80] = c["t"][78]
+    e = _fails(c, row_offset=1)
+    assert (e.column, e.row) == ("t", 81) and "decreasing" in str(e)
+
+
+def test_irregular_sample_time():
+    c = synthetic_channels()
+    c["t"][200:] += 0.005  # a half-sample gap
+    e = _fails(c, row_offset=2)
+    assert (e.column, e.row) == ("t", 202)
+    assert "irregular sample time" in str(e)
+
+
+def test_small_timing_jitter_is_accepted():
+    c = synthetic_channels()
+    c["t"] = np.round(c["t"] + 149.99, 5)  # a logger's printed time (revs-like)
+    validate_channels(c)
+
+
+@pytest.mark.parametrize(
+    ("column", "scale", "hint"),
+    [
+        ("r", 180.0 / math.pi, "deg/s"),
+        ("delta", 15.0 * 180.0 / math.pi, "degrees"),
+        ("beta_ref", 180.0 / math.pi * 30.0, "degrees"),
+        ("vx", 3.6 * 1.5, "km/h"),
+        ("ay", 40.0, "wrong unit"),
+    ],
+)
+def test_implausible_units(column, scale, hint):
+    c = synthetic_channels()
+    c[column] = c[column] * scale
+    e = _fails(c, row_offset=2)
+    assert e.column == column and e.row is not None and e.row >= 2
+    assert hint in str(e)
+
+
+def test_ay_in_g_is_caught_by_kinematics():
+    """Lateral acceleration in g stays within every magnitude limit; ay ≈ vx·r exposes it."""
+    c = synthetic_channels()
+    c["ay"] = c["ay"] / 9.81
+    e = _fails(c)
+    assert e.column == "ay" and "ay/(vx·r)" in str(e)
+
+
+def test_opposite_sign_convention_is_caught():
+    """SAE-signed ay (positive right) with an ISO yaw rate: the ratio is −1."""
+    c = synthetic_channels()
+    c["ay"] = -c["ay"]
+    e = _fails(c)
+    assert "opposite sign conventions" in str(e)
+
+
+def test_too_short():
+    e = _fails(synthetic_channels(n=40))
+    assert e.column == "t" and "too short" in str(e)
+    validate_channels(synthetic_channels(n=40), min_samples=10)
+
+
+def test_bad_names_and_shapes():
+    c = synthetic_channels()
+    c["bad name"] = c["t"]
+    assert "identifier" in str(_fails(c))
+    c = synthetic_channels()
+    c["r"] = np.column_stack([c["r"], c["r"]])
+    e = _fails(c)
+    assert e.column == "r" and "1-D" in str(e)
+
+
+def test_manoeuvre_validates_on_construction():
+    c = synthetic_channels()
+    c["r"] = np.degrees(c["r"])
+    with pytest.raises(DataError, match="deg/s"):
+        Manoeuvre(name="x", kind="slalom", split="train", **c)
+    with pytest.raises(DataError, match="split"):
+        Manoeuvre(name="x", kind="slalom", split="validation", **synthetic_channels())
+    m = Manoeuvre(name="x", kind="slalom", split="train", **synthetic_channels())
+    with pytest.raises(ValueError):
+        m.ay[0] = 1.0  # read-only arrays
+    assert m.u.shape == (400, 2) and m.z.shape == (400, 3)
+    np.testing.assert_array_equal(m.z[:, 0], m.vx)
+
+
+# ----------------------------------------------------------------------------- fuzzing
+@pytest.fixture(scope="module")
+def csv_dataset(tmp_path_factory) -> Path:
+    """A small valid dataset on disk (uncompressed CSV), to be corrupted by the fuzzers."""
+    d = tmp_path_factory.mktemp("fuzz")
+    save_dataset(synthetic_dataset(1, 1), d, compress=False)
+    return d
+
+
+CORRUPTIONS = ["nan", "inf", "abc", "", "1e999", "drop", "add"]
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    row=st.integers(min_value=2, max_value=401),
+    col=st.integers(min_value=0, max_value=7),
+    kind=st.sampled_from(CORRUPTIONS),
+)
+def test_fuzz_csv_corruption_is_reported_at_its_row(csv_dataset, tmp_path_factory, row, col, kind):
+    """One corrupted field of a manoeuvre CSV: load_dataset raises a DataError naming that
+    file and row (and the column, where the value is unreadable)."""
+    work = tmp_path_factory.mktemp("case")
+    for f in csv_dataset.iterdir():
+        (work / f.name).write_bytes(f.read_bytes())
+    target = work / "tr0.csv"
+    lines = target.read_text().splitlines()
+    header = lines[0].split(",")
+    fields = lines[row - 1].split(",")
+    if kind == "drop":
+        del fields[col]
+    elif kind == "add":
+        fields.insert(col, "0.5")
+    else:
+        fields[col] = kind
+    lines[row - 1] = ",".join(fields)
+    target.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError) as info:
+        load_dataset(work)
+    e = info.value
+    assert e.file == str(target)
+    assert e.row == row
+    if kind in ("abc", ""):
+        assert e.column == header[col]
+    if kind in ("nan", "inf", "1e999"):
+        assert e.column == header[col] and "finite" in str(e)
+
+
+@settings(
+    max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(text=st.text(alphabet=st.sampled_from(list("0123456789.,-eE\nnaif t_x")), max_size=400))
+def test_fuzz_csv_garbage_never_crashes(csv_dataset, tmp_path_factory, text):
+    work = tmp_path_factory.mktemp("garbage")
+    for f in csv_dataset.iterdir():
+        (work / f.name).write_bytes(f.read_bytes())
+    (work / "te0.csv").write_text(text)
+    try:
+        ds = load_dataset(work)
+    except DataError as e:
+        assert e.file is not None
+    else:  # pragma: no cover - only if the text happens to be a valid manoeuvre
+        assert all(np.all(np.isfinite(m.z)) for m in ds.manoeuvres)
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    channel=st.sampled_from(list(REQUIRED_CHANNELS)),
+    line=st.integers(min_value=1, max_value=400),
+    kind=st.sampled_from(["nan", "x1", "", "truncate"]),
+)
+def test_fuzz_column_files(tmp_path_factory, channel, line, kind):
+    """Column-per-file: a bad value or a short file is reported in that file, at that line."""
+    d = tmp_path_factory.mktemp("cols")
+    c = synthetic_channels()
+    for name, values in c.items():
+        (d / f"{name}.txt").write_text("\n".join(repr(float(v)) for v in values) + "\n")
+    path = d / f"{channel}.txt"
+    lines = path.read_text().splitlines()
+    if kind == "truncate":
+        lines = lines[: line - 1] if line > 1 else lines[:-1]
+    else:
+        lines[line - 1] = kind
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError) as info:
+        read_columns(d, {k: k for k in REQUIRED_CHANNELS})
+    e = info.value
+    if kind == "truncate":
+        assert "samples" in str(e) or "too short" in str(e)
+    else:
+        assert e.file == str(path)
+        assert e.row == line
