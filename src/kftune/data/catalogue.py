@@ -36,7 +36,9 @@ from kftune.data.drivers import (
     Profile,
     RandomSteer,
     SineSteer,
+    SpeedLaw,
     SpeedProfile,
+    SteerLaw,
     SteerProfile,
     circle_path,
     iso3888_1_path,
@@ -71,6 +73,29 @@ def _follower(path: Path, preview: float = 0.7) -> PathFollower:
     return PathFollower(path=path, wheelbase=WHEELBASE, understeer=K_DRIVER, preview=preview)
 
 
+def _single_phase(
+    name: str,
+    kind: str,
+    split: str,
+    v0: float,
+    duration: float,
+    steer: SteerLaw,
+    speed: SpeedLaw,
+    description: str,
+    **meta: float,
+) -> ManoeuvreSpec:
+    """A manoeuvre of one driver phase."""
+    return ManoeuvreSpec(
+        name=name,
+        kind=kind,
+        split=split,
+        v0=v0,
+        phases=(Phase(duration, steer, speed),),
+        description=description,
+        meta=meta,
+    )
+
+
 def j_turn(name: str, split: str, v_kmh: float, ay: float, direction: int) -> ManoeuvreSpec:
     """ISO 7401 step steer: 2 s straight, step to the steady-state angle for ``ay``
     [m/s²], hold 5 s, release, 3 s straight."""
@@ -80,13 +105,15 @@ def j_turn(name: str, split: str, v_kmh: float, ay: float, direction: int) -> Ma
     t1, t2 = 2.0, 2.0 + ramp + 5.0
     steer = SteerProfile(Profile([t1, t1 + ramp, t2, t2 + ramp], [0.0, amp, amp, 0.0]))
     side = "left" if direction > 0 else "right"
-    return ManoeuvreSpec(
-        name=name,
-        kind="j-turn",
-        split=split,
-        v0=v,
-        phases=(Phase(round(t2 + ramp + 3.0, 2), steer, _const_speed(v)),),
-        description=f"ISO 7401 step steer {side} at {v_kmh:g} km/h, target ay {ay:g} m/s²",
+    return _single_phase(
+        name,
+        "j-turn",
+        split,
+        v,
+        round(t2 + ramp + 3.0, 2),
+        steer,
+        _const_speed(v),
+        f"ISO 7401 step steer {side} at {v_kmh:g} km/h, target ay {ay:g} m/s²",
     )
 
 
@@ -99,13 +126,15 @@ def slalom(
     amp = direction * _delta(ay, v)
     t0 = 2.0
     duration = t0 + cycles / freq + 2.0
-    return ManoeuvreSpec(
-        name=name,
-        kind="slalom",
-        split=split,
-        v0=v,
-        phases=(Phase(round(duration, 2), SineSteer(amp, freq, t0, cycles), _const_speed(v)),),
-        description=(
+    return _single_phase(
+        name,
+        "slalom",
+        split,
+        v,
+        round(duration, 2),
+        SineSteer(amp, freq, t0, cycles),
+        _const_speed(v),
+        (
             f"slalom at {v_kmh:g} km/h, cones {spacing:g} m apart ({freq:.2f} Hz), "
             f"{cycles:g} cycles, target peak ay {ay:g} m/s²"
         ),
@@ -119,13 +148,15 @@ def lane_change(name: str, split: str, v_kmh: float, direction: int) -> Manoeuvr
     path = iso3888_1_path(direction=direction, lead_in=lead_in)
     duration = (lead_in + 150.0) / v
     side = "left" if direction > 0 else "right"
-    return ManoeuvreSpec(
-        name=name,
-        kind="lane-change",
-        split=split,
-        v0=v,
-        phases=(Phase(round(duration, 2), _follower(path, LANE_CHANGE_PREVIEW), _const_speed(v)),),
-        description=f"ISO 3888-1 double lane change to the {side} at {v_kmh:g} km/h",
+    return _single_phase(
+        name,
+        "lane-change",
+        split,
+        v,
+        round(duration, 2),
+        _follower(path, LANE_CHANGE_PREVIEW),
+        _const_speed(v),
+        f"ISO 3888-1 double lane change to the {side} at {v_kmh:g} km/h",
     )
 
 
@@ -138,17 +169,19 @@ def skidpad(
     t_in = 40.0 / v_start + 3.0
     speed = SpeedProfile(Profile([t_in, t_in + ramp], [v_start, v_end]))
     side = "counter-clockwise" if direction > 0 else "clockwise"
-    return ManoeuvreSpec(
-        name=name,
-        kind="skidpad",
-        split=split,
-        v0=v_start,
-        phases=(Phase(round(t_in + ramp + 3.0, 2), _follower(path), speed),),
-        description=(
+    return _single_phase(
+        name,
+        "skidpad",
+        split,
+        v_start,
+        round(t_in + ramp + 3.0, 2),
+        _follower(path),
+        speed,
+        (
             f"ISO 4138 constant radius R = {radius:g} m {side}, speed {v_start:g} → "
             f"{v_end:g} m/s (ay ≈ {v_start**2 / radius:.1f} → {v_end**2 / radius:.1f} m/s²)"
         ),
-        meta={"radius": radius},
+        radius=radius,
     )
 
 
@@ -189,13 +222,15 @@ def spiral(
     t1, t2 = 2.0, duration - 3.0
     steer = SteerProfile(Profile([t1, t2, t2 + 1.5], [0.0, amp, 0.0]))
     side = "left" if direction > 0 else "right"
-    return ManoeuvreSpec(
-        name=name,
-        kind="spiral",
-        split=split,
-        v0=v,
-        phases=(Phase(duration, steer, _const_speed(v)),),
-        description=f"ISO 4138 constant-speed ramp steer {side} at {v_kmh:g} km/h up to "
+    return _single_phase(
+        name,
+        "spiral",
+        split,
+        v,
+        duration,
+        steer,
+        _const_speed(v),
+        f"ISO 4138 constant-speed ramp steer {side} at {v_kmh:g} km/h up to "
         f"the angle for ay {ay_end:g} m/s²",
     )
 
@@ -207,13 +242,15 @@ def random_steer(
     ``ay_rms``; the programme is fixed by ``seed`` (not by the sensor seed)."""
     v = kmh(v_kmh)
     steer = RandomSteer(_delta(ay_rms, v), 0.1, 1.2, 1.0, duration - 1.0, seed)
-    return ManoeuvreSpec(
-        name=name,
-        kind="random-steer",
-        split=split,
-        v0=v,
-        phases=(Phase(duration, steer, _const_speed(v)),),
-        description=f"random steer at {v_kmh:g} km/h, 0.1–1.2 Hz, RMS sized for ay {ay_rms:g} m/s²",
+    return _single_phase(
+        name,
+        "random-steer",
+        split,
+        v,
+        duration,
+        steer,
+        _const_speed(v),
+        f"random steer at {v_kmh:g} km/h, 0.1–1.2 Hz, RMS sized for ay {ay_rms:g} m/s²",
     )
 
 
@@ -280,13 +317,15 @@ def track_lap(name: str, split: str) -> ManoeuvreSpec:
     s = np.asarray(profile.knots)
     v = np.asarray(profile.values)
     duration = float(np.sum(np.diff(s) / (0.5 * (v[1:] + v[:-1])))) - 3.0
-    return ManoeuvreSpec(
-        name=name,
-        kind="track-lap",
-        split=split,
-        v0=v0,
-        phases=(Phase(round(duration, 1), _follower(path), PathSpeed(profile)),),
-        description=f"track lap, {path.length:.0f} m circuit, speed scheduled for ay ≤ 7.5 m/s²",
+    return _single_phase(
+        name,
+        "track-lap",
+        split,
+        v0,
+        round(duration, 1),
+        _follower(path),
+        PathSpeed(profile),
+        f"track lap, {path.length:.0f} m circuit, speed scheduled for ay ≤ 7.5 m/s²",
     )
 
 
