@@ -33,6 +33,9 @@ SENSOR_STD = {
     "r": math.radians(0.2),
 }
 
+#: Final road-wheel amplitude of the demo's growing sine steer [deg].
+MAX_STEER_DEG = 7.0
+
 #: Default process-noise variances of the demo [(m/s)², (m/s)², (rad/s)²] per 10 ms step:
 #: a hand-set (untuned) choice of the kind the tuner replaces.
 DEFAULT_Q = (1e-4, 1e-4, 1e-5)
@@ -69,12 +72,13 @@ class DemoManoeuvre:
 def demo_inputs(duration: float = 20.0, dt: float = 0.01) -> np.ndarray:
     """Noise-free inputs of the demo manoeuvre: (N, 2) [δ rad, ax m/s²].
 
-    A 0.5 Hz sine steer whose road-wheel amplitude grows linearly from 0.5° to 5° (at
-    22 m/s the BMW preset saturates its tyres from about 3.5°), and a 2 s braking pulse of
+    A 0.5 Hz sine steer whose road-wheel amplitude grows linearly from 0.5° to
+    ``MAX_STEER_DEG`` (with the BMW preset at 22 m/s this reaches |ay| ≈ 8 m/s², about 80 %
+    of μ·g, and a sideslip of about 5°, deep in the Dugoff saturation), and a 2 s braking pulse of
     −3 m/s² followed by +1.5 m/s² to recover speed.
     """
     t = np.arange(round(duration / dt)) * dt
-    amp = np.radians(0.5 + 4.5 * t / duration)
+    amp = np.radians(0.5 + (MAX_STEER_DEG - 0.5) * t / duration)
     delta = amp * np.sin(2.0 * np.pi * 0.5 * t)
     ax = np.where((t >= 0.4 * duration) & (t < 0.4 * duration + 2.0), -3.0, 0.0)
     ax = ax + np.where((t >= 0.4 * duration + 2.0) & (t < 0.4 * duration + 6.0), 1.5, 0.0)
@@ -158,7 +162,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"kftune demo: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     out: dict[str, object] = {
-        "manoeuvre": "sine steer 0.5 Hz, 0.5°→5° road-wheel, braking pulse; BMW 320i preset",
+        "manoeuvre": f"sine steer 0.5 Hz, 0.5°→{MAX_STEER_DEG:g}° road-wheel, braking pulse; "
+        "BMW 320i preset",
         "samples": int(man.u.shape[0]),
         "dt_s": man.dt,
         "seed": args.seed,
