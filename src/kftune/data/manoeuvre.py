@@ -163,6 +163,21 @@ class Manoeuvre:
             description=self.description,
         )
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        # the read-only ``extra`` view cannot be pickled; rebuild from plain fields (so a
+        # manoeuvre can be sent to worker processes)
+        return (
+            Manoeuvre,
+            (
+                self.name,
+                self.kind,
+                self.split,
+                *(getattr(self, c) for c in REQUIRED_CHANNELS),
+                dict(self.extra),
+                self.description,
+            ),
+        )
+
     def equals(self, other: Manoeuvre) -> bool:
         """Exact equality of metadata and every channel (bit for bit)."""
         return (
