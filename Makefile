@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/kftune demo
+	$(BIN)/kftune compare --out $(REPORT)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

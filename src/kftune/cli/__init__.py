@@ -29,7 +29,7 @@ EXIT_BAD_INPUT = 3
 EXIT_INTERRUPTED = 130
 
 #: Subcommand modules, in the order ``--help`` lists them.
-SUBCOMMANDS: tuple[str, ...] = ("demo", "dataset")
+SUBCOMMANDS: tuple[str, ...] = ("compare", "tune", "evaluate", "report", "dataset", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:

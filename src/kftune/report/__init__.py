@@ -35,7 +35,7 @@ def all_tables(results: ExperimentResults) -> dict[str, Table]:
 
 
 def _parameter_table(results: ExperimentResults) -> Table:
-    names = sorted({p for m in results.methods for p in m.params})
+    names = list(dict.fromkeys(p for m in results.methods for p in m.params))
     rows = tuple(
         (m.label, *(float(m.params.get(p, math.nan)) for p in names)) for m in results.methods
     )

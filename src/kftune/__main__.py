@@ -1,0 +1,7 @@
+"""``python -m kftune`` — the same as the ``kftune`` command."""
+
+import sys
+
+from kftune.cli import main
+
+sys.exit(main())

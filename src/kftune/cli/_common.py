@@ -1,0 +1,278 @@
+"""Options shared by ``tune``, ``evaluate`` and ``compare``, and the TOML configuration.
+
+A configuration file holds the same settings as the command line; an option given on the
+command line wins over the file, the file over the defaults::
+
+    dataset = "default"            # or a dataset directory (relative to this file)
+    method = "tsbo-tsp"            # tune
+    methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp"]   # compare
+    budget = 40                    # tune
+    seed = 0
+    workers = 1                    # processes per cost evaluation
+    timeout = 30.0                 # tune: per-evaluation limit [s]
+
+    [cost]
+    kind = "nrmse"                 # or "nis"
+    weights = { beta = 5.0, r = 1.0, ay = 1.0 }
+
+    [parameters]
+    q_bounds = [1e-10, 1.0]
+    tune_r_scale = false
+    tune_sigma_points = false
+
+    [ukf]                          # sigma points when they are not tuned
+    alpha = 1.0
+    beta = 2.0
+    kappa = 0.0
+
+    [options.tsbo-tsp]             # passed to that optimiser, e.g. TSBO's max_fe
+    max_fe = 15
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from kftune.errors import ConfigError
+from kftune.optim import METHODS
+from kftune.tuning.cost import CHANNELS
+
+if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
+    from kftune.filters import UKFSettings
+    from kftune.tuning.cost import CostSpec
+    from kftune.tuning.problem import NoiseParameterization
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+#: Keys a configuration file may hold, with the TOML type expected.
+CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
+    "dataset": str,
+    "method": str,
+    "methods": list,
+    "budget": int,
+    "seed": int,
+    "workers": int,
+    "timeout": (int, float),
+    "cost": dict,
+    "parameters": dict,
+    "ukf": dict,
+    "options": dict,
+}
+_SECTION_KEYS = {
+    "cost": {"kind": str, "weights": dict},
+    "parameters": {
+        "q_bounds": list,
+        "tune_r_scale": bool,
+        "tune_sigma_points": bool,
+        "r_scale_bounds": list,
+    },
+    "ukf": {"alpha": (int, float), "beta": (int, float), "kappa": (int, float)},
+}
+
+
+def load_config(path: str | Path | None) -> dict[str, Any]:
+    """Read and check a TOML configuration; ``None`` gives an empty one.
+
+    A relative ``dataset`` is resolved against the file's directory.
+
+    Raises:
+        ConfigError: unreadable file, bad TOML, unknown key or wrong type (named).
+    """
+    if path is None:
+        return {}
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"configuration file {p} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read configuration file {p}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"configuration file {p} is not valid TOML: {exc}") from None
+    _check_keys(data, CONFIG_KEYS, str(p))
+    for section, keys in _SECTION_KEYS.items():
+        if section in data:
+            _check_keys(data[section], keys, f"{p} [{section}]")
+    for method, opts in data.get("options", {}).items():
+        if method not in METHODS or not isinstance(opts, dict):
+            raise ConfigError(
+                f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
+                f"{list(METHODS)}, got {method!r}"
+            )
+    if "dataset" in data and data["dataset"] != "default":
+        ds = Path(data["dataset"])
+        data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
+    return data
+
+
+def _check_keys(data: dict[str, Any], allowed: dict[str, Any], where: str) -> None:
+    for key, value in data.items():
+        if key not in allowed:
+            raise ConfigError(f"{where}: unknown key {key!r}; allowed: {sorted(allowed)}")
+        expected = allowed[key]
+        if isinstance(value, bool) and expected is not bool and bool not in _tuple(expected):
+            raise ConfigError(f"{where}: {key} must be {_name(expected)}, got a boolean")
+        if not isinstance(value, expected):
+            raise ConfigError(
+                f"{where}: {key} must be {_name(expected)}, got {type(value).__name__} {value!r}"
+            )
+
+
+def _tuple(t: type | tuple[type, ...]) -> tuple[type, ...]:
+    return t if isinstance(t, tuple) else (t,)
+
+
+def _name(t: type | tuple[type, ...]) -> str:
+    names = {
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "an array",
+        dict: "a table",
+        bool: "true or false",
+    }
+    return " or ".join(names.get(x, x.__name__) for x in _tuple(t))
+
+
+def pick(args: argparse.Namespace, config: dict[str, Any], key: str, default: Any) -> Any:
+    """The command-line value if given, else the configuration's, else ``default``."""
+    value = getattr(args, key, None)
+    if value is not None:
+        return value
+    return config.get(key, default)
+
+
+def add_command(subparsers: Any, name: str, help: str, doc: str | None) -> argparse.ArgumentParser:
+    """A subcommand parser whose ``--help`` shows the module docstring as written."""
+    return subparsers.add_parser(
+        name,
+        help=help,
+        description=doc,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+def add_common(parser: argparse.ArgumentParser, *, dataset_positional: bool = True) -> None:
+    """Dataset, seed, workers, cost and parameterisation options, ``--config``, ``--json``."""
+    if dataset_positional:
+        parser.add_argument(
+            "dataset",
+            nargs="?",
+            default=None,
+            help="dataset: 'default' (the bundled one, the default), a kftune dataset "
+            "directory or manifest, or a directory in the revs-250lm layout",
+        )
+    parser.add_argument("--config", type=Path, help="TOML file with these settings")
+    parser.add_argument("--seed", type=int, help="seed driving all randomness (default 0)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        help="processes that run the manoeuvres of one cost evaluation in parallel (default 1)",
+    )
+    cost = parser.add_argument_group("cost")
+    cost.add_argument(
+        "--cost",
+        choices=("nrmse", "nis"),
+        help="nrmse: the paper's weighted NRMSE (default); nis: NIS consistency, no reference "
+        "sensor needed",
+    )
+    cost.add_argument(
+        "--weights",
+        metavar="CH=W,...",
+        help=f"NRMSE weights per channel from {list(CHANNELS)} (default beta=5,r=1,ay=1)",
+    )
+    par = parser.add_argument_group("tuned parameters")
+    par.add_argument(
+        "--tune-r-scale",
+        action="store_true",
+        default=None,
+        help="also tune a scale factor of R",
+    )
+    par.add_argument(
+        "--tune-sigma-points",
+        action="store_true",
+        default=None,
+        help="also tune the sigma-point parameters alpha, beta, kappa",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def parse_weights(text: str) -> dict[str, float]:
+    """``"beta=5,r=1,ay=1"`` → dict (errors name the bad item)."""
+    out: dict[str, float] = {}
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        try:
+            w = float(value)
+        except ValueError:
+            w = math.nan
+        if not sep or not name or not math.isfinite(w):
+            raise ConfigError(f"--weights: expected CHANNEL=NUMBER items, got {item!r}")
+        out[name] = w
+    return out
+
+
+def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
+    """The cost from the command line and configuration."""
+    from kftune.tuning.cost import CostSpec
+
+    section = config.get("cost", {})
+    kind = args.cost or section.get("kind", "nrmse")
+    if args.weights:
+        weights = parse_weights(args.weights)
+    elif "weights" in section:
+        weights = section["weights"]
+    else:
+        return CostSpec(kind=kind)
+    return CostSpec(kind=kind, weights=weights)
+
+
+def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseParameterization:
+    """What is tuned, from the command line and configuration."""
+    from kftune.tuning.problem import NoiseParameterization
+
+    section = config.get("parameters", {})
+    ukf = config.get("ukf", {})
+    kwargs: dict[str, Any] = {
+        "tune_r_scale": bool(pick(args, section, "tune_r_scale", False)),
+        "tune_sigma_points": bool(pick(args, section, "tune_sigma_points", False)),
+        "default_settings": _ukf_settings(ukf),
+    }
+    for key in ("q_bounds", "r_scale_bounds"):
+        if key in section:
+            bounds = section[key]
+            if len(bounds) != 2:
+                raise ConfigError(f"[parameters] {key} must be [low, high], got {bounds!r}")
+            kwargs[key] = (float(bounds[0]), float(bounds[1]))
+    p = NoiseParameterization(**kwargs)
+    try:
+        p.space  # noqa: B018 — validates the bounds
+    except ValueError as exc:
+        raise ConfigError(f"[parameters]: {exc}") from None
+    return p
+
+
+def _ukf_settings(section: dict[str, Any]) -> UKFSettings:
+    from kftune.filters import UKFSettings
+
+    try:
+        s = UKFSettings(**{k: float(v) for k, v in section.items()})
+        s.check_dim(3)
+    except ValueError as exc:
+        raise ConfigError(f"[ukf]: {exc}") from None
+    return s
+
+
+def emit_json(obj: Any) -> None:
+    """Print one strict-JSON object on stdout."""
+    print(json.dumps(obj, allow_nan=False, indent=1))

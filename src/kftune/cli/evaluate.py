@@ -1,0 +1,185 @@
+"""``kftune evaluate``: sideslip KPIs and the cost of given filter parameters on a dataset.
+
+The parameters come from a file written by ``kftune tune`` (``--params tuned.json``), from
+the command line (``--q QVX QVY QR``), or are the manual-tuning rule of thumb
+(``--manual``). R is the evaluated dataset's own (from its sensor statistics), times the
+tuned ``r_scale`` if there is one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from kftune.cli import EXIT_FAILURE, EXIT_OK
+from kftune.cli._common import (
+    add_command,
+    add_common,
+    cost_spec,
+    emit_json,
+    load_config,
+    parameterization,
+    pick,
+)
+from kftune.cli.tune import TUNED_FORMAT
+from kftune.errors import ConfigError, DataError
+from kftune.tuning.kpi import KPI_NAMES
+
+
+def register(subparsers: Any) -> None:
+    """Add ``evaluate``."""
+    p = add_command(
+        subparsers,
+        "evaluate",
+        "KPIs and cost of given filter parameters on a dataset split",
+        __doc__,
+    )
+    add_common(p)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--params", "-p", type=Path, help="tuned-parameters file from 'kftune tune'")
+    src.add_argument(
+        "--q",
+        nargs=3,
+        type=float,
+        metavar=("QVX", "QVY", "QR"),
+        help="process-noise variances [(m/s)², (m/s)², (rad/s)²]",
+    )
+    src.add_argument("--manual", action="store_true", help="the manual-tuning rule of thumb")
+    p.add_argument(
+        "--split",
+        choices=("train", "test", "all"),
+        default="test",
+        help="which manoeuvres (default test)",
+    )
+    p.set_defaults(func=run)
+
+
+def read_tuned(path: Path) -> dict[str, Any]:
+    """Read and check a tuned-parameters file."""
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError("file does not exist", file=str(path)) from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"not a readable JSON file ({exc})", file=str(path)) from None
+    if not isinstance(doc, dict) or doc.get("format") != TUNED_FORMAT:
+        raise DataError(
+            f'not a tuned-parameters file (expected "format": "{TUNED_FORMAT}", written '
+            "by 'kftune tune')",
+            file=str(path),
+        )
+    for key in ("q", "ukf", "params"):
+        if key not in doc:
+            raise DataError(f"missing key {key!r}", file=str(path))
+    q = doc["q"]
+    if not (
+        isinstance(q, list)
+        and len(q) == 3
+        and all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in q)
+    ):
+        raise DataError(f"'q' must be 3 non-negative numbers, got {q!r}", file=str(path))
+    return doc
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``kftune evaluate``."""
+    import numpy as np
+
+    from kftune.data import open_dataset
+    from kftune.experiment import manual_point
+    from kftune.filters import UKFSettings
+    from kftune.tuning.cost import CostSpec
+    from kftune.tuning.kpi import average_kpis
+    from kftune.tuning.problem import (
+        FilterDivergedError,
+        NoiseParameterization,
+        TuningProblem,
+        assess,
+    )
+
+    config = load_config(args.config)
+    dataset = open_dataset(pick(args, config, "dataset", None))
+    manoeuvres = {
+        "train": dataset.train,
+        "test": dataset.test,
+        "all": dataset.manoeuvres,
+    }[args.split]
+    if not manoeuvres:
+        raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
+    spec = cost_spec(args, config)
+    tuned: dict[str, Any] | None = None
+    if args.params is not None:
+        tuned = read_tuned(args.params)
+        if args.cost is None and args.weights is None and "cost" not in config:
+            spec = CostSpec(**tuned.get("cost_spec", {}))
+        r_scale = float(tuned["params"].get("r_scale", 1.0))
+        ukf = UKFSettings(**tuned["ukf"])
+        x = np.array([*tuned["q"], r_scale])
+        par = NoiseParameterization(tune_r_scale=True, default_settings=ukf)
+    else:
+        par = parameterization(args, config)
+        par = NoiseParameterization(default_settings=par.default_settings)
+        x = np.array(args.q) if args.q else manual_point(par)
+    problem = TuningProblem(
+        manoeuvres,
+        dataset.vehicle,
+        dataset.r_default,
+        cost=spec,
+        parameterization=par,
+        workers=pick(args, config, "workers", 1),
+    )
+    with problem:
+        try:
+            cost: float | None = problem.evaluate(x).cost
+            reason = None
+        except FilterDivergedError as exc:
+            cost, reason = None, str(exc)
+        metrics, _ = assess(problem, x, manoeuvres)
+    avg = average_kpis(metrics.values())
+    q, r, ukf = problem.decode(x)
+    doc = {
+        "dataset": dataset.name,
+        "split": args.split,
+        "q": q.tolist(),
+        "r": r.tolist(),
+        "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
+        "cost": cost,
+        "cost_kind": spec.kind,
+        "diverged": reason,
+        "average": {k: _num(v) for k, v in avg.items()},
+        "manoeuvres": {
+            name: {"kind": dataset[name].kind, **{k: _num(v) for k, v in row.items()}}
+            for name, row in metrics.items()
+        },
+    }
+    if args.json:
+        emit_json(doc)
+    else:
+        _print_table(doc)
+    return EXIT_OK if reason is None else EXIT_FAILURE
+
+
+def _num(v: float) -> float | None:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _print_table(doc: dict[str, Any]) -> None:
+    cols = (*KPI_NAMES, "rmse_r", "rmse_ay")
+    heads = ("RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°", "RMSE r °/s", "RMSE ay")
+    width = max(12, *(len(n) for n in doc["manoeuvres"]))
+    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>10s}" for h in heads))
+    for name, row in doc["manoeuvres"].items():
+        cells = " ".join(_cell(row.get(c)) for c in cols)
+        print(f"{name:{width}s} {cells}")
+    print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in KPI_NAMES))
+    if doc["cost"] is not None:
+        print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
+    else:
+        print(f"the filter diverged: {doc['diverged']}")
+
+
+def _cell(v: float | None) -> str:
+    return f"{'–':>10s}" if v is None else f"{v:10.4f}"

@@ -1,0 +1,40 @@
+"""``kftune report``: rebuild a report from stored results, without re-running anything.
+
+Reads ``results.json`` and ``traces.npz`` from a directory written by ``kftune compare`` and
+writes ``report.md``, ``figures/`` and ``tables/`` (into the same directory unless ``--out``
+names another).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from kftune.cli import EXIT_OK
+from kftune.cli._common import add_command, emit_json
+
+
+def register(subparsers: Any) -> None:
+    """Add ``report``."""
+    p = add_command(
+        subparsers, "report", "rebuild the report from stored results (no re-running)", __doc__
+    )
+    p.add_argument("results", type=Path, help="directory holding results.json")
+    p.add_argument("--out", "-o", type=Path, help="write the report here (default: RESULTS)")
+    p.add_argument("--json", action="store_true", help="print the tables as one JSON object")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``kftune report``."""
+    from kftune.report import ExperimentResults, all_tables, write_report
+
+    results = ExperimentResults.load(args.results)
+    path = write_report(results, args.out or args.results)
+    if args.json:
+        tables = all_tables(results)
+        emit_json({"report": str(path), "tables": {k: t.to_records() for k, t in tables.items()}})
+    else:
+        print(f"report written to {path}")
+    return EXIT_OK

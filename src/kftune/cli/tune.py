@@ -1,0 +1,155 @@
+"""``kftune tune``: tune the UKF's process noise on a dataset's training manoeuvres.
+
+Writes the tuned parameters to a JSON file (``--out``, default ``tuned.json``) that
+``kftune evaluate --params`` reads. With ``--storage study.db`` every evaluation is saved as
+it happens; ``--resume`` continues a study that was interrupted or killed, without
+re-evaluating anything finished.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from kftune import __version__
+from kftune.cli import EXIT_FAILURE, EXIT_OK
+from kftune.cli._common import (
+    add_command,
+    add_common,
+    cost_spec,
+    emit_json,
+    load_config,
+    parameterization,
+    pick,
+)
+from kftune.errors import ConfigError
+from kftune.optim import METHODS
+
+if TYPE_CHECKING:
+    from kftune.optim import OptimizeResult
+    from kftune.tuning.problem import TuningProblem
+
+TUNED_FORMAT = "kftune-tuned-1"
+
+
+def register(subparsers: Any) -> None:
+    """Add ``tune``."""
+    p = add_command(
+        subparsers, "tune", "tune the UKF's process noise on the training manoeuvres", __doc__
+    )
+    add_common(p)
+    p.add_argument(
+        "--method",
+        "-m",
+        choices=METHODS,
+        help="optimiser (default tsbo-tsp: two-stage BO with a Student-t process)",
+    )
+    p.add_argument(
+        "--budget",
+        "-n",
+        type=int,
+        help="cost evaluations (default: the method's own — TSBO 40, GA 225, others 40)",
+    )
+    p.add_argument("--storage", type=Path, help="SQLite study file saving every evaluation")
+    p.add_argument(
+        "--resume", action="store_true", help="continue the study in --storage where it stopped"
+    )
+    p.add_argument("--timeout", type=float, help="per-evaluation time limit [s]")
+    p.add_argument(
+        "--out",
+        "-o",
+        type=Path,
+        default=Path("tuned.json"),
+        help="where to write the tuned parameters (default tuned.json)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``kftune tune``."""
+    from kftune.data import open_dataset
+    from kftune.experiment import tune
+    from kftune.tuning.problem import TuningProblem
+
+    config = load_config(args.config)
+    if args.resume and args.storage is None:
+        raise ConfigError("--resume needs --storage (the study file to continue)")
+    if args.storage is not None and args.storage.exists() and not args.resume:
+        raise ConfigError(
+            f"study file {args.storage} already exists; pass --resume to continue it, or "
+            "choose another --storage"
+        )
+    dataset = open_dataset(pick(args, config, "dataset", None))
+    method = pick(args, config, "method", "tsbo-tsp")
+    if method not in METHODS:
+        raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
+    budget = pick(args, config, "budget", None)
+    if budget is not None and budget < 1:
+        raise ConfigError(f"--budget must be >= 1, got {budget}")
+    seed = pick(args, config, "seed", 0)
+    workers = pick(args, config, "workers", 1)
+    problem = TuningProblem(
+        dataset.train,
+        dataset.vehicle,
+        dataset.r_default,
+        cost=cost_spec(args, config),
+        parameterization=parameterization(args, config),
+        workers=workers,
+    )
+    with problem:
+        result = tune(
+            problem,
+            method,
+            budget=budget,
+            seed=seed,
+            storage=args.storage,
+            resume=args.resume,
+            timeout=pick(args, config, "timeout", None),
+            progress=False if (args.quiet or args.json) else None,
+            options=config.get("options", {}).get(method),
+        )
+    if result.x is None:
+        print(
+            f"kftune: every one of {result.n_evals} evaluations failed; first reason: "
+            f"{result.history[0].reason if result.history else 'none'}",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    doc = tuned_document(result, problem, dataset.name)
+    args.out.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    if args.json:
+        emit_json({**doc, "file": str(args.out)})
+    else:
+        print(
+            f"{method}: best cost {result.fun:.5g} after {result.n_evals} evaluations "
+            f"({result.n_failed} failed) on {len(dataset.train)} training manoeuvres of "
+            f"{dataset.name!r}"
+        )
+        for name, value in (result.params or {}).items():
+            print(f"  {name:10s} = {value:.4e}")
+        print(f"tuned parameters written to {args.out}")
+    return EXIT_OK
+
+
+def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str) -> dict[str, Any]:
+    """The tuned-parameters file: what was found, and how, in strict JSON."""
+    q, r, ukf = problem.decode(result.x)
+    return {
+        "format": TUNED_FORMAT,
+        "kftune_version": __version__,
+        "dataset": dataset,
+        "method": result.method,
+        "seed": result.seed,
+        "cost": result.fun,
+        "cost_spec": {"kind": problem.cost_spec.kind, "weights": dict(problem.cost_spec.weights)},
+        "n_evals": result.n_evals,
+        "n_failed": result.n_failed,
+        "status": result.status,
+        "params": result.params,
+        "q": q.tolist(),
+        "r": r.tolist(),
+        "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
+    }

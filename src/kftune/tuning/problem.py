@@ -1,0 +1,353 @@
+"""The black-box tuning problem: a parameter vector → UKF runs over manoeuvres → a cost.
+
+    x (natural units) ──NoiseParameterization──▶ (Q diag, R diag, sigma-point settings)
+                       ──run_ukf per manoeuvre──▶ estimates
+                       ──cost (paper Eq. 14–15 or NIS)──▶ J
+
+The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter raises
+:class:`FilterDivergedError`, which :func:`kftune.minimize` records as a failed evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from kftune.data.manoeuvre import Manoeuvre
+from kftune.errors import ConfigError
+from kftune.filters import UKFResult, UKFSettings, run_ukf
+from kftune.optim.space import Param, Space
+from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
+from kftune.tuning.kpi import sideslip_kpis
+from kftune.vehicle.params import VehicleParams
+
+#: Paper Sec. VI: every process-noise parameter searched in [1e-10, 1] (log10 scale here).
+Q_BOUNDS = (1e-10, 1.0)
+Q_NAMES = ("q_vx", "q_vy", "q_r")
+
+
+class FilterDivergedError(RuntimeError):
+    """The filter diverged on a manoeuvre for the parameters tried (a failed evaluation)."""
+
+
+@dataclass(frozen=True)
+class NoiseParameterization:
+    """What the optimiser tunes, and how its vector maps onto the filter.
+
+    Always the diagonal of Q: ``q_vx, q_vy, q_r`` [(m/s)², (m/s)², (rad/s)²] on a log10
+    scale over ``q_bounds`` (paper: [1e-10, 1]). Optionally (the paper's future work):
+
+    * ``r_scale`` [-], log10 over ``r_scale_bounds``: R = r_scale·R₀, with R₀ from sensor
+      statistics. Only the ratio of Q to R shapes the gain, so this matters mostly for the
+      NIS cost and for filters whose R₀ is poorly known.
+    * ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa`` (linear): the sigma-point
+      parameters (FilterPy's ``MerweScaledSigmaPoints`` convention; κ > −2 keeps n + κ ≥ 1).
+    """
+
+    q_bounds: tuple[float, float] = Q_BOUNDS
+    tune_r_scale: bool = False
+    r_scale_bounds: tuple[float, float] = (1e-2, 1e2)
+    tune_sigma_points: bool = False
+    alpha_bounds: tuple[float, float] = (1e-2, 2.0)
+    beta_bounds: tuple[float, float] = (0.0, 4.0)
+    kappa_bounds: tuple[float, float] = (-2.0, 3.0)
+    default_settings: UKFSettings = field(default_factory=UKFSettings)
+
+    @property
+    def space(self) -> Space:
+        """The search space (validates the bounds)."""
+        params = [Param(name, *self.q_bounds, scale="log10") for name in Q_NAMES]
+        if self.tune_r_scale:
+            params.append(Param("r_scale", *self.r_scale_bounds, scale="log10"))
+        if self.tune_sigma_points:
+            params += [
+                Param("ukf_alpha", *self.alpha_bounds, scale="log10"),
+                Param("ukf_beta", *self.beta_bounds),
+                Param("ukf_kappa", *self.kappa_bounds),
+            ]
+        return Space(params)
+
+    def decode(
+        self, x: Sequence[float] | np.ndarray, r0: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
+        """Map a point of :attr:`space` (natural units) to (q (3,), r (3,), settings)."""
+        names = self.space.names
+        x = np.asarray(x, dtype=float)
+        if x.shape != (len(names),):
+            raise ValueError(f"expected a point with {len(names)} values {names}, got {x.shape}")
+        values = dict(zip(names, x.tolist()))
+        q = np.array([values[n] for n in Q_NAMES])
+        r = np.asarray(r0, dtype=float) * values.get("r_scale", 1.0)
+        settings = self.default_settings
+        if self.tune_sigma_points:
+            settings = UKFSettings(values["ukf_alpha"], values["ukf_beta"], values["ukf_kappa"])
+        return q, r, settings
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable description (for reports and study metadata)."""
+        return {
+            "names": list(self.space.names),
+            "space": self.space.to_dict(),
+            "sigma_points": None
+            if self.tune_sigma_points
+            else {
+                "alpha": self.default_settings.alpha,
+                "beta": self.default_settings.beta,
+                "kappa": self.default_settings.kappa,
+            },
+        }
+
+
+@dataclass(frozen=True)
+class ManoeuvreScore:
+    """What one manoeuvre contributes to the cost.
+
+    Attributes:
+        name: manoeuvre name. n: its number of samples.
+        nrmse: channel → NRMSE (paper Eq. 15) for the weighted channels.
+        nis_sum: Σ_k NIS_k over the manoeuvre (for the NIS cost).
+    """
+
+    name: str
+    n: int
+    nrmse: dict[str, float]
+    nis_sum: float
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One cost evaluation in detail.
+
+    Attributes:
+        cost: J.
+        pooled: channel → pooled error E_j (paper Eq. 14); empty for the NIS cost.
+        mean_nis: mean NIS over all samples [-] (3 for a consistent filter).
+        scores: per-manoeuvre contributions.
+    """
+
+    cost: float
+    pooled: dict[str, float]
+    mean_nis: float
+    scores: tuple[ManoeuvreScore, ...]
+
+
+def channel_estimate(m: Manoeuvre, res: UKFResult, channel: str) -> tuple[np.ndarray, np.ndarray]:
+    """(estimate, reference) of a cost channel: β against the reference sensor [rad]; yaw
+    rate [rad/s], ay [m/s²] and Vx [m/s] estimated by h(x⁺) against their measurements."""
+    if channel == "beta":
+        return res.beta, m.beta_ref
+    column = {"vx": 0, "ay": 1, "r": 2}[channel]
+    return res.z_hat[:, column], m.z[:, column]
+
+
+def _score(
+    m: Manoeuvre,
+    vehicle: VehicleParams,
+    q: np.ndarray,
+    r: np.ndarray,
+    settings: UKFSettings,
+    channels: tuple[str, ...],
+) -> ManoeuvreScore:
+    res = run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
+    if res.diverged:
+        raise FilterDivergedError(
+            f"filter diverged on manoeuvre {m.name!r} at step {res.diverged_step} "
+            f"(t = {m.t[res.diverged_step]:.2f} s)"
+        )
+    return ManoeuvreScore(
+        name=m.name,
+        n=m.n,
+        nrmse={c: nrmse(*channel_estimate(m, res, c)) for c in channels},
+        nis_sum=float(np.sum(res.nis)),
+    )
+
+
+# Worker-process state: the manoeuvres are sent once, when the pool starts.
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(manoeuvres: tuple[Manoeuvre, ...], vehicle: VehicleParams) -> None:
+    _WORKER["manoeuvres"] = manoeuvres
+    _WORKER["vehicle"] = vehicle
+
+
+def _score_chunk(
+    indices: list[int],
+    q: np.ndarray,
+    r: np.ndarray,
+    settings: UKFSettings,
+    channels: tuple[str, ...],
+) -> list[ManoeuvreScore]:
+    ms, vehicle = _WORKER["manoeuvres"], _WORKER["vehicle"]
+    return [_score(ms[i], vehicle, q, r, settings, channels) for i in indices]
+
+
+class TuningProblem:
+    """Cost of a UKF tuning over a set of manoeuvres.
+
+    Args:
+        manoeuvres: the manoeuvres the cost is pooled over (the training set).
+        vehicle: model parameters of the filter.
+        r0: (3,) measurement-noise variances [Vx, ay, r] (from sensor statistics; paper:
+            R is not optimised).
+        cost: which cost (default: the paper's weighted NRMSE, W = (5, 1, 1)).
+        parameterization: what is tuned (default: the three Q entries).
+        workers: processes that run the manoeuvres in parallel; 1 (default) runs them in
+            this process. Use as a context manager (or call :meth:`close`) when > 1.
+
+    ``problem(x)`` returns J for a point of ``problem.space`` (natural units).
+    """
+
+    def __init__(
+        self,
+        manoeuvres: Sequence[Manoeuvre],
+        vehicle: VehicleParams,
+        r0: Sequence[float] | np.ndarray,
+        *,
+        cost: CostSpec | None = None,
+        parameterization: NoiseParameterization | None = None,
+        workers: int = 1,
+    ) -> None:
+        self.manoeuvres = tuple(manoeuvres)
+        if not self.manoeuvres:
+            raise ConfigError("the tuning problem needs at least one manoeuvre")
+        self.vehicle = vehicle
+        self.r0 = np.asarray(r0, dtype=float)
+        if self.r0.shape != (3,) or not np.all(np.isfinite(self.r0)) or np.any(self.r0 <= 0):
+            raise ConfigError(f"r0 must be 3 positive finite variances [Vx, ay, r], got {r0!r}")
+        self.cost_spec = cost or CostSpec()
+        self.parameterization = parameterization or NoiseParameterization()
+        if not (isinstance(workers, int) and workers >= 1):
+            raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
+        self.workers = min(workers, len(self.manoeuvres))
+        self._pool: ProcessPoolExecutor | None = None
+        self._chunks = _balanced_chunks([m.n for m in self.manoeuvres], self.workers)
+
+    @property
+    def space(self) -> Space:
+        """The search space of the optimiser."""
+        return self.parameterization.space
+
+    def decode(self, x: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
+        """(q, r, settings) of a point."""
+        return self.parameterization.decode(x, self.r0)
+
+    def __call__(self, x: Sequence[float] | np.ndarray) -> float:
+        return self.evaluate(x).cost
+
+    def evaluate(self, x: Sequence[float] | np.ndarray) -> Evaluation:
+        """Run the filter on every manoeuvre and compute the cost.
+
+        Raises:
+            FilterDivergedError: the filter diverged on a manoeuvre.
+        """
+        q, r, settings = self.decode(x)
+        spec = self.cost_spec
+        channels = spec.channels if spec.kind == "nrmse" else ()
+        if self.workers == 1:
+            scores = [_score(m, self.vehicle, q, r, settings, channels) for m in self.manoeuvres]
+        else:
+            pool = self._get_pool()
+            futures = [
+                pool.submit(_score_chunk, chunk, q, r, settings, channels) for chunk in self._chunks
+            ]
+            by_index: dict[int, ManoeuvreScore] = {}
+            for chunk, fut in zip(self._chunks, futures):
+                by_index.update(zip(chunk, fut.result()))
+            scores = [by_index[i] for i in range(len(self.manoeuvres))]
+        n_total = sum(s.n for s in scores)
+        mean_nis = sum(s.nis_sum for s in scores) / n_total
+        if spec.kind == "nis":
+            cost = nis_cost([np.array([mean_nis])], n_z=3)
+            pooled: dict[str, float] = {}
+        else:
+            cost, pooled = weighted_cost(
+                {c: [s.nrmse[c] for s in scores] for c in channels},
+                [s.n for s in scores],
+                spec.weights,
+            )
+        return Evaluation(cost=cost, pooled=pooled, mean_nis=mean_nis, scores=tuple(scores))
+
+    def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> UKFResult:
+        """The filter's full output on one manoeuvre for a point."""
+        q, r, settings = self.decode(x)
+        return run_ukf(
+            manoeuvre.u, manoeuvre.z, manoeuvre.dt, self.vehicle, q, r, settings=settings
+        )
+
+    def _get_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            # spawn, not fork: numba's threading layer is not fork-safe once it has run
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(self.manoeuvres, self.vehicle),
+            )
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the worker processes (no-op when serial)."""
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> TuningProblem:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_pool"] = None  # a pool does not travel; a copy in another process is serial
+        state["workers"] = 1
+        return state
+
+
+def assess(
+    problem: TuningProblem, x: Sequence[float] | np.ndarray, manoeuvres: Sequence[Manoeuvre]
+) -> tuple[dict[str, dict[str, float]], dict[str, UKFResult]]:
+    """KPIs and channel errors of a tuned filter on manoeuvres (for tables and figures).
+
+    Returns:
+        (metrics, results): manoeuvre name → {``rmse, mae, rmse_non, mae_non, n_non``
+        [deg] (sideslip KPIs), ``rmse_beta`` [deg], ``rmse_r`` [deg/s], ``rmse_ay``
+        [m/s²], ``diverged`` (0/1)}; and name → the filter's :class:`UKFResult`.
+    """
+    metrics: dict[str, dict[str, float]] = {}
+    results: dict[str, UKFResult] = {}
+    for m in manoeuvres:
+        res = problem.run(x, m)
+        results[m.name] = res
+        if res.diverged:
+            metrics[m.name] = {k: math.nan for k in ("rmse", "mae", "rmse_non", "mae_non")}
+            metrics[m.name].update(rmse_beta=math.nan, rmse_r=math.nan, rmse_ay=math.nan)
+            metrics[m.name]["diverged"] = 1.0
+            continue
+        row: dict[str, float] = dict(sideslip_kpis(res.beta, m.beta_ref, m.ay))
+        row["rmse_beta"] = row["rmse"]
+        est, ref = channel_estimate(m, res, "r")
+        row["rmse_r"] = float(np.degrees(np.sqrt(np.mean((est - ref) ** 2))))
+        est, ref = channel_estimate(m, res, "ay")
+        row["rmse_ay"] = float(np.sqrt(np.mean((est - ref) ** 2)))
+        row["diverged"] = 0.0
+        metrics[m.name] = row
+    return metrics, results
+
+
+def _balanced_chunks(sizes: Sequence[int], k: int) -> list[list[int]]:
+    """Split indices into k groups of similar total size (longest-first greedy)."""
+    groups: list[list[int]] = [[] for _ in range(k)]
+    loads = [0] * k
+    for i in sorted(range(len(sizes)), key=lambda i: -sizes[i]):
+        j = loads.index(min(loads))
+        groups[j].append(i)
+        loads[j] += sizes[i]
+    return [sorted(g) for g in groups if g]

@@ -1,0 +1,197 @@
+"""The kftune command through a subprocess: help, errors and exit codes, --json, an
+end-to-end compare on a small subset, report rebuilding, and --resume after a SIGKILL."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from kftune.cli import SUBCOMMANDS
+from kftune.data import default_dataset, save_dataset
+
+SMALL_TRAIN = ("train-03-j-turn", "train-07-lane-change")
+SMALL_TEST = ("test-05-j-turn", "test-14-lane-change")
+
+
+def kftune(
+    *args: str, cwd: Path | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "kftune", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=timeout,
+    )
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """Two training and two test manoeuvres of the bundled set, as a dataset directory."""
+    out = tmp_path_factory.mktemp("small")
+    save_dataset(default_dataset().subset(SMALL_TRAIN + SMALL_TEST), out)
+    return out
+
+
+def test_help_of_every_command():
+    top = kftune("--help")
+    assert top.returncode == 0
+    for name in SUBCOMMANDS:
+        assert name in top.stdout
+        sub = kftune(name, "--help")
+        assert sub.returncode == 0, sub.stderr
+        assert sub.stdout.startswith(f"usage: kftune {name}")
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("tune", "--budget", "many"),
+        ("compare", "--methods", "simulated-annealing"),
+        ("evaluate",),  # needs --params, --q or --manual
+        ("frobnicate",),
+    ],
+)
+def test_bad_options_exit_2(args):
+    res = kftune(*args)
+    assert res.returncode == 2
+    assert "usage:" in res.stderr
+
+
+def test_bad_files_exit_3_and_name_the_file(tmp_path):
+    missing = tmp_path / "no-such-dataset"
+    res = kftune("tune", str(missing), "--quiet")
+    assert res.returncode == 3
+    assert "no-such-dataset" in res.stderr
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("budjet = 40\n")
+    res = kftune("tune", "--config", str(cfg), "--quiet")
+    assert res.returncode == 3
+    assert "bad.toml" in res.stderr and "'budjet'" in res.stderr
+    cfg.write_text("budget = 40\n[cost]\nweights = { yaw = 1.0 }\n")
+    res = kftune("tune", "--config", str(cfg), "--quiet")
+    assert res.returncode == 3 and "unknown cost channel" in res.stderr
+    bad_params = tmp_path / "tuned.json"
+    bad_params.write_text('{"q": [1, 2]}')
+    res = kftune("evaluate", "--params", str(bad_params))
+    assert res.returncode == 3 and "tuned.json" in res.stderr
+    res = kftune("report", str(tmp_path))
+    assert res.returncode == 3 and "results.json" in res.stderr
+
+
+def test_bad_option_values_exit_3():
+    res = kftune("compare", "--budget", "ga=lots", "--quiet")
+    assert res.returncode == 3 and "--budget" in res.stderr
+    res = kftune("tune", "--weights", "beta=five", "--quiet")
+    assert res.returncode == 3 and "beta=five" in res.stderr
+
+
+def test_tune_then_evaluate_json(small, tmp_path):
+    out = tmp_path / "tuned.json"
+    res = kftune("tune", str(small), "-n", "6", "--json", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["method"] == "tsbo-tsp" and doc["n_evals"] == 6
+    assert set(doc["params"]) == {"q_vx", "q_vy", "q_r"}
+    assert json.loads(out.read_text())["cost"] == doc["cost"]
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
+    assert ev.returncode == 0, ev.stderr
+    evd = json.loads(ev.stdout)
+    # the tuned cost on the training split is what tune reported
+    assert evd["cost"] == pytest.approx(doc["cost"], rel=1e-12)
+    assert set(evd["manoeuvres"]) == set(SMALL_TRAIN)
+    assert {"rmse", "mae", "rmse_non", "mae_non"} <= set(evd["average"])
+    manual = kftune("evaluate", str(small), "--manual", "--json")
+    assert manual.returncode == 0 and json.loads(manual.stdout)["q"] == [1e-6, 1e-4, 1e-6]
+
+
+def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
+    out = tmp_path / "rep"
+    res = kftune(
+        "compare", str(small), "--out", str(out), "--json",
+        "--budget", "ga=8", "--budget", "tsbo-gp=6", "--budget", "tsbo-tsp=6",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    cost = {row["Method"]: row for row in doc["tables"]["cost"]}
+    assert set(cost) == {"Manual", "GA", "TSBO - GP", "TSBO - tSP"}
+    assert cost["GA"]["Evaluations"] == 8 and cost["TSBO - tSP"]["Evaluations"] == 6
+    figures = sorted(p.name for p in (out / "figures").glob("*.png"))
+    assert "convergence.png" in figures and "cost_slice.png" in figures
+    assert "improvement_test.png" in figures and "beta_test-05-j-turn.png" in figures
+    # rebuild elsewhere from the stored results only: identical report and tables
+    again = kftune("report", str(out), "--out", str(tmp_path / "again"))
+    assert again.returncode == 0, again.stderr
+    assert (tmp_path / "again" / "report.md").read_text() == (out / "report.md").read_text()
+    for csv in (out / "tables").glob("*.csv"):
+        assert (tmp_path / "again" / "tables" / csv.name).read_text() == csv.read_text()
+
+
+def _completed(db: Path) -> int:
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1) as conn:
+            return conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
+def test_tune_resume_after_sigkill_equals_uninterrupted_run(small, tmp_path):
+    budget = "24"
+    full = kftune("tune", str(small), "-n", budget, "--quiet", "-o", str(tmp_path / "full.json"))
+    assert full.returncode == 0, full.stderr
+    db = tmp_path / "study.db"
+    args = [
+        sys.executable,
+        "-m",
+        "kftune",
+        "tune",
+        str(small),
+        "-n",
+        budget,
+        "--quiet",
+        "--storage",
+        str(db),
+        "-o",
+        str(tmp_path / "killed.json"),
+    ]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while _completed(db) < 8 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    n_before = _completed(db)
+    assert 8 <= n_before < 24, "the run was not killed mid-way"
+    with sqlite3.connect(db) as conn:
+        before = conn.execute("SELECT number, value FROM trials WHERE state='complete'").fetchall()
+    # without --resume an existing study is refused
+    refused = kftune("tune", str(small), "--storage", str(db), "--quiet")
+    assert refused.returncode == 3 and "--resume" in refused.stderr
+    res = kftune(
+        "tune",
+        str(small),
+        "-n",
+        budget,
+        "--quiet",
+        "--storage",
+        str(db),
+        "--resume",
+        "-o",
+        str(tmp_path / "resumed.json"),
+    )
+    assert res.returncode == 0, res.stderr
+    with sqlite3.connect(db) as conn:
+        after = dict(conn.execute("SELECT number, value FROM trials WHERE state='complete'"))
+    assert len(after) == 24
+    assert all(after[n] == v for n, v in before)  # nothing finished was lost or redone
+    resumed = json.loads((tmp_path / "resumed.json").read_text())
+    uninterrupted = json.loads((tmp_path / "full.json").read_text())
+    assert resumed["params"] == uninterrupted["params"]
+    assert resumed["cost"] == uninterrupted["cost"]

@@ -1,0 +1,136 @@
+"""The tuning problem: parameter mapping, cost assembly, parallel = serial, divergence."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import kftune
+from kftune.data import default_dataset
+from kftune.errors import ConfigError
+from kftune.experiment import MANUAL_Q, manual_point
+from kftune.filters import UKFSettings, run_ukf
+from kftune.tuning.cost import CostSpec
+from kftune.tuning.problem import (
+    FilterDivergedError,
+    NoiseParameterization,
+    TuningProblem,
+    _balanced_chunks,
+    assess,
+)
+
+
+@pytest.fixture(scope="module")
+def ds():
+    return default_dataset()
+
+
+def test_default_space_is_the_papers(ds):
+    space = NoiseParameterization().space
+    assert space.names == ("q_vx", "q_vy", "q_r")
+    assert all(p.low == 1e-10 and p.high == 1.0 and p.scale == "log10" for p in space)
+
+
+def test_decode_optional_parameters():
+    par = NoiseParameterization(tune_r_scale=True, tune_sigma_points=True)
+    assert par.space.names == (
+        "q_vx",
+        "q_vy",
+        "q_r",
+        "r_scale",
+        "ukf_alpha",
+        "ukf_beta",
+        "ukf_kappa",
+    )
+    q, r, s = par.decode([1e-3, 2e-3, 3e-3, 10.0, 0.5, 2.0, 1.0], np.array([1.0, 2.0, 3.0]))
+    np.testing.assert_array_equal(q, [1e-3, 2e-3, 3e-3])
+    np.testing.assert_array_equal(r, [10.0, 20.0, 30.0])
+    assert s == UKFSettings(0.5, 2.0, 1.0)
+    with pytest.raises(ValueError, match="7 values"):
+        par.decode([1e-3, 1e-3, 1e-3], np.ones(3))
+
+
+def test_cost_matches_paper_formula_computed_directly(ds):
+    """J assembled by the problem = Eq. 14–15 written out here from raw filter runs."""
+    train = ds.train[:3]
+    q = np.array([1e-4, 1e-6, 1e-3])
+    problem = TuningProblem(train, ds.vehicle, ds.r_default)
+    nr = {"beta": [], "r": [], "ay": []}
+    n = []
+    for m in train:
+        res = run_ukf(m.u, m.z, m.dt, ds.vehicle, q, ds.r_default)
+        est = {
+            "beta": np.arctan2(res.x[:, 1], res.x[:, 0]),
+            "r": res.z_hat[:, 2],
+            "ay": res.z_hat[:, 1],
+        }
+        ref = {"beta": m.beta_ref, "r": m.r, "ay": m.ay}
+        for c in nr:
+            nr[c].append(np.sqrt(np.mean((est[c] - ref[c]) ** 2)) / np.max(np.abs(ref[c])))
+        n.append(m.n)
+    n = np.array(n)
+    e = {c: np.sqrt(np.sum(np.array(v) ** 2 * n) / n.sum()) for c, v in nr.items()}
+    expected = 5 * e["beta"] + e["r"] + e["ay"]
+    ev = problem.evaluate(q)
+    assert ev.cost == pytest.approx(expected, rel=1e-12)
+    assert ev.pooled == pytest.approx(e, rel=1e-12)
+    nis = np.concatenate([run_ukf(m.u, m.z, m.dt, ds.vehicle, q, ds.r_default).nis for m in train])
+    assert ev.mean_nis == pytest.approx(nis.mean(), rel=1e-12)
+    nis_problem = TuningProblem(train, ds.vehicle, ds.r_default, cost=CostSpec(kind="nis"))
+    assert nis_problem(q) == pytest.approx(abs(math.log(nis.mean() / 3)), rel=1e-12)
+
+
+def test_parallel_workers_give_the_serial_cost(ds):
+    q = [1e-5, 1e-7, 1e-2]
+    serial = TuningProblem(ds.train, ds.vehicle, ds.r_default).evaluate(q)
+    with TuningProblem(ds.train, ds.vehicle, ds.r_default, workers=2) as par:
+        parallel = par.evaluate(q)
+        assert par.evaluate(q).cost == parallel.cost  # the pool is reused
+    assert parallel.cost == serial.cost
+    assert [s.name for s in parallel.scores] == [m.name for m in ds.train]
+
+
+def test_balanced_chunks_cover_everything_once():
+    chunks = _balanced_chunks([5, 1, 1, 1, 1, 1], 2)
+    assert sorted(i for c in chunks for i in c) == list(range(6))
+    assert {0} in [set(c) for c in chunks]  # the long one alone, the short ones together
+
+
+def test_divergence_is_a_failed_evaluation_not_a_crash(ds):
+    """A filter that diverges for some parameters (a vehicle with an absurd Iz of
+    1 kg·m²) makes those evaluations fail; the tuning run carries on and finds working ones."""
+    veh = ds.vehicle.replace(Iz=1.0)
+    problem = TuningProblem(ds.train[:1], veh, ds.r_default)
+    with pytest.raises(FilterDivergedError, match="diverged on manoeuvre 'train-01"):
+        problem([1e-10, 1e-10, 1e-10])
+    res = kftune.minimize(problem, problem.space, method="random", budget=12, seed=1)
+    assert res.n_evals == 12
+    assert 0 < res.n_failed < 12
+    failed = [r for r in res.history if not r.ok]
+    assert all("diverged" in r.reason for r in failed)
+    assert res.fun is not None and math.isfinite(res.fun)
+
+
+def test_bad_problem_settings(ds):
+    with pytest.raises(ConfigError, match="at least one manoeuvre"):
+        TuningProblem([], ds.vehicle, ds.r_default)
+    with pytest.raises(ConfigError, match="r0"):
+        TuningProblem(ds.train, ds.vehicle, [1.0, -1.0, 1.0])
+    with pytest.raises(ConfigError, match="workers"):
+        TuningProblem(ds.train, ds.vehicle, ds.r_default, workers=0)
+
+
+def test_manual_point_and_assess(ds):
+    par = NoiseParameterization(tune_r_scale=True)
+    x = manual_point(par)
+    np.testing.assert_array_equal(x, [*MANUAL_Q, 1.0])
+    problem = TuningProblem(ds.test[:2], ds.vehicle, ds.r_default, parameterization=par)
+    metrics, results = assess(problem, x, ds.test[:2])
+    m = ds.test[0]
+    err = np.degrees(results[m.name].beta - m.beta_ref)
+    assert metrics[m.name]["rmse"] == pytest.approx(np.sqrt(np.mean(err**2)))
+    assert metrics[m.name]["mae"] == pytest.approx(np.max(np.abs(err)))
+    ay_err = results[m.name].z_hat[:, 1] - m.ay
+    assert metrics[m.name]["rmse_ay"] == pytest.approx(np.sqrt(np.mean(ay_err**2)))
