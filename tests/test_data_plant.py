@@ -228,3 +228,14 @@ def test_steering_servo_tracks_the_programme(plant):
     target = np.array([steer.profile(t)[0] for t in np.arange(o.delta.size) * 0.01])
     assert np.max(np.abs(o.delta - target)) < math.radians(0.5)
     assert np.max(np.abs(o.delta[150:290] - 0.05)) < math.radians(0.05)
+
+
+def test_tyre_loads_at_rest_and_wheel_lift_guard(plant):
+    """Static tyre loads are the axle loads of init_mb split evenly; a manoeuvre that lifts
+    a wheel (the MB tyre spring would pull on the road) is refused, naming the wheel."""
+    loads = plant.tyre_loads(plant.initial_state(20.0))[0]
+    front, rear = plant.static_axle_loads()
+    np.testing.assert_allclose(loads, [front / 2, front / 2, rear / 2, rear / 2], rtol=1e-9)
+    all_front_bar = MultiBodyPlant(PlantSetup(K_tsf=-150e3, K_tsr=0.0))
+    with pytest.raises(SimulationError, match="front-left wheel lifts off"):
+        simulate(j_turn("lift", "test", 60.0, 8.0, +1), all_front_bar)

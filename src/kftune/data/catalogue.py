@@ -48,10 +48,12 @@ from kftune.data.simulate import Brake, Hold, ManoeuvreSpec, Phase, steady_state
 #: Wheelbase of the plant (CommonRoad parameter set 2: a + b) [m].
 WHEELBASE = 1.1561957064 + 1.4227170936
 #: Understeer gradient used to size amplitudes and by the drivers' feed-forward
-#: [rad/(m/s²)]; the plant's measured value with the default setup is 0.00343.
-K_DRIVER = 0.0035
+#: [rad/(m/s²)]; the plant's measured value with the default setup is 0.00368.
+K_DRIVER = 0.0037
 #: Preview time of the lane-change driver [s] (a tight, test-driver-like line).
 LANE_CHANGE_PREVIEW = 0.6
+#: Lateral acceleration the track-lap speed profile is planned for [m/s²].
+LAP_AY = 7.0
 #: Steering-robot rate for steps and releases [rad/s] (road wheel).
 STEP_RATE = 0.35
 
@@ -293,7 +295,8 @@ def track_path() -> Path:
 
 
 def _lap_speed_profile(path: Path, v_max: float, ay_max: float, a_acc: float, a_brake: float):
-    """Speed along the path: curvature-limited, then accel/brake-limited passes."""
+    """Speed along the path: curvature-limited, then accel/brake-limited passes, then
+    smoothed."""
     s = path.s
     dx, dy = np.gradient(path.X, s), np.gradient(path.Y, s)
     ddx, ddy = np.gradient(dx, s), np.gradient(dy, s)
@@ -304,14 +307,17 @@ def _lap_speed_profile(path: Path, v_max: float, ay_max: float, a_acc: float, a_
         v[i] = min(v[i], math.sqrt(v[i - 1] ** 2 + 2.0 * a_acc * (s[i] - s[i - 1])))
     for i in range(s.size - 2, -1, -1):  # braking limit, backwards
         v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2.0 * a_brake * (s[i + 1] - s[i])))
+    # a driver blends throttle and brake over ~1 s: smooth over 30 m (no ax steps)
+    width = 61
+    v = np.convolve(np.pad(v, width // 2, mode="edge"), np.ones(width) / width, mode="valid")
     knots = s[::10]
     return Profile(knots, v[::10])
 
 
 def track_lap(name: str, split: str) -> ManoeuvreSpec:
-    """One lap of :func:`track_path` with a curvature-scheduled speed (≤ 7.5 m/s²)."""
+    """One lap of :func:`track_path` with a curvature-scheduled speed (ay ≤ LAP_AY)."""
     path = track_path()
-    profile = _lap_speed_profile(path, v_max=kmh(130.0), ay_max=7.5, a_acc=2.5, a_brake=6.0)
+    profile = _lap_speed_profile(path, v_max=kmh(130.0), ay_max=LAP_AY, a_acc=2.5, a_brake=6.0)
     v0 = profile.values[0]
     # duration from the profile (distance / speed), a little short of the path end
     s = np.asarray(profile.knots)
@@ -325,7 +331,7 @@ def track_lap(name: str, split: str) -> ManoeuvreSpec:
         round(duration, 1),
         _follower(path),
         PathSpeed(profile),
-        f"track lap, {path.length:.0f} m circuit, speed scheduled for ay ≤ 7.5 m/s²",
+        f"track lap, {path.length:.0f} m circuit, speed scheduled for ay ≤ {LAP_AY:g} m/s²",
     )
 
 

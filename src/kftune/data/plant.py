@@ -76,11 +76,12 @@ class PlantSetup:
 
     ``*_p_ky1`` are CommonRoad's cornering stiffness per unit load, ``K_y = p_ky1·F_z``
     [N/rad per N], negative in its sign convention; the package's single value is −21.92
-    (both axles: neutral steer). The defaults lower the front (an effective axle stiffness
-    that also stands in for steering compliance and roll steer, which the MB model lacks)
-    and the rear a little; with them the plant's understeer gradient, measured by
+    (both axles: neutral steer, and stiff: 64 kN/rad per tyre at static load). The defaults
+    lower both to effective axle values that also stand in for the steering and suspension
+    compliance the MB model lacks, the front more than the rear (−9.5 and −14: 28 and
+    34 kN/rad per tyre at static load); with them the plant's understeer gradient, measured by
     :func:`kftune.data.simulate.ramp_steer_understeer` (constant-speed ramp steer, ISO
-    4138), is 3.43e-3 rad/(m/s²) = 1.93 deg/g, typical of a passenger car. Peak friction,
+    4138), is 3.68e-3 rad/(m/s²) = 2.07 deg/g, typical of a passenger car. Peak friction,
     curvature and the combined-slip functions stay CommonRoad's.
 
     ``K_tsf``/``K_tsr`` [N·m/rad] replace the model's auxiliary torsion roll stiffnesses per
@@ -88,8 +89,10 @@ class PlantSetup:
     (the parameter set has −6.9 and −2.6 kN·m/rad, "normally negative"). With those the body
     rolls about 9 deg/g, twice what a saloon with proper anti-roll bars does, and the
     roll-induced gravity error of a body-fixed accelerometer would be ~16 % of ay. The
-    defaults (stiffer, front-biased bars) give 5.0 deg/g, measured on the ramp steer of
-    :func:`kftune.data.simulate.ramp_steer_understeer`.
+    defaults (stiffer bars, slightly front-biased) give 4.9 deg/g, measured on the ramp
+    steer of :func:`kftune.data.simulate.ramp_steer_understeer`. A stronger front bias lifts
+    the inside front wheel near 1 g (the MB tyre spring then pulls on the road, see
+    :meth:`MultiBodyPlant.tyre_loads`).
 
     ``zero_lateral_offsets`` sets the lateral shifts ``p_hy1`` and ``p_vy1`` to 0. CommonRoad
     applies them as ``sign(γ)·(p_hy1 + p_hy3·|γ|)`` and ``sign(γ)·F_z·(p_vy1 + p_vy3·|γ|)``
@@ -100,10 +103,10 @@ class PlantSetup:
     continuous and mirror-symmetric.
     """
 
-    front_p_ky1: float = -11.0
-    rear_p_ky1: float = -17.0
-    K_tsf: float = -45.0e3
-    K_tsr: float = -15.0e3
+    front_p_ky1: float = -9.5
+    rear_p_ky1: float = -14.0
+    K_tsf: float = -35.0e3
+    K_tsr: float = -25.0e3
     zero_lateral_offsets: bool = True
 
     def __post_init__(self) -> None:
@@ -268,6 +271,22 @@ class MultiBodyPlant:
             x[3] + 0.5 * p.T_r * x[5],
             x[3] - 0.5 * p.T_r * x[5],
         )
+
+    def tyre_loads(self, x: np.ndarray) -> np.ndarray:
+        """Vertical tyre loads [N] (n, 4) in the order LF, RF, LR, RR for states (n, 29).
+
+        The MB model's tyre is a linear spring (``K_zt``) without a contact condition: a
+        negative value means the wheel has lifted and the model would pull on the road.
+        """
+        x = np.atleast_2d(x)
+        p = self.p
+        out = np.empty((x.shape[0], 4))
+        for j, (z, phi, track) in enumerate(((16, 13, p.T_f), (21, 18, p.T_r))):
+            base = x[:, z] + p.R_w * (np.cos(x[:, phi]) - 1.0)
+            half = 0.5 * track * np.sin(x[:, phi])
+            out[:, 2 * j] = (base - half) * p.K_zt
+            out[:, 2 * j + 1] = (base + half) * p.K_zt
+        return out
 
     def wheel_slips(self, x: list[float]) -> tuple[float, float, float, float]:
         """Longitudinal slip 1 − R_w·ω/u_w of each wheel (LF, RF, LR, RR) [-], as the MB

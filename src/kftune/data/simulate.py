@@ -232,9 +232,18 @@ def simulate(
             f, accel[k] = _closed_loop(plant, steer, speed, float(t[k]), Y[k].tolist())
             xdot[k] = f[:N_STATES]
         j += count
-    out = plant.outputs(Y[:, :N_STATES], xdot)
     if not np.all(np.isfinite(Y)):
         raise SimulationError(f"manoeuvre {spec.name!r}: non-finite plant state")
+    loads = plant.tyre_loads(Y[:, :N_STATES])
+    if loads.min() < 0.0:
+        k, w = np.unravel_index(int(np.argmin(loads)), loads.shape)
+        wheel = ("front-left", "front-right", "rear-left", "rear-right")[w]
+        raise SimulationError(
+            f"manoeuvre {spec.name!r}: the {wheel} wheel lifts off at t = {t[k]:.2f} s "
+            f"(load {loads[k, w]:.0f} N); the MB model has no tyre contact condition, so the "
+            "data would be unphysical: make the manoeuvre less severe"
+        )
+    out = plant.outputs(Y[:, :N_STATES], xdot)
     return Truth(t=t - t[0], out=out, accel_demand=accel)
 
 

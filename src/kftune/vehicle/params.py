@@ -155,10 +155,10 @@ def _bmw_320i() -> VehicleParams:
     # - C_af, C_ar: slope of the plant's Pacejka tyres at zero slip and static load. Its
     #   K_y = |p_ky1|·F_z per tyre, so per axle C = |p_ky1|·F_z,axle with the static axle
     #   loads of init_mb, F_z,f = m_s·g·b/L + m_uf·g = 5852.1 N, F_z,r = 4873.1 N, and the
-    #   per-axle p_ky1 = −11 (front), −17 (rear): C_af = 64.37 kN/rad, C_ar = 82.84 kN/rad
+    #   per-axle p_ky1 = −9.5 (front), −14 (rear): C_af = 55.60 kN/rad, C_ar = 68.22 kN/rad
     #   (MultiBodyPlant.axle_cornering_stiffness()). Linear understeer gradient from these,
-    #   m/L·(b/C_af − a/C_ar) = 3.45e-3 rad/(m/s²); measured on the plant by a
-    #   constant-speed ramp steer (ISO 4138): 3.43e-3 rad/(m/s²) = 1.93 deg/g.
+    #   m/L·(b/C_af − a/C_ar) = 3.66e-3 rad/(m/s²); measured on the plant by a
+    #   constant-speed ramp steer (ISO 4138): 3.68e-3 rad/(m/s²) = 2.07 deg/g.
     # - mu: the lateral peak friction p_dy1 = 1.0489 of the plant tyres (zero camber).
     # - C_x: longitudinal slip stiffness p_kx1·F_z = 22.303·F_z at the mean static axle
     #   load (5362.6 N); only used when wheel slip is measured.
@@ -168,8 +168,8 @@ def _bmw_320i() -> VehicleParams:
         a=1.1561957064,
         b=1.4227170936,
         h=0.5748689544,
-        C_af=64.37e3,
-        C_ar=82.84e3,
+        C_af=55.60e3,
+        C_ar=68.22e3,
         C_x=119.6e3,
         mu=1.05,
         track_f=1.38684,
