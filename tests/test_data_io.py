@@ -324,3 +324,15 @@ def test_dataset_api():
     with pytest.raises(DataError, match="sample time"):
         Dataset("d", ds.vehicle, 0.02, ds.manoeuvres)
     assert ds.r_default.shape == (3,) and np.all(ds.r_default > 0)
+
+
+def test_pickle_round_trip():
+    """Manoeuvres and datasets travel to worker processes."""
+    import pickle
+
+    ds = synthetic_dataset()
+    back = pickle.loads(pickle.dumps(ds))
+    _same(ds, back)
+    assert dict(back.meta) == dict(ds.meta)
+    m = pickle.loads(pickle.dumps(ds.manoeuvres[0]))
+    assert m.equals(ds.manoeuvres[0]) and not m.ay.flags.writeable

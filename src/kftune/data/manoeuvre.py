@@ -228,6 +228,20 @@ class Dataset:
                 )
         object.__setattr__(self, "meta", MappingProxyType(dict(self.meta)))
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        # the read-only ``meta`` view cannot be pickled; rebuild from plain fields
+        return (
+            Dataset,
+            (
+                self.name,
+                self.vehicle,
+                self.dt,
+                self.manoeuvres,
+                self.description,
+                _plain(self.meta),
+            ),
+        )
+
     @property
     def train(self) -> tuple[Manoeuvre, ...]:
         """Training manoeuvres, in dataset order."""
@@ -294,6 +308,13 @@ class Dataset:
                 }
             )
         return rows
+
+
+def _plain(value: Any) -> Any:
+    """Mapping views → dicts, recursively (for pickling)."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
 
 
 def manoeuvres_of(source: Dataset | Sequence[Manoeuvre] | Manoeuvre) -> tuple[Manoeuvre, ...]:
