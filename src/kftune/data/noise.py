@@ -24,7 +24,6 @@ from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
-from scipy import integrate, signal
 
 from kftune.data.manoeuvre import Dataset, Manoeuvre, manoeuvres_of
 
@@ -41,6 +40,8 @@ VARIANCE_FLOOR = np.array([1e-6, 1e-6, 1e-6])
 
 @lru_cache(maxsize=8)
 def _highpass(cutoff: float, order: int) -> tuple[np.ndarray, float]:
+    from scipy import integrate, signal  # scipy.signal takes ~1 s to import: only when used
+
     sos = signal.butter(order, cutoff, btype="highpass", output="sos")
     w, h = signal.sosfreqz(sos, worN=1 << 14)
     gain = float(integrate.trapezoid(np.abs(h) ** 4, w) / np.pi)
@@ -63,6 +64,8 @@ def highpass_noise_variance(
     if z.ndim != 1 or z.size <= 2 * edge + 30:
         raise ValueError(f"need a 1-D signal of more than {2 * edge + 30} samples, got {z.shape}")
     sos, gain = _highpass(float(cutoff), int(order))
+    from scipy import signal
+
     y = signal.sosfiltfilt(sos, z - z.mean())[edge : z.size - edge]
     return float(np.dot(y, y)) / gain, int(y.size)
 
