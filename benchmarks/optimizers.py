@@ -259,6 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     checkpoints = sorted(set(budgets) | {50})
     skipped: dict[str, str] = {}
     results: dict[str, dict[str, Any]] = {}
+    raw: dict[str, dict[str, dict[str, list[float]]]] = {}  # per-seed regrets, seed order
     overhead: dict[str, list[float]] = {}
     t_start = time.time()
     for pname in args.functions:
@@ -301,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{method:20s} skipped: {exc}")
                 continue
             results[pname][method] = {str(b): quartiles(v) for b, v in sorted(cells.items())}
+            raw.setdefault(pname, {})[method] = {str(b): v for b, v in sorted(cells.items())}
             overhead.setdefault(method, []).extend(ovh)
             for b, v in sorted(cells.items()):
                 q = quartiles(v)
@@ -311,9 +313,16 @@ def main(argv: list[str] | None = None) -> int:
                     flush=True,
                 )
     summary = summarise(results, budgets)
+    paired = paired_variants(raw, budgets)
     print("\n== summary (median simple regret; lower is better)")
     for line in summary["lines"]:
         print(line)
+    for pair, c in paired.items():
+        print(
+            f"paired per seed, {pair}: variant lower in {c['lower']}, higher in "
+            f"{c['higher']}, equal in {c['equal']} of {c['n']} (problem, budget, seed) runs; "
+            f"median log10 ratio {c['median_log10_ratio']:+.3f}"
+        )
     overhead_ms = {m: 1e3 * float(np.median(v)) for m, v in overhead.items()}
     print("\noptimiser overhead per iteration [ms], median over all runs:")
     for m, v in overhead_ms.items():
@@ -331,14 +340,46 @@ def main(argv: list[str] | None = None) -> int:
         "overhead_ms_per_iter": overhead_ms,
         "ranks": summary["ranks"],
         "tsbo_tsp_losses": summary["losses"],
+        "paired_variants": paired,
         "skipped": skipped,
     }
     text = json.dumps(report, allow_nan=False)
     if args.json_out:
         with open(args.json_out, "w") as fh:
-            fh.write(text)
+            fh.write(json.dumps({**report, "per_seed_regret": raw}, allow_nan=False))
     print(text)
     return 0
+
+
+def paired_variants(
+    raw: dict[str, dict[str, dict[str, list[float]]]], budgets: list[int]
+) -> dict[str, dict[str, float]]:
+    """Seed-by-seed comparison of each ``X-improved`` with ``X`` (same problem, budget and
+    seed, hence the same noise stream): counts of lower/higher/equal regret and the median
+    of log10(regret_variant / regret_X) (regrets floored at 1e-12)."""
+    out: dict[str, dict[str, float]] = {}
+    for variant in {m for by_m in raw.values() for m in by_m if m.endswith("-improved")}:
+        base = variant.removesuffix("-improved")
+        lower = higher = equal = 0
+        logs: list[float] = []
+        for by_m in raw.values():
+            if variant not in by_m or base not in by_m:
+                continue
+            for b in map(str, budgets):
+                for v, w in zip(by_m[variant].get(b, []), by_m[base].get(b, [])):
+                    lower += v < w
+                    higher += v > w
+                    equal += v == w
+                    logs.append(math.log10(max(v, 1e-12) / max(w, 1e-12)))
+        if logs:
+            out[f"{variant} vs {base}"] = {
+                "lower": lower,
+                "higher": higher,
+                "equal": equal,
+                "n": len(logs),
+                "median_log10_ratio": float(np.median(logs)),
+            }
+    return out
 
 
 def summarise(results: dict[str, dict[str, Any]], budgets: list[int]) -> dict[str, Any]:
