@@ -191,6 +191,7 @@ DEFAULT_METHODS = [
     "tsbo-gp",
     "tsbo-tsp-improved",
     "tsbo-gp-improved",
+    "tsbo-robust",
     "ga",
     "random",
     "optuna-tpe",

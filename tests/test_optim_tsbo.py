@@ -320,3 +320,13 @@ def test_bad_options():
         TSBO(BRANIN_SPACE, surrogate=CountingGP, sm_freeze="some")
     with pytest.raises(ValueError, match="unknown surrogate"):
         TSBO(BRANIN_SPACE, surrogate="svm")
+
+
+def test_modes_are_presets_of_three_options():
+    f = TSBO(BRANIN_SPACE, surrogate=CountingGP)
+    assert (f.keep_stage1_data, f.min_box_halfwidth, f.stage2_reserve) == (False, 0.0, 0.0)
+    i = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved")
+    assert (i.keep_stage1_data, i.min_box_halfwidth, i.stage2_reserve) == (True, 0.02, 0.25)
+    o = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved", stage2_reserve=0.0)
+    assert o.stage2_reserve == 0.0 and o.keep_stage1_data
+    assert o.options()["mode"] == "improved" and o.options()["stage2_reserve"] == 0.0
