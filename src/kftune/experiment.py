@@ -144,19 +144,19 @@ class CompareSettings:
 
 
 def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str]) -> list[str]:
-    """Test manoeuvres shown in the β figures: the first test manoeuvre of each kind; for a
-    dataset without those kinds (e.g. segments of a recording), the one with the largest
+    """Test manoeuvres shown in the β figures: per kind, the test manoeuvre with the largest
+    reference sideslip (where tuning matters most, cf. paper Figs. 8–10); for a dataset
+    without those kinds (e.g. segments of a recording), the test manoeuvre with the largest
     reference sideslip."""
     test = dataset.test or dataset.manoeuvres
-    picked = []
-    for kind in kinds:
-        for m in test:
-            if m.kind == kind:
-                picked.append(m.name)
-                break
-    if not picked:
-        picked.append(max(test, key=lambda m: float(np.max(np.abs(m.beta_ref)))).name)
-    return picked
+
+    def peak(m: Manoeuvre) -> float:
+        return float(np.max(np.abs(m.beta_ref)))
+
+    picked = [
+        max(of_kind, key=peak).name for k in kinds if (of_kind := [m for m in test if m.kind == k])
+    ]
+    return picked or [max(test, key=peak).name]
 
 
 def method_run(
