@@ -10,8 +10,10 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from kftune.optim import Space, minimize
+from kftune.optim import ExhaustedError, Space, minimize
 from kftune.optim.tsbo import TSBO, PartitionTree, stage2_box
 from optim_fakes import BRANIN_SPACE, CountingGP, branin
 
@@ -25,18 +27,31 @@ def run(space, fun, **kw) -> TSBO:
     return opt
 
 
-def eq10_counter(history, space, tr_fe=0.01):
-    """Independent Eq. 10: counter after each evaluation (natural units, incumbent moves)."""
+def eq10_counter(history, space, tr_fe=0.01, units="natural"):
+    """Independent Eq. 10: counter after each evaluation (incumbent moves), in natural
+    units (threshold tr_fe·‖q*‖) or in the unit cube (threshold tr_fe·√d)."""
     out, n, best = [], 0, None
     for r in history:
         prev = best
         if r.ok and (best is None or r.value < best.value):
             best = r
         if prev is not None and best is not None:
-            d = np.linalg.norm(np.array(best.x) - np.array(prev.x))
-            n = n + 1 if (d < tr_fe * np.linalg.norm(best.x) or d == 0) else 0
+            if units == "natural":
+                d = np.linalg.norm(np.array(best.x) - np.array(prev.x))
+                tr = tr_fe * np.linalg.norm(best.x)
+            else:
+                d = np.linalg.norm(np.array(best.u) - np.array(prev.u))
+                tr = tr_fe * math.sqrt(len(best.u))
+            n = n + 1 if (d < tr or d == 0) else 0
         out.append(n)
     return out
+
+
+def min_pair_distance(history) -> float:
+    """Smallest max-norm distance (unit cube) between two evaluated points."""
+    U = np.array([r.u for r in history])
+    D = np.abs(U[:, None, :] - U[None, :, :]).max(-1)
+    return float(D[np.triu_indices(len(U), 1)].min())
 
 
 # ----------------------------------------------------------------------------- tree
@@ -128,6 +143,43 @@ def test_faithful_stage1_may_use_the_whole_budget_and_reserve_forces_stage2():
     assert [r.stage for r in opt.history] == [1] * 15 + [2] * 5
 
 
+def test_tr_fe_in_the_unit_cube_on_a_hand_made_history():
+    # The paper's TR_FE = 0.01·‖q*‖ in natural units is dominated by the largest component:
+    # on the UKF space (q_r ≈ 0.2 ≫ q_vx, q_vy) moves of the small ones never count.
+    sp = Space.coerce({k: (1e-10, 1.0, "log10") for k in ("vx", "vy", "r")})
+    base = [1e-8, 1e-8, 0.2]
+    cases = {  # q*_new: (small in natural units, small in the unit cube)
+        # ‖Δq‖ = 1e-6 < 0.002 ; Δu = 2 decades / 10 = 0.2 > 0.01·√3
+        "vx two decades": ([1e-6, 1e-8, 0.2], True, False),
+        # ‖Δq‖ = 0.05 > 0.0025 ; Δu = log10(1.25)/10 = 0.0097 < 0.0173
+        "r +25 %": ([1e-8, 1e-8, 0.25], False, True),
+        # ‖Δq‖ = 0.064 > 0.0026 ; Δu = log10(1.32)/10 = 0.0121 < 0.01·√3 (not 0.01·‖u*‖)
+        "r +32 %": ([1e-8, 1e-8, 0.264], False, True),
+        # ‖Δq‖ = 4e-4 < 0.002 ; Δu = log10(1.002)/10 = 8.7e-5
+        "r +0.2 %": ([1e-8, 1e-8, 0.2004], True, True),
+        # ‖Δq‖ = 0.3 > 0.005 ; Δu = log10(2.5)/10 = 0.040 > 0.0173
+        "r x2.5": ([1e-8, 1e-8, 0.5], False, False),
+        "no move": (base, True, True),
+    }
+    for name, (q_new, small_natural, small_unit) in cases.items():
+        for units, expect in (("natural", small_natural), ("unit-cube", small_unit)):
+            opt = TSBO(sp, surrogate=CountingGP, tr_fe_units=units)
+            opt._X = np.array([sp.to_unit(np.array(base)), sp.to_unit(np.array(q_new))])
+            assert opt._small_move(0, 1) is expect, (name, units)
+
+
+def test_unit_cube_tr_fe_drives_the_switch():
+    sp = {"a": (1e-6, 1.0, "log10"), "b": (1e-6, 1.0, "log10")}
+    f = lambda x: (math.log10(x[0]) + 3.3) ** 2 + (math.log10(x[1]) + 0.4) ** 2  # noqa: E731
+    opt = run(sp, f, budget=30, max_fe=4, tr_fe_units="unit-cube", seed=0)
+    unit = eq10_counter(opt.history, opt.space, units="unit")
+    natural = eq10_counter(opt.history, opt.space)
+    k = opt.switch_at
+    assert k is not None and unit[k - 1] == 4 and max(unit[: k - 1]) < 4
+    assert natural[k - 1] < 4  # the paper's rule would not have switched here
+    assert all(r.stage == 1 for r in opt.history[:k]) and opt.history[k].stage == 2
+
+
 # ----------------------------------------------------------------------------- box
 def test_stage2_box_eq11_by_hand():
     sp = Space.coerce(
@@ -200,6 +252,21 @@ def test_gain_is_realised_improvement_per_af():
     winner = "CBM" if gains["CBM"] > gains["EI"] else "EI"
     assert opt.chosen_af == winner
     assert {r.acquisition for r in opt.history[7:]} == {winner}
+
+
+def test_max_af_switch_alternates_through_stage1_and_chooses_at_the_switch():
+    opt = run(BRANIN_SPACE, branin, budget=30, max_fe=4, max_af="switch", seed=3)
+    k = opt.switch_at
+    assert k is not None and k > 12  # alternation went on past the faithful MAX_AF = 10
+    s1 = opt.history[1:k]
+    assert [r.acquisition for r in s1] == (["EI", "CBM"] * k)[: len(s1)]
+    gains, best = {"EI": 0.0, "CBM": 0.0}, opt.history[0].value
+    for r in s1:
+        gains[r.acquisition] += max(0.0, best - r.value)
+        best = min(best, r.value)
+    assert opt.gains == pytest.approx(gains)
+    winner = "CBM" if gains["CBM"] > gains["EI"] else "EI"
+    assert opt.chosen_af == winner and {r.acquisition for r in opt.history[k:]} == {winner}
 
 
 def test_first_choice_is_a_random_tie_break_among_symmetric_candidates():
@@ -293,6 +360,66 @@ def test_degenerate_box_falls_back_to_random_candidates():
     assert not any("fallback" in (r.acquisition or "") for r in opt2.history)
 
 
+# ----------------------------------------------------------------------------- resolution
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    d=st.sampled_from([2, 3]),
+    eps=st.sampled_from([1e-3, 0.01, 0.03]),
+    max_fe=st.integers(2, 6),
+    box=st.sampled_from([0.0, 0.02]),
+    keep=st.booleans(),
+    data=st.data(),
+)
+def test_min_resolution_never_proposes_within_eps_of_an_asked_point(
+    seed, d, eps, max_fe, box, keep, data
+):
+    c = np.array(data.draw(st.lists(st.floats(0.0, 1.0), min_size=d, max_size=d)))
+    sp = {f"x{i}": (0.0, 1.0) for i in range(d)}
+    opt = run(
+        sp,
+        lambda x: float(np.sum((x - c) ** 2)),
+        budget=25,
+        seed=seed,
+        max_fe=max_fe,
+        min_resolution=eps,
+        min_box_halfwidth=box,
+        keep_stage1_data=keep,
+    )
+    assert len(opt.history) == 25
+    assert min_pair_distance(opt.history) > eps
+
+
+def test_without_min_resolution_the_same_runs_come_closer():
+    # The check above has teeth: the paper's rule only excludes exact repeats, and pure
+    # exploitation near a minimum refines below 0.03 (seed 5: two points 2e-9 apart).
+    sp = {f"x{i}": (0.0, 1.0) for i in range(3)}
+    for seed in range(6):
+        c = np.random.default_rng(seed).random(3)
+        f = lambda x, c=c: float(np.sum((x - c) ** 2))  # noqa: E731
+        faithful = run(sp, f, budget=40, seed=seed, max_fe=5)
+        assert min_pair_distance(faithful.history) < 0.03
+        spaced = run(sp, f, budget=40, seed=seed, max_fe=5, min_resolution=0.03)
+        assert min_pair_distance(spaced.history) > 0.03
+        if seed == 5:
+            assert min_pair_distance(faithful.history) < 1e-8
+
+
+def test_min_resolution_exhaustion_falls_back_then_stops_clearly():
+    # d = 1, ε = 0.2: the tree offers 0.5, 0.25, 0.75 (finer centres are within 0.2 of
+    # those); random fallback points then fit only in [0, 0.05) and (0.95, 1], one each.
+    opt = TSBO({"a": (0.0, 1.0)}, surrogate=CountingGP, budget=10, max_fe=100, min_resolution=0.2)
+    with pytest.raises(ExhaustedError, match=r"min_resolution=0\.2 "):
+        while not opt.done:
+            t = opt.ask()
+            opt.tell(t, (t.u[0] - 0.3) ** 2)
+    u = [r.u[0] for r in opt.history]
+    assert sorted(u[:3]) == [0.25, 0.5, 0.75]
+    assert len(u) == 5 and all("fallback" in r.acquisition for r in opt.history[3:])
+    assert sorted(v < 0.05 for v in u[3:]) == [False, True]
+    assert min_pair_distance(opt.history) > 0.2
+
+
 def test_records_carry_stage_acquisition_and_hyperparameters():
     res = minimize(
         branin,
@@ -320,13 +447,28 @@ def test_bad_options():
         TSBO(BRANIN_SPACE, surrogate=CountingGP, sm_freeze="some")
     with pytest.raises(ValueError, match="unknown surrogate"):
         TSBO(BRANIN_SPACE, surrogate="svm")
+    with pytest.raises(ValueError, match="min_resolution must be in"):
+        TSBO(BRANIN_SPACE, surrogate=CountingGP, min_resolution=0.3)
+    with pytest.raises(ValueError, match="tr_fe_units must be one of"):
+        TSBO(BRANIN_SPACE, surrogate=CountingGP, tr_fe_units="natural-log")
+    with pytest.raises(ValueError, match="max_af must be a positive integer or 'switch'"):
+        TSBO(BRANIN_SPACE, surrogate=CountingGP, max_af="always")
 
 
-def test_modes_are_presets_of_three_options():
-    f = TSBO(BRANIN_SPACE, surrogate=CountingGP)
-    assert (f.keep_stage1_data, f.min_box_halfwidth, f.stage2_reserve) == (False, 0.0, 0.0)
-    i = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved")
-    assert (i.keep_stage1_data, i.min_box_halfwidth, i.stage2_reserve) == (True, 0.02, 0.25)
-    o = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved", stage2_reserve=0.0)
-    assert o.stage2_reserve == 0.0 and o.keep_stage1_data
+def test_modes_are_presets_of_six_options():
+    names = (
+        "keep_stage1_data",
+        "min_box_halfwidth",
+        "stage2_reserve",
+        "min_resolution",
+        "tr_fe_units",
+        "max_af",
+    )
+    f = TSBO(BRANIN_SPACE, surrogate=CountingGP).options()
+    assert [f[k] for k in names] == [False, 0.0, 0.0, 0.0, "natural", 10]
+    i = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved").options()
+    assert [i[k] for k in names] == [True, 0.02, 0.25, 1e-3, "unit-cube", "switch"]
+    o = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved", stage2_reserve=0.0, max_af=4)
+    assert o.stage2_reserve == 0.0 and o.keep_stage1_data and o.max_af == 4
     assert o.options()["mode"] == "improved" and o.options()["stage2_reserve"] == 0.0
+    assert o.options()["min_resolution"] == 1e-3
