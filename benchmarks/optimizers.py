@@ -172,6 +172,13 @@ def observed(problem: Problem, seed: int) -> Callable[[np.ndarray], float]:
 
 
 # --------------------------------------------------------------------------- methods
+#: The improved preset before the 2026-11-22 revision (its first three settings only).
+PREV_IMPROVED: dict[str, Any] = {
+    "mode": "improved",
+    "min_resolution": 0.0,
+    "tr_fe_units": "natural",
+    "max_af": 10,
+}
 #: name → (kftune method, options, per_budget). per_budget: run once per budget (TSBO);
 #: otherwise one run at the method's own largest budget, read as prefixes.
 METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
@@ -179,6 +186,12 @@ METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
     "tsbo-gp-improved": ("tsbo-gp", {"mode": "improved"}, True),
+    # ablation of the revised improved preset: the previous preset, and it plus one change
+    "tsbo-tsp-improved-prev": ("tsbo-tsp", PREV_IMPROVED, True),
+    "tsbo-gp-improved-prev": ("tsbo-gp", PREV_IMPROVED, True),
+    "tsbo-tsp-prev+res": ("tsbo-tsp", {**PREV_IMPROVED, "min_resolution": 1e-3}, True),
+    "tsbo-tsp-prev+unit-tr": ("tsbo-tsp", {**PREV_IMPROVED, "tr_fe_units": "unit-cube"}, True),
+    "tsbo-tsp-prev+af": ("tsbo-tsp", {**PREV_IMPROVED, "max_af": "switch"}, True),
     "tsbo-robust": ("tsbo-robust", {}, True),
     "ga": ("ga", {}, False),
     "random": ("random", {}, False),
@@ -199,6 +212,18 @@ DEFAULT_METHODS = [
     "cma",
 ]
 GA_BUDGET = 225
+#: (variant, base) pairs compared seed by seed when both ran.
+PAIRS: list[tuple[str, str]] = [
+    ("tsbo-tsp-improved", "tsbo-tsp"),
+    ("tsbo-gp-improved", "tsbo-gp"),
+    ("tsbo-tsp-improved-prev", "tsbo-tsp"),
+    ("tsbo-gp-improved-prev", "tsbo-gp"),
+    ("tsbo-tsp-improved", "tsbo-tsp-improved-prev"),
+    ("tsbo-gp-improved", "tsbo-gp-improved-prev"),
+    ("tsbo-tsp-prev+res", "tsbo-tsp-improved-prev"),
+    ("tsbo-tsp-prev+unit-tr", "tsbo-tsp-improved-prev"),
+    ("tsbo-tsp-prev+af", "tsbo-tsp-improved-prev"),
+]
 
 
 def regret_curve(problem: Problem, history: Any) -> np.ndarray:
@@ -272,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
         print(
-            f"{'method':20s} {'evals':>6s} {'median':>10s} {'q25':>10s} {'q75':>10s} "
+            f"{'method':24s} {'evals':>6s} {'median':>10s} {'q25':>10s} {'q75':>10s} "
             f"{'ms/iter':>8s} {'stage2':>6s}"
         )
         for method in args.methods:
@@ -300,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
                         ovh.append(out["overhead_s"])
             except ImportError as exc:
                 skipped[method] = str(exc)
-                print(f"{method:20s} skipped: {exc}")
+                print(f"{method:24s} skipped: {exc}")
                 continue
             results[pname][method] = {str(b): quartiles(v) for b, v in sorted(cells.items())}
             raw.setdefault(pname, {})[method] = {str(b): v for b, v in sorted(cells.items())}
@@ -309,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
                 q = quartiles(v)
                 s2 = f"{np.median(st2[b]):6.0f}" if b in st2 else f"{'':6s}"
                 print(
-                    f"{method:20s} {b:6d} {q['median']:10.4g} {q['q25']:10.4g} "
+                    f"{method:24s} {b:6d} {q['median']:10.4g} {q['q25']:10.4g} "
                     f"{q['q75']:10.4g} {1e3 * float(np.median(ovh)):8.1f} {s2}",
                     flush=True,
                 )
@@ -321,13 +346,21 @@ def main(argv: list[str] | None = None) -> int:
     for pair, c in paired.items():
         print(
             f"paired per seed, {pair}: variant lower in {c['lower']}, higher in "
-            f"{c['higher']}, equal in {c['equal']} of {c['n']} (problem, budget, seed) runs; "
-            f"median log10 ratio {c['median_log10_ratio']:+.3f}"
+            f"{c['higher']}, equal in {c['equal']} of {c['n']} (problem, budget, seed) runs "
+            f"(sign test p = {c['sign_test_p']:.2g}); median log10 ratio "
+            f"{c['median_log10_ratio']:+.3f}"
+        )
+        print(
+            "    per problem and budget (lower/higher, median log10 ratio): "
+            + "; ".join(
+                f"{k} {v['lower']}/{v['higher']} {v['median_log10_ratio']:+.2f}"
+                for k, v in c["cells"].items()
+            )
         )
     overhead_ms = {m: 1e3 * float(np.median(v)) for m, v in overhead.items()}
     print("\noptimiser overhead per iteration [ms], median over all runs:")
     for m, v in overhead_ms.items():
-        print(f"  {m:20s} {v:8.1f}")
+        print(f"  {m:24s} {v:8.1f}")
     report = {
         "benchmark": "optimizers",
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
@@ -352,33 +385,55 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def sign_test_p(wins: int, losses: int) -> float:
+    """Two-sided exact sign test (ties dropped): P(|W − n/2| ≥ |wins − n/2|), W ~ B(n, ½)."""
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    k = min(wins, losses)
+    return min(1.0, 2.0 * sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n)
+
+
 def paired_variants(
     raw: dict[str, dict[str, dict[str, list[float]]]], budgets: list[int]
-) -> dict[str, dict[str, float]]:
-    """Seed-by-seed comparison of each ``X-improved`` with ``X`` (same problem, budget and
-    seed, hence the same noise stream): counts of lower/higher/equal regret and the median
-    of log10(regret_variant / regret_X) (regrets floored at 1e-12)."""
-    out: dict[str, dict[str, float]] = {}
-    for variant in {m for by_m in raw.values() for m in by_m if m.endswith("-improved")}:
-        base = variant.removesuffix("-improved")
+) -> dict[str, dict[str, Any]]:
+    """Seed-by-seed comparison of each (variant, base) in :data:`PAIRS` that both ran (same
+    problem, budget and seed, hence the same noise stream): counts of lower/higher/equal
+    regret, the sign-test p-value, the median of log10(regret_variant / regret_base)
+    (regrets floored at 1e-12), overall and per (problem, budget) cell."""
+    out: dict[str, dict[str, Any]] = {}
+    for variant, base in PAIRS:
         lower = higher = equal = 0
         logs: list[float] = []
-        for by_m in raw.values():
+        cells: dict[str, dict[str, float]] = {}
+        for prob, by_m in raw.items():
             if variant not in by_m or base not in by_m:
                 continue
             for b in map(str, budgets):
+                c_lo = c_hi = 0
+                c_logs: list[float] = []
                 for v, w in zip(by_m[variant].get(b, []), by_m[base].get(b, [])):
-                    lower += v < w
-                    higher += v > w
+                    c_lo += v < w
+                    c_hi += v > w
                     equal += v == w
-                    logs.append(math.log10(max(v, 1e-12) / max(w, 1e-12)))
+                    c_logs.append(math.log10(max(v, 1e-12) / max(w, 1e-12)))
+                if c_logs:
+                    lower, higher = lower + c_lo, higher + c_hi
+                    logs.extend(c_logs)
+                    cells[f"{prob}@{b}"] = {
+                        "lower": c_lo,
+                        "higher": c_hi,
+                        "median_log10_ratio": float(np.median(c_logs)),
+                    }
         if logs:
             out[f"{variant} vs {base}"] = {
                 "lower": lower,
                 "higher": higher,
                 "equal": equal,
                 "n": len(logs),
+                "sign_test_p": sign_test_p(lower, higher),
                 "median_log10_ratio": float(np.median(logs)),
+                "cells": cells,
             }
     return out
 
