@@ -3,10 +3,14 @@
 Problem: the paper's cost (Eq. 14–15, W = (5, 1, 1)) of the UKF over the bundled training
 set (8 manoeuvres), three process-noise parameters on log10 scales in [1e-10, 1].
 
-Methods (same problem, same seeds 0…S−1): TSBO-tSP and TSBO-GP (budget 40 = MAX_PE; also
-TSBO with the robust GP), GA (paper Table IV: 15 × 15 = 225), random search, Optuna TPE,
-Optuna's GP sampler and CMA-ES (budget 100 each; Optuna GP needs PyTorch and is skipped
-without it).
+Methods (same problem, same seeds): TSBO-tSP and TSBO-GP (budget 40 = MAX_PE; also
+TSBO with the robust GP, and the opt-in ``mode="improved"`` of TSBO-tSP/GP as
+``tsbo-tsp-improved``/``tsbo-gp-improved``), GA (paper Table IV: 15 × 15 = 225), random
+search, Optuna TPE, Optuna's GP sampler and CMA-ES (budget 100 each; Optuna GP needs
+PyTorch and is skipped without it). The ablation labels of ``benchmarks/optimizers.py``
+(``tsbo-tsp-improved-prev``, ``tsbo-tsp-prev+res`` …) can be asked for with ``--methods``.
+Each (variant, base) pair of ``optimizers.PAIRS`` that both ran is compared seed by seed
+(best cost at 40 evaluations; sign test).
 
 Reference: the best cost any run ever found, including a long CMA-ES run (2,000
 evaluations per reference seed) — the "long-run reference". Reported per method:
@@ -23,6 +27,8 @@ Usage::
 
     .venv/bin/python benchmarks/ukf_tuning.py                    # full: 10 seeds
     .venv/bin/python benchmarks/ukf_tuning.py --seeds 2 --methods tsbo-tsp ga --ref-evals 300
+    .venv/bin/python benchmarks/ukf_tuning.py --methods tsbo-tsp tsbo-tsp-improved \\
+        --seed-offset 10 --ref-seeds 0                      # paired TSBO variants only
 
 Prints tables and, as its last line, one JSON object with all figures.
 """
@@ -44,6 +50,8 @@ import kftune
 from kftune.data import default_dataset
 from kftune.optim import PeerUnavailableError, minimize
 from kftune.tuning.problem import TuningProblem
+from optimizers import METHODS as SYNTHETIC_METHODS  # benchmarks/ is the script's path
+from optimizers import PAIRS, sign_test_p
 
 BUDGETS = {
     "tsbo-tsp": 40,
@@ -55,14 +63,34 @@ BUDGETS = {
     "optuna-gp": 100,
     "cma": 100,
 }
+#: label → (kftune method, options): the peers as themselves, TSBO variants as in
+#: benchmarks/optimizers.py (budget 40 like their base).
+METHODS: dict[str, tuple[str, dict[str, Any]]] = {m: (m, {}) for m in BUDGETS}
+for _label, (_method, _options, _) in SYNTHETIC_METHODS.items():
+    if _label.startswith("tsbo-") and _label not in METHODS:
+        METHODS[_label] = (_method, dict(_options))
+        BUDGETS[_label] = 40
+DEFAULT_METHODS = [
+    "tsbo-tsp",
+    "tsbo-gp",
+    "tsbo-tsp-improved",
+    "tsbo-gp-improved",
+    "tsbo-robust",
+    "ga",
+    "random",
+    "optuna-tpe",
+    "optuna-gp",
+    "cma",
+]
 CHECKPOINTS = (10, 20, 40, 100, 225)
 TOL = 0.01
 
 
-def run_method(problem: TuningProblem, method: str, seed: int, budget: int) -> dict[str, Any]:
+def run_method(problem: TuningProblem, label: str, seed: int, budget: int) -> dict[str, Any]:
     """One run: its cost history and timings."""
+    method, options = METHODS[label]
     t0 = time.perf_counter()
-    res = minimize(problem, problem.space, method, budget=budget, seed=seed)
+    res = minimize(problem, problem.space, method, budget=budget, seed=seed, **options)
     wall = time.perf_counter() - t0
     values = [math.inf if r.value is None else float(r.value) for r in res.history]
     t_eval = float(sum(r.t_eval for r in res.history))
@@ -92,7 +120,8 @@ def quartiles(x: list[float]) -> tuple[float, float, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=10, help="seeds per method (default 10)")
-    ap.add_argument("--methods", nargs="+", default=list(BUDGETS), choices=list(BUDGETS))
+    ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
+    ap.add_argument("--methods", nargs="+", default=DEFAULT_METHODS, choices=list(METHODS))
     ap.add_argument(
         "--ref-evals", type=int, default=2000, help="CMA-ES evaluations per reference run"
     )
@@ -118,16 +147,17 @@ def main() -> None:
 
     runs: dict[str, list[dict[str, Any]]] = {}
     skipped: dict[str, str] = {}
+    seeds = list(range(args.seed_offset, args.seed_offset + args.seeds))
     for method in args.methods:
         runs[method] = []
-        for seed in range(args.seeds):
+        for seed in seeds:
             try:
                 runs[method].append(run_method(problem, method, seed, BUDGETS[method]))
             except PeerUnavailableError as exc:
                 skipped[method] = str(exc)
                 break
             r = runs[method][-1]
-            print(f"  {method:12s} seed {seed}: best {r['best']:.5f} in {r['n_evals']} evals")
+            print(f"  {method:22s} seed {seed}: best {r['best']:.5f} in {r['n_evals']} evals")
         if method in skipped:
             del runs[method]
             print(f"  {method}: skipped ({skipped[method]})")
@@ -142,7 +172,8 @@ def main() -> None:
     print(f"reference (best cost ever found): {reference:.6f}; 1 % target {target:.6f}")
 
     summary: dict[str, Any] = {}
-    header = "method        " + "".join(f"  best@{b:<4d}          " for b in CHECKPOINTS)
+    width = max([14, *(len(m) + 1 for m in runs)])
+    header = f"{'method':{width}s}" + "".join(f"  best@{b:<4d}          " for b in CHECKPOINTS)
     print("\nbest cost, median [quartiles] over seeds")
     print(header + "  evals to 1 %   reached   cost ms/eval  overhead ms/eval")
     for method, rs in runs.items():
@@ -167,8 +198,39 @@ def main() -> None:
         summary[method] = row
         reach_txt = f"{med_reach:.0f}" if math.isfinite(med_reach) else "never"
         print(
-            f"{method:14s}" + "".join(cells) + f"  {reach_txt:>11s}   {row['share_reached']:5.0%}"
+            f"{method:{width}s}"
+            + "".join(cells)
+            + f"  {reach_txt:>11s}   {row['share_reached']:5.0%}"
             f"   {row['cost_ms_per_eval']:10.1f}  {row['overhead_ms_per_eval']:14.1f}"
+        )
+
+    # TSBO variants seed by seed, and paired comparisons
+    tsbo = [m for m in runs if m.startswith("tsbo-")]
+    if tsbo:
+        print(f"\nbest cost at 40 evaluations per seed ({', '.join(map(str, seeds))})")
+        for m in tsbo:
+            vals = " ".join(f"{float(np.min(r['values'][:40])):.4f}" for r in runs[m])
+            print(f"  {m:{width}s} {vals}")
+    paired: dict[str, Any] = {}
+    for variant, base in PAIRS:
+        if variant not in runs or base not in runs:
+            continue
+        v40 = [float(np.min(r["values"][:40])) for r in runs[variant]]
+        b40 = [float(np.min(r["values"][:40])) for r in runs[base]]
+        lower = sum(v < b for v, b in zip(v40, b40))
+        higher = sum(v > b for v, b in zip(v40, b40))
+        paired[f"{variant} vs {base}"] = {
+            "lower": lower,
+            "higher": higher,
+            "equal": len(v40) - lower - higher,
+            "sign_test_p": sign_test_p(lower, higher),
+            "median_diff_at_40": float(np.median(np.subtract(v40, b40))),
+        }
+        c = paired[f"{variant} vs {base}"]
+        print(
+            f"paired per seed, {variant} vs {base}: best@40 lower in {lower}, higher in "
+            f"{higher} of {len(v40)} (sign test p = {c['sign_test_p']:.2g}); median "
+            f"difference {c['median_diff_at_40']:+.4f}"
         )
 
     # who leads at 40 evaluations
@@ -183,13 +245,14 @@ def main() -> None:
         "machine": f"{platform.machine()} {os.cpu_count()} cpu, {platform.python_version()}",
         "kftune_version": kftune.__version__,
         "load_average_1min": load,
-        "seeds": args.seeds,
+        "seeds": seeds,
         "cost_eval_ms": cost_eval_ms,
         "train_samples": n_samples,
         "reference_cost": reference,
         "reference_runs": [{"best": r["best"], "x": r["x"]} for r in ref_runs],
         "target_1pct": target,
         "methods": summary,
+        "paired": paired,
         "skipped": skipped,
     }
     line = json.dumps(out, allow_nan=False)
