@@ -50,8 +50,8 @@ import kftune
 from kftune.data import default_dataset
 from kftune.optim import PeerUnavailableError, minimize
 from kftune.tuning.problem import TuningProblem
+from optimizers import DEFAULT_METHODS, PAIRS, sign_test_p
 from optimizers import METHODS as SYNTHETIC_METHODS  # benchmarks/ is the script's path
-from optimizers import PAIRS, sign_test_p
 
 BUDGETS = {
     "tsbo-tsp": 40,
@@ -70,18 +70,6 @@ for _label, (_method, _options, _) in SYNTHETIC_METHODS.items():
     if _label.startswith("tsbo-") and _label not in METHODS:
         METHODS[_label] = (_method, dict(_options))
         BUDGETS[_label] = 40
-DEFAULT_METHODS = [
-    "tsbo-tsp",
-    "tsbo-gp",
-    "tsbo-tsp-improved",
-    "tsbo-gp-improved",
-    "tsbo-robust",
-    "ga",
-    "random",
-    "optuna-tpe",
-    "optuna-gp",
-    "cma",
-]
 CHECKPOINTS = (10, 20, 40, 100, 225)
 TOL = 0.01
 
