@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from kftune.optim.base import Optimizer
+from kftune.optim.base import ExhaustedError, Optimizer
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
 from kftune.optim.space import Space
 from kftune.optim.study import Study, StudyError
@@ -126,6 +126,7 @@ def minimize(
     resume: bool = False,
     timeout: float | None = None,
     callback: Callable[[EvalRecord], bool | None] | None = None,
+    objective: dict[str, Any] | None = None,
     **method_options: Any,
 ) -> OptimizeResult:
     """Minimise a black-box function over a box.
@@ -146,6 +147,9 @@ def minimize(
         callback: called with every finished :class:`EvalRecord`, in order — on resume the
             replayed ones first — e.g. to drive a progress bar; returning ``True`` after a new
             evaluation stops the run (status ``"stopped"``; ignored for replayed records).
+        objective: JSON-serialisable description of ``fun`` (e.g. the dataset, cost and
+            model of a tuning problem) stored in the study; resuming with a different one is
+            refused, so a study never mixes values of two objectives.
         **method_options: passed to the optimiser (e.g. ``max_fe=10`` for TSBO,
             ``population_size=20`` for GA, ``points=[...]`` for manual).
 
@@ -172,6 +176,7 @@ def minimize(
         "budget": opt.budget,
         "space": sp.to_dict(),
         "options": opt.options(),
+        "objective": objective,
     }
     study = Study.open(storage, settings, resume=resume) if storage is not None else None
     evaluator = _Evaluator(fun, timeout)
@@ -201,7 +206,10 @@ def minimize(
                 if callback is not None:
                     callback(rec)
         while not opt.done:
-            trial = opt.ask()
+            try:
+                trial = opt.ask()
+            except ExhaustedError:  # nothing left to propose (e.g. a degenerate space)
+                break
             if in_flight is not None:
                 _check_replay(study, trial.number, trial.u, in_flight)
                 in_flight = None
@@ -244,6 +252,11 @@ def _check_replay(study: Any, number: int, proposed: np.ndarray, stored: Any) ->
 
 
 # ---------------------------------------------------------------------- evaluation
+#: [s] how long a fresh evaluation worker may take to start (fork: milliseconds; spawn on
+#: other systems: an interpreter start and the objective's imports).
+_WORKER_START_LIMIT = 120.0
+
+
 class _Evaluator:
     """Calls ``fun`` in-process, or in a worker process when a timeout is set."""
 
@@ -254,18 +267,19 @@ class _Evaluator:
         self._conn: Any = None
 
     def __call__(self, x: np.ndarray) -> tuple[Any, str | None, float]:
-        t0 = time.perf_counter()
         if self.timeout is None:
+            t0 = time.perf_counter()
             try:
                 value = self.fun(np.array(x))
             except Exception as exc:
                 return None, _describe(exc), time.perf_counter() - t0
             return value, None, time.perf_counter() - t0
+        if self._proc is None or not self._proc.is_alive():
+            self._start()  # not timed: the limit is on the evaluation, not on a start-up
+        t0 = time.perf_counter()
         return (*self._call_worker(np.array(x)), time.perf_counter() - t0)
 
     def _call_worker(self, x: np.ndarray) -> tuple[Any, str | None]:
-        if self._proc is None or not self._proc.is_alive():
-            self._start()
         self._conn.send(x)
         if not self._conn.poll(self.timeout):
             self._kill()
@@ -285,10 +299,17 @@ class _Evaluator:
             "fork" if sys.platform.startswith("linux") and "fork" in methods else "spawn"
         )
         parent, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_worker_loop, args=(self.fun, child), daemon=True)
+        # not a daemon: the objective may start processes of its own (a tuning problem's
+        # worker pool); the worker ends when the pipe closes, and close() kills it anyway
+        self._proc = ctx.Process(target=_worker_loop, args=(self.fun, child), daemon=False)
         self._proc.start()
         child.close()
         self._conn = parent
+        if not parent.poll(_WORKER_START_LIMIT) or parent.recv() != ("ready", None):
+            self._kill()
+            raise RuntimeError(
+                f"the evaluation worker process did not start within {_WORKER_START_LIMIT} s"
+            )
 
     def _kill(self) -> None:
         if self._proc is not None:
@@ -306,6 +327,7 @@ class _Evaluator:
 def _worker_loop(fun: Callable[[np.ndarray], float], conn: Any) -> None:  # pragma: no cover
     """Body of the evaluation worker (runs in the child process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business
+    conn.send(("ready", None))
     while True:
         try:
             x = conn.recv()

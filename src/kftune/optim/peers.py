@@ -25,10 +25,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from kftune.errors import KftuneError
 from kftune.optim.base import Optimizer, Proposal, Trial
 
 
-class PeerUnavailableError(ImportError):
+class PeerUnavailableError(KftuneError, ImportError):
     """A peer optimiser's package (or its PyTorch dependency) is not installed."""
 
 
