@@ -67,16 +67,16 @@ def test_bad_options_exit_2(args):
 
 def test_bad_files_exit_3_and_name_the_file(tmp_path):
     missing = tmp_path / "no-such-dataset"
-    res = kftune("tune", str(missing), "--quiet")
+    res = kftune("tune", str(missing), "--quiet", cwd=tmp_path)
     assert res.returncode == 3
     assert "no-such-dataset" in res.stderr
     cfg = tmp_path / "bad.toml"
     cfg.write_text("budjet = 40\n")
-    res = kftune("tune", "--config", str(cfg), "--quiet")
+    res = kftune("tune", "--config", str(cfg), "--quiet", cwd=tmp_path)
     assert res.returncode == 3
     assert "bad.toml" in res.stderr and "'budjet'" in res.stderr
     cfg.write_text("budget = 40\n[cost]\nweights = { yaw = 1.0 }\n")
-    res = kftune("tune", "--config", str(cfg), "--quiet")
+    res = kftune("tune", "--config", str(cfg), "--quiet", cwd=tmp_path)
     assert res.returncode == 3 and "unknown cost channel" in res.stderr
     bad_params = tmp_path / "tuned.json"
     bad_params.write_text('{"q": [1, 2]}')
@@ -86,11 +86,64 @@ def test_bad_files_exit_3_and_name_the_file(tmp_path):
     assert res.returncode == 3 and "results.json" in res.stderr
 
 
-def test_bad_option_values_exit_3():
-    res = kftune("compare", "--budget", "ga=lots", "--quiet")
-    assert res.returncode == 3 and "--budget" in res.stderr
-    res = kftune("tune", "--weights", "beta=five", "--quiet")
-    assert res.returncode == 3 and "beta=five" in res.stderr
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("compare", "--budget", "ga=lots"),
+        ("compare", "--budget", "ga=0"),
+        ("tune", "--weights", "beta=five"),
+        ("tune", "--seed", "-1"),
+        ("tune", "--timeout", "-5"),
+        ("tune", "--budget", "0"),
+        ("tune", "--workers", "0"),
+        ("tune", "--burn-in", "-1"),
+        ("evaluate", "--q", "-1", "1", "1"),
+        ("evaluate", "--q", "nan", "1", "1"),
+        ("compare", "--resume", "--force"),
+    ],
+)
+def test_bad_option_values_exit_2_and_name_the_option(args):
+    res = kftune(*args, "--json")
+    assert res.returncode == 2, res.stderr
+    assert "usage:" in res.stderr and "Traceback" not in res.stderr
+    option = next(a for a in args if a.startswith("--") and a != "--json")
+    assert option in res.stderr
+
+
+@pytest.mark.parametrize(
+    ("command", "text", "expected"),
+    [
+        ("tune", "q_bounds = [1e-3, 1]", "unknown key 'q_bounds'"),  # belongs in [parameters]
+        ("tune", "seed = -2", "seed must be >= 0"),
+        ("tune", "methods = ['ga']", "only apply to 'kftune compare'"),
+        ("compare", "budget = 3", "only apply to 'kftune tune'"),
+        ("compare", "[budgets]\nga = 0", "ga must be >= 1"),
+        ("tune", "[options.tsbo-tsp]\nmax_fee = 3", "max_fee"),
+        ("tune", "[parameters]\nq_bounds = ['a', 1]", "q_bounds must be [low, high]"),
+        ("tune", "[parameters]\nq_bounds = [1, 1e-3]", "below"),
+    ],
+)
+def test_bad_configuration_exits_3_and_names_file_and_key(tmp_path, command, text, expected):
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(text + "\n")
+    res = kftune(command, "--config", str(cfg), "--quiet", "--out", str(tmp_path / "o"))
+    assert res.returncode == 3, res.stderr
+    assert "Traceback" not in res.stderr and expected in res.stderr
+
+
+def test_timeout_with_worker_pool_is_refused(small, tmp_path):
+    res = kftune(
+        "tune",
+        str(small),
+        "--timeout",
+        "5",
+        "--workers",
+        "2",
+        "--quiet",
+        "-o",
+        str(tmp_path / "t.json"),
+    )
+    assert res.returncode == 3 and "workers = 1" in res.stderr
 
 
 def test_tune_then_evaluate_json(small, tmp_path):
@@ -126,6 +179,16 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert "convergence.png" in figures and "cost_slice.png" in figures
     assert "improvement_test.png" in figures and "beta_test-05-j-turn.png" in figures
+    # the studies are not thrown away by accident; resuming finished studies evaluates
+    # nothing new and reproduces the tables
+    again = kftune("compare", str(small), "--out", str(out), "--quiet")
+    assert again.returncode == 3 and "resume" in again.stderr
+    resumed = kftune(
+        "compare", str(small), "--out", str(out), "--json", "--resume",
+        "--budget", "ga=8", "--budget", "tsbo-gp=6", "--budget", "tsbo-tsp=6",
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+    assert json.loads(resumed.stdout)["tables"]["cost"] == doc["tables"]["cost"]
     # rebuild elsewhere from the stored results only: identical report and tables
     again = kftune("report", str(out), "--out", str(tmp_path / "again"))
     assert again.returncode == 0, again.stderr
@@ -195,3 +258,38 @@ def test_tune_resume_after_sigkill_equals_uninterrupted_run(small, tmp_path):
     uninterrupted = json.loads((tmp_path / "full.json").read_text())
     assert resumed["params"] == uninterrupted["params"]
     assert resumed["cost"] == uninterrupted["cost"]
+
+
+def _interrupt_tune(args: list[str], ready) -> subprocess.CompletedProcess:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kftune", "tune", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not ready() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, "tune finished before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def test_ctrl_c_keeps_the_best_so_far_and_says_how_to_resume(small, tmp_path):
+    db = tmp_path / "s.db"
+    res = _interrupt_tune(
+        [str(small), "-m", "ga", "-n", "5000", "--quiet", "--storage", str(db),
+         "-o", str(tmp_path / "t.json")],
+        ready=lambda: _completed(db) >= 20,
+    )  # fmt: skip
+    assert res.returncode == 130, res.stderr
+    assert "--resume" in res.stderr and str(db) in res.stderr
+    partial = json.loads((tmp_path / "t.partial.json").read_text())
+    assert partial["status"] == "interrupted" and partial["n_evals"] >= 20
+    assert _completed(db) >= partial["n_evals"]  # every finished evaluation is in the study
+    start = time.monotonic()
+    res = _interrupt_tune(
+        [str(small), "-m", "ga", "-n", "5000", "--quiet", "-o", str(tmp_path / "u.json")],
+        ready=lambda: time.monotonic() - start > 6,
+    )  # fmt: skip
+    assert res.returncode == 130
+    assert "nothing else was saved" in res.stderr and "saved in" not in res.stderr

@@ -102,3 +102,23 @@ def test_kpis_without_nonlinear_samples_and_averaging():
 def test_kpis_shape_errors():
     with pytest.raises(ValueError, match="equal length"):
         sideslip_kpis(np.zeros(3), np.zeros(4), np.zeros(3))
+
+
+def test_averages_are_nan_when_any_manoeuvre_diverged():
+    ok = sideslip_kpis(np.radians([1.0, 1.0]), np.zeros(2), np.array([5.0, 5.0]))
+    diverged = {
+        "rmse": math.nan,
+        "mae": math.nan,
+        "rmse_non": math.nan,
+        "mae_non": math.nan,
+        "diverged": 1.0,
+    }
+    avg = average_kpis([ok, diverged])
+    assert all(math.isnan(avg[k]) for k in ("rmse", "mae", "rmse_non", "mae_non"))
+    assert avg["n_diverged"] == 1 and avg["n_manoeuvres"] == 2
+    assert average_kpis([ok])["n_diverged"] == 0
+
+
+def test_cost_spec_estimate_must_be_known():
+    with pytest.raises(ConfigError, match="estimate"):
+        CostSpec(estimate="smoothed")

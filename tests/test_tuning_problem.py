@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 import kftune
 from kftune.data import default_dataset
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, DataError
 from kftune.experiment import MANUAL_Q, manual_point
 from kftune.filters import UKFSettings, run_ukf
 from kftune.tuning.cost import CostSpec
@@ -19,6 +20,7 @@ from kftune.tuning.problem import (
     TuningProblem,
     _balanced_chunks,
     assess,
+    channel_estimate,
 )
 
 
@@ -134,3 +136,61 @@ def test_manual_point_and_assess(ds):
     assert metrics[m.name]["mae"] == pytest.approx(np.max(np.abs(err)))
     ay_err = results[m.name].z_hat[:, 1] - m.ay
     assert metrics[m.name]["rmse_ay"] == pytest.approx(np.sqrt(np.mean(ay_err**2)))
+
+
+def test_burn_in_leaves_the_first_seconds_out_of_cost_and_kpis(ds):
+    m = ds.train[2]
+    q = np.array([1e-4, 1e-6, 1e-3])
+    problem = TuningProblem([m], ds.vehicle, ds.r_default, burn_in=1.0)
+    res = run_ukf(m.u, m.z, m.dt, ds.vehicle, q, ds.r_default)
+    k0 = round(1.0 / m.dt)  # the sample at t0 + 1 s is the first one scored
+    assert m.t[k0] - m.t[0] == pytest.approx(1.0)
+    beta = np.arctan2(res.x[k0:, 1], res.x[k0:, 0])
+    e_beta = np.sqrt(np.mean((beta - m.beta_ref[k0:]) ** 2)) / np.max(np.abs(m.beta_ref[k0:]))
+    e_r = np.sqrt(np.mean((res.z_hat[k0:, 2] - m.r[k0:]) ** 2)) / np.max(np.abs(m.r[k0:]))
+    e_ay = np.sqrt(np.mean((res.z_hat[k0:, 1] - m.ay[k0:]) ** 2)) / np.max(np.abs(m.ay[k0:]))
+    assert problem(q) == pytest.approx(5 * e_beta + e_r + e_ay, rel=1e-12)
+    metrics, _ = assess(problem, q, [m])
+    err = np.degrees(beta - m.beta_ref[k0:])
+    assert metrics[m.name]["mae"] == pytest.approx(np.max(np.abs(err)), rel=1e-12)
+    with pytest.raises(ConfigError, match="shorter than the burn-in"):
+        TuningProblem([m], ds.vehicle, ds.r_default, burn_in=1e3)
+
+
+def test_prior_estimate_cannot_copy_the_measurement(ds):
+    """With a huge yaw-rate process noise the posterior yaw rate follows the gyro, so its
+    error against the gyro falls far below the gyro's own noise (0.2 deg/s in the bundled
+    set); the one-step prediction cannot, its error stays at least at the noise level."""
+    m = ds.train[4]
+    q = np.array([1e-6, 1e-6, 1.0])
+    post = TuningProblem([m], ds.vehicle, ds.r_default)
+    prior = TuningProblem([m], ds.vehicle, ds.r_default, cost=CostSpec(estimate="prior"))
+    mp, _ = assess(post, q, [m])
+    mq, results = assess(prior, q, [m])
+    assert mp[m.name]["rmse_r"] < 0.05  # deg/s, copying
+    assert mq[m.name]["rmse_r"] > 0.18  # deg/s, about the gyro noise
+    res = results[m.name]
+    est, _ = channel_estimate(m, res, "r", "prior")
+    np.testing.assert_allclose(est, m.r - res.innovation[:, 2], rtol=0, atol=0)
+
+
+def test_non_positive_speed_is_refused_naming_manoeuvre_and_row(ds):
+    m = ds.train[2]
+    vx = m.vx.copy()
+    vx[17] = 0.0
+    bad = dataclasses.replace(m, vx=vx)
+    with pytest.raises(DataError, match=r"manoeuvre 'train-03-j-turn', column 'vx', row 17"):
+        TuningProblem([bad], ds.vehicle, ds.r_default)
+
+
+def test_fingerprint_tells_objectives_apart(ds):
+    a = TuningProblem(ds.train[:2], ds.vehicle, ds.r_default).fingerprint()
+    assert a == TuningProblem(ds.train[:2], ds.vehicle, ds.r_default).fingerprint()
+    others = [
+        TuningProblem(ds.train[1:3], ds.vehicle, ds.r_default),
+        TuningProblem(ds.train[:2], ds.vehicle.replace(mu=0.9), ds.r_default),
+        TuningProblem(ds.train[:2], ds.vehicle, ds.r_default * 2),
+        TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, cost=CostSpec(kind="nis")),
+        TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, burn_in=0.5),
+    ]
+    assert len({a["sha256"], *(p.fingerprint()["sha256"] for p in others)}) == 6

@@ -54,7 +54,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except KeyboardInterrupt:
-        print("kftune: interrupted; finished work has been saved", file=sys.stderr)
+        print("kftune: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except KftuneError as exc:
         print(f"kftune: error: {exc}", file=sys.stderr)

@@ -1,19 +1,23 @@
 """Options shared by ``tune``, ``evaluate`` and ``compare``, and the TOML configuration.
 
 A configuration file holds the same settings as the command line; an option given on the
-command line wins over the file, the file over the defaults::
+command line wins over the file, the file over the defaults. A key that the running command
+does not use is an error, not silently ignored::
 
     dataset = "default"            # or a dataset directory (relative to this file)
-    method = "tsbo-tsp"            # tune
-    methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp"]   # compare
-    budget = 40                    # tune
+    method = "tsbo-tsp"            # tune only
+    budget = 40                    # tune only
+    timeout = 30.0                 # tune only: per-evaluation limit [s]
+    methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp"]   # compare only
+    budgets = { ga = 225, tsbo-tsp = 40 }               # compare only
     seed = 0
     workers = 1                    # processes per cost evaluation
-    timeout = 30.0                 # tune: per-evaluation limit [s]
+    burn_in = 0.0                  # [s] left out of cost and KPIs at each manoeuvre's start
 
     [cost]
     kind = "nrmse"                 # or "nis"
     weights = { beta = 5.0, r = 1.0, ay = 1.0 }
+    estimate = "posterior"         # or "prior" (see kftune.tuning.cost.CostSpec)
 
     [parameters]
     q_bounds = [1e-10, 1.0]
@@ -58,16 +62,28 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "method": str,
     "methods": list,
     "budget": int,
+    "budgets": dict,
     "seed": int,
     "workers": int,
     "timeout": (int, float),
+    "burn_in": (int, float),
     "cost": dict,
     "parameters": dict,
     "ukf": dict,
     "options": dict,
 }
+#: Keys only one command uses.
+COMMAND_KEYS = {"tune": {"method", "budget", "timeout"}, "compare": {"methods", "budgets"}}
+#: Lower limits of numeric keys: (limit, strict).
+_LIMITS = {
+    "budget": (1, False),
+    "seed": (0, False),
+    "workers": (1, False),
+    "timeout": (0, True),
+    "burn_in": (0, False),
+}
 _SECTION_KEYS = {
-    "cost": {"kind": str, "weights": dict},
+    "cost": {"kind": str, "weights": dict, "estimate": str},
     "parameters": {
         "q_bounds": list,
         "tune_r_scale": bool,
@@ -78,13 +94,15 @@ _SECTION_KEYS = {
 }
 
 
-def load_config(path: str | Path | None) -> dict[str, Any]:
+def load_config(path: str | Path | None, command: str | None = None) -> dict[str, Any]:
     """Read and check a TOML configuration; ``None`` gives an empty one.
 
-    A relative ``dataset`` is resolved against the file's directory.
+    A relative ``dataset`` is resolved against the file's directory. With ``command``,
+    keys that only another command uses are refused.
 
     Raises:
-        ConfigError: unreadable file, bad TOML, unknown key or wrong type (named).
+        ConfigError: unreadable file, bad TOML, unknown or inapplicable key, wrong type or
+            out-of-range value (named).
     """
     if path is None:
         return {}
@@ -98,6 +116,20 @@ def load_config(path: str | Path | None) -> dict[str, Any]:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"configuration file {p} is not valid TOML: {exc}") from None
     _check_keys(data, CONFIG_KEYS, str(p))
+    for key, (limit, strict) in _LIMITS.items():
+        if key in data and (data[key] <= limit if strict else data[key] < limit):
+            raise ConfigError(f"{p}: {key} must be {'>' if strict else '>='} {limit}")
+    for other, keys in COMMAND_KEYS.items():
+        if command is not None and other != command and keys & set(data):
+            raise ConfigError(
+                f"{p}: {sorted(keys & set(data))} only apply to 'kftune {other}', not to "
+                f"'kftune {command}'"
+            )
+    for method, budget in data.get("budgets", {}).items():
+        if method not in METHODS or isinstance(budget, bool) or not isinstance(budget, int):
+            raise ConfigError(f"{p} [budgets]: expected METHOD = N, got {method} = {budget!r}")
+        if budget < 1:
+            raise ConfigError(f"{p} [budgets]: {method} must be >= 1, got {budget}")
     for section, keys in _SECTION_KEYS.items():
         if section in data:
             _check_keys(data[section], keys, f"{p} [{section}]")
@@ -151,30 +183,57 @@ def pick(args: argparse.Namespace, config: dict[str, Any], key: str, default: An
 
 
 def add_command(subparsers: Any, name: str, help: str, doc: str | None) -> argparse.ArgumentParser:
-    """A subcommand parser whose ``--help`` shows the module docstring as written."""
+    """A subcommand parser whose ``--help`` shows the module docstring (as plain text)."""
     return subparsers.add_parser(
         name,
         help=help,
-        description=doc,
+        description=(doc or "").replace("``", ""),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
 
 
-def add_common(parser: argparse.ArgumentParser, *, dataset_positional: bool = True) -> None:
-    """Dataset, seed, workers, cost and parameterisation options, ``--config``, ``--json``."""
-    if dataset_positional:
-        parser.add_argument(
-            "dataset",
-            nargs="?",
-            default=None,
-            help="dataset: 'default' (the bundled one, the default), a kftune dataset "
-            "directory or manifest, or a directory in the revs-250lm layout",
-        )
+def _number(kind: type, low: float, strict: bool) -> Any:
+    """An argparse type: a number of ``kind`` above ``low`` (errors exit with code 2)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not math.isfinite(value) or (value <= low if strict else value < low):
+            raise argparse.ArgumentTypeError(
+                f"expected {'an integer' if kind is int else 'a number'} "
+                f"{'>' if strict else '>='} {low:g}, got {text!r}"
+            )
+        return value
+
+    return parse
+
+
+POSITIVE_INT = _number(int, 1, strict=False)
+NON_NEGATIVE_INT = _number(int, 0, strict=False)
+POSITIVE_FLOAT = _number(float, 0.0, strict=True)
+NON_NEGATIVE_FLOAT = _number(float, 0.0, strict=False)
+
+
+def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
+    """Dataset, ``--config``, workers, cost options, ``--json``; with ``tuning`` also the
+    seed, the parameterisation flags and ``--quiet``."""
+    parser.add_argument(
+        "dataset",
+        nargs="?",
+        default=None,
+        help="dataset: 'default' (the bundled one, the default), a kftune dataset "
+        "directory or manifest, or a directory in the revs-250lm layout",
+    )
     parser.add_argument("--config", type=Path, help="TOML file with these settings")
-    parser.add_argument("--seed", type=int, help="seed driving all randomness (default 0)")
+    if tuning:
+        parser.add_argument(
+            "--seed", type=NON_NEGATIVE_INT, help="seed driving all randomness (default 0)"
+        )
     parser.add_argument(
         "--workers",
-        type=int,
+        type=POSITIVE_INT,
         help="processes that run the manoeuvres of one cost evaluation in parallel (default 1)",
     )
     cost = parser.add_argument_group("cost")
@@ -186,9 +245,26 @@ def add_common(parser: argparse.ArgumentParser, *, dataset_positional: bool = Tr
     )
     cost.add_argument(
         "--weights",
+        type=_weights_arg,
         metavar="CH=W,...",
         help=f"NRMSE weights per channel from {list(CHANNELS)} (default beta=5,r=1,ay=1)",
     )
+    cost.add_argument(
+        "--estimate",
+        choices=("posterior", "prior"),
+        help="score yaw rate, ay and Vx with the posterior h(x+) (default, the paper) or the "
+        "one-step prediction, which cannot copy the measurement",
+    )
+    cost.add_argument(
+        "--burn-in",
+        type=NON_NEGATIVE_FLOAT,
+        metavar="SECONDS",
+        help="leave each manoeuvre's first SECONDS out of cost and KPIs (default 0)",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    if not tuning:
+        return
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     par = parser.add_argument_group("tuned parameters")
     par.add_argument(
         "--tune-r-scale",
@@ -202,8 +278,6 @@ def add_common(parser: argparse.ArgumentParser, *, dataset_positional: bool = Tr
         default=None,
         help="also tune the sigma-point parameters alpha, beta, kappa",
     )
-    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
 def parse_weights(text: str) -> dict[str, float]:
@@ -222,19 +296,32 @@ def parse_weights(text: str) -> dict[str, float]:
     return out
 
 
+def _weights_arg(text: str) -> dict[str, float]:
+    try:
+        return parse_weights(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
     """The cost from the command line and configuration."""
     from kftune.tuning.cost import CostSpec
 
     section = config.get("cost", {})
-    kind = args.cost or section.get("kind", "nrmse")
+    kwargs: dict[str, Any] = {
+        "kind": args.cost or section.get("kind", "nrmse"),
+        "estimate": args.estimate or section.get("estimate", "posterior"),
+    }
     if args.weights:
-        weights = parse_weights(args.weights)
+        kwargs["weights"] = args.weights
     elif "weights" in section:
-        weights = section["weights"]
-    else:
-        return CostSpec(kind=kind)
-    return CostSpec(kind=kind, weights=weights)
+        kwargs["weights"] = section["weights"]
+    return CostSpec(**kwargs)
+
+
+def burn_in(args: argparse.Namespace, config: dict[str, Any]) -> float:
+    """The burn-in [s] from the command line and configuration."""
+    return float(pick(args, config, "burn_in", 0.0))
 
 
 def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseParameterization:
@@ -251,7 +338,9 @@ def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseP
     for key in ("q_bounds", "r_scale_bounds"):
         if key in section:
             bounds = section[key]
-            if len(bounds) != 2:
+            if len(bounds) != 2 or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds
+            ):
                 raise ConfigError(f"[parameters] {key} must be [low, high], got {bounds!r}")
             kwargs[key] = (float(bounds[0]), float(bounds[1]))
     p = NoiseParameterization(**kwargs)

@@ -17,13 +17,13 @@ from kftune.cli import EXIT_OK
 from kftune.cli._common import (
     add_command,
     add_common,
+    burn_in,
     cost_spec,
     emit_json,
     load_config,
     parameterization,
     pick,
 )
-from kftune.errors import ConfigError
 from kftune.optim import METHODS
 
 
@@ -54,26 +54,31 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--budget",
         action="append",
+        type=_budget,
         metavar="METHOD=N",
         help="evaluation budget of a method, e.g. --budget ga=225 --budget tsbo-tsp=40 "
         "(defaults: TSBO 40, GA 225, manual 1, others 40)",
     )
-    p.add_argument(
+    again = p.add_mutually_exclusive_group()
+    again.add_argument(
         "--resume", action="store_true", help="continue the studies stored in --out/studies"
+    )
+    again.add_argument(
+        "--force",
+        action="store_true",
+        help="delete the studies stored in --out/studies and start afresh",
     )
     p.set_defaults(func=run)
 
 
-def _budgets(items: list[str] | None) -> dict[str, int]:
-    out: dict[str, int] = {}
-    for item in items or []:
-        name, sep, value = item.partition("=")
-        if not sep or name not in METHODS or not value.strip().isdigit():
-            raise ConfigError(
-                f"--budget: expected METHOD=N with METHOD one of {list(METHODS)}, got {item!r}"
-            )
-        out[name] = int(value)
-    return out
+def _budget(item: str) -> tuple[str, int]:
+    """argparse type of ``--budget METHOD=N`` (errors exit with code 2)."""
+    name, sep, value = item.partition("=")
+    if not sep or name not in METHODS or not value.strip().isdigit() or int(value) < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected METHOD=N with N >= 1 and METHOD one of {', '.join(METHODS)}, got {item!r}"
+        )
+    return name, int(value)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,16 +87,17 @@ def run(args: argparse.Namespace) -> int:
     from kftune.experiment import CompareSettings, run_compare
     from kftune.report import all_tables, write_report
 
-    config = load_config(args.config)
+    config = load_config(args.config, "compare")
     dataset = open_dataset(pick(args, config, "dataset", None))
     methods = args.methods or config.get("methods")
     settings = CompareSettings(
         **({"methods": tuple(methods)} if methods else {}),
         seed=pick(args, config, "seed", 0),
-        budgets=_budgets(args.budget),
+        budgets={**config.get("budgets", {}), **dict(args.budget or [])},
         cost=cost_spec(args, config),
         parameterization=parameterization(args, config),
         workers=pick(args, config, "workers", 1),
+        burn_in=burn_in(args, config),
         method_options=config.get("options", {}),
     )
     results = run_compare(
@@ -99,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         settings,
         resume=args.resume,
+        force=args.force,
         progress=False if (args.quiet or args.json) else None,
     )
     report = write_report(results, args.out)
@@ -108,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
             {
                 "report": str(report),
                 "results": str(args.out / "results.json"),
-                "tables": {k: t.to_records() for k, t in tables.items() if k != "per_manoeuvre"},
+                "tables": {k: t.to_records() for k, t in tables.items()},
             }
         )
     else:

@@ -16,8 +16,10 @@ from typing import Any
 
 from kftune.cli import EXIT_FAILURE, EXIT_OK
 from kftune.cli._common import (
+    NON_NEGATIVE_FLOAT,
     add_command,
     add_common,
+    burn_in,
     cost_spec,
     emit_json,
     load_config,
@@ -37,13 +39,13 @@ def register(subparsers: Any) -> None:
         "KPIs and cost of given filter parameters on a dataset split",
         __doc__,
     )
-    add_common(p)
+    add_common(p, tuning=False)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--params", "-p", type=Path, help="tuned-parameters file from 'kftune tune'")
     src.add_argument(
         "--q",
         nargs=3,
-        type=float,
+        type=NON_NEGATIVE_FLOAT,
         metavar=("QVX", "QVY", "QR"),
         help="process-noise variances [(m/s)², (m/s)², (rad/s)²]",
     )
@@ -81,6 +83,15 @@ def read_tuned(path: Path) -> dict[str, Any]:
         and all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in q)
     ):
         raise DataError(f"'q' must be 3 non-negative numbers, got {q!r}", file=str(path))
+    from kftune.filters import UKFSettings
+    from kftune.tuning.cost import CostSpec
+
+    try:  # the settings must make a filter and a cost, or the file is not usable
+        UKFSettings(**doc["ukf"]).check_dim(3)
+        CostSpec(**doc.get("cost_spec", {}))
+        float(doc["params"].get("r_scale", 1.0))
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
     return doc
 
 
@@ -110,11 +121,15 @@ def run(args: argparse.Namespace) -> int:
     if not manoeuvres:
         raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
     spec = cost_spec(args, config)
-    tuned: dict[str, Any] | None = None
+    scored_after = burn_in(args, config)
     if args.params is not None:
         tuned = read_tuned(args.params)
-        if args.cost is None and args.weights is None and "cost" not in config:
+        # unless told otherwise, score the way the parameters were tuned
+        told = args.cost or args.weights or args.estimate or "cost" in config
+        if not told:
             spec = CostSpec(**tuned.get("cost_spec", {}))
+        if args.burn_in is None and "burn_in" not in config:
+            scored_after = float(tuned.get("burn_in", 0.0))
         r_scale = float(tuned["params"].get("r_scale", 1.0))
         ukf = UKFSettings(**tuned["ukf"])
         x = np.array([*tuned["q"], r_scale])
@@ -130,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         cost=spec,
         parameterization=par,
         workers=pick(args, config, "workers", 1),
+        burn_in=scored_after,
     )
     with problem:
         try:
@@ -148,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
         "cost": cost,
         "cost_kind": spec.kind,
+        "cost_estimate": spec.estimate,
+        "burn_in": scored_after,
         "diverged": reason,
         "average": {k: _num(v) for k, v in avg.items()},
         "manoeuvres": {

@@ -15,10 +15,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kftune import __version__
-from kftune.cli import EXIT_FAILURE, EXIT_OK
+from kftune.cli import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
+    POSITIVE_FLOAT,
+    POSITIVE_INT,
     add_command,
     add_common,
+    burn_in,
     cost_spec,
     emit_json,
     load_config,
@@ -50,14 +53,18 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--budget",
         "-n",
-        type=int,
+        type=POSITIVE_INT,
         help="cost evaluations (default: the method's own — TSBO 40, GA 225, others 40)",
     )
     p.add_argument("--storage", type=Path, help="SQLite study file saving every evaluation")
     p.add_argument(
         "--resume", action="store_true", help="continue the study in --storage where it stopped"
     )
-    p.add_argument("--timeout", type=float, help="per-evaluation time limit [s]")
+    p.add_argument(
+        "--timeout",
+        type=POSITIVE_FLOAT,
+        help="per-evaluation time limit [s]; a slower evaluation fails and the run goes on",
+    )
     p.add_argument(
         "--out",
         "-o",
@@ -72,9 +79,10 @@ def run(args: argparse.Namespace) -> int:
     """Run ``kftune tune``."""
     from kftune.data import open_dataset
     from kftune.experiment import tune
+    from kftune.optim import OptimizationInterrupted
     from kftune.tuning.problem import TuningProblem
 
-    config = load_config(args.config)
+    config = load_config(args.config, "tune")
     if args.resume and args.storage is None:
         raise ConfigError("--resume needs --storage (the study file to continue)")
     if args.storage is not None and args.storage.exists() and not args.resume:
@@ -87,8 +95,6 @@ def run(args: argparse.Namespace) -> int:
     if method not in METHODS:
         raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
     budget = pick(args, config, "budget", None)
-    if budget is not None and budget < 1:
-        raise ConfigError(f"--budget must be >= 1, got {budget}")
     seed = pick(args, config, "seed", 0)
     workers = pick(args, config, "workers", 1)
     problem = TuningProblem(
@@ -98,19 +104,24 @@ def run(args: argparse.Namespace) -> int:
         cost=cost_spec(args, config),
         parameterization=parameterization(args, config),
         workers=workers,
+        burn_in=burn_in(args, config),
     )
     with problem:
-        result = tune(
-            problem,
-            method,
-            budget=budget,
-            seed=seed,
-            storage=args.storage,
-            resume=args.resume,
-            timeout=pick(args, config, "timeout", None),
-            progress=False if (args.quiet or args.json) else None,
-            options=config.get("options", {}).get(method),
-        )
+        try:
+            result = tune(
+                problem,
+                method,
+                budget=budget,
+                seed=seed,
+                storage=args.storage,
+                resume=args.resume,
+                timeout=pick(args, config, "timeout", None),
+                progress=False if (args.quiet or args.json) else None,
+                options=config.get("options", {}).get(method),
+            )
+        except OptimizationInterrupted as stop:
+            _interrupted(stop.result, problem, dataset.name, args)
+            return EXIT_INTERRUPTED
     if result.x is None:
         print(
             f"kftune: every one of {result.n_evals} evaluations failed; first reason: "
@@ -134,6 +145,26 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _interrupted(
+    result: OptimizeResult, problem: TuningProblem, dataset: str, args: argparse.Namespace
+) -> None:
+    """Ctrl-C: say what was kept, save the best point so far, and how to go on."""
+    lines = [f"kftune: interrupted after {result.n_evals} evaluations"]
+    if result.x is not None:
+        partial = args.out.with_name(args.out.stem + ".partial" + args.out.suffix)
+        doc = tuned_document(result, problem, dataset)
+        partial.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        lines.append(f"best cost so far {result.fun:.5g}, its parameters written to {partial}")
+    if args.storage is not None:
+        lines.append(
+            f"every finished evaluation is saved in {args.storage}; continue with the same "
+            "command plus --resume"
+        )
+    else:
+        lines.append("nothing else was saved (run with --storage FILE to be able to resume)")
+    print("\n".join(lines), file=sys.stderr)
+
+
 def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str) -> dict[str, Any]:
     """The tuned-parameters file: what was found, and how, in strict JSON."""
     q, r, ukf = problem.decode(result.x)
@@ -144,7 +175,12 @@ def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str)
         "method": result.method,
         "seed": result.seed,
         "cost": result.fun,
-        "cost_spec": {"kind": problem.cost_spec.kind, "weights": dict(problem.cost_spec.weights)},
+        "cost_spec": {
+            "kind": problem.cost_spec.kind,
+            "weights": dict(problem.cost_spec.weights),
+            "estimate": problem.cost_spec.estimate,
+        },
+        "burn_in": problem.burn_in,
         "n_evals": result.n_evals,
         "n_failed": result.n_failed,
         "status": result.status,

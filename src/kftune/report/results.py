@@ -32,9 +32,10 @@ class MethodRun:
         params: tuned parameters in natural units (e.g. ``{"q_vx": 1e-3, ...}``).
         best_cost: best training cost J found [-].
         n_evals: number of cost evaluations (failed ones included).
-        wall_time_s: wall time of the whole tuning run [s].
+        wall_time_s: time of the tuning run [s]: the optimiser's proposals plus the cost
+            evaluations (not the progress bar or the study's I/O, ~0.1 ms a step).
         history_cost: (n_evals,) cost of each evaluation in order (NaN where it failed).
-        history_time_s: (n_evals,) wall time since the start when each evaluation finished [s].
+        history_time_s: (n_evals,) that time accumulated up to each evaluation [s].
         metrics: split → manoeuvre name → metric → value. Metrics: the β KPIs
             ``rmse, mae, rmse_non, mae_non`` [deg] and channel RMSEs ``rmse_beta`` [deg],
             ``rmse_r`` [deg/s], ``rmse_ay`` [m/s²].

@@ -117,6 +117,9 @@ def kpi_table(results: ExperimentResults, split: str) -> Table:
         )
         for k in KPI_NAMES
     )
+    diverged = [int(m.averages.get(split, {}).get("n_diverged", 0)) for m in results.methods]
+    if any(diverged):  # the averages are NaN then; say why
+        rows = (*rows, ("Diverged manoeuvres", *diverged))
     which = "training" if split == "train" else "test"
     number = "VI" if split == "train" else "VII"
     return Table(

@@ -38,10 +38,19 @@ class CostSpec:
             which needs no reference sensor.
         weights: channel → weight W_j ≥ 0 (``"nrmse"`` only); channels from
             :data:`CHANNELS`.
+        estimate: which filter output the measured channels (r, ay, vx) are scored with.
+            ``"posterior"`` (default; the paper's "estimated states"): h(x⁺_k), after the
+            update with z_k. Because that update has already used z_k, a large process noise
+            lets the estimate copy the measurement, and the cost then rewards it (the tuned
+            yaw-rate error can fall far below the gyro's own noise). ``"prior"``: the
+            one-step prediction ẑ⁻_k = z_k − innovation_k, made before z_k is used, which
+            cannot copy it. β is a state, never measured by the filter, and is always
+            scored from the posterior.
     """
 
     kind: Literal["nrmse", "nis"] = "nrmse"
     weights: Mapping[str, float] = field(default_factory=_paper_weights)
+    estimate: Literal["posterior", "prior"] = "posterior"
 
     def __post_init__(self) -> None:
         if self.kind not in ("nrmse", "nis"):
@@ -56,6 +65,10 @@ class CostSpec:
                 )
         if self.kind == "nrmse" and not any(w > 0 for w in self.weights.values()):
             raise ConfigError("at least one cost weight must be > 0")
+        if self.estimate not in ("posterior", "prior"):
+            raise ConfigError(
+                f"cost estimate must be 'posterior' or 'prior', got {self.estimate!r}"
+            )
 
     @property
     def channels(self) -> tuple[str, ...]:

@@ -64,13 +64,21 @@ def average_kpis(per_manoeuvre: Iterable[Mapping[str, float]]) -> dict[str, floa
     """Average KPIs over manoeuvres, as the paper's Tables VI–VII do (plain mean).
 
     A NON KPI is averaged only over the manoeuvres that have nonlinear samples; it is NaN
-    when none has.
+    when none has. If the filter diverged on any manoeuvre (a row with ``diverged`` true),
+    every average is NaN — an average over the survivors would flatter the filter — and
+    ``n_diverged`` says on how many.
+
+    Returns:
+        the KPI averages, ``n_diverged`` and ``n_manoeuvres``.
     """
     rows = list(per_manoeuvre)
     if not rows:
         raise ValueError("no manoeuvres to average")
+    n_diverged = sum(1 for r in rows if r.get("diverged", 0))
     out: dict[str, float] = {}
     for name in KPI_NAMES:
         values = [r[name] for r in rows if not math.isnan(r[name])]
-        out[name] = float(np.mean(values)) if values else math.nan
+        out[name] = float(np.mean(values)) if values and not n_diverged else math.nan
+    out["n_diverged"] = n_diverged
+    out["n_manoeuvres"] = len(rows)
     return out

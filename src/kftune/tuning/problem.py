@@ -10,6 +10,8 @@ The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged fi
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import multiprocessing
 from collections.abc import Sequence
@@ -20,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from kftune.data.manoeuvre import Manoeuvre
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf
 from kftune.optim.space import Param, Space
 from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
@@ -137,13 +139,28 @@ class Evaluation:
     scores: tuple[ManoeuvreScore, ...]
 
 
-def channel_estimate(m: Manoeuvre, res: UKFResult, channel: str) -> tuple[np.ndarray, np.ndarray]:
-    """(estimate, reference) of a cost channel: β against the reference sensor [rad]; yaw
-    rate [rad/s], ay [m/s²] and Vx [m/s] estimated by h(x⁺) against their measurements."""
+def channel_estimate(
+    m: Manoeuvre, res: UKFResult, channel: str, estimate: str = "posterior"
+) -> tuple[np.ndarray, np.ndarray]:
+    """(estimate, reference) of a cost channel over the whole manoeuvre.
+
+    β [rad] against the reference sensor, from the posterior state; yaw rate [rad/s], ay
+    [m/s²] and Vx [m/s] against their measurements, estimated by h(x⁺_k) (``"posterior"``)
+    or by the one-step prediction z_k − innovation_k (``"prior"``); see
+    :class:`~kftune.tuning.cost.CostSpec`.
+    """
     if channel == "beta":
         return res.beta, m.beta_ref
     column = {"vx": 0, "ay": 1, "r": 2}[channel]
-    return res.z_hat[:, column], m.z[:, column]
+    measured = m.z[:, column]
+    if estimate == "prior":
+        return measured - res.innovation[:, column], measured
+    return res.z_hat[:, column], measured
+
+
+def first_scored(m: Manoeuvre, burn_in: float) -> int:
+    """Index of the first sample scored after a burn-in of ``burn_in`` seconds."""
+    return int(np.searchsorted(m.t - m.t[0], burn_in - 1e-9 * m.dt))
 
 
 def _score(
@@ -152,7 +169,8 @@ def _score(
     q: np.ndarray,
     r: np.ndarray,
     settings: UKFSettings,
-    channels: tuple[str, ...],
+    spec: CostSpec,
+    burn_in: float,
 ) -> ManoeuvreScore:
     res = run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
     if res.diverged:
@@ -160,11 +178,19 @@ def _score(
             f"filter diverged on manoeuvre {m.name!r} at step {res.diverged_step} "
             f"(t = {m.t[res.diverged_step]:.2f} s)"
         )
+    k0 = first_scored(m, burn_in)
+    channels = spec.channels if spec.kind == "nrmse" else ()
+    scores = {}
+    for c in channels:
+        est, ref = channel_estimate(m, res, c, spec.estimate)
+        try:
+            scores[c] = nrmse(est[k0:], ref[k0:])
+        except ValueError as exc:  # e.g. a reference that is zero throughout
+            raise DataError(
+                f"cannot score channel {c!r}: {exc}", file=f"manoeuvre {m.name!r}"
+            ) from None
     return ManoeuvreScore(
-        name=m.name,
-        n=m.n,
-        nrmse={c: nrmse(*channel_estimate(m, res, c)) for c in channels},
-        nis_sum=float(np.sum(res.nis)),
+        name=m.name, n=m.n - k0, nrmse=scores, nis_sum=float(np.sum(res.nis[k0:]))
     )
 
 
@@ -175,6 +201,9 @@ _WORKER: dict[str, Any] = {}
 def _init_worker(manoeuvres: tuple[Manoeuvre, ...], vehicle: VehicleParams) -> None:
     _WORKER["manoeuvres"] = manoeuvres
     _WORKER["vehicle"] = vehicle
+    # load the compiled kernel now, so no evaluation's timing includes it
+    m = manoeuvres[0]
+    run_ukf(m.u[:10], m.z[:10], m.dt, vehicle, np.full(3, 1e-4), np.full(3, 1e-2))
 
 
 def _score_chunk(
@@ -182,10 +211,11 @@ def _score_chunk(
     q: np.ndarray,
     r: np.ndarray,
     settings: UKFSettings,
-    channels: tuple[str, ...],
+    spec: CostSpec,
+    burn_in: float,
 ) -> list[ManoeuvreScore]:
     ms, vehicle = _WORKER["manoeuvres"], _WORKER["vehicle"]
-    return [_score(ms[i], vehicle, q, r, settings, channels) for i in indices]
+    return [_score(ms[i], vehicle, q, r, settings, spec, burn_in) for i in indices]
 
 
 class TuningProblem:
@@ -200,6 +230,14 @@ class TuningProblem:
         parameterization: what is tuned (default: the three Q entries).
         workers: processes that run the manoeuvres in parallel; 1 (default) runs them in
             this process. Use as a context manager (or call :meth:`close`) when > 1.
+        burn_in: [s] initial part of every manoeuvre left out of the cost (and of
+            :func:`assess`'s KPIs), while the filter converges from its default prior; 0
+            (default, the paper) scores every sample. Useful for segments cut out of a
+            longer recording, which start mid-manoeuvre with the filter's Vy = 0.
+
+    Raises:
+        DataError: a manoeuvre the filter cannot run (Vx ≤ 0, fewer than 2 samples after
+            the burn-in); the message names it and the sample.
 
     ``problem(x)`` returns J for a point of ``problem.space`` (natural units).
     """
@@ -213,10 +251,29 @@ class TuningProblem:
         cost: CostSpec | None = None,
         parameterization: NoiseParameterization | None = None,
         workers: int = 1,
+        burn_in: float = 0.0,
     ) -> None:
         self.manoeuvres = tuple(manoeuvres)
         if not self.manoeuvres:
             raise ConfigError("the tuning problem needs at least one manoeuvre")
+        if not (isinstance(burn_in, (int, float)) and math.isfinite(burn_in) and burn_in >= 0):
+            raise ConfigError(f"burn_in must be a number of seconds >= 0, got {burn_in!r}")
+        self.burn_in = float(burn_in)
+        for m in self.manoeuvres:
+            bad = np.flatnonzero(m.vx <= 0)
+            if bad.size:
+                raise DataError(
+                    f"measured speed vx = {m.vx[bad[0]]:g} m/s at t = {m.t[bad[0]]:.2f} s; "
+                    "the filter's model needs vx > 0 throughout (cut standstill out)",
+                    file=f"manoeuvre {m.name!r}",
+                    column="vx",
+                    row=int(bad[0]),
+                )
+            if m.n - first_scored(m, self.burn_in) < 2:
+                raise ConfigError(
+                    f"manoeuvre {m.name!r} ({m.duration:.2f} s) is shorter than the burn-in "
+                    f"of {self.burn_in:g} s"
+                )
         self.vehicle = vehicle
         self.r0 = np.asarray(r0, dtype=float)
         if self.r0.shape != (3,) or not np.all(np.isfinite(self.r0)) or np.any(self.r0 <= 0):
@@ -251,11 +308,14 @@ class TuningProblem:
         spec = self.cost_spec
         channels = spec.channels if spec.kind == "nrmse" else ()
         if self.workers == 1:
-            scores = [_score(m, self.vehicle, q, r, settings, channels) for m in self.manoeuvres]
+            scores = [
+                _score(m, self.vehicle, q, r, settings, spec, self.burn_in) for m in self.manoeuvres
+            ]
         else:
             pool = self._get_pool()
             futures = [
-                pool.submit(_score_chunk, chunk, q, r, settings, channels) for chunk in self._chunks
+                pool.submit(_score_chunk, chunk, q, r, settings, spec, self.burn_in)
+                for chunk in self._chunks
             ]
             by_index: dict[int, ManoeuvreScore] = {}
             for chunk, fut in zip(self._chunks, futures):
@@ -273,6 +333,31 @@ class TuningProblem:
                 spec.weights,
             )
         return Evaluation(cost=cost, pooled=pooled, mean_nis=mean_nis, scores=tuple(scores))
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What makes two problems the same objective, for a study to check on resume: a
+        readable summary and a SHA-256 over the manoeuvre data, vehicle, R, cost,
+        parameterisation and burn-in."""
+        h = hashlib.sha256()
+        for m in self.manoeuvres:
+            h.update(m.name.encode())
+            for a in (m.t, m.u, m.z, m.beta_ref):
+                h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+        spec = self.cost_spec
+        described = {
+            "vehicle": self.vehicle.to_dict(),
+            "r0": self.r0.tolist(),
+            "cost": {"kind": spec.kind, "weights": dict(spec.weights), "estimate": spec.estimate},
+            "parameterization": self.parameterization.to_dict(),
+            "burn_in": self.burn_in,
+        }
+        h.update(json.dumps(described, sort_keys=True).encode())
+        names = [m.name for m in self.manoeuvres]
+        return {
+            "summary": f"{len(names)} manoeuvres ({names[0]} … {names[-1]}), "
+            f"{self.vehicle.name}, cost {spec.kind}",
+            "sha256": h.hexdigest(),
+        }
 
     def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> UKFResult:
         """The filter's full output on one manoeuvre for a point."""
@@ -316,6 +401,9 @@ def assess(
 ) -> tuple[dict[str, dict[str, float]], dict[str, UKFResult]]:
     """KPIs and channel errors of a tuned filter on manoeuvres (for tables and figures).
 
+    Scored like the problem's cost: after its burn-in, with its measured-channel estimate
+    (posterior or prior). A diverged manoeuvre gets NaN metrics and ``diverged = 1``.
+
     Returns:
         (metrics, results): manoeuvre name → {``rmse, mae, rmse_non, mae_non, n_non``
         [deg] (sideslip KPIs), ``rmse_beta`` [deg], ``rmse_r`` [deg/s], ``rmse_ay``
@@ -323,20 +411,22 @@ def assess(
     """
     metrics: dict[str, dict[str, float]] = {}
     results: dict[str, UKFResult] = {}
+    estimate = problem.cost_spec.estimate
     for m in manoeuvres:
         res = problem.run(x, m)
         results[m.name] = res
+        k0 = first_scored(m, problem.burn_in)
         if res.diverged:
             metrics[m.name] = {k: math.nan for k in ("rmse", "mae", "rmse_non", "mae_non")}
             metrics[m.name].update(rmse_beta=math.nan, rmse_r=math.nan, rmse_ay=math.nan)
             metrics[m.name]["diverged"] = 1.0
             continue
-        row: dict[str, float] = dict(sideslip_kpis(res.beta, m.beta_ref, m.ay))
+        row: dict[str, float] = dict(sideslip_kpis(res.beta[k0:], m.beta_ref[k0:], m.ay[k0:]))
         row["rmse_beta"] = row["rmse"]
-        est, ref = channel_estimate(m, res, "r")
-        row["rmse_r"] = float(np.degrees(np.sqrt(np.mean((est - ref) ** 2))))
-        est, ref = channel_estimate(m, res, "ay")
-        row["rmse_ay"] = float(np.sqrt(np.mean((est - ref) ** 2)))
+        est, ref = channel_estimate(m, res, "r", estimate)
+        row["rmse_r"] = float(np.degrees(np.sqrt(np.mean((est[k0:] - ref[k0:]) ** 2))))
+        est, ref = channel_estimate(m, res, "ay", estimate)
+        row["rmse_ay"] = float(np.sqrt(np.mean((est[k0:] - ref[k0:]) ** 2)))
         row["diverged"] = 0.0
         metrics[m.name] = row
     return metrics, results
