@@ -120,6 +120,28 @@ def test_too_short():
     validate_channels(synthetic_channels(n=40), min_samples=10)
 
 
+@pytest.mark.parametrize("speed", [0.0, -1.0])
+def test_standstill_or_reversing_is_refused(speed):
+    c = synthetic_channels()
+    c["vx"] = c["vx"].copy()
+    c["vx"][77] = speed
+    e = _fails(c, row_offset=2)
+    assert (e.column, e.row) == ("vx", 79)
+    assert "vx > 0" in str(e)
+
+
+def test_minimum_length_leaves_room_for_the_noise_estimate():
+    """A manoeuvre just long enough to load is long enough for the R estimate."""
+    from kftune.data import estimate_measurement_noise
+    from kftune.data.validate import MIN_SAMPLES
+
+    c = synthetic_channels(n=MIN_SAMPLES)
+    m = Manoeuvre("short", "j-turn", "train", **c)
+    assert np.all(estimate_measurement_noise([m]) > 0)
+    with pytest.raises(DataError, match="too short"):
+        validate_channels(synthetic_channels(n=MIN_SAMPLES - 1), file="rec.csv")
+
+
 def test_bad_names_and_shapes():
     c = synthetic_channels()
     c["bad name"] = c["t"]

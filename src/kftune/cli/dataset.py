@@ -15,11 +15,12 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from kftune.data import Dataset, Manoeuvre, open_dataset, save_dataset
+if TYPE_CHECKING:  # kftune.data loads scipy: only when a verb runs, not for --help
+    from kftune.data import Dataset, Manoeuvre
 
 
 def register(subparsers: Any) -> None:
@@ -66,6 +67,7 @@ def register(subparsers: Any) -> None:
 # ------------------------------------------------------------------------------ generate
 def run_generate(args: argparse.Namespace) -> int:
     """Simulate and write the reference dataset."""
+    from kftune.data import save_dataset
     from kftune.data.generate import DEFAULT_SEED, generate_dataset
     from kftune.data.plant import SimulationError
 
@@ -136,6 +138,8 @@ def dataset_info(dataset: Dataset) -> dict[str, Any]:
 
 def run_info(args: argparse.Namespace) -> int:
     """Print a dataset summary."""
+    from kftune.data import open_dataset
+
     dataset = open_dataset(args.dataset)
     info = dataset_info(dataset)
     if args.json:
@@ -216,6 +220,8 @@ def plot_manoeuvre(m: Manoeuvre, path: Path) -> Path:
 
 def run_show(args: argparse.Namespace) -> int:
     """Plot one manoeuvre."""
+    from kftune.data import open_dataset
+
     dataset = open_dataset(args.dataset)
     if args.manoeuvre is None:
         m = dataset.manoeuvres[0]

@@ -1,6 +1,6 @@
 """``kftune demo``: the UKF on a built-in simulated manoeuvre, with sideslip KPIs.
 
-A stand-in main job until the tuning pipeline exists: a sine-steer with growing amplitude
+A one-second look at the filter without any data: a sine-steer with growing amplitude
 and a braking pulse is simulated with the single-track/Dugoff model (the plant, integrated
 with 10 RK4 sub-steps, its cornering stiffnesses off by ``--stiffness-error`` from the
 filter's, because a filter's model is never exact), seeded sensor noise is added, and the

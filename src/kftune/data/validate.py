@@ -76,8 +76,9 @@ SI_UNIT: dict[str, str] = {
     "dimensionless": "1",
 }
 
-#: Fewest samples a manoeuvre may have.
-MIN_SAMPLES = 100
+#: Fewest samples a manoeuvre may have (2 s at 100 Hz; the noise estimator of
+#: :mod:`kftune.data.noise` needs more than 130).
+MIN_SAMPLES = 200
 #: Relative tolerance of the sample time (each step within dt·(1 ± tol)).
 DT_TOLERANCE = 0.01
 
@@ -93,7 +94,7 @@ _LIMITS: dict[str, tuple[float, float, str]] = {
     "r": (-3.0, 3.0, "a yaw rate beyond ±3 rad/s (172 °/s): deg/s declared as rad/s?"),
     "ax": (-30.0, 30.0, "an acceleration beyond ±30 m/s² (3 g): wrong unit?"),
     "ay": (-30.0, 30.0, "an acceleration beyond ±30 m/s² (3 g): wrong unit?"),
-    "vx": (-0.5, 100.0, "a speed beyond 100 m/s (360 km/h) or reversing: km/h declared as m/s?"),
+    "vx": (-math.inf, 100.0, "a speed beyond 100 m/s (360 km/h): km/h declared as m/s?"),
 }
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -258,12 +259,21 @@ def _check_magnitudes(
     row_offset: int,
     files: Mapping[str, str] | None = None,
 ) -> None:
+    stopped = np.flatnonzero(arrays["vx"] <= 0.0)
+    if stopped.size:
+        raise DataError(
+            f"speed {arrays['vx'][stopped[0]]:g} m/s: the filter's single-track model needs "
+            "vx > 0 throughout (cut standstill and reversing out of the manoeuvre)",
+            file=_file_of("vx", file, files),
+            column="vx",
+            row=int(stopped[0]) + row_offset,
+        )
     for name, (lo, hi, hint) in _LIMITS.items():
         a = arrays[name]
         bad = np.flatnonzero((a < lo) | (a > hi))
         if bad.size:
             raise DataError(
-                f"implausible value {a[bad[0]]!r} (expected within [{lo:g}, {hi:g}] in SI "
+                f"implausible value {a[bad[0]]:g} (expected within [{lo:g}, {hi:g}] in SI "
                 f"units): {hint}",
                 file=_file_of(name, file, files),
                 column=name,
