@@ -173,12 +173,10 @@ def observed(problem: Problem, seed: int) -> Callable[[np.ndarray], float]:
 
 # --------------------------------------------------------------------------- methods
 #: The improved preset before the 2026-11-22 revision (its first three settings only).
-PREV_IMPROVED: dict[str, Any] = {
-    "mode": "improved",
-    "min_resolution": 0.0,
-    "tr_fe_units": "natural",
-    "max_af": 10,
-}
+PREV_IMPROVED: dict[str, Any] = {"mode": "improved", "max_af": 10}
+#: The 2026-11-22 revision as first fixed (before any benchmark): improved plus a minimum
+#: resolution and TR_FE in the unit cube. The benchmark kept only max_af="switch".
+RES_UNIT: dict[str, Any] = {"min_resolution": 1e-3, "tr_fe_units": "unit-cube"}
 #: name → (kftune method, options, per_budget). per_budget: run once per budget (TSBO);
 #: otherwise one run at the method's own largest budget, read as prefixes.
 METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
@@ -186,12 +184,15 @@ METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
     "tsbo-gp-improved": ("tsbo-gp", {"mode": "improved"}, True),
-    # ablation of the revised improved preset: the previous preset, and it plus one change
+    # ablation of the revised improved preset: the previous preset, it plus one change
+    # (prev + max_af="switch" is the revised preset, "tsbo-*-improved"), and the revision
+    # as first fixed (all three changes)
     "tsbo-tsp-improved-prev": ("tsbo-tsp", PREV_IMPROVED, True),
     "tsbo-gp-improved-prev": ("tsbo-gp", PREV_IMPROVED, True),
     "tsbo-tsp-prev+res": ("tsbo-tsp", {**PREV_IMPROVED, "min_resolution": 1e-3}, True),
     "tsbo-tsp-prev+unit-tr": ("tsbo-tsp", {**PREV_IMPROVED, "tr_fe_units": "unit-cube"}, True),
-    "tsbo-tsp-prev+af": ("tsbo-tsp", {**PREV_IMPROVED, "max_af": "switch"}, True),
+    "tsbo-tsp-improved+res+unit-tr": ("tsbo-tsp", {"mode": "improved", **RES_UNIT}, True),
+    "tsbo-gp-improved+res+unit-tr": ("tsbo-gp", {"mode": "improved", **RES_UNIT}, True),
     "tsbo-robust": ("tsbo-robust", {}, True),
     "ga": ("ga", {}, False),
     "random": ("random", {}, False),
@@ -222,7 +223,8 @@ PAIRS: list[tuple[str, str]] = [
     ("tsbo-gp-improved", "tsbo-gp-improved-prev"),
     ("tsbo-tsp-prev+res", "tsbo-tsp-improved-prev"),
     ("tsbo-tsp-prev+unit-tr", "tsbo-tsp-improved-prev"),
-    ("tsbo-tsp-prev+af", "tsbo-tsp-improved-prev"),
+    ("tsbo-tsp-improved+res+unit-tr", "tsbo-tsp-improved"),
+    ("tsbo-gp-improved+res+unit-tr", "tsbo-gp-improved"),
 ]
 
 

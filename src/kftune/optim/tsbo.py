@@ -152,8 +152,8 @@ _MODES: dict[str, dict[str, Any]] = {
         "keep_stage1_data": True,
         "min_box_halfwidth": 0.02,
         "stage2_reserve": 0.25,
-        "min_resolution": 1e-3,
-        "tr_fe_units": "unit-cube",
+        "min_resolution": 0.0,
+        "tr_fe_units": "natural",
         "max_af": "switch",
     },
 }
