@@ -111,17 +111,27 @@ All candidates exhausted
     (500^d at ε = 1e-3).
 
 Modes: ``mode="faithful"`` (default) is the paper as above. ``mode="improved"`` sets
-``keep_stage1_data=True``, ``min_box_halfwidth=0.02``, ``stage2_reserve=0.25``,
-``min_resolution=1e-3``, ``tr_fe_units="unit-cube"`` and ``max_af="switch"`` (each can also
-be set alone). The last three were added on 2026-11-22 after the UKF-tuning finding and,
-like the first three, fixed before any benchmark ran. [Evidence for the revised preset: to
-be filled in from the benchmarks.] Evidence for the first three alone
-(``benchmarks/optimizers.py``, 8 problems × budgets 40/100 × seeds 0–9, paired by seed):
-improved beat faithful in 81 runs and lost in 53 (26 ties; sign test p ≈ 0.02) with the
-tSP, 91 to 47 (22 ties; p ≈ 0.0002) with the GP, and had a better mean rank at both
-budgets for both surrogates (also on the independent seeds 100–104); the typical change is
-small (median log10 regret ratio ≈ 0), and with the tSP it is worse on noisy Branin and
-noisy Hartmann-6. So it is offered, opt-in; the default stays the paper's algorithm.
+``keep_stage1_data=True``, ``min_box_halfwidth=0.02``, ``stage2_reserve=0.25`` and
+``max_af="switch"`` (EI and CBM alternate through the whole of stage 1; the one with the
+larger gain is fixed at the switch). ``min_resolution`` (no candidate within ε of an asked
+point) and ``tr_fe_units="unit-cube"`` are options, off in both presets. Evidence
+(``benchmarks/optimizers.py``: 8 problems × budgets 40/100 × seeds 0–9, paired by seed;
+``benchmarks/ukf_tuning.py``: best cost at 40 evaluations, paired by seed):
+
+- the first three settings alone beat faithful in 81 and lost in 53 synthetic runs with the
+  tSP (sign test p ≈ 0.02), 91 to 47 with the GP (p ≈ 0.0002);
+- adding ``max_af="switch"`` beat them in 103 and lost in 53 (p ≈ 8e-5); the largest gains
+  are on Hartmann-6 and Branin, it loses on noise-free Hartmann-3 (3 to 6);
+- ``min_resolution=1e-3`` and unit-cube TR_FE, fixed a priori together with the alternation,
+  were dropped after that run: ε = 1e-3 floors the precision (that full preset did worse
+  than the alternation alone, p ≈ 0.001, winning on none of 10 seeds at Branin@100 and at
+  Hartmann-3; ε alone went 64 to 78) and unit-cube TR_FE alone lost 10 to 24 (126 ties);
+- on the UKF problem (fresh seeds 20–39) the revised preset beat faithful in 18 of 20
+  seeds with the tSP (p ≈ 0.0004) and 17 of 20 with the GP (p ≈ 0.003), by a median
+  0.0011 in cost (0.3 %); on seeds 10–19 it was 3 to 6 with the tSP, so its edge over the
+  first three settings alone on the UKF is not shown (12 to 7, p ≈ 0.36, seeds 20–39).
+
+So it is offered, opt-in; the default stays the paper's algorithm.
 """
 
 from __future__ import annotations
