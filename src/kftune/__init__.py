@@ -18,8 +18,8 @@ _LAZY = {
     "minimize": "kftune.optim.minimize",
     "OptimizeResult": "kftune.optim.result",
     "EvalRecord": "kftune.optim.result",
-    "Space": "kftune.optim.space",
-    "Param": "kftune.optim.space",
+    "Space": "kftune.space",
+    "Param": "kftune.space",
 }
 
 __all__ = ["EvalRecord", "OptimizeResult", "Param", "Space", "__version__", "minimize"]

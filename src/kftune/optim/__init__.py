@@ -15,9 +15,9 @@ from kftune.optim.ga import GeneticAlgorithm
 from kftune.optim.minimize import METHODS, OptimizationInterrupted, make_optimizer, minimize
 from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
-from kftune.optim.space import Param, Space
 from kftune.optim.study import Study, StudyError, StudyInUseError
 from kftune.optim.tsbo import TSBO
+from kftune.space import Param, Space
 
 __all__ = [
     "CMAES",

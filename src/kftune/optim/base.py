@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from kftune.optim.result import COMPLETE, FAILED, EvalRecord, best_record, jsonable
-from kftune.optim.space import Space
+from kftune.space import Space
 
 
 @dataclass(frozen=True)

@@ -44,8 +44,8 @@ import numpy as np
 
 from kftune.optim.base import ExhaustedError, Optimizer
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
-from kftune.optim.space import Space
 from kftune.optim.study import Study, StudyError
+from kftune.space import Space
 
 #: Tolerance (unit cube, max-norm) for a replayed proposal to count as the stored one.
 REPLAY_ATOL = 1e-9

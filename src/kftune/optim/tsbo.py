@@ -251,7 +251,7 @@ def stage2_box(
     then widened to at least ``min_halfwidth`` around u*_i and clipped to [0, 1].
 
     Args:
-        space: the :class:`~kftune.optim.space.Space`.
+        space: the :class:`~kftune.space.Space`.
         q_star: (d,) incumbent in natural units.
         alpha: relative half-width α (paper: 0.15), 0 < α < 1.
         min_halfwidth: lower bound on each half-width in the unit cube (0 = paper).

@@ -24,7 +24,7 @@ import numpy as np
 from kftune.data.manoeuvre import Manoeuvre
 from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf
-from kftune.optim.space import Param, Space
+from kftune.space import Param, Space
 from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
 from kftune.tuning.kpi import sideslip_kpis
 from kftune.vehicle.params import VehicleParams

@@ -1,5 +1,8 @@
 """Search spaces: named box bounds, each on a linear or a log10 scale, mapped to [0, 1]^d.
 
+Shared by the tuning problems (which define a space) and the optimisers (which search it);
+it depends on numpy only.
+
 Every optimiser in :mod:`kftune.optim` works in the unit cube ``u ∈ [0, 1]^d`` (cf. Optuna's
 ``_gp/search_space.py``: every parameter mapped to [0, 1], log scale when asked); the
 objective always receives points in natural units. For a parameter with bounds ``[lo, hi]``
