@@ -293,3 +293,17 @@ def test_ctrl_c_keeps_the_best_so_far_and_says_how_to_resume(small, tmp_path):
     )  # fmt: skip
     assert res.returncode == 130
     assert "nothing else was saved" in res.stderr and "saved in" not in res.stderr
+
+
+def test_a_reader_that_closes_early_gets_no_traceback():
+    """``kftune dataset info | true``: exit 141 as for SIGPIPE, nothing on stderr."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kftune", "dataset", "info"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader goes away before anything is written
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141
+    assert "Traceback" not in err and "BrokenPipe" not in err

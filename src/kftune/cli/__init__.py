@@ -10,12 +10,14 @@ Exit codes:
     2  usage error: bad command-line options (argparse's convention)
     3  bad input: a data file, manifest, configuration or study file is unusable
     130 interrupted (Ctrl-C); whatever finished has been saved
+    141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -27,6 +29,7 @@ EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141
 
 #: Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = ("compare", "tune", "evaluate", "report", "dataset", "demo")
@@ -52,13 +55,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
+        sys.stdout.flush()  # a closed pipe surfaces here, not at interpreter exit
+        return code
     except KeyboardInterrupt:
         print("kftune: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except KftuneError as exc:
         print(f"kftune: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except BrokenPipeError:
+        # The reader went away (| head): no traceback, and keep Python from failing again
+        # when it flushes stdout at exit (Python docs, "Note on SIGPIPE").
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":  # pragma: no cover
