@@ -6,6 +6,7 @@ Data → filter → cost → optimiser → report, one direction:
 * :mod:`kftune.filters` — the unscented Kalman filter (compiled kernel + reference path)
 * :mod:`kftune.data` — manoeuvres, loading/validation, the reference-data generator
 * :mod:`kftune.bo` — surrogates (GP, Student-t process) and acquisition functions
+* :mod:`kftune.space` — search spaces (box bounds, linear or log10, mapped to [0, 1]^d)
 * :mod:`kftune.optim` — TSBO and baselines behind one ask/tell interface; persistent studies
 * :mod:`kftune.tuning` — the filter-tuning problem: parameter space, cost, KPIs
 * :mod:`kftune.report` — paper-style tables and figures
