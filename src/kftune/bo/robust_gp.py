@@ -58,6 +58,8 @@ from kftune.bo.kernels import squared_differences
 
 _MAX_NEWTON = 200  # small noise scales need ~60 (clipped-W steps are first-order)
 _MAX_HALVINGS = 30
+#: Relative Newton step in f below which Ψ's rounding error exceeds the step's gain.
+_EXACT_STEP = 1e-8
 
 
 def _student_t_derivatives(
@@ -263,20 +265,27 @@ class RobustGaussianProcess(BoxSurrogate):
             # is at rounding level, or when 3 steps in a row that are already small have
             # neither increased Ψ nor shrunk: the rounding floor of f̂ grows with cond(I + KW).
             step_f = float(np.max(np.abs(df))) / (1.0 + float(np.max(np.abs(f))))
-            # Step halving until Ψ increases; near the mode the gain is below Ψ's rounding
-            # error, so a step that loses no more than that is accepted too.
             tol = 1e-13 * (1.0 + abs(psi))
-            step = 1.0
-            for _halving in range(_MAX_HALVINGS):
-                a_try = a + step * da
-                f_try = f + step * df
+            if step_f <= _EXACT_STEP:
+                # A step this small changes Ψ by less than Ψ's rounding error, so Ψ cannot
+                # judge it: take it whole. (Comparing would halve it at random and stop the
+                # search short of the mode, making log q depend on the start to ~1e-9.)
+                a_try, f_try = a + da, f + df
                 psi_try = psi_of(a_try, f_try)
-                if psi_try >= psi - tol:
-                    break
-                step *= 0.5
             else:
-                converged = step_f <= 1e-6
-                break  # no ascent along the Newton direction
+                # Step halving until Ψ increases; near the mode the gain is below Ψ's
+                # rounding error, so a step that loses no more than that is accepted too.
+                step = 1.0
+                for _halving in range(_MAX_HALVINGS):
+                    a_try = a + step * da
+                    f_try = f + step * df
+                    psi_try = psi_of(a_try, f_try)
+                    if psi_try >= psi - tol:
+                        break
+                    step *= 0.5
+                else:
+                    converged = step_f <= 1e-6
+                    break  # no ascent along the Newton direction
             # a stall: no gain beyond Ψ's rounding and steps no longer shrinking fast
             stalling = psi_try - psi <= tol and step_f > 0.1 * prev_step_f
             stalls = stalls + 1 if stalling else 0
