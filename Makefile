@@ -19,8 +19,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[$(EXTRAS)]"
 	@touch $(STAMP)
 
+# --force: a second `make run` starts afresh (the job takes seconds) instead of refusing to
+# overwrite the studies of the first; `kftune compare --resume` continues an interrupted one.
 run: $(STAMP)
-	$(BIN)/kftune compare --out $(REPORT)
+	$(BIN)/kftune compare --out $(REPORT) --force
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -121,6 +121,10 @@ def test_bad_option_values_exit_2_and_name_the_option(args):
         ("tune", "[options.tsbo-tsp]\nmax_fee = 3", "max_fee"),
         ("tune", "[parameters]\nq_bounds = ['a', 1]", "q_bounds must be [low, high]"),
         ("tune", "[parameters]\nq_bounds = [1, 1e-3]", "below"),
+        ("tune", "[cost]\nkind = 'mse'", "cost kind must be"),
+        ("tune", "[cost]\nweights = { beta = -1.0 }", "beta"),
+        ("compare", "[options.tsbo-gp]\nmode = 'fast'", "mode"),
+        ("compare", "[ukf]\nalpha = -1.0", "alpha"),
     ],
 )
 def test_bad_configuration_exits_3_and_names_file_and_key(tmp_path, command, text, expected):
@@ -129,6 +133,7 @@ def test_bad_configuration_exits_3_and_names_file_and_key(tmp_path, command, tex
     res = kftune(command, "--config", str(cfg), "--quiet", "--out", str(tmp_path / "o"))
     assert res.returncode == 3, res.stderr
     assert "Traceback" not in res.stderr and expected in res.stderr
+    assert str(cfg) in res.stderr, res.stderr
 
 
 def test_timeout_with_worker_pool_is_refused(small, tmp_path):
@@ -307,3 +312,42 @@ def test_a_reader_that_closes_early_gets_no_traceback():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141
     assert "Traceback" not in err and "BrokenPipe" not in err
+
+
+def test_unwritable_outputs_are_refused_before_any_work(tmp_path):
+    """Output paths are checked first: exit 3 naming the option, no traceback, and no
+    tuning run spent before a crash at the end."""
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    cases = [
+        (["tune", "-q", "--storage", str(tmp_path / "missing" / "s.db")], "--storage"),
+        (["tune", "-q", "-n", "1000", "-o", str(tmp_path / "missing" / "t.json")], "--out"),
+        (["compare", "-q", "--out", str(a_file)], "--out"),
+        (["compare", "-q", "--out", str(a_file / "sub")], "--out"),
+        (["dataset", "show", "-o", str(tmp_path)], "--out"),
+    ]
+    for args, option in cases:
+        start = time.perf_counter()
+        proc = kftune(*args)
+        assert proc.returncode == 3, (args, proc.stderr)
+        assert "Traceback" not in proc.stderr and option in proc.stderr, proc.stderr
+        assert time.perf_counter() - start < 30, args
+
+
+def test_output_checks(tmp_path):
+    from kftune.cli._common import output_dir, output_file
+    from kftune.errors import ConfigError
+
+    f = tmp_path / "f"
+    f.write_text("x")
+    assert output_file(tmp_path / "new.json", "--out") == tmp_path / "new.json"
+    assert output_dir(tmp_path / "a" / "b", "--out") == tmp_path / "a" / "b"
+    for call, path, expected in [
+        (output_file, tmp_path, "is a folder"),
+        (output_file, tmp_path / "no" / "x.json", "does not exist"),
+        (output_file, f / "x.json", "does not exist"),
+        (output_dir, f, "is a file"),
+        (output_dir, f / "a" / "b", "lies below the file"),
+    ]:
+        with pytest.raises(ConfigError, match=expected):
+            call(path, "--out")

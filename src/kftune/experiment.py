@@ -317,7 +317,8 @@ def run_compare(
         if not force:
             raise ConfigError(
                 f"{studies} already holds studies ({', '.join(p.name for p in existing)}); "
-                "resume them, or force a fresh start (which deletes them)"
+                "continue them with --resume (resume=True), or delete them and start afresh "
+                "with --force (force=True)"
             )
         for p in studies.iterdir():
             if p.suffix in (".db", ".lock") or p.name.endswith(("-wal", "-shm")):

@@ -38,12 +38,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kftune.errors import ConfigError
-from kftune.optim import METHODS
+from kftune.optim import METHODS, PeerUnavailableError, make_optimizer
 from kftune.tuning.cost import CHANNELS
 
 if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
@@ -139,10 +140,26 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
                 f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
                 f"{list(METHODS)}, got {method!r}"
             )
+        try:  # names and values, on a one-parameter space, before anything runs
+            make_optimizer(method, {"x": (0.0, 1.0)}, seed=0, **opts)
+        except PeerUnavailableError:
+            pass  # the run itself says which package is missing
+        except (ValueError, TypeError) as exc:
+            raise ConfigError(f"{p} [options.{method}]: {exc}") from None
     if "dataset" in data and data["dataset"] != "default":
         ds = Path(data["dataset"])
         data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
+    data[_FILE] = str(p)
     return data
+
+
+#: Key under which :func:`load_config` records the file it read (for error messages).
+_FILE = "_file"
+
+
+def _where(config: dict[str, Any], section: str) -> str:
+    """``"run.toml [cost]"`` — where a section's values came from, for error messages."""
+    return f"{config[_FILE]} [{section}]" if _FILE in config else f"[{section}]"
 
 
 def _check_keys(data: dict[str, Any], allowed: dict[str, Any], where: str) -> None:
@@ -316,7 +333,10 @@ def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
         kwargs["weights"] = args.weights
     elif "weights" in section:
         kwargs["weights"] = section["weights"]
-    return CostSpec(**kwargs)
+    try:
+        return CostSpec(**kwargs)
+    except ConfigError as exc:  # command-line values are checked by argparse already
+        raise ConfigError(f"{_where(config, 'cost')}: {exc}") from None
 
 
 def burn_in(args: argparse.Namespace, config: dict[str, Any]) -> float:
@@ -329,11 +349,10 @@ def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseP
     from kftune.tuning.problem import NoiseParameterization
 
     section = config.get("parameters", {})
-    ukf = config.get("ukf", {})
     kwargs: dict[str, Any] = {
         "tune_r_scale": bool(pick(args, section, "tune_r_scale", False)),
         "tune_sigma_points": bool(pick(args, section, "tune_sigma_points", False)),
-        "default_settings": _ukf_settings(ukf),
+        "default_settings": _ukf_settings(config),
     }
     for key in ("q_bounds", "r_scale_bounds"):
         if key in section:
@@ -341,25 +360,62 @@ def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseP
             if len(bounds) != 2 or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds
             ):
-                raise ConfigError(f"[parameters] {key} must be [low, high], got {bounds!r}")
+                raise ConfigError(
+                    f"{_where(config, 'parameters')}: {key} must be [low, high], got {bounds!r}"
+                )
             kwargs[key] = (float(bounds[0]), float(bounds[1]))
     p = NoiseParameterization(**kwargs)
     try:
         p.space  # noqa: B018 — validates the bounds
     except ValueError as exc:
-        raise ConfigError(f"[parameters]: {exc}") from None
+        raise ConfigError(f"{_where(config, 'parameters')}: {exc}") from None
     return p
 
 
-def _ukf_settings(section: dict[str, Any]) -> UKFSettings:
+def _ukf_settings(config: dict[str, Any]) -> UKFSettings:
     from kftune.filters import UKFSettings
 
     try:
-        s = UKFSettings(**{k: float(v) for k, v in section.items()})
+        s = UKFSettings(**{k: float(v) for k, v in config.get("ukf", {}).items()})
         s.check_dim(3)
     except ValueError as exc:
-        raise ConfigError(f"[ukf]: {exc}") from None
+        raise ConfigError(f"{_where(config, 'ukf')}: {exc}") from None
     return s
+
+
+def output_file(path: Path, option: str) -> Path:
+    """``path`` if a file can be written there; checked before any work starts.
+
+    Raises:
+        ConfigError: naming ``option``, when ``path`` is a folder or its folder is missing,
+            not a folder or not writable.
+    """
+    if path.is_dir():
+        raise ConfigError(f"{option} {path}: is a folder; expected a file name")
+    parent = path.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{option} {path}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise ConfigError(f"{option} {path}: the folder {parent} is not writable")
+    return path
+
+
+def output_dir(path: Path, option: str) -> Path:
+    """``path`` if it is, or can be created as, a writable folder; checked before any work.
+
+    Raises:
+        ConfigError: naming ``option``, when ``path`` or one of its ancestors is a file, or
+            the nearest existing ancestor is not writable.
+    """
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        where = "is a file" if existing == path else f"lies below the file {existing}"
+        raise ConfigError(f"{option} {path}: {where}; expected a folder")
+    if not os.access(existing, os.W_OK):
+        raise ConfigError(f"{option} {path}: {existing} is not writable")
+    return path
 
 
 def emit_json(obj: Any) -> None:

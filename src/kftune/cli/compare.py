@@ -21,6 +21,7 @@ from kftune.cli._common import (
     cost_spec,
     emit_json,
     load_config,
+    output_dir,
     parameterization,
     pick,
 )
@@ -88,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.report import all_tables, write_report
 
     config = load_config(args.config, "compare")
+    output_dir(args.out, "--out")
     dataset = open_dataset(pick(args, config, "dataset", None))
     methods = args.methods or config.get("methods")
     settings = CompareSettings(

@@ -67,9 +67,12 @@ def register(subparsers: Any) -> None:
 # ------------------------------------------------------------------------------ generate
 def run_generate(args: argparse.Namespace) -> int:
     """Simulate and write the reference dataset."""
+    from kftune.cli._common import output_dir
     from kftune.data import save_dataset
     from kftune.data.generate import DEFAULT_SEED, generate_dataset
     from kftune.data.plant import SimulationError
+
+    output_dir(args.out, "OUT")
 
     seed = DEFAULT_SEED if args.seed is None else args.seed
     start = time.perf_counter()
@@ -231,7 +234,9 @@ def run_show(args: argparse.Namespace) -> int:
         except KeyError as exc:
             print(f"kftune: error: {exc.args[0]}", file=sys.stderr)
             return 2
-    out = args.out if args.out is not None else Path(f"{m.name}.png")
+    from kftune.cli._common import output_file
+
+    out = output_file(args.out if args.out is not None else Path(f"{m.name}.png"), "--out")
     plot_manoeuvre(m, out)
     print(f"wrote {out}")
     return 0

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from kftune.cli import EXIT_OK
-from kftune.cli._common import add_command, emit_json
+from kftune.cli._common import add_command, emit_json, output_dir
 
 
 def register(subparsers: Any) -> None:
@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.report import ExperimentResults, all_tables, write_report
 
     results = ExperimentResults.load(args.results)
-    path = write_report(results, args.out or args.results)
+    path = write_report(results, output_dir(args.out or args.results, "--out"))
     if args.json:
         tables = all_tables(results)
         emit_json({"report": str(path), "tables": {k: t.to_records() for k, t in tables.items()}})

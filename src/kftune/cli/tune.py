@@ -25,6 +25,7 @@ from kftune.cli._common import (
     cost_spec,
     emit_json,
     load_config,
+    output_file,
     parameterization,
     pick,
 )
@@ -85,6 +86,9 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, "tune")
     if args.resume and args.storage is None:
         raise ConfigError("--resume needs --storage (the study file to continue)")
+    output_file(args.out, "--out")
+    if args.storage is not None and not args.resume:
+        output_file(args.storage, "--storage")
     if args.storage is not None and args.storage.exists() and not args.resume:
         raise ConfigError(
             f"study file {args.storage} already exists; pass --resume to continue it, or "
