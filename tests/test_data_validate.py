@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from kftune.data import Manoeuvre, load_dataset, read_columns, save_dataset, validate_channels
-from kftune.data.validate import REQUIRED_CHANNELS
+from kftune.data.validate import _LIMITS, REQUIRED_CHANNELS
 from kftune.errors import DataError
 from test_data_helpers import synthetic_channels, synthetic_dataset
 
@@ -94,7 +94,9 @@ def test_implausible_units(column, scale, hint):
     c = synthetic_channels()
     c[column] = c[column] * scale
     e = _fails(c, row_offset=2)
-    assert e.column == column and e.row is not None and e.row >= 2
+    lo, hi, _ = _LIMITS[column]
+    first = int(np.flatnonzero((c[column] < lo) | (c[column] > hi))[0])
+    assert (e.file, e.column, e.row) == ("rec.csv", column, first + 2)
     assert hint in str(e)
 
 
@@ -102,8 +104,10 @@ def test_ay_in_g_is_caught_by_kinematics():
     """Lateral acceleration in g stays within every magnitude limit; ay ≈ vx·r exposes it."""
     c = synthetic_channels()
     c["ay"] = c["ay"] / 9.81
-    e = _fails(c)
-    assert e.column == "ay" and "ay/(vx·r)" in str(e)
+    e = _fails(c, row_offset=2)
+    peak = int(np.argmax(np.abs(c["vx"] * c["r"])))  # the row the message quotes
+    assert (e.file, e.column, e.row) == ("rec.csv", "ay", peak + 2)
+    assert "ay/(vx·r)" in str(e)
 
 
 def test_opposite_sign_convention_is_caught():
@@ -111,7 +115,8 @@ def test_opposite_sign_convention_is_caught():
     c = synthetic_channels()
     c["ay"] = -c["ay"]
     e = _fails(c)
-    assert "opposite sign conventions" in str(e)
+    assert (e.file, e.column, e.row) == ("rec.csv", "ay", int(np.argmax(np.abs(c["vx"] * c["r"]))))
+    assert "opposite sign conventions" in str(e) and "ay/(vx·r) = -1" in str(e)
 
 
 def test_too_short():

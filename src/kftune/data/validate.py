@@ -207,7 +207,7 @@ def validate_channels(
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
             raise DataError(
-                f"value {a[bad[0]]!r} is not a finite number ({bad.size} such values)",
+                f"value {float(a[bad[0]])} is not a finite number ({bad.size} such values)",
                 file=_file_of(name, file, files),
                 column=name,
                 row=int(bad[0]) + row_offset,
@@ -219,7 +219,7 @@ def validate_channels(
         k = int(bad[0]) + 1
         what = "duplicated" if steps[bad[0]] == 0.0 else "decreasing"
         raise DataError(
-            f"time is {what}: t = {t[k]!r} s after t = {t[k - 1]!r} s; time must be "
+            f"time is {what}: t = {float(t[k])!r} s after t = {float(t[k - 1])!r} s; time must be "
             "strictly increasing",
             file=_file_of("t", file, files),
             column="t",
@@ -228,7 +228,7 @@ def validate_channels(
     dt = float(np.median(steps))
     if not 1e-4 <= dt <= 1.0:
         raise DataError(
-            f"sample time {dt!r} s is outside [1e-4, 1] s: is time in ms?",
+            f"sample time {float(dt)!r} s is outside [1e-4, 1] s: is time in ms?",
             file=_file_of("t", file, files),
             column="t",
         )
@@ -236,8 +236,8 @@ def validate_channels(
     if bad.size:
         k = int(bad[0]) + 1
         raise DataError(
-            f"irregular sample time: step {steps[bad[0]]!r} s from the previous row, the "
-            f"median step is {dt!r} s (tolerance {dt_tolerance:.0%}); resample the data "
+            f"irregular sample time: step {float(steps[bad[0]])!r} s from the previous row, the "
+            f"median step is {float(dt)!r} s (tolerance {dt_tolerance:.0%}); resample the data "
             "or split it at the gap",
             file=_file_of("t", file, files),
             column="t",
