@@ -56,16 +56,23 @@ def test_paper_settings_generation_layout():
     assert [len(by_gen[g]) for g in range(16)] == [15] + [14] * 15
     assert [t.acquisition for t in by_gen[0]] == ["initial"] * 15
     for g in range(1, 16):
-        origins = [t.acquisition for t in by_gen[g]]
+        origins = [t.acquisition.removesuffix("+mutation") for t in by_gen[g]]
         assert origins == ["crossover"] * 11 + ["mutation"] * 3
     # Crossover children take every gene from some individual of the previous generation
-    # (scattered crossover copies genes, it never blends them).
+    # (scattered crossover copies genes, it never blends them) — except the copies of a
+    # known point, which are mutated and say so.
     hist = ga.history
+    copies = 0
     for g in range(1, 16):
         prev_pop = _population(hist, by_gen, g - 1)
         for t in by_gen[g][:11]:
+            if t.acquisition == "crossover+mutation":
+                copies += 1
+                continue
             for j in range(3):
                 assert np.any(np.isclose(prev_pop[:, j], t.u[j], rtol=0, atol=0))
+    # All genes from one parent: 2/2^3 of the crossovers, plus identical parents.
+    assert 0.15 < copies / (15 * 11) < 0.6
 
 
 def _population(hist, by_gen, g):
@@ -110,3 +117,24 @@ def test_bad_options():
         GeneticAlgorithm({"a": (0, 1)}, elite_count=1.5)
     with pytest.raises(ValueError, match=r"population_size"):
         GeneticAlgorithm({"a": (0, 1)}, population_size=1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_no_point_is_evaluated_twice_and_failed_points_are_not_reproposed(seed):
+    """Scattered crossover copies a parent a quarter of the time in 3-d; those copies are
+    mutated into new points, so all 225 evaluations are distinct."""
+    from kftune.optim import minimize
+
+    space = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10"), "c": (0.0, 1.0)}
+
+    def f(x):
+        if x[0] > 6.0:
+            raise RuntimeError("unstable region")
+        return float((x[0] - 1) ** 2 / 10 + (np.log10(x[1]) + 4) ** 2 + (x[2] - 0.3) ** 2)
+
+    res = minimize(f, space, "ga", seed=seed)
+    u = np.array([r.u for r in res.history])
+    assert len(u) == 225 and res.n_failed > 0
+    gaps = np.max(np.abs(u[:, None, :] - u[None, :, :]), axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    assert gaps.min() > 1e-9

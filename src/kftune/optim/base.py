@@ -27,6 +27,9 @@ import numpy as np
 from kftune.optim.result import COMPLETE, FAILED, EvalRecord, best_record, jsonable
 from kftune.space import Space
 
+#: Distance (unit cube, max-norm) under which two points count as the same point.
+SAME_POINT_ATOL = 1e-9
+
 
 @dataclass(frozen=True)
 class Proposal:

@@ -27,7 +27,12 @@ MATLAB's default ``ceil(0.05·N)`` is also 1 for N = 15). So each generation has
 Documented differences from MATLAB: mutation is ``mutationgaussian``'s schedule (σ_k =
 scale·(1 − shrink·k/G) of the range at generation k of G) floored at ``min_sigma`` (1 % of
 the range) so that last-generation mutants are never clones of evaluated points, and
-children are folded back into the bounds by reflection. (MATLAB uses
+children are folded back into the bounds by reflection; and a child that copies a point
+already evaluated, or an earlier child of its generation, is mutated (with the generation's
+σ) until it is new. Scattered crossover copies a parent whenever all genes come from one
+side, 2/2^d of the time — a quarter of the crossover children for d = 3 — and MATLAB
+evaluates those copies again; here no evaluation is spent on a known point and a failed
+point is never proposed again. (MATLAB uses
 ``mutationadaptfeasible`` on bounded problems; its direction generator is not documented
 well enough to reproduce.) All operators act in the unit cube, i.e. on log10 for log-scaled
 parameters. Failed evaluations score +inf, so they rank last.
@@ -40,7 +45,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from kftune.optim.base import Optimizer, Proposal, Trial
+from kftune.optim.base import SAME_POINT_ATOL, Optimizer, Proposal, Trial
 
 
 class GeneticAlgorithm(Optimizer):
@@ -178,6 +183,20 @@ class GeneticAlgorithm(Optimizer):
             ["elite"] * self.n_elite + ["crossover"] * self.n_xover + ["mutation"] * self.n_mut
         )
         self._next = self.n_elite  # elites are not re-evaluated
+        self._mutate_copies(sigma)
+
+    def _mutate_copies(self, sigma: float) -> None:
+        """Mutate every child that repeats an evaluated point or an earlier child; its
+        origin then reads e.g. ``"crossover+mutation"``."""
+        known = [np.asarray(r.u) for r in self._history]
+        for i in range(self.n_elite, self.population_size):
+            earlier = np.asarray([*known, *self._pop[self.n_elite : i]])
+            while np.min(np.max(np.abs(earlier - self._pop[i]), axis=1)) <= SAME_POINT_ATOL:
+                self._pop[i] = reflect_unit(
+                    self._pop[i] + sigma * self.rng.standard_normal(self.space.dim)
+                )
+                if not self._origin[i].endswith("+mutation"):
+                    self._origin[i] += "+mutation"
 
 
 def rank_scaling(scores: np.ndarray, n_parents: int) -> np.ndarray:

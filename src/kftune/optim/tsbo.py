@@ -147,10 +147,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
+from kftune.optim.base import SAME_POINT_ATOL, ExhaustedError, Optimizer, Proposal, Trial
 
-#: Distance (unit cube, max-norm) under which two points count as the same point.
-SAME_POINT_ATOL = 1e-9
 #: Relative tolerance for AF ties.
 TIE_RTOL = 1e-9
 _MODES: dict[str, dict[str, Any]] = {
