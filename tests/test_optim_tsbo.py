@@ -473,3 +473,21 @@ def test_modes_are_presets_of_six_options():
     ).options()
     assert [o[k] for k in names] == [True, 0.02, 0.0, 0.0, "natural", 4]
     assert o["mode"] == "improved"
+
+
+def test_defaults_are_the_papers_table_iii():
+    """ν = 15, MAX_FE = 15, MAX_PE = 40, MAX_SM = 38, β = 0.01, α = 0.15, TR_FE = 0.01."""
+    from kftune.bo import make_surrogate
+
+    t = TSBO(BRANIN_SPACE)
+    o = t.options()
+    assert t.budget == 40 and o["surrogate"] == "tsp" and o["mode"] == "faithful"
+    assert (o["max_fe"], o["max_sm"], o["beta"], o["alpha"], o["tr_fe"]) == (
+        15,
+        38,
+        0.01,
+        0.15,
+        0.01,
+    )
+    tsp = make_surrogate("tsp")
+    assert tsp.dof == 15.0 and not tsp.fit_dof
