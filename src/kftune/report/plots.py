@@ -135,14 +135,45 @@ def cost_slice(results: ExperimentResults) -> Figure:
     ax.plot(grid, cost, color="black", lw=1.0, label="cost J (dense evaluation)")
     ax.plot(grid[idx], cost[idx], "ko", ms=5, label="surrogate training points")
     styles = {"gp": ("tsbo-gp", "GP"), "tsp": ("tsbo-tsp", "tSP")}
-    for name, fit in sl.get("fits", {}).items():
+    fits = sl.get("fits", {})
+    # The tSP filled, the GP drawn on top dashed: where the two agree both stay visible.
+    for name in sorted(fits, key=lambda n: n != "tsp"):
         key, label = styles.get(name, (name, name))
-        mean = np.asarray(fit["mean"], dtype=float)
-        std = np.asarray(fit["std"], dtype=float)
+        mean = np.asarray(fits[name]["mean"], dtype=float)
+        std = np.asarray(fits[name]["std"], dtype=float)
         colour = _colour(key)
-        ax.plot(grid, mean, color=colour, lw=1.4, label=f"{label} mean")
-        ax.fill_between(
-            grid, mean - 2 * std, mean + 2 * std, color=colour, alpha=0.18, label=f"{label} ±2 std"
+        if name == "tsp":
+            ax.plot(grid, mean, color=colour, lw=2.0, label=f"{label} mean")
+            ax.fill_between(
+                grid,
+                mean - 2 * std,
+                mean + 2 * std,
+                color=colour,
+                alpha=0.18,
+                label=f"{label} ±2 std",
+            )
+        else:
+            ax.plot(grid, mean, color=colour, lw=1.4, ls="--", label=f"{label} mean")
+            for k, edge in enumerate((mean - 2 * std, mean + 2 * std)):
+                ax.plot(
+                    grid,
+                    edge,
+                    color=colour,
+                    lw=0.9,
+                    ls=":",
+                    label=f"{label} ±2 std" if k == 0 else None,
+                )
+    if {"gp", "tsp"} <= set(fits):
+        gp, tsp = fits["gp"], fits["tsp"]
+        dmean = np.max(np.abs(np.subtract(tsp["mean"], gp["mean"])))
+        ratio = np.divide(tsp["std"], gp["std"])
+        ax.text(
+            0.02,
+            0.04,
+            f"max |mean tSP − mean GP| = {dmean:.2g}; std tSP/GP in "
+            f"[{np.min(ratio):.2f}, {np.max(ratio):.2f}]",
+            transform=ax.transAxes,
+            fontsize=8,
         )
     if sl.get("log_scale", True):
         ax.set_xscale("log")
