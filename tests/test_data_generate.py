@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-from collections import Counter
-
 import numpy as np
 import pytest
 
 pytest.importorskip("vehiclemodels")
 
-from kftune.data import bundled_dataset_path, default_dataset, save_dataset
+from kftune.data import default_dataset, save_dataset
 from kftune.data.catalogue import default_catalogue
 from kftune.data.generate import DEFAULT_SEED, TRUE_CHANNELS, generate_dataset, generate_manoeuvre
 from kftune.data.validate import REQUIRED_CHANNELS
@@ -55,36 +53,6 @@ def test_bundled_dataset_is_this_generators_output():
     spec = next(s for s in default_catalogue() if s.name == "train-04-j-turn")
     assert generate_manoeuvre(spec, DEFAULT_SEED).equals(default_dataset()["train-04-j-turn"])
     assert default_dataset().meta["generator"]["seed"] == DEFAULT_SEED
-
-
-def test_bundled_dataset_follows_the_paper_and_reaches_the_nonlinear_range():
-    ds = default_dataset()
-    assert len(ds) == 31 and ds.dt == 0.01 and ds.vehicle.name.startswith("BMW 320i")
-    assert Counter(m.kind for m in ds.train) == {
-        "braking-in-turn": 1,
-        "skidpad": 1,
-        "j-turn": 2,
-        "slalom": 2,
-        "lane-change": 2,
-    }
-    assert Counter(m.kind for m in ds.test) == {
-        "braking-in-turn": 2,
-        "skidpad": 2,
-        "j-turn": 5,
-        "slalom": 4,
-        "lane-change": 4,
-        "random-steer": 2,
-        "track-lap": 1,
-        "spiral": 3,
-    }
-    ay = np.concatenate([m.ay for m in ds.manoeuvres])
-    beta = np.degrees(np.concatenate([m.beta_ref for m in ds.manoeuvres]))
-    assert np.max(np.abs(ay)) >= 8.0
-    assert np.max(np.abs(beta)) >= 4.0
-    assert np.mean(np.abs(ay) >= 4.0) > 0.3
-    assert 15_000 <= sum(m.n for m in ds.train) <= 25_000
-    size = sum(p.stat().st_size for p in bundled_dataset_path().iterdir())
-    assert size <= 10 * 2**20
 
 
 def test_generated_channels_are_consistent():

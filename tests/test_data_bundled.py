@@ -1,0 +1,40 @@
+"""The bundled dataset as shipped: the paper's manoeuvre mix, the nonlinear range, the size
+limit. Reads the packaged files only, so it runs without the ``[simulate]`` extra."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from kftune.data import bundled_dataset_path, default_dataset
+
+
+def test_bundled_dataset_follows_the_paper_and_reaches_the_nonlinear_range():
+    ds = default_dataset()
+    assert len(ds) == 31 and ds.dt == 0.01 and ds.vehicle.name.startswith("BMW 320i")
+    assert Counter(m.kind for m in ds.train) == {
+        "braking-in-turn": 1,
+        "skidpad": 1,
+        "j-turn": 2,
+        "slalom": 2,
+        "lane-change": 2,
+    }
+    assert Counter(m.kind for m in ds.test) == {
+        "braking-in-turn": 2,
+        "skidpad": 2,
+        "j-turn": 5,
+        "slalom": 4,
+        "lane-change": 4,
+        "random-steer": 2,
+        "track-lap": 1,
+        "spiral": 3,
+    }
+    ay = np.concatenate([m.ay for m in ds.manoeuvres])
+    beta = np.degrees(np.concatenate([m.beta_ref for m in ds.manoeuvres]))
+    assert np.max(np.abs(ay)) >= 8.0
+    assert np.max(np.abs(beta)) >= 4.0
+    assert np.mean(np.abs(ay) >= 4.0) > 0.3
+    assert 15_000 <= sum(m.n for m in ds.train) <= 25_000
+    size = sum(p.stat().st_size for p in bundled_dataset_path().iterdir())
+    assert size <= 10 * 2**20
