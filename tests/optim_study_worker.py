@@ -29,9 +29,12 @@ def objective(x: np.ndarray) -> float:
 
 
 def method_options(method: str) -> dict:
-    """Options shared by the worker and the test's reference run (TSBO: no fit restarts,
-    to keep the test quick; the resume logic does not depend on them)."""
-    return {"surrogate_options": {"n_restarts": 0}} if method.startswith("tsbo") else {}
+    """Options shared by the worker and the test's reference run. TSBO: no fit restarts,
+    to keep the test quick (the resume logic does not depend on them), and MAX_FE = 4,
+    MAX_SM = 10 so that short runs go through the switch, stage 2 and the frozen surrogate."""
+    if method.startswith("tsbo"):
+        return {"surrogate_options": {"n_restarts": 0}, "max_fe": 4, "max_sm": 10}
+    return {}
 
 
 def main() -> int:

@@ -299,9 +299,13 @@ class _Evaluator:
             "fork" if sys.platform.startswith("linux") and "fork" in methods else "spawn"
         )
         parent, child = ctx.Pipe()
-        # not a daemon: the objective may start processes of its own (a tuning problem's
-        # worker pool); the worker ends when the pipe closes, and close() kills it anyway
-        self._proc = ctx.Process(target=_worker_loop, args=(self.fun, child), daemon=False)
+        # Not a daemon: the objective may start processes of its own (a tuning problem's
+        # worker pool). close() kills the worker; if this process dies first (SIGKILL), the
+        # worker sees that it was orphaned and exits (a forked child holds a copy of the
+        # parent's end of the pipe, so it would never see the pipe close).
+        self._proc = ctx.Process(
+            target=_worker_loop, args=(self.fun, child, os.getpid()), daemon=False
+        )
         self._proc.start()
         child.close()
         self._conn = parent
@@ -324,12 +328,22 @@ class _Evaluator:
         self._kill()
 
 
-def _worker_loop(fun: Callable[[np.ndarray], float], conn: Any) -> None:  # pragma: no cover
-    """Body of the evaluation worker (runs in the child process)."""
+#: [s] how often an idle evaluation worker checks that its parent is still alive.
+_ORPHAN_POLL = 0.5
+
+
+def _worker_loop(
+    fun: Callable[[np.ndarray], float], conn: Any, parent_pid: int
+) -> None:  # pragma: no cover - runs in the child process
+    """Body of the evaluation worker: evaluate what arrives on ``conn`` until the pipe
+    closes or the parent process ``parent_pid`` is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business
     conn.send(("ready", None))
     while True:
         try:
+            while not conn.poll(_ORPHAN_POLL):
+                if os.getppid() != parent_pid:
+                    return  # orphaned: nobody will read a result
             x = conn.recv()
         except (EOFError, OSError):
             return

@@ -50,8 +50,29 @@ class StudyInUseError(StudyError):
     """Another process holds the study open."""
 
 
+#: Open lock files of this process; a forked child closes its copies (see below).
+_HELD: set[Any] = set()
+
+
+def _close_inherited_locks() -> None:  # pragma: no cover - runs in forked children
+    """After ``fork``: close the child's copies of the lock files. ``flock`` belongs to the
+    open file description, which the parent keeps, so its lock stays held; but a child that
+    outlives a killed parent (an evaluation worker) no longer keeps the study locked."""
+    for fh in list(_HELD):
+        try:
+            fh.close()
+        except OSError:
+            pass
+    _HELD.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_close_inherited_locks)
+
+
 class _FileLock:
-    """Exclusive non-blocking lock on ``path`` (released by the OS when the process dies)."""
+    """Exclusive non-blocking lock on ``path`` (released by the OS when the process dies;
+    not inherited by forked children)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -73,6 +94,7 @@ class _FileLock:
             fh.close()
             return False
         self._fh = fh
+        _HELD.add(fh)
         return True
 
     def release(self) -> None:
@@ -88,6 +110,7 @@ class _FileLock:
 
                     fcntl.flock(self._fh.fileno(), fcntl.LOCK_UN)
             finally:
+                _HELD.discard(self._fh)
                 self._fh.close()
                 self._fh = None
 
@@ -124,7 +147,10 @@ class Study:
         """
         p = Path(path)
         settings = jsonable(settings)
-        lock = _FileLock(p.with_name(p.name + ".lock"))
+        # The lock sits beside the real file, so two paths to one study (a symlink, a
+        # relative and an absolute path) share it.
+        real = p.resolve()
+        lock = _FileLock(real.with_name(real.name + ".lock"))
         if not lock.acquire():
             raise StudyInUseError(
                 f"study {p} is in use by another process (lock {lock.path.name} is held); "
