@@ -139,11 +139,31 @@ def test_robust_gp_mean_errs_less_than_gp_under_outliers(case, robustness_table)
 @pytest.mark.xfail(
     strict=True,
     reason=(
-        "Measured, not assumed: the exact tSP's posterior mean has the GP's form "
-        "(Shah et al. 2014) and its ML hyperparameters with ν = 15, n = 30 are nearly "
-        "the GP's, so it inherits the GP's damage from outliers (see issue 4 report). "
-        "Only the robust GP (Student-t likelihood) is robust in the mean."
+        "Measured, not assumed: for fixed hyperparameters the exact tSP's posterior mean is "
+        "the GP's (Shah et al. 2014: linear in y; see the next test), so only its fitted "
+        "hyperparameters differ. Fitted with nu = 15 they are close to the GP's on half the "
+        "cases (error ratio tSP/GP 0.85-1.0) and far on the others, where the multivariate-t "
+        "likelihood, which penalises a large beta_n only logarithmically, picks near-zero "
+        "noise and interpolates the outliers (ratio 1.25-1.93). Only the robust GP "
+        "(Student-t noise) is robust in the mean."
     ),
 )
 def test_tsp_mean_errs_clearly_less_than_gp_under_outliers(robustness_table):
     assert all(e["tsp"] < 0.9 * e["gp"] for e in robustness_table.values())
+
+
+def test_tsp_mean_is_the_gps_at_equal_hyperparameters():
+    """The structural reason behind the xfail above: with the same kernel, noise and
+    constant mean, the tSP's posterior mean is the GP's whatever the outliers; only the
+    variance differs, by the factor (ν + βₙ − 2)/(ν + n − 2) (Shah et al. 2014, Eq. 8)."""
+    X, y = outlier_data()
+    gp = GaussianProcess(seed=0).fit(X, y)
+    Xt = np.random.default_rng(1).random((50, 2))
+    tsp = StudentTProcess(seed=0)
+    tsp.fit(X, y, theta=np.r_[gp._theta])  # the GP's standardised hyperparameters
+    a, b = gp.predict(Xt), tsp.predict(Xt)
+    np.testing.assert_allclose(b.mean, a.mean, rtol=1e-9, atol=1e-12)
+    ratio = b.variance / a.variance  # one factor for every point, > 1 with outliers
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-9)
+    assert ratio[0] > 1.0
+    assert b.dof == 15.0 + len(y) and math.isinf(a.dof)

@@ -93,6 +93,8 @@ def test_same_seed_same_run_other_seed_other_run(method):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_failures_are_recorded_and_survived(method):
+    """An exception, NaN and inf are failed evaluations with their reason; a huge finite
+    value is a value; the run goes on to its budget and never re-proposes a failed point."""
     method = _method(method)
 
     def flaky(x):
@@ -100,6 +102,10 @@ def test_failures_are_recorded_and_survived(method):
             raise RuntimeError("filter diverged")
         if x[2] > 0.8:
             return float("nan")
+        if x[2] < 0.15:
+            return -float("inf") if x[0] < 0.0 else float("inf")
+        if x[0] < -3.0:
+            return 1e300  # finite: must not break a surrogate
         return objective(x)
 
     res = _run(method, 1, flaky, budget=16)
@@ -112,11 +118,44 @@ def test_failures_are_recorded_and_survived(method):
             assert r.reason == "RuntimeError: filter diverged"
         elif x[2] > 0.8:
             assert r.state == "failed" and r.reason == "non-finite value nan"
+        elif x[2] < 0.15:
+            assert r.state == "failed" and r.reason.startswith("non-finite value")
+            assert "inf" in r.reason
         else:
-            assert r.state == "complete" and r.value == objective(x)
+            assert r.state == "complete" and r.value == flaky(x)
     assert res.n_failed == sum(r.state == "failed" for r in res.history)
     if res.fun is not None:
         assert res.fun == min(r.value for r in res.history if r.ok)
+    if method != "manual":
+        assert res.n_failed > 0
+    u = np.array([r.u for r in res.history])
+    failed = np.array([r.state == "failed" for r in res.history])
+    for i in np.flatnonzero(failed):
+        others = np.delete(u, i, axis=0)
+        gap = np.max(np.abs(others - u[i]), axis=1).min() if len(others) else np.inf
+        assert gap > 1e-9, (method, "failed point proposed again", r.u)
+
+
+def _sleepy(x):
+    if x[0] > 5.0:
+        import time
+
+        time.sleep(5.0)
+    return objective(x)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_timeouts_fail_the_evaluation_only(method):
+    method = _method(method)
+    res = minimize(_sleepy, SPACE, method, budget=8, seed=2, timeout=0.5, **_options(method))
+    assert res.n_evals == (2 if method == "manual" else 8)
+    for r in res.history:
+        if r.x[0] > 5.0:
+            assert r.state == "failed" and r.reason == "timeout after 0.5 s", r
+        else:
+            assert r.state == "complete" and r.value == objective(np.array(r.x))
+    if method != "manual":
+        assert 0 < res.n_failed < res.n_evals, [r.x for r in res.history]
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -77,9 +77,12 @@ def _student_t_derivatives(
         - math.log(sigma)
         - 0.5 * (nu + 1.0) * np.log1p(r * r / a)
     )
-    g = (nu + 1.0) * r / q
-    W = (nu + 1.0) * (a - r * r) / (q * q)
-    d3 = 2.0 * (nu + 1.0) * r * (r * r - 3.0 * a) / (q * q * q)
+    # Written as products of bounded ratios (r/q, (a − r²)/q, 1/q) so that huge residuals
+    # give the correct limits (→ 0) instead of overflowing in q² or q³.
+    rq, inv_q = r / q, 1.0 / q
+    g = (nu + 1.0) * rq
+    W = (nu + 1.0) * ((a - r * r) * inv_q) * inv_q
+    d3 = 2.0 * (nu + 1.0) * rq * ((r * r - 3.0 * a) * inv_q) * inv_q
     return logp, g, W, d3
 
 
@@ -90,11 +93,12 @@ def _student_t_param_derivatives(
     a = nu * sigma * sigma
     r2 = r * r
     q = a + r2
+    rq, inv_q, d = r / q, 1.0 / q, (a - r2) / q  # bounded ratios, as above
     out = [
         (
-            -1.0 + (nu + 1.0) * r2 / q,  # ∂ log p/∂ log σ
-            -2.0 * (nu + 1.0) * r * a / (q * q),  # ∂ g/∂ log σ
-            2.0 * a * (nu + 1.0) * (3.0 * r2 - a) / (q * q * q),  # ∂ W/∂ log σ
+            -1.0 + (nu + 1.0) * r2 * inv_q,  # ∂ log p/∂ log σ
+            -2.0 * (nu + 1.0) * rq * a * inv_q,  # ∂ g/∂ log σ
+            2.0 * a * (nu + 1.0) * ((3.0 * r2 - a) * inv_q) * inv_q * inv_q,  # ∂ W/∂ log σ
         )
     ]
     if with_nu:
@@ -104,14 +108,10 @@ def _student_t_param_derivatives(
             - 0.5 * digamma(0.5 * nu)
             - 0.5 / nu
             - 0.5 * np.log1p(r2 / a)
-            + 0.5 * (nu + 1.0) * r2 / (nu * q)
+            + 0.5 * (nu + 1.0) * r2 * inv_q / nu
         )
-        dg = r / q - (nu + 1.0) * r * s2 / (q * q)
-        dW = (
-            (a - r2) / (q * q)
-            + (nu + 1.0) * s2 / (q * q)
-            - 2.0 * (nu + 1.0) * (a - r2) * s2 / (q * q * q)
-        )
+        dg = rq - (nu + 1.0) * rq * s2 * inv_q
+        dW = d * inv_q + (nu + 1.0) * s2 * inv_q * inv_q - 2.0 * (nu + 1.0) * d * s2 * inv_q * inv_q
         out.append((nu * dlogp, nu * dg, nu * dW))  # θ = log ν: d/dθ = ν d/dν
     return out
 

@@ -28,6 +28,7 @@ naming the setting, because the replay could not reproduce the stored proposals.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sqlite3
@@ -59,10 +60,8 @@ def _close_inherited_locks() -> None:  # pragma: no cover - runs in forked child
     open file description, which the parent keeps, so its lock stays held; but a child that
     outlives a killed parent (an evaluation worker) no longer keeps the study locked."""
     for fh in list(_HELD):
-        try:
+        with contextlib.suppress(OSError):
             fh.close()
-        except OSError:
-            pass
     _HELD.clear()
 
 

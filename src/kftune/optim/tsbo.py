@@ -99,6 +99,10 @@ Failed evaluations
     imputation is recomputed at every fit, so it follows the data's scale. The failed point
     is never proposed again: its leaf is split like any evaluated leaf and candidates within
     1e-9 (unit cube, max-norm) of any asked point are removed. The incumbent ignores failures.
+Huge values
+    Finite values beyond ±1e100 (a diverging objective that still returns a number) are
+    clipped to ±1e100 for the surrogate, whose variance in the units of y would otherwise
+    overflow to inf and turn every AF value into NaN; the record keeps the true value.
 All candidates exhausted
     Only possible with degenerate boxes, or when ε has removed every candidate. Then
     ``100·d`` uniform random points over the whole unit cube (from the seeded RNG; with
@@ -151,6 +155,9 @@ from kftune.optim.base import SAME_POINT_ATOL, ExhaustedError, Optimizer, Propos
 
 #: Relative tolerance for AF ties.
 TIE_RTOL = 1e-9
+#: Values beyond ± this are clipped for the surrogate (the record keeps the true value): a
+#: variance in the units of y must stay representable (y² < 1.8e308).
+SURROGATE_Y_LIMIT = 1e100
 _MODES: dict[str, dict[str, Any]] = {
     "faithful": {
         "keep_stage1_data": False,
@@ -472,7 +479,7 @@ class TSBO(Optimizer):
             all_ok = [v for v in self._y if v is not None]
             worst = max(all_ok) if all_ok else 0.0
         y = np.array([worst if v is None else v for v in raw], dtype=float)
-        return X, y, ok, to_s
+        return X, np.clip(y, -SURROGATE_Y_LIMIT, SURROGATE_Y_LIMIT), ok, to_s
 
     def _incumbent_at(self, n: int) -> tuple[int | None, float | None]:
         """Index and value of the best successful evaluation among the first ``n``."""
