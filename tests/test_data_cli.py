@@ -92,3 +92,27 @@ def test_generate_is_bit_identical_for_a_seed(tmp_path):
     assert runs["a"]["test-09-j-turn.csv.gz"] != runs["c"]["test-09-j-turn.csv.gz"]
     res = kftune("dataset", "info", tmp_path / "a", "--json")
     assert json.loads(res.stdout)["manoeuvres"][0]["name"] == "test-09-j-turn"
+
+
+def test_generate_refuses_a_folder_in_use_and_force_replaces_only_the_dataset(tmp_path):
+    pytest.importorskip("vehiclemodels")
+    out = tmp_path / "g"
+    gen = ("dataset", "generate", out, "--quiet", "--only")
+    assert kftune(*gen, "test-09-j-turn").returncode == 0
+    (out / "notes.txt").write_text("mine")
+    res = kftune(*gen, "test-05-j-turn")
+    assert res.returncode == 3 and "not empty" in res.stderr and "--force" in res.stderr
+    res = kftune(*gen, "test-05-j-turn", "--force")
+    assert res.returncode == 0, res.stderr
+    # the old manoeuvre's file is gone, the new one is there, the user's file is untouched
+    assert sorted(p.name for p in out.iterdir()) == [
+        "manifest.toml",
+        "notes.txt",
+        "test-05-j-turn.csv.gz",
+    ]
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / "x.txt").write_text("x")
+    res = kftune("dataset", "generate", plain, "--quiet", "--only", "test-05-j-turn", "--force")
+    assert res.returncode == 3 and "only a kftune dataset" in res.stderr
+    assert (plain / "x.txt").exists()

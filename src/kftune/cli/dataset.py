@@ -45,6 +45,11 @@ def register(subparsers: Any) -> None:
         "--seed", type=int, default=None, help="sensor-noise seed (default: the bundled set's)"
     )
     gen.add_argument("--only", nargs="+", metavar="NAME", help="generate only these manoeuvres")
+    gen.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the kftune dataset already in OUT (its manifest and the files it lists)",
+    )
     gen.add_argument("--quiet", action="store_true", help="no progress output")
     gen.set_defaults(func=run_generate)
 
@@ -73,6 +78,7 @@ def run_generate(args: argparse.Namespace) -> int:
     from kftune.data.plant import SimulationError
 
     output_dir(args.out, "OUT")
+    _make_room(args.out, args.force)
 
     seed = DEFAULT_SEED if args.seed is None else args.seed
     start = time.perf_counter()
@@ -100,6 +106,33 @@ def run_generate(args: argparse.Namespace) -> int:
         f"seed {seed}) to {manifest.parent} in {elapsed:.1f} s"
     )
     return 0
+
+
+def _make_room(out: Path, force: bool) -> None:
+    """Refuse to mix a new dataset with files already in ``out``; with ``force``, delete
+    the kftune dataset there first (its manifest and the files it lists, nothing else)."""
+    from kftune.errors import ConfigError
+
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    if not force:
+        raise ConfigError(
+            f"OUT {out}: the folder is not empty; choose a new or empty folder, or pass "
+            "--force to replace the kftune dataset in it"
+        )
+    from kftune.data.io import dataset_files
+    from kftune.errors import KftuneError
+
+    try:
+        files = dataset_files(out)
+    except KftuneError as exc:
+        raise ConfigError(f"OUT {out}: --force replaces only a kftune dataset: {exc}") from None
+    root = out.resolve()
+    outside = [f for f in files if root not in f.resolve().parents]
+    if outside:
+        raise ConfigError(f"OUT {out}: its manifest lists files outside the folder: {outside[0]}")
+    for f in files:
+        f.unlink(missing_ok=True)
 
 
 # ------------------------------------------------------------------------------ info

@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from kftune.data import _libm
 from kftune.data.drivers import (
     Path,
     PathFollower,
@@ -290,7 +291,10 @@ def track_path() -> Path:
     u_main = np.array([1.0, 0.0])
     u_back = np.array([math.cos(math.radians(120.0)), math.sin(math.radians(120.0))])
     gap = -np.array([base.X[-1], base.Y[-1]])
-    main, back = np.linalg.solve(np.column_stack([u_main, u_back]), gap)
+    # 2×2 solve by Cramer's rule (no LAPACK: see data._libm)
+    det = u_main[0] * u_back[1] - u_back[0] * u_main[1]
+    main = (gap[0] * u_back[1] - u_back[0] * gap[1]) / det
+    back = (u_main[0] * gap[1] - gap[0] * u_main[1]) / det
     return Path.from_curvature(layout(1.0 + float(main), 1.0 + float(back)))
 
 
@@ -301,7 +305,7 @@ def _lap_speed_profile(path: Path, v_max: float, ay_max: float, a_acc: float, a_
     dx, dy = np.gradient(path.X, s), np.gradient(path.Y, s)
     ddx, ddy = np.gradient(dx, s), np.gradient(dy, s)
     kappa = np.abs(dx * ddy - dy * ddx)
-    kappa = np.convolve(kappa, np.ones(21) / 21.0, mode="same")
+    kappa = _libm.moving_average(np.pad(kappa, 10), 21)  # = convolve(…, "same"), no BLAS
     v = np.minimum(v_max, np.sqrt(ay_max / np.maximum(kappa, 1e-9)))
     for i in range(1, s.size):  # acceleration limit, forwards
         v[i] = min(v[i], math.sqrt(v[i - 1] ** 2 + 2.0 * a_acc * (s[i] - s[i - 1])))
@@ -309,7 +313,7 @@ def _lap_speed_profile(path: Path, v_max: float, ay_max: float, a_acc: float, a_
         v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2.0 * a_brake * (s[i + 1] - s[i])))
     # a driver blends throttle and brake over ~1 s: smooth over 30 m (no ax steps)
     width = 61
-    v = np.convolve(np.pad(v, width // 2, mode="edge"), np.ones(width) / width, mode="valid")
+    v = _libm.moving_average(np.pad(v, width // 2, mode="edge"), width)
     knots = s[::10]
     return Profile(knots, v[::10])
 

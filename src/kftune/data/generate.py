@@ -156,7 +156,9 @@ def generate_dataset(
             "understeer_gradient_rad_per_mps2": round(k_us, 6),
             "understeer_gradient_deg_per_g": round(float(np.degrees(k_us) * 9.81), 3),
         },
-        "plant_setup": {k: float(v) for k, v in vars(plant.setup).items()},
+        "plant_setup": {
+            k: v if isinstance(v, bool) else float(v) for k, v in vars(plant.setup).items()
+        },
         "sensor_model": sensors.to_dict(),
         "true_channels": dict(TRUE_CHANNELS),
     }

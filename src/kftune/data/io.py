@@ -268,7 +268,31 @@ def _find_manifest(path: Path) -> Path:
         )
     if not path.exists():
         raise DataError("dataset not found", file=str(path))
+    if path.suffix not in (".toml", ".json"):
+        raise DataError(
+            "not a dataset: expected a dataset folder or its manifest "
+            f"({' or '.join(MANIFEST_NAMES)})",
+            file=str(path),
+        )
     return path
+
+
+def dataset_files(directory: str | Path) -> list[Path]:
+    """The files of the kftune dataset in ``directory``: its manifest and the manoeuvre
+    files it lists (existing or not), nothing else.
+
+    Raises:
+        DataError: no manifest, or one that is unreadable or lists no files.
+    """
+    manifest = _find_manifest(Path(directory))
+    data = _read_manifest(manifest)
+    entries = data.get("manoeuvres")
+    if not isinstance(entries, list) or not all(
+        isinstance(e, dict) and isinstance(e.get("file"), str) for e in entries
+    ):
+        raise DataError("manifest lists no manoeuvre files", file=str(manifest))
+    base = manifest.parent
+    return [manifest, *(base / e["file"] for e in entries)]
 
 
 def load_dataset(path: str | Path | None = None) -> Dataset:

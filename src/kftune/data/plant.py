@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from kftune.data import _libm
 from kftune.errors import KftuneError
 
 #: Smallest wheel ground speed [m/s] the wrapper lets the model see (its slip divides by it).
@@ -179,7 +180,7 @@ class PlantOutputs(NamedTuple):
     @property
     def beta(self) -> np.ndarray:
         """Sideslip at the CG, atan2(vy, vx) [rad], positive = velocity left of the x axis."""
-        return np.arctan2(self.vy, self.vx)
+        return _libm.arctan2(self.vy, self.vx)
 
 
 class MultiBodyPlant:
@@ -282,8 +283,8 @@ class MultiBodyPlant:
         p = self.p
         out = np.empty((x.shape[0], 4))
         for j, (z, phi, track) in enumerate(((16, 13, p.T_f), (21, 18, p.T_r))):
-            base = x[:, z] + p.R_w * (np.cos(x[:, phi]) - 1.0)
-            half = 0.5 * track * np.sin(x[:, phi])
+            base = x[:, z] + p.R_w * (_libm.cos(x[:, phi]) - 1.0)
+            half = 0.5 * track * _libm.sin(x[:, phi])
             out[:, 2 * j] = (base - half) * p.K_zt
             out[:, 2 * j + 1] = (base + half) * p.K_zt
         return out

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from kftune.data import _libm
 from kftune.data.plant import PlantOutputs
 from kftune.vehicle.params import G
 
@@ -117,8 +118,8 @@ def measure(
     e_beta = rng.normal(0.0, model.beta_noise, n)
 
     # specific force in body axes (gravity from pitch and roll), then mounting yaw error
-    fx = out.ax * np.cos(out.pitch) - G * np.sin(out.pitch)
-    fy = out.ay * np.cos(out.roll) + G * np.sin(out.roll)
+    fx = out.ax * _libm.cos(out.pitch) - G * _libm.sin(out.pitch)
+    fy = out.ay * _libm.cos(out.roll) + G * _libm.sin(out.roll)
     cm, sm = math.cos(misalign), math.sin(misalign)
     ax_m = _quantise(cm * fx + sm * fy + b_ax + e_ax, model.accel_resolution)
     ay_m = _quantise(-sm * fx + cm * fy + b_ay + e_ay, model.accel_resolution)
@@ -130,7 +131,7 @@ def measure(
         model.steering_ratio * out.delta + hw_offset + e_hw, model.handwheel_resolution
     )
     delta_m = handwheel / model.steering_ratio
-    vx_m = wheels.mean(axis=0) / np.cos(delta_m)
+    vx_m = wheels.mean(axis=0) / _libm.cos(delta_m)
 
     beta_m = _quantise(out.beta + e_beta, model.beta_resolution)
     return {"delta": delta_m, "ax": ax_m, "ay": ay_m, "r": r_m, "vx": vx_m, "beta_ref": beta_m}
