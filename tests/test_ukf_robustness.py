@@ -52,11 +52,12 @@ def assert_flagged_not_silent(res, n: int) -> None:
 
 def test_overflowing_measurement_is_flagged_at_its_step_in_kernel_and_reference(man):
     u, z = short(man)
-    z[150, 0] = 1e160  # finite and positive, so it passes validation; the state then overflows
+    z[150, 0] = 1e90  # finite, positive and below MAX_ABS_INPUT: passes validation; the
+    # filter's state then blows up
     runs = [f(u, z, man.dt, man.params, DEFAULT_Q, man.r_var) for f in (run_ukf, run_ukf_reference)]
     for res in runs:
         assert res.diverged
-        assert res.diverged_step in (150, 151)
+        assert res.diverged_step in (150, 151, 152)
         assert_flagged_not_silent(res, N)
     assert runs[0].diverged_step == runs[1].diverged_step
     np.testing.assert_allclose(runs[0].x[:150], runs[1].x[:150], rtol=1e-9)
@@ -248,3 +249,17 @@ def test_bad_sigma_point_settings_are_refused(kwargs, match):
     u, z = np.zeros((5, 2)), np.tile([10.0, 0.0, 0.0], (5, 1))
     with pytest.raises(ValueError, match=match):
         run_ukf(u, z, 0.01, BMW, DEFAULT_Q, [0.01] * 3, settings=UKFSettings(**kwargs))
+
+
+@pytest.mark.parametrize("row", [0, 150])
+@pytest.mark.parametrize(("arg", "col"), [("z", 0), ("z", 2), ("u", 1)])
+def test_values_whose_squares_overflow_are_refused(man, row, col, arg):
+    """Beyond ±1e100 a covariance (a square) overflows: refused before the run, naming the
+    entry, whether in the first row (the default prior is built from it) or later."""
+    u, z = short(man)
+    (z if arg == "z" else u)[row, col] = 1e160
+    for f in (run_ukf, run_ukf_reference):
+        with pytest.raises(ValueError, match=rf"{arg}\[{row}, {col}\] .*1e\+160.*overflow"):
+            f(u, z, man.dt, man.params, DEFAULT_Q, man.r_var)
+    with pytest.raises(ValueError, match="overflow"):
+        run_ukf_batch(u, z, man.dt, man.params, [DEFAULT_Q], man.r_var)

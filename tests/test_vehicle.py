@@ -169,3 +169,36 @@ def test_model_refuses_bad_state_and_dt():
         step_rk4([10, 0, 0], [0, 0], BMW, 0.0)
     with pytest.raises(ValueError, match="substeps"):
         simulate([10, 0, 0], np.zeros((3, 2)), BMW, 0.01, substeps=0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("m", -1093.0, r"VehicleParams\.m must be > 0"),
+        ("Iz", 0.0, r"VehicleParams\.Iz must be > 0"),
+        ("a", -1.0, r"VehicleParams\.a must be > 0"),
+        ("C_ar", 0.0, r"VehicleParams\.C_ar must be > 0"),
+        ("h", -0.1, r"VehicleParams\.h .* must be >= 0"),
+        ("mu", 0.0, r"VehicleParams\.mu must be in \(0, 2\]"),
+        ("mu", 2.5, r"VehicleParams\.mu must be in \(0, 2\]"),
+        ("m", float("nan"), r"VehicleParams\.m must be a finite number"),
+        ("b", "1.5", r"VehicleParams\.b must be a finite number"),
+        ("Iz", True, r"VehicleParams\.Iz must be a finite number"),
+        ("steering_ratio", "x", r"VehicleParams\.steering_ratio must be a finite number"),
+        ("steering_ratio", -16.0, r"VehicleParams\.steering_ratio must be > 0"),
+        ("name", 3, r"VehicleParams\.name must be a string"),
+    ],
+)
+def test_bad_parameters_are_refused_naming_the_field(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        preset("bmw-320i").replace(**{field: value})
+
+
+def test_presets_are_valid_and_frozen():
+    import dataclasses
+
+    for name in ("bmw-320i", "revs-250lm"):
+        p = preset(name)
+        assert p.replace() == p
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            p.m = 1.0  # type: ignore[misc]

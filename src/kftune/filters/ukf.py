@@ -155,6 +155,11 @@ def _first_bad(mask: np.ndarray) -> tuple[int, ...]:
     return tuple(int(i) for i in np.argwhere(mask)[0])
 
 
+#: Largest |value| accepted in u and z: covariances are squares of such values and must stay
+#: finite in float64 (no physical signal of a car comes anywhere near it).
+MAX_ABS_INPUT = 1e100
+
+
 def _check_table(name: str, value: ArrayLike, cols: tuple[str, ...], units: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
@@ -173,6 +178,13 @@ def _check_table(name: str, value: ArrayLike, cols: tuple[str, ...], units: str)
         raise ValueError(
             f"{name}[{row}, {col}] ({cols[col]}) is {float(arr[row, col])}; all {name} values "
             "must be finite"
+        )
+    huge = np.abs(arr) > MAX_ABS_INPUT
+    if huge.any():
+        row, col = _first_bad(huge)
+        raise ValueError(
+            f"{name}[{row}, {col}] ({cols[col]}) is {float(arr[row, col])}: beyond "
+            f"±{MAX_ABS_INPUT:g}, where covariances (squares) overflow; check the units"
         )
     return np.ascontiguousarray(arr)
 

@@ -52,11 +52,19 @@ class VehicleParams:
     name: str = "vehicle"
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str):
+            raise ValueError(f"VehicleParams.name must be a string, got {self.name!r}")
         for f in fields(self):
-            if f.name in ("name", "steering_ratio"):
+            if f.name == "name":
                 continue
             value = getattr(self, f.name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
+            if f.name == "steering_ratio" and value is None:
+                continue
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+            ):
                 raise ValueError(f"VehicleParams.{f.name} must be a finite number, got {value!r}")
         positive = ("m", "Iz", "a", "b", "C_af", "C_ar", "C_x", "track_f", "track_r")
         for name in positive:
@@ -68,9 +76,7 @@ class VehicleParams:
             raise ValueError(f"VehicleParams.h (CG height) must be >= 0 m, got {self.h!r}")
         if not 0.0 < self.mu <= 2.0:
             raise ValueError(f"VehicleParams.mu must be in (0, 2], got {self.mu!r}")
-        if self.steering_ratio is not None and not (
-            math.isfinite(self.steering_ratio) and self.steering_ratio > 0
-        ):
+        if self.steering_ratio is not None and not self.steering_ratio > 0:
             raise ValueError(
                 f"VehicleParams.steering_ratio must be > 0 or None, got {self.steering_ratio!r}"
             )
