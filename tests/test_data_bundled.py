@@ -8,6 +8,8 @@ from collections import Counter
 import numpy as np
 
 from kftune.data import bundled_dataset_path, default_dataset
+from kftune.data.generate import TRUE_CHANNELS  # a table: imports no CommonRoad
+from kftune.data.validate import REQUIRED_CHANNELS
 
 
 def test_bundled_dataset_follows_the_paper_and_reaches_the_nonlinear_range():
@@ -38,3 +40,18 @@ def test_bundled_dataset_follows_the_paper_and_reaches_the_nonlinear_range():
     assert 15_000 <= sum(m.n for m in ds.train) <= 25_000
     size = sum(p.stat().st_size for p in bundled_dataset_path().iterdir())
     assert size <= 10 * 2**20
+
+
+def test_generated_channels_are_consistent():
+    """β true = atan2(vy, vx) (to storage rounding); the optical β is the true one plus
+    small noise; measured yaw rate = true + bias + noise of the sensor model's size."""
+    for m in default_dataset().manoeuvres[:8]:
+        e = m.extra
+        np.testing.assert_allclose(
+            e["beta_true"], np.arctan2(e["vy_true"], e["vx_true"]), atol=2e-6
+        )
+        d_beta = np.degrees(m.beta_ref - e["beta_true"])
+        assert 0.03 < np.std(d_beta) < 0.07 and abs(np.mean(d_beta)) < 0.01
+        d_r = np.degrees(m.r - e["r_true"])
+        assert 0.15 < np.std(d_r) < 0.25
+        assert set(m.channel_names) == set(REQUIRED_CHANNELS) | set(TRUE_CHANNELS)

@@ -10,7 +10,6 @@ pytest.importorskip("vehiclemodels")
 from kftune.data import default_dataset, save_dataset
 from kftune.data.catalogue import default_catalogue
 from kftune.data.generate import DEFAULT_SEED, TRUE_CHANNELS, generate_dataset, generate_manoeuvre
-from kftune.data.validate import REQUIRED_CHANNELS
 
 SHORT = ("train-03-j-turn", "test-09-j-turn")
 MEASURED = ("delta", "ax", "ay", "r", "vx", "beta_ref")
@@ -60,18 +59,3 @@ def test_bundled_dataset_is_this_generators_output(name):
     spec = next(s for s in default_catalogue() if s.name == name)
     assert generate_manoeuvre(spec, DEFAULT_SEED).equals(default_dataset()[name])
     assert default_dataset().meta["generator"]["seed"] == DEFAULT_SEED
-
-
-def test_generated_channels_are_consistent():
-    """β true = atan2(vy, vx) (to storage rounding); the optical β is the true one plus
-    small noise; measured yaw rate = true + bias + noise of the sensor model's size."""
-    for m in default_dataset().manoeuvres[:8]:
-        e = m.extra
-        np.testing.assert_allclose(
-            e["beta_true"], np.arctan2(e["vy_true"], e["vx_true"]), atol=2e-6
-        )
-        d_beta = np.degrees(m.beta_ref - e["beta_true"])
-        assert 0.03 < np.std(d_beta) < 0.07 and abs(np.mean(d_beta)) < 0.01
-        d_r = np.degrees(m.r - e["r_true"])
-        assert 0.15 < np.std(d_r) < 0.25
-        assert set(m.channel_names) == set(REQUIRED_CHANNELS) | set(TRUE_CHANNELS)

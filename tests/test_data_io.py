@@ -299,6 +299,12 @@ def test_mat_errors(tmp_path):
         load_mat(tmp_path / "junk.mat", USER_MAPPING, preset("bmw-320i"))
     with pytest.raises(DataError, match="struct"):
         load_mat(tmp_path / "bad.mat", USER_MAPPING, preset("bmw-320i"), struct="nothere")
+    sig = _user_signals(c)
+    sig["Speed"] = sig["Speed"] + 1j  # a complex variable is refused, not silently cut
+    scipy.io.savemat(f, sig)
+    with pytest.raises(DataError, match="complex") as info:
+        load_mat(f, USER_MAPPING, preset("bmw-320i"))
+    assert (info.value.file, info.value.column) == (str(f), "vx")
 
 
 def test_segmentation_is_deterministic_and_documented():
@@ -309,6 +315,17 @@ def test_segmentation_is_deterministic_and_documented():
     assert all(m.kind == "segment" for m in ds.manoeuvres)
     one = recording_to_dataset(c, name="rec", vehicle=preset("bmw-320i"))
     assert one.names == ("rec",) and one.manoeuvres[0].split == "train"
+    with pytest.raises(ValueError, match=r"segment_length = 1.5 s .* \(segment_length >= 2 s"):
+        recording_to_dataset(c, name="rec", vehicle=preset("bmw-320i"), segment_length=1.5)
+
+
+def test_manifest_dt_that_disagrees_with_a_file_names_the_file(tmp_path):
+    save_dataset(synthetic_dataset(1, 1), tmp_path)
+    manifest = tmp_path / "manifest.toml"
+    manifest.write_text(manifest.read_text().replace("dt = 0.01", "dt = 0.02"))
+    with pytest.raises(DataError, match="differs from the manifest's dt") as info:
+        load_dataset(tmp_path)
+    assert info.value.file.endswith(".csv.gz") and info.value.column == "t"
 
 
 def test_dataset_api():

@@ -55,8 +55,7 @@ def test_per_channel_and_pooled_over_manoeuvres():
 
 def test_bundled_dataset_r_matches_the_sensor_model():
     """On the generated data the estimate finds the sensor model's white noise (noise +
-    resolution; the biases are constant and invisible to it)."""
-    pytest.importorskip("vehiclemodels")
+    resolution; the biases are constant and invisible to it). Needs no CommonRoad."""
     from kftune.data.sensors import SensorModel
 
     ds = open_dataset(None)

@@ -165,6 +165,10 @@ def test_per_axle_tyres_change_only_the_lateral_stiffness(plant):
     f0, f1 = plant.derivatives(list(x), 0.0, 0.0), softer.derivatives(list(x), 0.0, 0.0)
     assert f1[5] != f0[5]  # yaw acceleration responds to the front cornering force
     assert abs(f1[5]) < abs(f0[5])
+    assert f1[23:27] == f0[23:27]  # wheel spin (ω̇ of the four wheels): longitudinal only
+    # Straight ahead there is no slip angle: the lateral stiffness changes nothing at all.
+    x = list(plant.initial_state(20.0, delta=0.0))
+    assert softer.derivatives(list(x), 0.0, 0.0) == plant.derivatives(list(x), 0.0, 0.0)
 
 
 def test_wheel_speed_guard_replaces_division_by_zero(plant):

@@ -39,6 +39,7 @@ import numpy as np
 from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
+    MIN_SAMPLES,
     REQUIRED_CHANNELS,
     SI_UNIT,
     check_channel_name,
@@ -377,6 +378,14 @@ def load_dataset(path: str | Path | None = None) -> Dataset:
             raise DataError(f"manoeuvre {m_name!r} points at missing file {rel!r}", file=mfile)
         channels = read_csv(csv_path, factors)
         validate_channels(channels, file=str(csv_path), row_offset=2)
+        step = float(np.median(np.diff(channels["t"])))
+        if abs(step - dt) > 0.01 * dt:
+            raise DataError(
+                f"sample time {step!r} s (median step) differs from the manifest's dt = "
+                f"{dt!r} s by more than 1 %",
+                file=str(csv_path),
+                column="t",
+            )
         manoeuvres.append(
             _manoeuvre(
                 channels,
@@ -676,6 +685,12 @@ def read_mat(
                 f"variable {src.name!r} not found; the file has {known}", file=file, column=channel
             )
         a = np.asarray(container[src.name])
+        if np.iscomplexobj(a):
+            raise DataError(
+                f"variable {src.name!r} is complex; expected real numbers",
+                file=file,
+                column=channel,
+            )
         if a.ndim == 2 and 1 in a.shape:
             a = a.ravel()
         if a.ndim != 1 or not np.issubdtype(a.dtype, np.number):
@@ -722,6 +737,14 @@ def recording_to_dataset(
             raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
         k = max(1, round(float(t[-1] - t[0]) / segment_length))
         bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
+        shortest = min(b - a for a, b in itertools.pairwise(bounds))
+        if shortest < MIN_SAMPLES:
+            dt = float(np.median(np.diff(t)))
+            raise ValueError(
+                f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
+                f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
+                f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
+            )
     manoeuvres = []
     width = max(2, len(str(len(bounds) - 1)))
     for i, (a, b) in enumerate(itertools.pairwise(bounds)):
