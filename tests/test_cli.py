@@ -115,8 +115,11 @@ def test_bad_option_values_exit_2_and_name_the_option(args):
     [
         ("tune", "q_bounds = [1e-3, 1]", "unknown key 'q_bounds'"),  # belongs in [parameters]
         ("tune", "seed = -2", "seed must be >= 0"),
-        ("tune", "methods = ['ga']", "only apply to 'kftune compare'"),
-        ("compare", "budget = 3", "only apply to 'kftune tune'"),
+        ("tune", "methods = ['ga']", "'methods' only applies to kftune compare"),
+        ("compare", "budget = 3", "'budget' only applies to kftune tune"),
+        ("evaluate", "seed = 3", "'seed' only applies to kftune compare and kftune tune"),
+        ("evaluate", "[options.ga]\npopulation_size = 4", "'options' only applies"),
+        ("evaluate", "method = 'ga'", "'method' only applies to kftune tune"),
         ("compare", "[budgets]\nga = 0", "ga must be >= 1"),
         ("tune", "[options.tsbo-tsp]\nmax_fee = 3", "max_fee"),
         ("tune", "[parameters]\nq_bounds = ['a', 1]", "q_bounds must be [low, high]"),
@@ -130,7 +133,8 @@ def test_bad_option_values_exit_2_and_name_the_option(args):
 def test_bad_configuration_exits_3_and_names_file_and_key(tmp_path, command, text, expected):
     cfg = tmp_path / "run.toml"
     cfg.write_text(text + "\n")
-    res = kftune(command, "--config", str(cfg), "--quiet", "--out", str(tmp_path / "o"))
+    extra = ("--manual",) if command == "evaluate" else ("--quiet", "--out", str(tmp_path / "o"))
+    res = kftune(command, "--config", str(cfg), *extra)
     assert res.returncode == 3, res.stderr
     assert "Traceback" not in res.stderr and expected in res.stderr
     assert str(cfg) in res.stderr, res.stderr
@@ -351,3 +355,23 @@ def test_output_checks(tmp_path):
     ]:
         with pytest.raises(ConfigError, match=expected):
             call(path, "--out")
+
+
+def test_a_filter_that_diverges_everywhere_fails_cleanly(tmp_path):
+    """Every evaluation diverges (yaw inertia 1 kg m², Q pinned near 1e-10): ``tune`` and
+    ``compare`` exit 1 with a message naming the cause — no traceback, also not from the
+    untimed warm-up evaluation of ``compare``."""
+    ds = default_dataset().subset(("train-01-braking-in-turn", "test-05-j-turn"))
+    broken = type(ds)(ds.name, ds.vehicle.replace(Iz=1.0), ds.dt, ds.manoeuvres)
+    save_dataset(broken, tmp_path / "d")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[parameters]\nq_bounds = [1e-10, 1.1e-10]\n")
+    common = ("--config", str(cfg), "--quiet")
+    res = kftune("tune", str(tmp_path / "d"), "-n", "3", "-o", str(tmp_path / "t.json"), *common)
+    assert res.returncode == 1, res.stderr
+    assert "Traceback" not in res.stderr and "every one of 3 evaluations failed" in res.stderr
+    assert "diverged" in res.stderr
+    res = kftune("compare", str(tmp_path / "d"), "--methods", "manual", "random",
+                 "--budget", "random=3", "--out", str(tmp_path / "r"), *common)  # fmt: skip
+    assert res.returncode == 1, res.stderr
+    assert "Traceback" not in res.stderr and "every evaluation of 'manual' failed" in res.stderr

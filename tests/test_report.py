@@ -166,3 +166,19 @@ def test_write_report_writes_everything(results, tmp_path):
         assert (tmp_path / "rep2" / "tables" / f"{csv}.csv").read_text() == (
             tmp_path / "rep" / "tables" / f"{csv}.csv"
         ).read_text()
+
+
+def test_values_that_print_alike_are_all_bold():
+    from kftune.report.tables import Table
+
+    t = Table(
+        "t",
+        ("KPI", "A", "B", "C"),
+        (("x", 0.4541, 0.4539, 0.5),),
+        groups=(((0, 1), (0, 2), (0, 3)),),
+    )
+    assert t.bold == {(0, 2)}  # full precision: one best
+    assert (
+        t.to_markdown()
+        == "| KPI | A | B | C |\n| --- | --- | --- | --- |\n| x | **0.454** | **0.454** | 0.500 |"
+    )

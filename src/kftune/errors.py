@@ -32,5 +32,10 @@ class DataError(KftuneError, ValueError):
         self.row = row
 
 
+class RunFailedError(KftuneError):
+    """A run produced no result although its input was valid (e.g. every evaluation of a
+    tuning run failed); the CLI exits with 1, not with the bad-input code."""
+
+
 class ConfigError(KftuneError, ValueError):
     """An option or configuration value is invalid; the message names it."""

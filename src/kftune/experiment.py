@@ -7,6 +7,7 @@ the CLI's ``tune`` and ``compare`` call it.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import math
 import platform
@@ -20,13 +21,19 @@ import numpy as np
 from kftune import __version__
 from kftune.bo import make_surrogate
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import METHODS, OptimizeResult, make_optimizer, minimize
 from kftune.progress import ProgressBar
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.kpi import average_kpis
-from kftune.tuning.problem import Q_NAMES, NoiseParameterization, TuningProblem, assess
+from kftune.tuning.problem import (
+    Q_NAMES,
+    FilterDivergedError,
+    NoiseParameterization,
+    TuningProblem,
+    assess,
+)
 
 #: Labels used in tables and legends (paper Table V naming).
 LABELS: dict[str, str] = {
@@ -195,9 +202,10 @@ def method_run(
         (the :class:`MethodRun`, manoeuvre → β estimate [rad] for every manoeuvre).
     """
     if result.x is None:
-        raise RuntimeError(
+        raise RunFailedError(
             f"every evaluation of {key!r} failed ({result.n_failed} of {result.n_evals}); "
-            f"first reason: {result.history[0].reason if result.history else 'none'}"
+            f"first reason: {result.history[0].reason if result.history else 'none'}; "
+            "leave the method out (--methods) or widen its search space"
         )
     # time = what the optimiser and the evaluations took (stored in the study, so a resumed
     # run reports the same as an uninterrupted one; the study's own I/O is ~0.1 ms a step)
@@ -342,7 +350,8 @@ def run_compare(
     with problem:
         # one untimed evaluation first, so no method's timing includes loading the compiled
         # kernel from numba's cache (or compiling it) and starting worker processes
-        problem(manual_point(problem.parameterization))
+        with contextlib.suppress(FilterDivergedError):  # the manual run will record it
+            problem(manual_point(problem.parameterization))
         for method in settings.methods:
             storage = studies / f"{method}.db"
             result = tune(

@@ -22,7 +22,7 @@ import sys
 from collections.abc import Sequence
 
 from kftune import __version__
-from kftune.errors import KftuneError
+from kftune.errors import KftuneError, RunFailedError
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -61,6 +61,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("kftune: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except RunFailedError as exc:
+        print(f"kftune: failed: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
     except KftuneError as exc:
         print(f"kftune: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -73,8 +73,16 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "ukf": dict,
     "options": dict,
 }
-#: Keys only one command uses.
-COMMAND_KEYS = {"tune": {"method", "budget", "timeout"}, "compare": {"methods", "budgets"}}
+#: Keys that only some commands use (the others refuse them rather than ignore them).
+USED_ONLY_BY: dict[str, set[str]] = {
+    "method": {"tune"},
+    "budget": {"tune"},
+    "timeout": {"tune"},
+    "methods": {"compare"},
+    "budgets": {"compare"},
+    "seed": {"tune", "compare"},
+    "options": {"tune", "compare"},
+}
 #: Lower limits of numeric keys: (limit, strict).
 _LIMITS = {
     "budget": (1, False),
@@ -120,12 +128,15 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     for key, (limit, strict) in _LIMITS.items():
         if key in data and (data[key] <= limit if strict else data[key] < limit):
             raise ConfigError(f"{p}: {key} must be {'>' if strict else '>='} {limit}")
-    for other, keys in COMMAND_KEYS.items():
-        if command is not None and other != command and keys & set(data):
-            raise ConfigError(
-                f"{p}: {sorted(keys & set(data))} only apply to 'kftune {other}', not to "
-                f"'kftune {command}'"
-            )
+    if command is not None:
+        for key in sorted(data):
+            users = USED_ONLY_BY.get(key)
+            if users is not None and command not in users:
+                raise ConfigError(
+                    f"{p}: '{key}' only applies to "
+                    f"{' and '.join(f'kftune {c}' for c in sorted(users))}, not to "
+                    f"'kftune {command}'"
+                )
     for method, budget in data.get("budgets", {}).items():
         if method not in METHODS or isinstance(budget, bool) or not isinstance(budget, int):
             raise ConfigError(f"{p} [budgets]: expected METHOD = N, got {method} = {budget!r}")

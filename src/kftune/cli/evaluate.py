@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         assess,
     )
 
-    config = load_config(args.config)
+    config = load_config(args.config, "evaluate")
     dataset = open_dataset(pick(args, config, "dataset", None))
     manoeuvres = {
         "train": dataset.train,

@@ -8,6 +8,7 @@ names another).
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +30,15 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``kftune report``."""
     from kftune.report import ExperimentResults, all_tables, write_report
+    from kftune.report.results import TRACES_FILE
 
     results = ExperimentResults.load(args.results)
+    if not results.traces:
+        print(
+            f"kftune: warning: no {TRACES_FILE} beside results.json in {args.results}: the "
+            "β figures (paper Figs. 8–10) are left out",
+            file=sys.stderr,
+        )
     path = write_report(results, output_dir(args.out or args.results, "--out"))
     if args.json:
         tables = all_tables(results)

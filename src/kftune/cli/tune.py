@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kftune import __version__
-from kftune.cli import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
     POSITIVE_FLOAT,
     POSITIVE_INT,
@@ -29,7 +29,7 @@ from kftune.cli._common import (
     parameterization,
     pick,
 )
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import METHODS
 
 if TYPE_CHECKING:
@@ -127,12 +127,10 @@ def run(args: argparse.Namespace) -> int:
             _interrupted(stop.result, problem, dataset.name, args)
             return EXIT_INTERRUPTED
     if result.x is None:
-        print(
-            f"kftune: every one of {result.n_evals} evaluations failed; first reason: "
-            f"{result.history[0].reason if result.history else 'none'}",
-            file=sys.stderr,
+        raise RunFailedError(
+            f"every one of {result.n_evals} evaluations failed; first reason: "
+            f"{result.history[0].reason if result.history else 'none'}"
         )
-        return EXIT_FAILURE
     doc = tuned_document(result, problem, dataset.name)
     args.out.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
     if args.json:

@@ -96,7 +96,10 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
                 "cost_slice.png",
                 "Surrogate fits of the cost (cf. paper Fig. 2)",
                 "A one-dimensional slice of the training cost through the TSBO-tSP optimum, "
-                "with GP and Student-t process fits to a few of its points.",
+                "with GP and Student-t process fits to a few of its points. Where the two "
+                "curves coincide they do so by construction: for equal hyperparameters the "
+                "tSP's posterior mean is the GP's and only its variance is rescaled "
+                "(Shah et al. 2014); the figure prints the largest difference.",
             )
         )
 
@@ -107,6 +110,9 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
     for file, heading, caption in figures:
         md += [f"## {heading}", "", caption, "", f"![{heading}](figures/{file})", ""]
+    if not results.traces:
+        md += ["β figures (cf. paper Figs. 8–10): not available, the stored results have no "
+               "β traces (`traces.npz`).", ""]  # fmt: skip
     md += [
         "Per-manoeuvre metrics of every method: `tables/per_manoeuvre.csv`; "
         "all numbers: `results.json`.",

@@ -28,15 +28,40 @@ CHANNEL_METRICS = {"rmse_beta": "β", "rmse_r": "yaw rate", "rmse_ay": "ay"}
 
 @dataclass(frozen=True)
 class Table:
-    """A titled table. ``bold`` marks (row, column) cells holding the best value."""
+    """A titled table. ``groups`` are the sets of (row, column) cells that compete (lower
+    is better): a method's cost against the others', a KPI across methods."""
 
     title: str
     header: tuple[str, ...]
     rows: tuple[tuple[object, ...], ...]
-    bold: frozenset[tuple[int, int]] = frozenset()
+    groups: tuple[tuple[tuple[int, int], ...], ...] = ()
+
+    def best_cells(self, digits: int | None = None) -> frozenset[tuple[int, int]]:
+        """Cells holding the smallest finite value of their group; with ``digits``, compared
+        as :meth:`to_markdown` shows them, so values that print alike are all best."""
+        best = set()
+        for group in self.groups:
+            values = {
+                (i, j): v
+                for i, j in group
+                if isinstance(v := self.rows[i][j], float) and math.isfinite(v)
+            }
+            if digits is not None:
+                values = {c: float(_fmt(v, digits)) for c, v in values.items()}
+            if values:
+                low = min(values.values())
+                best.update(c for c, v in values.items() if v == low)
+        return frozenset(best)
+
+    @property
+    def bold(self) -> frozenset[tuple[int, int]]:
+        """The best cells at full precision."""
+        return self.best_cells()
 
     def to_markdown(self, digits: int = 3) -> str:
-        """GitHub-flavoured Markdown, best values in bold."""
+        """GitHub-flavoured Markdown, the best value of each group in bold (every value
+        that prints as the best)."""
+        bold = self.best_cells(digits)
         lines = [
             "| " + " | ".join(self.header) + " |",
             "|" + "|".join(" --- " for _ in self.header) + "|",
@@ -45,7 +70,7 @@ class Table:
             cells = []
             for j, cell in enumerate(row):
                 text = _fmt(cell, digits)
-                cells.append(f"**{text}**" if (i, j) in self.bold else text)
+                cells.append(f"**{text}**" if (i, j) in bold else text)
             lines.append("| " + " | ".join(cells) + " |")
         return "\n".join(lines)
 
@@ -78,19 +103,9 @@ def _fmt(x: object, digits: int) -> str:
     return f"{x:.{digits}f}"
 
 
-def _best_cells(rows: Sequence[Sequence[object]], first_col: int) -> frozenset[tuple[int, int]]:
-    """(row, col) of the smallest finite value in each row, from ``first_col`` on."""
-    bold = set()
-    for i, row in enumerate(rows):
-        values = [
-            (v, j)
-            for j, v in enumerate(row)
-            if j >= first_col and isinstance(v, float) and math.isfinite(v)
-        ]
-        if values:
-            best = min(v for v, _ in values)
-            bold.update((i, j) for v, j in values if v == best)
-    return frozenset(bold)
+def _row_groups(rows: Sequence[Sequence[object]], first_col: int) -> tuple:
+    """One group per row: the cells from ``first_col`` on (a KPI across methods)."""
+    return tuple(tuple((i, j) for j in range(first_col, len(row))) for i, row in enumerate(rows))
 
 
 def cost_table(results: ExperimentResults) -> Table:
@@ -99,12 +114,11 @@ def cost_table(results: ExperimentResults) -> Table:
     for m in results.methods:
         per_eval = m.wall_time_s / m.n_evals * 1e3 if m.n_evals else math.nan
         rows.append((m.label, float(m.best_cost), int(m.n_evals), float(m.wall_time_s), per_eval))
-    bold = {(i, 1) for i, _ in enumerate(rows) if rows[i][1] == min(r[1] for r in rows)}
     return Table(
         title="Best cost and tuning effort (training set; cf. paper Table V)",
         header=("Method", "Best cost J [-]", "Evaluations", "Tuning time [s]", "Time/eval [ms]"),
         rows=tuple(rows),
-        bold=frozenset(bold),
+        groups=(tuple((i, 1) for i in range(len(rows))),),  # the best cost column
     )
 
 
@@ -126,7 +140,7 @@ def kpi_table(results: ExperimentResults, split: str) -> Table:
         title=f"Average sideslip KPIs on the {which} set (cf. paper Table {number})",
         header=("KPI", *(m.label for m in results.methods)),
         rows=rows,
-        bold=_best_cells(rows, first_col=1),
+        groups=_row_groups(rows, first_col=1),
     )
 
 
