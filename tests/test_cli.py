@@ -375,3 +375,12 @@ def test_a_filter_that_diverges_everywhere_fails_cleanly(tmp_path):
                  "--budget", "random=3", "--out", str(tmp_path / "r"), *common)  # fmt: skip
     assert res.returncode == 1, res.stderr
     assert "Traceback" not in res.stderr and "every evaluation of 'manual' failed" in res.stderr
+
+
+def test_manual_points_in_a_config_are_accepted(small, tmp_path):
+    cfg = tmp_path / "m.toml"
+    cfg.write_text("[options.manual]\npoints = [[1e-6, 1e-5, 1e-3]]\n")
+    res = kftune("tune", str(small), "-m", "manual", "--config", str(cfg), "--quiet", "--json",
+                 "-o", str(tmp_path / "t.json"))  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["q"] == [1e-6, 1e-5, 1e-3]

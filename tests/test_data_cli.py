@@ -102,6 +102,9 @@ def test_generate_refuses_a_folder_in_use_and_force_replaces_only_the_dataset(tm
     (out / "notes.txt").write_text("mine")
     res = kftune(*gen, "test-05-j-turn")
     assert res.returncode == 3 and "not empty" in res.stderr and "--force" in res.stderr
+    before = sorted(p.name for p in out.iterdir())
+    res = kftune(*gen, "no-such-manoeuvre", "--force")  # fails: the old dataset stays
+    assert res.returncode == 2 and sorted(p.name for p in out.iterdir()) == before
     res = kftune(*gen, "test-05-j-turn", "--force")
     assert res.returncode == 0, res.stderr
     # the old manoeuvre's file is gone, the new one is there, the user's file is untouched

@@ -133,7 +133,7 @@ def test_failures_are_recorded_and_survived(method):
     for i in np.flatnonzero(failed):
         others = np.delete(u, i, axis=0)
         gap = np.max(np.abs(others - u[i]), axis=1).min() if len(others) else np.inf
-        assert gap > 1e-9, (method, "failed point proposed again", r.u)
+        assert gap > 1e-9, (method, "failed point proposed again", u[i])
 
 
 def _sleepy(x):

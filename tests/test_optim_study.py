@@ -191,16 +191,16 @@ from kftune.optim import minimize
 def fun(x):
     with open(sys.argv[2], "a") as fh:
         fh.write(f"{os.getpid()}\\n")
-    time.sleep(3.0)
+    time.sleep(600.0)  # hung: only the timeout (60 s) would end it
     return float(x[0])
 minimize(fun, {"a": (0.0, 1.0)}, "random", budget=5, seed=0, storage=sys.argv[1], timeout=60)
 """
 
 
 def test_killed_parent_leaves_no_worker_holding_the_study(tmp_path):
-    """SIGKILL of a run with a timeout (evaluations in a worker process) during an
-    evaluation: the study can be resumed at once (the worker does not hold the lock) and
-    the orphaned worker exits after its evaluation instead of waiting forever."""
+    """SIGKILL of a run with a timeout (evaluations in a worker process) during a hung
+    evaluation: the study can be resumed at once (the worker does not hold the lock) and the
+    orphaned worker exits within a second or so instead of running on."""
     db, pids = tmp_path / "s.db", tmp_path / "pids.txt"
     proc = subprocess.Popen(
         [sys.executable, "-c", _ORPHAN_SCRIPT, str(db), str(pids)],
@@ -215,7 +215,7 @@ def test_killed_parent_leaves_no_worker_holding_the_study(tmp_path):
     res = minimize(lambda x: float(x[0]), {"a": (0.0, 1.0)}, "random", budget=5, seed=0,
                    storage=str(db), resume=True)  # fmt: skip
     assert res.n_evals == 5
-    deadline = time.time() + 30
+    deadline = time.time() + 15  # far less than the hung evaluation's 600 s
     while _alive(worker) and time.time() < deadline:
         time.sleep(0.1)
     assert not _alive(worker), "the orphaned evaluation worker is still running"
@@ -245,6 +245,18 @@ def test_the_lock_follows_the_file_not_the_path(tmp_path):
     finally:
         first.close()
     Study.open(tmp_path / "link.db", settings, resume=True).close()
+
+
+def test_a_study_dropped_without_close_frees_its_lock(tmp_path):
+    import gc
+
+    from kftune.optim.study import Study
+
+    settings = {"method": "random", "seed": 0}
+    s = Study.open(tmp_path / "s.db", settings, resume=False)
+    del s
+    gc.collect()
+    Study.open(tmp_path / "s.db", settings, resume=True).close()
 
 
 def _wait_for(cond, proc, limit=30.0, exit_ok=False):

@@ -78,7 +78,9 @@ def _student_t_derivatives(
         - 0.5 * (nu + 1.0) * np.log1p(r * r / a)
     )
     # Written as products of bounded ratios (r/q, (a − r²)/q, 1/q) so that huge residuals
-    # give the correct limits (→ 0) instead of overflowing in q² or q³.
+    # give the correct limits (→ 0) instead of overflowing in q² or q³ — for |r| < 1e154,
+    # where r² itself is finite (TSBO clips its outputs to ±1e100; the standardisation
+    # then keeps r far below that).
     rq, inv_q = r / q, 1.0 / q
     g = (nu + 1.0) * rq
     W = (nu + 1.0) * ((a - r * r) * inv_q) * inv_q
@@ -96,7 +98,7 @@ def _student_t_param_derivatives(
     rq, inv_q, d = r / q, 1.0 / q, (a - r2) / q  # bounded ratios, as above
     out = [
         (
-            -1.0 + (nu + 1.0) * r2 * inv_q,  # ∂ log p/∂ log σ
+            -1.0 + (nu + 1.0) * r * rq,  # ∂ log p/∂ log σ
             -2.0 * (nu + 1.0) * rq * a * inv_q,  # ∂ g/∂ log σ
             2.0 * a * (nu + 1.0) * ((3.0 * r2 - a) * inv_q) * inv_q * inv_q,  # ∂ W/∂ log σ
         )
@@ -108,7 +110,7 @@ def _student_t_param_derivatives(
             - 0.5 * digamma(0.5 * nu)
             - 0.5 / nu
             - 0.5 * np.log1p(r2 / a)
-            + 0.5 * (nu + 1.0) * r2 * inv_q / nu
+            + 0.5 * (nu + 1.0) * r * rq / nu
         )
         dg = rq - (nu + 1.0) * rq * s2 * inv_q
         dW = d * inv_q + (nu + 1.0) * s2 * inv_q * inv_q - 2.0 * (nu + 1.0) * d * s2 * inv_q * inv_q

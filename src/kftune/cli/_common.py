@@ -151,8 +151,11 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
                 f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
                 f"{list(METHODS)}, got {method!r}"
             )
-        try:  # names and values, on a one-parameter space, before anything runs
-            make_optimizer(method, {"x": (0.0, 1.0)}, seed=0, **opts)
+        # names and values, on a one-parameter space, before anything runs (manual points
+        # depend on the tuned space's dimension: the run checks them)
+        checkable = {k: v for k, v in opts.items() if not (method == "manual" and k == "points")}
+        try:
+            make_optimizer(method, {"x": (0.0, 1.0)}, seed=0, **checkable)
         except PeerUnavailableError:
             pass  # the run itself says which package is missing
         except (ValueError, TypeError) as exc:

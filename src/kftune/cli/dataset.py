@@ -78,7 +78,7 @@ def run_generate(args: argparse.Namespace) -> int:
     from kftune.data.plant import SimulationError
 
     output_dir(args.out, "OUT")
-    _make_room(args.out, args.force)
+    old_files = _files_to_replace(args.out, args.force)  # checked before the simulation
 
     seed = DEFAULT_SEED if args.seed is None else args.seed
     start = time.perf_counter()
@@ -99,6 +99,7 @@ def run_generate(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"kftune: error: {exc}", file=sys.stderr)
         return 2
+    _remove(old_files, args.out)  # only now that the new dataset exists
     manifest = save_dataset(dataset, args.out)
     elapsed = time.perf_counter() - start
     print(
@@ -108,20 +109,20 @@ def run_generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _make_room(out: Path, force: bool) -> None:
-    """Refuse to mix a new dataset with files already in ``out``; with ``force``, delete
-    the kftune dataset there first (its manifest and the files it lists, nothing else)."""
-    from kftune.errors import ConfigError
+def _files_to_replace(out: Path, force: bool) -> list[Path]:
+    """The files of the kftune dataset in ``out`` that ``--force`` replaces (none for a new
+    or empty folder). Refuses a non-empty folder without ``force``, and with it a folder
+    that holds no kftune dataset or whose manifest lists files outside it."""
+    from kftune.errors import ConfigError, KftuneError
 
     if not out.is_dir() or not any(out.iterdir()):
-        return
+        return []
     if not force:
         raise ConfigError(
             f"OUT {out}: the folder is not empty; choose a new or empty folder, or pass "
             "--force to replace the kftune dataset in it"
         )
     from kftune.data.io import dataset_files
-    from kftune.errors import KftuneError
 
     try:
         files = dataset_files(out)
@@ -131,8 +132,22 @@ def _make_room(out: Path, force: bool) -> None:
     outside = [f for f in files if root not in f.resolve().parents]
     if outside:
         raise ConfigError(f"OUT {out}: its manifest lists files outside the folder: {outside[0]}")
-    for f in files:
-        f.unlink(missing_ok=True)
+    folders = [f for f in files if f.is_dir()]
+    if folders:
+        raise ConfigError(f"OUT {out}: its manifest lists a folder as a file: {folders[0]}")
+    return files
+
+
+def _remove(files: list[Path], out: Path) -> None:
+    """Delete the old dataset's files, the manifest last (so an interrupted removal leaves
+    a dataset that ``--force`` can still recognise)."""
+    from kftune.errors import ConfigError
+
+    for f in [*files[1:], *files[:1]]:  # dataset_files lists the manifest first
+        try:
+            f.unlink(missing_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"OUT {out}: cannot remove the old file {f}: {exc}") from None
 
 
 # ------------------------------------------------------------------------------ info

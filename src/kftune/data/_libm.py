@@ -10,6 +10,11 @@ uses only IEEE-exact NumPy operations (+, −, ×, ÷, sqrt, sums) and, for tran
 functions, Python's :mod:`math`, i.e. the platform's C library, one scalar at a time. (The
 CommonRoad plant already uses :mod:`math`.) The arrays are short (one manoeuvre), so the
 scalar loops cost milliseconds.
+
+Not covered: SciPy's LSODA calls the BLAS/LAPACK for its Newton iterations (``ddot``,
+``daxpy``, ``dgetrf``), and the understeer gradient recorded in the manifest comes from
+``np.polyfit`` (LAPACK, rounded to 6 digits there). Those kernels too are chosen by CPU;
+on the two machines compared (AVX-512 and AVX2) they gave the same bytes.
 """
 
 from __future__ import annotations

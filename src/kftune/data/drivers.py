@@ -294,7 +294,7 @@ class RandomSteer(SteerLaw):
         rng = np.random.default_rng(self.seed)
         ratio = self.f_high / self.f_low  # geometric spacing, through math (see data._libm)
         n = self.n_components
-        f = np.array([self.f_low * ratio ** (k / (n - 1)) for k in range(n)])
+        f = np.array([self.f_low * ratio ** (k / max(n - 1, 1)) for k in range(n)])
         f = f * (1.0 + 0.05 * rng.uniform(-1.0, 1.0, f.size))
         a = 1.0 / np.sqrt(f)
         a *= self.rms / math.sqrt(0.5 * float(np.sum(a * a)))

@@ -36,6 +36,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -328,8 +329,17 @@ class _Evaluator:
         self._kill()
 
 
-#: [s] how often an idle evaluation worker checks that its parent is still alive.
+#: [s] how often an evaluation worker checks that its parent is still alive.
 _ORPHAN_POLL = 0.5
+
+
+def _exit_when_orphaned(parent_pid: int) -> None:  # pragma: no cover - in the child
+    """Watchdog thread of the evaluation worker: end the process as soon as the parent
+    ``parent_pid`` is gone, also in the middle of an evaluation (a hung one is what a
+    timeout exists for, and nobody is left to read its result)."""
+    while os.getppid() == parent_pid:
+        time.sleep(_ORPHAN_POLL)
+    os._exit(0)
 
 
 def _worker_loop(
@@ -338,12 +348,10 @@ def _worker_loop(
     """Body of the evaluation worker: evaluate what arrives on ``conn`` until the pipe
     closes or the parent process ``parent_pid`` is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business
+    threading.Thread(target=_exit_when_orphaned, args=(parent_pid,), daemon=True).start()
     conn.send(("ready", None))
     while True:
         try:
-            while not conn.poll(_ORPHAN_POLL):
-                if os.getppid() != parent_pid:
-                    return  # orphaned: nobody will read a result
             x = conn.recv()
         except (EOFError, OSError):
             return

@@ -32,6 +32,7 @@ import contextlib
 import json
 import os
 import sqlite3
+import weakref
 from pathlib import Path
 from typing import Any
 
@@ -51,8 +52,9 @@ class StudyInUseError(StudyError):
     """Another process holds the study open."""
 
 
-#: Open lock files of this process; a forked child closes its copies (see below).
-_HELD: set[Any] = set()
+#: Open lock files of this process (weakly: a study dropped without close() still frees its
+#: lock when it is collected); a forked child closes its copies (see below).
+_HELD: weakref.WeakSet[Any] = weakref.WeakSet()
 
 
 def _close_inherited_locks() -> None:  # pragma: no cover - runs in forked children
@@ -97,6 +99,8 @@ class _FileLock:
         return True
 
     def release(self) -> None:
+        if self._fh is not None and self._fh.closed:  # a forked child's copy, closed at fork
+            self._fh = None
         if self._fh is not None:
             try:
                 if os.name == "nt":  # pragma: no cover
