@@ -98,7 +98,7 @@ def _student_t_param_derivatives(
     rq, inv_q, d = r / q, 1.0 / q, (a - r2) / q  # bounded ratios, as above
     out = [
         (
-            -1.0 + (nu + 1.0) * r * rq,  # ∂ log p/∂ log σ
+            -1.0 + (nu + 1.0) * r2 * inv_q,  # ∂ log p/∂ log σ
             -2.0 * (nu + 1.0) * rq * a * inv_q,  # ∂ g/∂ log σ
             2.0 * a * (nu + 1.0) * ((3.0 * r2 - a) * inv_q) * inv_q * inv_q,  # ∂ W/∂ log σ
         )
@@ -110,7 +110,7 @@ def _student_t_param_derivatives(
             - 0.5 * digamma(0.5 * nu)
             - 0.5 / nu
             - 0.5 * np.log1p(r2 / a)
-            + 0.5 * (nu + 1.0) * r * rq / nu
+            + 0.5 * (nu + 1.0) * r2 * inv_q / nu
         )
         dg = rq - (nu + 1.0) * rq * s2 * inv_q
         dW = d * inv_q + (nu + 1.0) * s2 * inv_q * inv_q - 2.0 * (nu + 1.0) * d * s2 * inv_q * inv_q
