@@ -183,6 +183,7 @@ def main() -> None:
         row["cost_ms_per_eval"] = 1e3 * float(np.median([r["eval_s_per_eval"] for r in rs]))
         row["overhead_ms_per_eval"] = 1e3 * float(np.median([r["overhead_s_per_eval"] for r in rs]))
         row["n_failed_total"] = int(sum(r["n_failed"] for r in rs))
+        row["best_x"] = [r["x"] for r in rs]  # per seed, at the end of the run
         summary[method] = row
         reach_txt = f"{med_reach:.0f}" if math.isfinite(med_reach) else "never"
         print(
@@ -199,6 +200,13 @@ def main() -> None:
         for m in tsbo:
             vals = " ".join(f"{float(np.min(r['values'][:40])):.4f}" for r in runs[m])
             print(f"  {m:{width}s} {vals}")
+        names = problem.space.names
+        print(f"its best point, log10 ({', '.join(names)}), per seed")
+        for m in tsbo:
+            pts = " ".join(
+                "(" + ", ".join(f"{math.log10(v):.1f}" for v in r["x"]) + ")" for r in runs[m]
+            )
+            print(f"  {m:{width}s} {pts}")
     paired: dict[str, Any] = {}
     for variant, base in PAIRS:
         if variant not in runs or base not in runs:
