@@ -133,11 +133,13 @@ point) and ``tr_fe_units="unit-cube"`` are options, off in both presets. Evidenc
 - on fresh synthetic seeds 100–109 the revised preset beat faithful in 98 runs and lost in
   62 with the tSP (p ≈ 0.006), 105 to 52 with the GP (p ≈ 3e-5); against the first three
   settings alone it went 87 to 70 with the tSP (p ≈ 0.2, not shown) and 96 to 60 with the
-  GP (p ≈ 0.005);
+  GP (p ≈ 0.005); re-run on 2026-12-01: 99 to 61 (p ≈ 0.003) and 105 to 52;
 - on the UKF problem (fresh seeds 20–39) the revised preset beat faithful in 18 of 20
   seeds with the tSP (p ≈ 0.0004) and 17 of 20 with the GP (p ≈ 0.003), by a median
   0.0011 in cost (0.3 %); on seeds 10–19 it was 3 to 6 with the tSP, so its edge over the
   first three settings alone on the UKF is not shown (12 to 7, p ≈ 0.36, seeds 20–39).
+  On the regenerated bundle (2026-12-01): 18 of 20 with the tSP (p ≈ 0.0004), 16 of 20
+  with the GP (p ≈ 0.01); seeds 0–9: 6 of 10 and 7 of 10.
 
 So it is offered, opt-in; the default stays the paper's algorithm.
 """
