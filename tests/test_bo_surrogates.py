@@ -214,3 +214,21 @@ def test_bo_does_not_import_vehicle_filter_data_or_optim_code():
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_bad_data_is_refused_naming_the_row(name):
+    """NaN/inf, and values whose squares (variances in y's units) overflow, are a clear
+    error naming the row — never a silent NaN prediction."""
+    X = np.random.default_rng(0).random((6, 2))
+    y = np.arange(6.0)
+    for bad, match in ((np.nan, "y row 3 is not finite"), (1e300, "y row 3 is 1e.300.*overflow")):
+        yb = y.copy()
+        yb[3] = bad
+        with pytest.raises(ValueError, match=match):
+            make_surrogate(name, seed=0).fit(X, yb)
+    Xb = X.copy()
+    Xb[2, 1] = np.inf
+    with pytest.raises(ValueError, match="X row 2, column 1 is not finite"):
+        make_surrogate(name, seed=0).fit(Xb, y)
+    make_surrogate(name, seed=0).fit(X, y * 1e99)  # large but representable: fine

@@ -29,6 +29,10 @@ from kftune.bo.kernels import Kernel, make_kernel, squared_differences
 #: evaluations.
 _LBFGSB_OPTIONS = {"ftol": 1e-6, "gtol": 1e-4}
 
+#: Largest |y| a surrogate accepts: its variances (squares, in the units of y) must stay
+#: finite. TSBO clips what it passes to this (``kftune.optim.tsbo.SURROGATE_Y_LIMIT``).
+MAX_ABS_Y = 1e100
+
 #: Value returned to L-BFGS-B in place of +inf (a failed Cholesky): large but finite, so the
 #: line search backtracks instead of producing NaNs.
 _FAILED_NLL = 1e25
@@ -204,6 +208,12 @@ class BoxSurrogate(Surrogate):
         bad = np.flatnonzero(~np.isfinite(y))
         if bad.size:
             raise ValueError(f"y row {int(bad[0])} is not finite: {y[bad[0]]}")
+        huge = np.flatnonzero(np.abs(y) > MAX_ABS_Y)
+        if huge.size:
+            raise ValueError(
+                f"y row {int(huge[0])} is {y[huge[0]]}: beyond ±{MAX_ABS_Y:g}, where variances "
+                "in the units of y overflow; clip or transform y (TSBO clips for you)"
+            )
         return X, y
 
     def _normalise(self, X: np.ndarray) -> np.ndarray:

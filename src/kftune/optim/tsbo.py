@@ -158,7 +158,8 @@ from kftune.optim.base import SAME_POINT_ATOL, ExhaustedError, Optimizer, Propos
 #: Relative tolerance for AF ties.
 TIE_RTOL = 1e-9
 #: Values beyond ± this are clipped for the surrogate (the record keeps the true value): a
-#: variance in the units of y must stay representable (y² < 1.8e308).
+#: variance in the units of y must stay representable (y² < 1.8e308); the surrogates
+#: refuse larger values (``kftune.bo._model.MAX_ABS_Y``).
 SURROGATE_Y_LIMIT = 1e100
 _MODES: dict[str, dict[str, Any]] = {
     "faithful": {
