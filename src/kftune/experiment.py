@@ -190,6 +190,17 @@ def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str]) -> list[str]:
     return picked or [max(test, key=peak).name]
 
 
+def require_success(result: OptimizeResult, method: str) -> None:
+    """Raise :class:`~kftune.errors.RunFailedError` if every evaluation of ``result`` (a run
+    of ``method``) failed, with the count and the first reason."""
+    if result.x is None:
+        raise RunFailedError(
+            f"every evaluation of {method!r} failed ({result.n_failed} of {result.n_evals}); "
+            f"first reason: {result.history[0].reason if result.history else 'none'}; "
+            "leave the method out or widen its search space"
+        )
+
+
 def method_run(
     key: str,
     result: OptimizeResult,
@@ -201,12 +212,7 @@ def method_run(
     Returns:
         (the :class:`MethodRun`, manoeuvre → β estimate [rad] for every manoeuvre).
     """
-    if result.x is None:
-        raise RunFailedError(
-            f"every evaluation of {key!r} failed ({result.n_failed} of {result.n_evals}); "
-            f"first reason: {result.history[0].reason if result.history else 'none'}; "
-            "leave the method out (--methods) or widen its search space"
-        )
+    require_success(result, key)
     # time = what the optimiser and the evaluations took (stored in the study, so a resumed
     # run reports the same as an uninterrupted one; the study's own I/O is ~0.1 ms a step)
     steps = np.array([r.t_propose + r.t_eval for r in result.history])

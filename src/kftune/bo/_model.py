@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from kftune.bo._linalg import single_threaded_blas
-from kftune.bo.base import Predictive, Surrogate
+from kftune.bo.base import MAX_ABS_Y, Predictive, Surrogate
 from kftune.bo.kernels import Kernel, make_kernel, squared_differences
 
 #: L-BFGS-B stopping rule: relative decrease of the negative log likelihood below 1e-6 or
@@ -28,10 +28,6 @@ from kftune.bo.kernels import Kernel, make_kernel, squared_differences
 #: decimals of the log likelihood as scipy's defaults (2.2e-9, 1e-5) with ~25 % fewer
 #: evaluations.
 _LBFGSB_OPTIONS = {"ftol": 1e-6, "gtol": 1e-4}
-
-#: Largest |y| a surrogate accepts: its variances (squares, in the units of y) must stay
-#: finite. TSBO clips what it passes to this (``kftune.optim.tsbo.SURROGATE_Y_LIMIT``).
-MAX_ABS_Y = 1e100
 
 #: Value returned to L-BFGS-B in place of +inf (a failed Cholesky): large but finite, so the
 #: line search backtracks instead of producing NaNs.

@@ -15,6 +15,11 @@ from typing import Any
 
 import numpy as np
 
+#: Largest |y| a surrogate accepts (every kftune surrogate refuses more, naming the row):
+#: its variances are squares in the units of y and must stay finite in float64. TSBO clips
+#: the values it passes to this.
+MAX_ABS_Y = 1e100
+
 
 @dataclass(frozen=True)
 class Predictive:

@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from kftune.errors import ConfigError, KftuneError
+
 if TYPE_CHECKING:  # kftune.data loads scipy: only when a verb runs, not for --help
     from kftune.data import Dataset, Manoeuvre
 
@@ -113,8 +115,6 @@ def _files_to_replace(out: Path, force: bool) -> list[Path]:
     """The files of the kftune dataset in ``out`` that ``--force`` replaces (none for a new
     or empty folder). Refuses a non-empty folder without ``force``, and with it a folder
     that holds no kftune dataset or whose manifest lists files outside it."""
-    from kftune.errors import ConfigError, KftuneError
-
     if not out.is_dir() or not any(out.iterdir()):
         return []
     if not force:
@@ -141,8 +141,6 @@ def _files_to_replace(out: Path, force: bool) -> list[Path]:
 def _remove(files: list[Path], out: Path) -> None:
     """Delete the old dataset's files, the manifest last (so an interrupted removal leaves
     a dataset that ``--force`` can still recognise)."""
-    from kftune.errors import ConfigError
-
     for f in [*files[1:], *files[:1]]:  # dataset_files lists the manifest first
         try:
             f.unlink(missing_ok=True)

@@ -29,7 +29,7 @@ from kftune.cli._common import (
     parameterization,
     pick,
 )
-from kftune.errors import ConfigError, RunFailedError
+from kftune.errors import ConfigError
 from kftune.optim import METHODS
 
 if TYPE_CHECKING:
@@ -79,7 +79,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``kftune tune``."""
     from kftune.data import open_dataset
-    from kftune.experiment import tune
+    from kftune.experiment import require_success, tune
     from kftune.optim import OptimizationInterrupted
     from kftune.tuning.problem import TuningProblem
 
@@ -126,11 +126,7 @@ def run(args: argparse.Namespace) -> int:
         except OptimizationInterrupted as stop:
             _interrupted(stop.result, problem, dataset.name, args)
             return EXIT_INTERRUPTED
-    if result.x is None:
-        raise RunFailedError(
-            f"every one of {result.n_evals} evaluations failed; first reason: "
-            f"{result.history[0].reason if result.history else 'none'}"
-        )
+    require_success(result, method)
     doc = tuned_document(result, problem, dataset.name)
     args.out.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
     if args.json:

@@ -157,10 +157,6 @@ from kftune.optim.base import SAME_POINT_ATOL, ExhaustedError, Optimizer, Propos
 
 #: Relative tolerance for AF ties.
 TIE_RTOL = 1e-9
-#: Values beyond ± this are clipped for the surrogate (the record keeps the true value): a
-#: variance in the units of y must stay representable (y² < 1.8e308); the surrogates
-#: refuse larger values (``kftune.bo._model.MAX_ABS_Y``).
-SURROGATE_Y_LIMIT = 1e100
 _MODES: dict[str, dict[str, Any]] = {
     "faithful": {
         "keep_stage1_data": False,
@@ -482,7 +478,9 @@ class TSBO(Optimizer):
             all_ok = [v for v in self._y if v is not None]
             worst = max(all_ok) if all_ok else 0.0
         y = np.array([worst if v is None else v for v in raw], dtype=float)
-        return X, np.clip(y, -SURROGATE_Y_LIMIT, SURROGATE_Y_LIMIT), ok, to_s
+        from kftune.bo.base import MAX_ABS_Y  # the surrogates refuse more (variance overflow)
+
+        return X, np.clip(y, -MAX_ABS_Y, MAX_ABS_Y), ok, to_s
 
     def _incumbent_at(self, n: int) -> tuple[int | None, float | None]:
         """Index and value of the best successful evaluation among the first ``n``."""
