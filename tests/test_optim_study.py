@@ -271,7 +271,7 @@ def _wait_for(cond, proc, limit=30.0, exit_ok=False):
         time.sleep(0.02)
 
 
-@pytest.mark.parametrize(("method", "budget"), [("tsbo-tsp", 24), ("ga", 60)])
+@pytest.mark.parametrize(("method", "budget"), [("tsbo-tsp", 24), ("ga", 60), ("trbo", 30)])
 def test_sigkill_at_random_moments_then_resume(tmp_path, method, budget):
     """Kill the study's process with SIGKILL several times at random moments; after the last
     resume the result equals the uninterrupted run's and no finished evaluation was redone."""

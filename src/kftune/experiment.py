@@ -22,7 +22,7 @@ from kftune import __version__
 from kftune.bo import make_surrogate
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
-from kftune.optim import METHODS, OptimizeResult, make_optimizer, minimize
+from kftune.optim import DEFAULT_METHOD, METHODS, OptimizeResult, make_optimizer, minimize
 from kftune.progress import ProgressBar
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.tuning.cost import CostSpec
@@ -46,10 +46,13 @@ LABELS: dict[str, str] = {
     "optuna-tpe": "Optuna TPE",
     "optuna-gp": "Optuna GP",
     "cma": "CMA-ES",
+    "trbo": "TR-BO (kftune)",
 }
 
 #: The paper's comparison (Tables V–VII), in report order.
 PAPER_METHODS: tuple[str, ...] = ("manual", "ga", "tsbo-gp", "tsbo-tsp")
+#: What ``compare`` runs by default: the paper's four and kftune's default tuner beside them.
+COMPARE_METHODS: tuple[str, ...] = (*PAPER_METHODS, DEFAULT_METHOD)
 
 #: "Manual tuning": Q from a rule of thumb, not from a search. The process noise of each
 #: state is the squared change per 10 ms step that plausible model errors cause:
@@ -72,7 +75,7 @@ def manual_point(parameterization: NoiseParameterization) -> np.ndarray:
 
 def tune(
     problem: TuningProblem,
-    method: str = "tsbo-tsp",
+    method: str = DEFAULT_METHOD,
     *,
     budget: int | None = None,
     seed: int = 0,
@@ -136,7 +139,8 @@ class CompareSettings:
     """Settings of :func:`run_compare`.
 
     Attributes:
-        methods: methods in report order (default: the paper's four).
+        methods: methods in report order (default: the paper's four and kftune's default
+            tuner, :data:`COMPARE_METHODS`).
         seed: drives every method's randomness.
         budgets: method → evaluation budget, overriding the defaults (TSBO 40 = MAX_PE,
             GA 225 = 15 × 15, manual 1).
@@ -150,7 +154,7 @@ class CompareSettings:
         method_options: method → extra optimiser options.
     """
 
-    methods: tuple[str, ...] = PAPER_METHODS
+    methods: tuple[str, ...] = COMPARE_METHODS
     seed: int = 0
     budgets: Mapping[str, int] = field(default_factory=dict)
     cost: CostSpec = field(default_factory=CostSpec)
@@ -374,7 +378,9 @@ def run_compare(
             runs.append(run)
             for name in shown:
                 traces[name].update(betas[name])
-        best_key = "tsbo-tsp" if "tsbo-tsp" in settings.methods else runs[-1].key
+        best_key = next(
+            (m for m in (DEFAULT_METHOD, "tsbo-tsp") if m in settings.methods), runs[-1].key
+        )
         best = next(r for r in runs if r.key == best_key)
         x_best = np.array([best.params[n] for n in problem.space.names])
         sl = cost_slice(problem, x_best, settings.slice_parameter, seed=settings.seed)

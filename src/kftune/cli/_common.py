@@ -5,10 +5,10 @@ command line wins over the file, the file over the defaults. A key that the runn
 does not use is an error, not silently ignored::
 
     dataset = "default"            # or a dataset directory (relative to this file)
-    method = "tsbo-tsp"            # tune only
+    method = "trbo"                # tune only (the paper's: "tsbo-tsp")
     budget = 40                    # tune only
     timeout = 30.0                 # tune only: per-evaluation limit [s]
-    methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp"]   # compare only
+    methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp", "trbo"]   # compare only
     budgets = { ga = 225, tsbo-tsp = 40 }               # compare only
     seed = 0
     workers = 1                    # processes per cost evaluation

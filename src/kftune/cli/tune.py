@@ -30,7 +30,7 @@ from kftune.cli._common import (
     pick,
 )
 from kftune.errors import ConfigError
-from kftune.optim import METHODS
+from kftune.optim import DEFAULT_METHOD, METHODS
 
 if TYPE_CHECKING:
     from kftune.optim import OptimizeResult
@@ -49,7 +49,8 @@ def register(subparsers: Any) -> None:
         "--method",
         "-m",
         choices=METHODS,
-        help="optimiser (default tsbo-tsp: two-stage BO with a Student-t process)",
+        help=f"optimiser (default {DEFAULT_METHOD}: trust-region Bayesian optimisation; the "
+        "paper's method is tsbo-tsp)",
     )
     p.add_argument(
         "--budget",
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
             "choose another --storage"
         )
     dataset = open_dataset(pick(args, config, "dataset", None))
-    method = pick(args, config, "method", "tsbo-tsp")
+    method = pick(args, config, "method", DEFAULT_METHOD)
     if method not in METHODS:
         raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
     budget = pick(args, config, "budget", None)

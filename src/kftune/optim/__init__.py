@@ -4,7 +4,8 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
 
 * :class:`Space`/:class:`Param` — named bounds, linear or log10, mapped to [0, 1]^d;
 * :class:`Optimizer` — ``ask() -> Trial``, ``tell(trial, value)``; one per method in
-  :data:`METHODS`, built with :func:`make_optimizer`;
+  :data:`METHODS`, built with :func:`make_optimizer`; :data:`DEFAULT_METHOD` is
+  :class:`TrustRegionBO` (``"trbo"``), the paper's TSBO is ``"tsbo-tsp"``;
 * :func:`minimize` — the loop on top, with failures, timeouts and SQLite studies;
 * :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind.
 """
@@ -12,15 +13,23 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
 from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
 from kftune.optim.baselines import ManualPoints, RandomSearch
 from kftune.optim.ga import GeneticAlgorithm
-from kftune.optim.minimize import METHODS, OptimizationInterrupted, make_optimizer, minimize
+from kftune.optim.minimize import (
+    DEFAULT_METHOD,
+    METHODS,
+    OptimizationInterrupted,
+    make_optimizer,
+    minimize,
+)
 from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
 from kftune.optim.study import Study, StudyError, StudyInUseError
+from kftune.optim.trbo import TrustRegionBO
 from kftune.optim.tsbo import TSBO
 from kftune.space import Param, Space
 
 __all__ = [
     "CMAES",
+    "DEFAULT_METHOD",
     "METHODS",
     "TSBO",
     "EvalRecord",
@@ -41,6 +50,7 @@ __all__ = [
     "StudyError",
     "StudyInUseError",
     "Trial",
+    "TrustRegionBO",
     "make_optimizer",
     "minimize",
 ]

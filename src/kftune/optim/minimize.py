@@ -56,9 +56,11 @@ def _registry() -> dict[str, tuple[type[Optimizer], dict[str, Any]]]:
     from kftune.optim.baselines import ManualPoints, RandomSearch
     from kftune.optim.ga import GeneticAlgorithm
     from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE
+    from kftune.optim.trbo import TrustRegionBO
     from kftune.optim.tsbo import TSBO
 
     return {
+        "trbo": (TrustRegionBO, {}),
         "tsbo-tsp": (TSBO, {"surrogate": "tsp"}),
         "tsbo-gp": (TSBO, {"surrogate": "gp"}),
         "tsbo-robust": (TSBO, {"surrogate": "robust-gp"}),
@@ -72,6 +74,7 @@ def _registry() -> dict[str, tuple[type[Optimizer], dict[str, Any]]]:
 
 
 METHODS: tuple[str, ...] = (
+    "trbo",
     "tsbo-tsp",
     "tsbo-gp",
     "tsbo-robust",
@@ -82,6 +85,8 @@ METHODS: tuple[str, ...] = (
     "optuna-gp",
     "cma",
 )
+#: What ``kftune.minimize`` and ``kftune tune`` use when no method is named.
+DEFAULT_METHOD = "trbo"
 
 
 def make_optimizer(
@@ -119,7 +124,7 @@ class OptimizationInterrupted(KeyboardInterrupt):
 def minimize(
     fun: Callable[[np.ndarray], float],
     space: Any,
-    method: str = "tsbo-tsp",
+    method: str = DEFAULT_METHOD,
     *,
     budget: int | None = None,
     seed: int = 0,
@@ -136,9 +141,9 @@ def minimize(
         fun: objective; ``fun(x) -> float`` with ``x`` a ``(d,)`` array in natural units.
         space: a :class:`Space`, ``{"name": (low, high[, "log10"])}`` or a sequence of
             ``(low, high[, scale])``.
-        method: one of :data:`METHODS` (``"tsbo-tsp"``, ``"tsbo-gp"``, ``"tsbo-robust"``,
-            ``"ga"``, ``"random"``, ``"manual"``, ``"optuna-tpe"``, ``"optuna-gp"``,
-            ``"cma"``).
+        method: one of :data:`METHODS` (default :data:`DEFAULT_METHOD`, ``"trbo"``;
+            the paper's ``"tsbo-tsp"``, ``"tsbo-gp"``, ``"tsbo-robust"``, ``"ga"``,
+            ``"random"``, ``"manual"``, ``"optuna-tpe"``, ``"optuna-gp"``, ``"cma"``).
         budget: evaluations (failed ones count); ``None`` → the method's default (TSBO 40 =
             MAX_PE, GA 225, manual: its number of points, others 40).
         seed: drives all randomness; same seed, same run.

@@ -27,6 +27,10 @@ COLOURS = {
     "tsbo-tsp": "#2ca02c",
     "tsbo-robust": "#9467bd",
     "random": "#8c564b",
+    "trbo": "#ff7f0e",
+    "optuna-tpe": "#17becf",
+    "optuna-gp": "#bcbd22",
+    "cma": "#e377c2",
     "reference": "#000000",
 }
 
