@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
         NoiseParameterization,
         TuningProblem,
         assess,
+        where_diverged,
     )
 
     config = load_config(args.config, "evaluate")
@@ -150,11 +152,14 @@ def run(args: argparse.Namespace) -> int:
     with problem:
         try:
             cost: float | None = problem.evaluate(x).cost
-            reason = None
-        except FilterDivergedError as exc:
-            cost, reason = None, str(exc)
-        metrics, _ = assess(problem, x, manoeuvres)
+        except FilterDivergedError:
+            cost = None
+        metrics, results = assess(problem, x, manoeuvres)
     avg = average_kpis(metrics.values())
+    where = {
+        name: where_diverged(dataset[name], res) for name, res in results.items() if res.diverged
+    }
+    reason = f"the filter diverged on {len(where)} of {len(results)} manoeuvres" if where else None
     q, r, ukf = problem.decode(x)
     doc = {
         "dataset": dataset.name,
@@ -169,7 +174,11 @@ def run(args: argparse.Namespace) -> int:
         "diverged": reason,
         "average": {k: _num(v) for k, v in avg.items()},
         "manoeuvres": {
-            name: {"kind": dataset[name].kind, **{k: _num(v) for k, v in row.items()}}
+            name: {
+                "kind": dataset[name].kind,
+                **{k: _num(v) for k, v in row.items()},
+                **({"diverged_at": where[name]} if name in where else {}),
+            }
             for name, row in metrics.items()
         },
     }
@@ -177,7 +186,12 @@ def run(args: argparse.Namespace) -> int:
         emit_json(doc)
     else:
         _print_table(doc)
-    return EXIT_OK if reason is None else EXIT_FAILURE
+    if reason is None:
+        return EXIT_OK
+    first = next(iter(where.values()))
+    more = f" (and {len(where) - 1} more)" if len(where) > 1 else ""
+    print(f"kftune: failed: {reason}; first: {first}{more}", file=sys.stderr)
+    return EXIT_FAILURE
 
 
 def _num(v: float) -> float | None:
@@ -195,8 +209,11 @@ def _print_table(doc: dict[str, Any]) -> None:
     print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in KPI_NAMES))
     if doc["cost"] is not None:
         print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
-    else:
-        print(f"the filter diverged: {doc['diverged']}")
+    if doc["diverged"] is not None:
+        print(f"{doc['diverged']}:")
+        for row in doc["manoeuvres"].values():
+            if "diverged_at" in row:
+                print(f"  {row['diverged_at']}")
 
 
 def _cell(v: float | None) -> str:
