@@ -262,7 +262,12 @@ class TuningProblem:
         self.manoeuvres = tuple(manoeuvres)
         if not self.manoeuvres:
             raise ConfigError("the tuning problem needs at least one manoeuvre")
-        if not (isinstance(burn_in, (int, float)) and math.isfinite(burn_in) and burn_in >= 0):
+        if not (
+            isinstance(burn_in, (int, float))
+            and not isinstance(burn_in, bool)
+            and math.isfinite(burn_in)
+            and burn_in >= 0
+        ):
             raise ConfigError(f"burn_in must be a number of seconds >= 0, got {burn_in!r}")
         self.burn_in = float(burn_in)
         for m in self.manoeuvres:
