@@ -6,6 +6,7 @@ manoeuvres; no manual or tuned filter of the bundled set or revs-250lm is flagge
 from __future__ import annotations
 
 import math
+import sqlite3
 import subprocess
 import sys
 
@@ -174,3 +175,23 @@ def test_evaluate_exits_1_naming_the_runaway_manoeuvres_and_still_prints_kpis():
     assert "runaway: the estimated sideslip went beyond ±60°" in res.stderr
     assert res.stdout.startswith("manoeuvre") and "average" in res.stdout
     assert res.stdout.count("runaway:") == 23
+
+
+def test_a_tuning_run_whose_every_evaluation_runs_away_keeps_them_all(tmp_path, capsys):
+    """Every evaluation fails (Q pinned near 1e8): ``tune`` exits 1 naming the cause, and
+    the study holds each failed evaluation with its reason — nothing finished is lost."""
+    from kftune.cli import main
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[parameters]\nq_bounds = [1e8, 1.1e8]\n")
+    db = tmp_path / "s.db"
+    args = ["tune", "-m", "random", "-n", "3", "--storage", str(db), "--config", str(cfg)]
+    assert main([*args, "--quiet", "-o", str(tmp_path / "t.json")]) == 1
+    err = capsys.readouterr().err
+    assert "every evaluation of 'random' failed (3 of 3)" in err and "runaway" in err
+    with sqlite3.connect(db) as con:
+        rows = con.execute("SELECT state, reason FROM trials ORDER BY number").fetchall()
+    assert len(rows) == 3
+    assert all(
+        state == "failed" and "runaway: the estimated sideslip" in why for state, why in rows
+    )
