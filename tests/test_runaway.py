@@ -16,7 +16,10 @@ import pytest
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
 from kftune.data import default_dataset, load_revs
 from kftune.filters import UKFSettings, _kernel, run_ukf, run_ukf_batch, run_ukf_reference
-from kftune.tuning.problem import FilterDivergedError, TuningProblem
+from kftune.report import ExperimentResults, MethodRun
+from kftune.report.tables import kpi_table, per_manoeuvre_table
+from kftune.tuning.kpi import average_kpis
+from kftune.tuning.problem import FilterDivergedError, TuningProblem, assess
 from kftune.vehicle import preset
 from kftune.vehicle.single_track import MAX_SIDESLIP
 from test_ukf import filterpy_run
@@ -152,13 +155,13 @@ def _max_abs_beta_deg(manoeuvres, vehicle, r, q) -> float:
 @pytest.mark.parametrize("q", TUNED["default"])
 def test_no_manual_or_tuned_filter_of_the_bundled_set_is_flagged(q):
     ds = default_dataset()
-    assert _max_abs_beta_deg(ds.manoeuvres, ds.vehicle, ds.r_default, q) < 10.0
+    assert _max_abs_beta_deg(ds.manoeuvres, ds.vehicle, ds.r_default, q) < 20.0
 
 
 def test_no_manual_or_tuned_filter_of_revs_is_flagged(revs_dir):
     ds = load_revs(revs_dir)
     for q in TUNED["revs"]:
-        assert _max_abs_beta_deg(ds.manoeuvres, ds.vehicle, ds.r_default, q) < 10.0
+        assert _max_abs_beta_deg(ds.manoeuvres, ds.vehicle, ds.r_default, q) < 20.0
 
 
 def test_evaluate_exits_1_naming_the_runaway_manoeuvres_and_still_prints_kpis():
@@ -195,3 +198,26 @@ def test_a_tuning_run_whose_every_evaluation_runs_away_keeps_them_all(tmp_path, 
     assert all(
         state == "failed" and "runaway: the estimated sideslip" in why for state, why in rows
     )
+
+
+def test_a_runaway_shows_in_the_kpis_and_the_tables():
+    """assess flags each runaway manoeuvre; the averages refuse to average over survivors;
+    the KPI table counts the diverged manoeuvres and the per-manoeuvre table marks them."""
+    ds = default_dataset()
+    problem = TuningProblem(ds.train[:1], ds.vehicle, ds.r_default)
+    tested = (*ds.test[:2], ds.train[0])
+    per, _ = assess(problem, [1e9, 1e9, 1e9], tested[:2])
+    good, _ = assess(problem, TUNED["default"][1], tested[2:])
+    per.update(good)
+    avg = average_kpis(per.values())
+    assert avg["n_diverged"] == 2 and math.isnan(avg["rmse"])
+    run = MethodRun(
+        key="ga", label="GA", params={}, best_cost=1.0, n_evals=1, wall_time_s=0.1,
+        history_cost=[1.0], history_time_s=[0.1], metrics={"test": per},
+        averages={"test": avg}, extra={},
+    )  # fmt: skip
+    results = ExperimentResults(meta={}, methods=[run])
+    assert kpi_table(results, "test").rows[-1] == ("Diverged manoeuvres", 2)
+    table = per_manoeuvre_table(results)
+    column = table.header.index("diverged")
+    assert [row[column] for row in table.rows] == [1.0, 1.0, 0.0]

@@ -39,8 +39,9 @@ they start:
   counting.
 
 They are tested as |Vy| > tan(bound)·Vx (Vx > 0 is checked first), so no atan2 per step.
-On the bundled data and revs-250lm no manual or tuned filter comes near them (|β⁺| ≤ 6°,
-Vx within 1 %), while Q = diag(1e9, 1e9, 1e9) trips the 60° bound within a second. The
+On the bundled data and revs-250lm no manual or tuned filter comes near them (|β⁺| ≤ 10°,
+Vx⁺ within 10 % of the measurement), while Q = diag(1e9, 1e9, 1e9) trips the 60° bound at
+the first prediction. The
 normalised innovation squared is *not* used: filters with Q near 1e-10 are overconfident
 (NIS above 1000 held for seconds) yet estimate β within 1°, and runaway filters with a huge
 Vy noise have NIS below 25, because their innovation covariance is as inflated as their
