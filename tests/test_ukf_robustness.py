@@ -91,7 +91,7 @@ def _kernel_run(man, P_init: np.ndarray, n: int = N):
     """The compiled kernel itself, bypassing run_ukf's checks (which refuse such a P0)."""
     wm, wc = merwe_weights(3, UKFSettings())
     outs = [np.empty((n, 3)) for _ in range(4)] + [np.empty(n)]
-    div, rep = _kernel.run_kernel(
+    div, rep, _ = _kernel.run_kernel(
         _kernel.MODEL_SINGLE_TRACK, BMW.to_array(), man.u[:n], man.z[:n], man.dt,
         np.array(DEFAULT_Q), man.r_var, man.z[0] * [1, 0, 1], P_init,
         wm[0], wc[0], wm[1], math.sqrt(3.0), *outs,

@@ -19,6 +19,7 @@ from kftune.vehicle import (
     slip_angles,
     step_rk4,
 )
+from kftune.vehicle.params import PLAUSIBLE_RANGES
 from kftune.vehicle.single_track import (
     derivatives_scalar,
     measure_scalar,
@@ -174,24 +175,38 @@ def test_model_refuses_bad_state_and_dt():
 @pytest.mark.parametrize(
     ("field", "value", "match"),
     [
-        ("m", -1093.0, r"VehicleParams\.m must be > 0"),
-        ("Iz", 0.0, r"VehicleParams\.Iz must be > 0"),
-        ("a", -1.0, r"VehicleParams\.a must be > 0"),
-        ("C_ar", 0.0, r"VehicleParams\.C_ar must be > 0"),
-        ("h", -0.1, r"VehicleParams\.h .* must be >= 0"),
-        ("mu", 0.0, r"VehicleParams\.mu must be in \(0, 2\]"),
-        ("mu", 2.5, r"VehicleParams\.mu must be in \(0, 2\]"),
+        ("m", -1093.0, r"VehicleParams\.m = -1093\.0 kg is implausible.*100 to 60000 kg"),
+        ("m", 1e-300, r"VehicleParams\.m = 1e-300 kg is implausible"),
+        ("Iz", 0.0, r"VehicleParams\.Iz = 0\.0 kg·m² is implausible.*10 to 1e\+06"),
+        ("a", -1.0, r"VehicleParams\.a = -1\.0 m is implausible.*0\.1 to 10 m"),
+        ("b", 1e6, r"VehicleParams\.b = 1000000\.0 m is implausible"),
+        ("C_ar", 0.0, r"VehicleParams\.C_ar = 0\.0 N/rad is implausible"),
+        ("C_af", 55.6, r"VehicleParams\.C_af = 55\.6 N/rad .*1000 to 2e\+06 N/rad"),
+        ("h", -0.1, r"VehicleParams\.h = -0\.1 m is implausible.*0 to 3 m"),
+        ("mu", 0.0, r"VehicleParams\.mu = 0\.0 - is implausible.*0\.05 to 2"),
+        ("mu", 2.5, r"VehicleParams\.mu = 2\.5 - is implausible"),
         ("m", float("nan"), r"VehicleParams\.m must be a finite number"),
         ("b", "1.5", r"VehicleParams\.b must be a finite number"),
         ("Iz", True, r"VehicleParams\.Iz must be a finite number"),
         ("steering_ratio", "x", r"VehicleParams\.steering_ratio must be a finite number"),
-        ("steering_ratio", -16.0, r"VehicleParams\.steering_ratio must be > 0"),
+        ("steering_ratio", -16.0, r"VehicleParams\.steering_ratio = -16\.0 - is implausible"),
+        ("track_r", 1365.0, r"VehicleParams\.track_r = 1365\.0 m is implausible"),
         ("name", 3, r"VehicleParams\.name must be a string"),
     ],
 )
 def test_bad_parameters_are_refused_naming_the_field(field, value, match):
     with pytest.raises(ValueError, match=match):
         preset("bmw-320i").replace(**{field: value})
+
+
+def test_every_range_bound_is_accepted_and_just_beyond_it_refused():
+    """The plausible ranges are closed intervals, and each field is checked against its own."""
+    for name, (low, high, _) in PLAUSIBLE_RANGES.items():
+        for ok in (low, high):
+            assert getattr(preset("bmw-320i").replace(**{name: ok}), name) == ok
+        for bad in (low - 1e-9 * max(1.0, abs(low)) - 1e-12, high * (1 + 1e-9)):
+            with pytest.raises(ValueError, match=rf"VehicleParams\.{name} = "):
+                preset("bmw-320i").replace(**{name: bad})
 
 
 def test_presets_are_valid_and_frozen():

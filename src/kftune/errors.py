@@ -39,3 +39,9 @@ class RunFailedError(KftuneError):
 
 class ConfigError(KftuneError, ValueError):
     """An option or configuration value is invalid; the message names it."""
+
+
+class DataWarning(UserWarning):
+    """Input data load but look implausible (e.g. samples held at a lower rate); the
+    message names the dataset and manoeuvre and says how much of it is affected. The CLI
+    prints it as ``kftune: warning: …``."""

@@ -19,10 +19,12 @@ import argparse
 import importlib
 import os
 import sys
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
+from typing import TextIO
 
 from kftune import __version__
-from kftune.errors import KftuneError, RunFailedError
+from kftune.errors import DataWarning, KftuneError, RunFailedError
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -50,10 +52,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _plain_warnings(fallback: Callable[..., None]) -> Callable[..., None]:
+    """A ``warnings.showwarning`` that prints kftune's own warnings as ``kftune: warning: …``
+    (no source file and line, which look like a traceback) and hands others to
+    ``fallback``."""
+
+    def show(
+        message: Warning | str,
+        category: type[Warning],
+        filename: str,
+        lineno: int,
+        file: TextIO | None = None,
+        line: str | None = None,
+    ) -> None:
+        if issubclass(category, DataWarning):
+            print(f"kftune: warning: {message}", file=sys.stderr)
+        else:
+            fallback(message, category, filename, lineno, file, line)
+
+    return show
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.showwarning = _plain_warnings(warnings.showwarning)
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         code = int(args.func(args))
         sys.stdout.flush()  # a closed pipe surfaces here, not at interpreter exit

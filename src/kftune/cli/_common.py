@@ -223,12 +223,18 @@ def add_command(subparsers: Any, name: str, help: str, doc: str | None) -> argpa
     )
 
 
+def _plain(text: str) -> bool:
+    """Not the digit separators and non-ASCII digits that int() and float() accept ("2_2.5"
+    would read as 22.5); :func:`kftune.data.validate.parse_number` refuses them in files."""
+    return "_" not in text and text.isascii()
+
+
 def _number(kind: type, low: float, strict: bool) -> Any:
     """An argparse type: a number of ``kind`` above ``low`` (errors exit with code 2)."""
 
     def parse(text: str) -> Any:
         try:
-            value = kind(text)
+            value = kind(text) if _plain(text) else None
         except ValueError:
             value = None
         if value is None or not math.isfinite(value) or (value <= low if strict else value < low):
@@ -318,7 +324,7 @@ def parse_weights(text: str) -> dict[str, float]:
         name, sep, value = item.partition("=")
         name = name.strip()
         try:
-            w = float(value)
+            w = float(value) if _plain(value) else math.nan
         except ValueError:
             w = math.nan
         if not sep or not name or not math.isfinite(w):

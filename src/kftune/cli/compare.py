@@ -10,6 +10,7 @@ filter on the training and test manoeuvres, and writes a report directory: ``rep
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -125,4 +126,14 @@ def run(args: argparse.Namespace) -> int:
             if key in tables:
                 print(f"\n{tables[key].title}\n\n{tables[key].to_markdown()}")
         print(f"\nreport written to {report}")
+    for m in results.methods:  # the KPI tables say it too; not a failure of the experiment
+        for split, avg in m.averages.items():
+            if avg.get("n_diverged", 0):
+                print(
+                    f"kftune: warning: the filter tuned by {m.key} diverged or ran away on "
+                    f"{int(avg['n_diverged'])} of {int(avg['n_manoeuvres'])} {split} "
+                    "manoeuvres; its average KPIs there are undefined (per-manoeuvre table: "
+                    "column 'diverged')",
+                    file=sys.stderr,
+                )
     return EXIT_OK

@@ -174,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
         "max_abs_beta_deg": float(np.degrees(np.max(np.abs(man.beta_true)))),
         "diverged": res.diverged,
         "diverged_step": res.diverged_step,
+        "diverged_reason": res.diverged_reason,
     }
     if not res.diverged:
         kpis = sideslip_kpis(res.beta, man.beta_true, man.z[:, 1])
@@ -190,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
         )
         print(f"  UKF q = {out['q']}, r = {[f'{v:.3g}' for v in man.r_var]}")
         if res.diverged:
-            print(f"  the filter DIVERGED at step {res.diverged_step}")
+            print(f"  the filter DIVERGED at step {res.diverged_step}: {res.diverged_reason}")
         else:
             k = out["kpis_deg"]
             assert isinstance(k, dict)

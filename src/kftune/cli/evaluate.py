@@ -3,7 +3,12 @@
 The parameters come from a file written by ``kftune tune`` (``--params tuned.json``), from
 the command line (``--q QVX QVY QR``), or are the manual-tuning rule of thumb
 (``--manual``). R is the evaluated dataset's own (from its sensor statistics), times the
-tuned ``r_scale`` if there is one.
+tuned ``r_scale`` if there is one. Parameters tuned on another dataset than the one scored
+are refused when no dataset is named (the bundled one would be scored by default) and
+scored with a warning when one is.
+
+Exit code 1 (after the KPI table, which shows "–" there) when the filter diverged or ran
+away on any manoeuvre; the message names each, with the step and the cause.
 """
 
 from __future__ import annotations
@@ -11,6 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +34,7 @@ from kftune.cli._common import (
     pick,
 )
 from kftune.cli.tune import TUNED_FORMAT
-from kftune.errors import ConfigError, DataError
+from kftune.errors import ConfigError, DataError, DataWarning
 from kftune.tuning.kpi import KPI_NAMES
 
 
@@ -77,22 +84,53 @@ def read_tuned(path: Path) -> dict[str, Any]:
         if key not in doc:
             raise DataError(f"missing key {key!r}", file=str(path))
     q = doc["q"]
-    if not (
-        isinstance(q, list)
-        and len(q) == 3
-        and all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in q)
-    ):
-        raise DataError(f"'q' must be 3 non-negative numbers, got {q!r}", file=str(path))
+    if not (isinstance(q, list) and len(q) == 3 and all(_real(v) and v >= 0 for v in q)):
+        raise DataError(
+            f"'q' must be 3 numbers >= 0 (not true/false or strings), got {q!r}", file=str(path)
+        )
+    r_scale = doc["params"].get("r_scale", 1.0) if isinstance(doc["params"], dict) else None
+    if not (_real(r_scale) and r_scale > 0):
+        raise DataError(
+            f"'params' must be an object whose 'r_scale', if any, is a number > 0; got "
+            f"{doc['params']!r}",
+            file=str(path),
+        )
+    burn = doc.get("burn_in", 0.0)
+    if not (_real(burn) and burn >= 0):
+        raise DataError(f"'burn_in' must be a number of seconds >= 0, got {burn!r}", file=str(path))
     from kftune.filters import UKFSettings
     from kftune.tuning.cost import CostSpec
 
     try:  # the settings must make a filter and a cost, or the file is not usable
         UKFSettings(**doc["ukf"]).check_dim(3)
         CostSpec(**doc.get("cost_spec", {}))
-        float(doc["params"].get("r_scale", 1.0))
     except (TypeError, ValueError, AttributeError) as exc:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
     return doc
+
+
+def _real(value: Any) -> bool:
+    """A finite JSON number; true and false are not numbers here (Python reads them as 1, 0)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_tuned_on(tuned: dict[str, Any], dataset: str, path: Path, named: str | None) -> None:
+    """Parameters tuned on another dataset: refused when no dataset was named (the bundled
+    one would be scored by default), a warning when one was named on purpose."""
+    tuned_on = tuned.get("dataset")
+    if not isinstance(tuned_on, str) or tuned_on == dataset:
+        return
+    if named is None:
+        raise ConfigError(
+            f"{path}: the parameters were tuned on dataset {tuned_on!r}, but no dataset was "
+            f"given and the bundled one is {dataset!r}; name the dataset to score them on "
+            f"(kftune evaluate DATASET --params {path}; 'default' for the bundled one)"
+        )
+    warnings.warn(
+        f"{path}: parameters tuned on dataset {tuned_on!r} are scored on dataset {dataset!r}",
+        DataWarning,
+        stacklevel=2,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,10 +147,15 @@ def run(args: argparse.Namespace) -> int:
         NoiseParameterization,
         TuningProblem,
         assess,
+        where_diverged,
     )
 
     config = load_config(args.config, "evaluate")
-    dataset = open_dataset(pick(args, config, "dataset", None))
+    tuned = read_tuned(args.params) if args.params is not None else None
+    named = pick(args, config, "dataset", None)
+    dataset = open_dataset(named)
+    if tuned is not None:
+        _check_tuned_on(tuned, dataset.name, args.params, named)
     manoeuvres = {
         "train": dataset.train,
         "test": dataset.test,
@@ -122,8 +165,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
     spec = cost_spec(args, config)
     scored_after = burn_in(args, config)
-    if args.params is not None:
-        tuned = read_tuned(args.params)
+    if tuned is not None:
         # unless told otherwise, score the way the parameters were tuned
         told = args.cost or args.weights or args.estimate or "cost" in config
         if not told:
@@ -150,11 +192,14 @@ def run(args: argparse.Namespace) -> int:
     with problem:
         try:
             cost: float | None = problem.evaluate(x).cost
-            reason = None
-        except FilterDivergedError as exc:
-            cost, reason = None, str(exc)
-        metrics, _ = assess(problem, x, manoeuvres)
+        except FilterDivergedError:
+            cost = None
+        metrics, results = assess(problem, x, manoeuvres)
     avg = average_kpis(metrics.values())
+    where = {
+        name: where_diverged(dataset[name], res) for name, res in results.items() if res.diverged
+    }
+    reason = f"the filter diverged on {len(where)} of {len(results)} manoeuvres" if where else None
     q, r, ukf = problem.decode(x)
     doc = {
         "dataset": dataset.name,
@@ -169,7 +214,11 @@ def run(args: argparse.Namespace) -> int:
         "diverged": reason,
         "average": {k: _num(v) for k, v in avg.items()},
         "manoeuvres": {
-            name: {"kind": dataset[name].kind, **{k: _num(v) for k, v in row.items()}}
+            name: {
+                "kind": dataset[name].kind,
+                **{k: _num(v) for k, v in row.items()},
+                **({"diverged_at": where[name]} if name in where else {}),
+            }
             for name, row in metrics.items()
         },
     }
@@ -177,7 +226,12 @@ def run(args: argparse.Namespace) -> int:
         emit_json(doc)
     else:
         _print_table(doc)
-    return EXIT_OK if reason is None else EXIT_FAILURE
+    if reason is None:
+        return EXIT_OK
+    first = next(iter(where.values()))
+    more = f" (and {len(where) - 1} more)" if len(where) > 1 else ""
+    print(f"kftune: failed: {reason}; first: {first}{more}", file=sys.stderr)
+    return EXIT_FAILURE
 
 
 def _num(v: float) -> float | None:
@@ -195,8 +249,11 @@ def _print_table(doc: dict[str, Any]) -> None:
     print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in KPI_NAMES))
     if doc["cost"] is not None:
         print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
-    else:
-        print(f"the filter diverged: {doc['diverged']}")
+    if doc["diverged"] is not None:
+        print(f"{doc['diverged']}:")
+        for row in doc["manoeuvres"].values():
+            if "diverged_at" in row:
+                print(f"  {row['diverged_at']}")
 
 
 def _cell(v: float | None) -> str:

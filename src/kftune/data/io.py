@@ -43,6 +43,7 @@ from kftune.data.validate import (
     REQUIRED_CHANNELS,
     SI_UNIT,
     check_channel_name,
+    parse_number,
     unit_factor,
     validate_channels,
 )
@@ -514,7 +515,7 @@ def _parse_rows(body: list[str], header: list[str], file: str) -> np.ndarray:
             )
         for j, text in enumerate(fields):
             try:
-                out[i, j] = float(text)
+                out[i, j] = parse_number(text)
             except ValueError:
                 raise DataError(
                     f"cannot read {text.strip()!r} as a number",
@@ -606,7 +607,7 @@ def _read_value_file(path: Path) -> np.ndarray:
     for k, i in enumerate(rows):
         text = lines[i].strip()
         try:
-            out[k] = float(text)
+            out[k] = parse_number(text)
         except ValueError:
             raise DataError(f"cannot read {text!r} as one number", file=file, row=i + 1) from None
     return out

@@ -7,6 +7,7 @@ arrays are read-only float64 copies.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -15,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from kftune.data.validate import REQUIRED_CHANNELS, validate_channels
-from kftune.errors import DataError
+from kftune.data.validate import REQUIRED_CHANNELS, plausibility_warnings, validate_channels
+from kftune.errors import DataError, DataWarning
 from kftune.vehicle.params import VehicleParams
 
 #: Manoeuvre types of the paper's dataset (Sec. V-A), plus "segment" for a piece of a long
@@ -192,6 +193,10 @@ class Manoeuvre:
 class Dataset:
     """Manoeuvres of one vehicle at one sample time, split into training and test.
 
+    Built, it warns (:class:`~kftune.errors.DataWarning`, naming the manoeuvre and the share
+    of samples) about data that load but look implausible
+    (:func:`~kftune.data.validate.plausibility_warnings`).
+
     Attributes:
         name: a label. vehicle: the single-track model parameters of the car.
         dt: sample time [s] (every manoeuvre's within 1 %).
@@ -227,6 +232,15 @@ class Dataset:
                     f"the dataset {self.dt!r} s"
                 )
         object.__setattr__(self, "meta", MappingProxyType(dict(self.meta)))
+        for m in self.manoeuvres:
+            for text in plausibility_warnings(
+                {c: m.channel(c) for c in REQUIRED_CHANNELS}, self.vehicle.mu
+            ):
+                warnings.warn(
+                    f"dataset {self.name!r}, manoeuvre {m.name!r}: {text}",
+                    DataWarning,
+                    stacklevel=2,
+                )
 
     def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
         # the read-only ``meta`` view cannot be pickled; rebuild from plain fields

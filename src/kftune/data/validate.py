@@ -17,6 +17,11 @@ beta_ref   rad      reference sideslip at the CG, atan2(vy, vx) (optical sensor 
 Extra channels (true states of a simulation, other sensors) may ride along; their names
 must be identifiers.
 
+Data that load can still be implausible in ways that do not make them unusable:
+:func:`plausibility_warnings` finds samples held at a lower rate and lateral accelerations
+beyond what the tyres can give; :class:`~kftune.data.manoeuvre.Dataset` issues them as
+:class:`~kftune.errors.DataWarning`.
+
 Row numbers in messages are what the caller's file shows: :func:`validate_channels` adds
 ``row_offset`` to the 0-based sample index (a CSV with a header passes 2, so the first
 data line is reported as row 2; a column-per-file text passes 1, a MATLAB array 1).
@@ -32,6 +37,7 @@ import numpy as np
 
 from kftune.errors import DataError
 from kftune.vehicle.params import G
+from kftune.vehicle.single_track import MAX_SIDESLIP
 
 #: Channels every manoeuvre must have, in file order.
 REQUIRED_CHANNELS: tuple[str, ...] = ("t", "delta", "ax", "ay", "r", "vx", "beta_ref")
@@ -90,14 +96,57 @@ _LIMITS: dict[str, tuple[float, float, str]] = {
         "a road-wheel angle beyond ±1 rad (57°): degrees, or a hand-wheel "
         "angle without the steering ratio?",
     ),
-    "beta_ref": (-0.8, 0.8, "a sideslip angle beyond ±0.8 rad (46°): degrees?"),
+    "beta_ref": (
+        -MAX_SIDESLIP,
+        MAX_SIDESLIP,
+        f"a sideslip angle beyond ±{MAX_SIDESLIP:g} rad ({math.degrees(MAX_SIDESLIP):.0f}°): "
+        "degrees?",
+    ),
     "r": (-3.0, 3.0, "a yaw rate beyond ±3 rad/s (172 °/s): deg/s declared as rad/s?"),
     "ax": (-30.0, 30.0, "an acceleration beyond ±30 m/s² (3 g): wrong unit?"),
     "ay": (-30.0, 30.0, "an acceleration beyond ±30 m/s² (3 g): wrong unit?"),
     "vx": (-math.inf, 100.0, "a speed beyond 100 m/s (360 km/h): km/h declared as m/s?"),
 }
 
+#: Kinematic checks. Cornering for the ay ≈ vx·r check: |ay| or |vx·r| at least this
+#: [m/s²] (either, so that a yaw rate 57× too small cannot hide its own cornering), and at
+#: least KINEMATIC_MIN_SAMPLES such samples; the fitted ay/(vx·r) must lie in
+#: KINEMATIC_RATIO (0.72–1.13 on every bundled and revs-250lm manoeuvre).
+CORNERING = 2.0
+KINEMATIC_MIN_SAMPLES = 50
+KINEMATIC_RATIO = (0.5, 2.0)
+#: Steering check: in the linear range (|ay| ≤ 4 m/s², the paper's threshold) and cornering
+#: with |vx·r| ≥ 1 m/s², the yaw rate follows the steering as r = vx·δ/L_eff, with the
+#: effective wheelbase L_eff = L + K_us·vx² ≥ L of an understeering car (Gillespie,
+#: *Fundamentals of Vehicle Dynamics*, Eq. 6-15). Its median over at least
+#: STEER_MIN_SAMPLES samples must lie in STEER_L_EFF [m]: 2.6–11 m on the bundled
+#: manoeuvres, 2.8–4.1 m on revs-250lm; δ in rad declared as deg gives 1/57 of it.
+STEER_AY_LINEAR = 4.0
+STEER_CORNERING = 1.0
+STEER_MIN_SAMPLES = 10
+STEER_L_EFF = (0.5, 50.0)
+#: Plausibility warnings: a share of samples repeating the previous one in every IMU channel
+#: at once (at most 13 % on revs-250lm, none on the bundled set) that means a recording
+#: held at a lower rate; and |vx·r| beyond LATERAL_LIMIT·μ·g in more than LATERAL_SHARE of
+#: the samples (transients let it overshoot μ·g by up to 23 % in the bundled lane changes).
+HELD_CHANNELS = ("ax", "ay", "r")
+HELD_SHARE = 0.25
+LATERAL_LIMIT = 1.5
+LATERAL_SHARE = 0.01
+
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def parse_number(text: str) -> float:
+    """A number of a data file: what ``float()`` reads, less its digit separators and
+    non-ASCII digits (``"2_2.5"`` would read as 22.5, ``"١٢"`` as 12).
+
+    Raises:
+        ValueError: not a plain decimal number.
+    """
+    if "_" in text or not text.isascii():
+        raise ValueError(f"not a plain decimal number: {text!r}")
+    return float(text)
 
 
 def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: str) -> float:
@@ -148,8 +197,11 @@ def validate_channels(
     Checks, in this order: required channels present; channel names; 1-D and equal lengths;
     at least ``min_samples`` samples; every value finite; time strictly increasing (no
     duplicates); regular sample time within ``dt_tolerance``; plausible magnitudes (a yaw
-    rate that looks like deg/s, an angle that looks like degrees, km/h as m/s); and the
-    kinematic consistency ay ≈ vx·r in cornering, which catches ay in g or r in deg/s.
+    rate that looks like deg/s, an angle that looks like degrees, km/h as m/s); the
+    kinematic consistency ay ≈ vx·r in cornering, which catches ay in g or r in the wrong
+    one of deg/s and rad/s; and the steering consistency r ≈ vx·δ/L_eff, which catches δ
+    in rad declared as deg (constants and evidence at :data:`CORNERING` and
+    :data:`STEER_L_EFF`).
 
     Args:
         channels: name → (n,) array. file: reported in errors. row_offset: added to 0-based
@@ -279,17 +331,21 @@ def _check_magnitudes(
                 column=name,
                 row=int(bad[0]) + row_offset,
             )
-    # Kinematics: in cornering ay ≈ vx·r (steady state; v̇y is small on average). A ratio
-    # near 1/g means ay in g, near 180/π means r in deg/s declared as rad/s (or the reverse).
-    ay, vxr = arrays["ay"], arrays["vx"] * arrays["r"]
-    cornering = np.abs(vxr) >= 2.0
-    if np.count_nonzero(cornering) >= 50:
-        ratio = float(np.median(ay[cornering] / vxr[cornering]))
-        if not 0.5 <= ratio <= 2.0:
+    # Kinematics: in cornering ay ≈ vx·r (steady state; v̇y is small on average). The
+    # least-squares ratio near 1/g means ay in g, near 180/π or π/180 a yaw rate in the
+    # wrong one of deg/s and rad/s; negative, opposite sign conventions.
+    ay, vx, r = arrays["ay"], arrays["vx"], arrays["r"]
+    vxr = vx * r
+    cornering = (np.abs(vxr) >= CORNERING) | (np.abs(ay) >= CORNERING)
+    if np.count_nonzero(cornering) >= KINEMATIC_MIN_SAMPLES:
+        power = float(np.sum(vxr[cornering] ** 2))
+        ratio = float(np.sum(ay[cornering] * vxr[cornering]) / power) if power else math.inf
+        if not KINEMATIC_RATIO[0] <= ratio <= KINEMATIC_RATIO[1]:
             k = int(np.argmax(np.abs(vxr)))
             raise DataError(
-                f"lateral acceleration and vx·yaw rate disagree: median ay/(vx·r) = "
-                f"{ratio:.3g} in cornering, expected ≈ 1 (is ay in g, r in deg/s or rad/s, vx "
+                f"lateral acceleration and vx·yaw rate disagree: ay/(vx·r) = {ratio:.3g} in "
+                f"cornering (least squares over the samples with |ay| or |vx·r| ≥ "
+                f"{CORNERING:g} m/s²), expected ≈ 1 (is ay in g, r in deg/s or rad/s, vx "
                 f"in km/h? a negative ratio means ay and r use opposite sign conventions; "
                 f"ISO 8855: both positive to the left; at this row ay = {ay[k]:.4g}, "
                 f"vx·r = {vxr[k]:.4g})",
@@ -297,3 +353,61 @@ def _check_magnitudes(
                 column="ay",
                 row=k + row_offset,
             )
+    delta = arrays["delta"]
+    steady = (np.abs(vxr) >= STEER_CORNERING) & (np.abs(ay) <= STEER_AY_LINEAR)
+    if np.count_nonzero(steady) >= STEER_MIN_SAMPLES:
+        l_eff = float(np.median(vx[steady] * delta[steady] / r[steady]))
+        if not STEER_L_EFF[0] <= l_eff <= STEER_L_EFF[1]:
+            k = int(np.flatnonzero(steady)[np.argmax(np.abs(vxr[steady]))])
+            raise DataError(
+                f"steering angle and yaw rate disagree: in cornering below "
+                f"{STEER_AY_LINEAR:g} m/s² the effective wheelbase vx·δ/r is {l_eff:.3g} m "
+                f"(median), expected {STEER_L_EFF[0]:g} to {STEER_L_EFF[1]:g} m (wheelbase "
+                f"plus understeer; 2–15 m for cars): is δ in rad but declared deg (57× too "
+                f"small), a hand-wheel angle without the steering ratio, or are δ and r of "
+                f"opposite sign conventions (ISO 8855: both positive to the left)? At this row "
+                f"δ = {delta[k]:.4g} rad, r = {r[k]:.4g} rad/s, vx = {vx[k]:.4g} m/s",
+                file=_file_of("delta", file, files),
+                column="delta",
+                row=k + row_offset,
+            )
+
+
+def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float) -> list[str]:
+    """Why channels that passed :func:`validate_channels` may not be what they claim.
+
+    Args:
+        channels: name → (n,) array in SI units, with the required channels.
+        mu: the vehicle's friction coefficient [-].
+
+    Returns:
+        One message per finding (empty when none): samples held at a lower rate (the share
+        that repeat the previous sample in ax, ay and r at once is at least
+        :data:`HELD_SHARE`), and |vx·r| beyond :data:`LATERAL_LIMIT`·μ·g in more than
+        :data:`LATERAL_SHARE` of the samples (banking, a wrong μ, a wrong unit).
+    """
+    messages = []
+    t = np.asarray(channels["t"], dtype=float)
+    held = np.ones(t.size - 1, dtype=bool)
+    for name in HELD_CHANNELS:
+        held &= np.diff(np.asarray(channels[name], dtype=float)) == 0.0
+    share = float(np.mean(held)) if held.size else 0.0
+    if share >= HELD_SHARE:
+        rate = 1.0 / float(np.median(np.diff(t)))
+        messages.append(
+            f"{share:.0%} of the samples repeat the previous one in {', '.join(HELD_CHANNELS)} "
+            f"at once: recorded at about {(1.0 - share) * rate:.3g} Hz and held up to "
+            f"{rate:.3g} Hz? The filter takes every sample as a new measurement; resample "
+            "the recording at its real rate"
+        )
+    lateral = np.abs(np.asarray(channels["vx"], dtype=float) * np.asarray(channels["r"]))
+    limit = LATERAL_LIMIT * mu * G
+    share = float(np.mean(lateral > limit))
+    if share > LATERAL_SHARE:
+        messages.append(
+            f"|vx·r| exceeds {LATERAL_LIMIT:g}·μ·g = {limit:.3g} m/s² (μ = {mu:g}) in "
+            f"{share:.1%} of the samples, up to {float(lateral.max()):.3g} m/s²: more "
+            "lateral acceleration than the tyres can give — a banked track, a wrong μ in "
+            "the vehicle parameters, or vx or r in a wrong unit?"
+        )
+    return messages

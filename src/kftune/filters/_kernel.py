@@ -20,7 +20,32 @@ predicted P̄ before the sigma points are redrawn, the innovation covariance S) 
 growing tenfold per try up to 10⁻⁶·max(diag), is added to the diagonal (and kept). If that
 fails too, or the state, the covariance, the NIS or the estimated measurement stops being
 finite, or (single-track model) the estimated Vx is not > 0, the run has diverged: the
-kernel returns that step and fills the remaining output rows with NaN. It never raises.
+kernel returns that step and a cause (``STOP_*``), and fills the remaining output rows with
+NaN. It never raises.
+
+Runaway (single-track model): a filter can stay finite and positive-definite while its
+estimate leaves physics behind — with a large Vy process noise the sideslip random-walks
+to ±90° and the cost merely grows. These estimates are divergence too, at the step where
+they start:
+
+* |β⁺| > 60° (``RUNAWAY_BETA``) at any step: the car would move more sideways than
+  forwards (|Vy| > 1.7·Vx), which no cornering car does and the model (slip angles of a
+  rolling tyre) does not describe;
+* |β⁺| > 46° (:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`, the bound the loader puts
+  on a reference sideslip) held for 0.5 s (``RUNAWAY_HOLD``): a sustained spin;
+* |Vx⁺ − Vx_measured| > 50 % of the measured Vx (``RUNAWAY_VX``) held for 0.5 s: a
+  speed sensor (wheel speeds, GNSS/INS) errs by the wheel slip at most, |κ| ≲ 0.2 outside
+  lock-up and spin; holding it for 0.5 s keeps a single glitch of the measurement from
+  counting.
+
+They are tested as |Vy| > tan(bound)·Vx (Vx > 0 is checked first), so no atan2 per step.
+On the bundled data and revs-250lm no manual or tuned filter comes near them (|β⁺| ≤ 10°,
+Vx⁺ within 10 % of the measurement), while Q = diag(1e9, 1e9, 1e9) trips the 60° bound at
+the first prediction. The
+normalised innovation squared is *not* used: filters with Q near 1e-10 are overconfident
+(NIS above 1000 held for seconds) yet estimate β within 1°, and runaway filters with a huge
+Vy noise have NIS below 25, because their innovation covariance is as inflated as their
+estimate.
 
 Process/measurement models are selected by an integer so that the same loop also runs a
 linear-Gaussian model — the test of the kernel against a linear Kalman filter.
@@ -33,7 +58,12 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from kftune.vehicle.single_track import measure_scalar, rk4_scalar, step_context_scalar
+from kftune.vehicle.single_track import (
+    MAX_SIDESLIP,
+    measure_scalar,
+    rk4_scalar,
+    step_context_scalar,
+)
 
 #: Model ids.
 MODEL_SINGLE_TRACK = 0
@@ -43,7 +73,28 @@ MODEL_LINEAR = 1
 JITTER_START = 1e-12
 JITTER_MAX = 1e-6
 
+#: Why a run stopped (the third value :func:`run_kernel` returns).
+STOP_NONE = 0
+STOP_NUMERICAL = 1  # covariance not repairable, or a non-finite state, NIS or estimate
+STOP_REVERSE = 2  # estimated Vx ≤ 0
+STOP_SIDESLIP = 3  # |β⁺| > RUNAWAY_BETA
+STOP_SIDESLIP_HELD = 4  # |β⁺| > MAX_SIDESLIP for RUNAWAY_HOLD
+STOP_SPEED = 5  # |Vx⁺ − Vx measured| > RUNAWAY_VX·Vx measured for RUNAWAY_HOLD
+
+#: Runaway bounds of the single-track model (module docstring).
+RUNAWAY_BETA = math.radians(60.0)  # [rad]
+RUNAWAY_VX = 0.5  # [-] relative to the measured Vx
+RUNAWAY_HOLD = 0.5  # [s]
+
 _NAN = math.nan
+_TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
+_TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
+
+
+@njit(cache=True)
+def hold_steps(dt: float) -> int:
+    """Steps a held runaway must last: RUNAWAY_HOLD at sample time dt [s], at least 1."""
+    return max(1, int(RUNAWAY_HOLD / dt + 0.5))
 
 
 @njit(cache=True, error_model="numpy")
@@ -210,7 +261,7 @@ def run_kernel(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
-) -> tuple[int, int]:
+) -> tuple[int, int, int]:
     """Run the UKF over a whole manoeuvre (inputs already validated).
 
     Time convention (see :func:`kftune.filters.ukf.run_ukf`): step 0 updates the prior
@@ -228,13 +279,17 @@ def run_kernel(
             h(x⁺, u), innovation z − ẑ⁻); out_nis: (N,) output.
 
     Returns:
-        (diverged_step, n_repairs): diverged_step = −1 when the run completed.
+        (diverged_step, n_repairs, cause): diverged_step = −1 and cause = STOP_NONE when
+        the run completed; otherwise the first invalid step and a ``STOP_*`` code.
     """
     n_steps = u.shape[0]
     sx = np.empty((7, 3))  # sigma points (state)
     sz = np.empty((7, 3))  # sigma points (measurement)
     n_rep = 0
     check_vx = model == MODEL_SINGLE_TRACK
+    n_hold = hold_steps(dt)
+    held_beta = 0  # consecutive steps with |β⁺| > MAX_SIDESLIP
+    held_vx = 0  # consecutive steps with Vx⁺ off the measurement by > RUNAWAY_VX
 
     x0 = x_init[0]
     x1 = x_init[1]
@@ -249,7 +304,7 @@ def run_kernel(
     st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(p00, p01, p02, p11, p12, p22)
     if st == 2:
         _fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis)
-        return 0, n_rep
+        return 0, n_rep, STOP_NUMERICAL
     if st == 1:
         n_rep += 1
         p00 += jit
@@ -315,7 +370,7 @@ def run_kernel(
             st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(p00, p01, p02, p11, p12, p22)
             if st == 2:
                 _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
-                return k, n_rep
+                return k, n_rep, STOP_NUMERICAL
             if st == 1:
                 n_rep += 1
                 p00 += jit
@@ -388,7 +443,7 @@ def run_kernel(
         st, m00, m10, m11, m20, m21, m22, jit = chol3_repair(s00, s01, s02, s11, s12, s22)
         if st == 2:
             _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
-            return k, n_rep
+            return k, n_rep, STOP_NUMERICAL
         if st == 1:
             n_rep += 1
         # A = L_S⁻¹ (lower triangular)
@@ -432,10 +487,22 @@ def run_kernel(
             st == 2
             or not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2))
             or not (math.isfinite(nis) and math.isfinite(h1))
-            or (check_vx and not x0 > 0.0)
         ):
             _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
-            return k, n_rep
+            return k, n_rep, STOP_NUMERICAL
+        if check_vx:
+            if not x0 > 0.0:
+                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+                return k, n_rep, STOP_REVERSE
+            if abs(x1) > _TAN_RUNAWAY_BETA * x0:
+                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+                return k, n_rep, STOP_SIDESLIP
+            held_beta = held_beta + 1 if abs(x1) > _TAN_MAX_SIDESLIP * x0 else 0
+            held_vx = held_vx + 1 if abs(x0 - z[k, 0]) > RUNAWAY_VX * z[k, 0] else 0
+            if held_beta >= n_hold or held_vx >= n_hold:
+                k0 = k + 1 - n_hold  # the runaway started there
+                _fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis)
+                return k0, n_rep, STOP_SIDESLIP_HELD if held_beta >= n_hold else STOP_SPEED
         if st == 1:
             n_rep += 1
             p00 += jit
@@ -454,7 +521,7 @@ def run_kernel(
         out_zhat[k, 0] = h0
         out_zhat[k, 1] = h1
         out_zhat[k, 2] = h2
-    return -1, n_rep
+    return -1, n_rep, STOP_NONE
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -479,16 +546,18 @@ def run_kernel_batch(
     out_nis: np.ndarray,
     out_div: np.ndarray,
     out_rep: np.ndarray,
+    out_cause: np.ndarray,
 ) -> None:
     """:func:`run_kernel` for B noise settings in parallel (numba prange over B).
 
     q, r, x_init: (B, 3); P_init: (B, 3, 3); outputs carry a leading B axis;
-    out_div, out_rep: (B,) int64.
+    out_div, out_rep, out_cause: (B,) int64.
     """
     for b in prange(q.shape[0]):
-        d, nr = run_kernel(
+        d, nr, why = run_kernel(
             model, mp, u, z, dt, q[b], r[b], x_init[b], P_init[b], wm0, wc0, wi, c,
             out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b],
         )  # fmt: skip
         out_div[b] = d
         out_rep[b] = nr
+        out_cause[b] = why

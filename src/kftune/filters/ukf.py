@@ -25,7 +25,8 @@ z_k − ẑ⁻_k (ẑ⁻_k the unscented prediction of the measurement) and its 
 NIS_k = (z_k − ẑ⁻_k)ᵀ S_k⁻¹ (z_k − ẑ⁻_k).
 
 Robustness: see :mod:`kftune.filters._kernel` — covariance repair by jitter, and divergence
-reported as ``diverged``/``diverged_step`` with NaN rows from that step on, never an
+(numerical, or a runaway to a physically impossible sideslip or speed) reported as
+``diverged``/``diverged_step``/``diverged_cause`` with NaN rows from that step on, never an
 exception. Bad inputs are refused before the run with a ``ValueError`` naming the argument,
 the row and what was expected.
 """
@@ -47,9 +48,10 @@ from kftune.filters.sigma_points import (
     unscented_transform,
 )
 from kftune.vehicle.params import VehicleParams
-from kftune.vehicle.single_track import measure, pack_params, step_rk4
+from kftune.vehicle.single_track import MAX_SIDESLIP, measure, pack_params, step_rk4
 
 __all__ = [
+    "DIVERGED_CAUSES",
     "P0_VY_SPEED_FRACTION",
     "FilterDiverged",
     "UKFBatchResult",
@@ -64,6 +66,20 @@ __all__ = [
 
 #: Default prior standard deviation of Vy as a fraction of the first measured Vx [-].
 P0_VY_SPEED_FRACTION = 0.05
+
+#: What each ``diverged_cause`` code means (``_kernel.STOP_*``), for messages.
+DIVERGED_CAUSES: dict[int, str] = {
+    _kernel.STOP_NONE: "",
+    _kernel.STOP_NUMERICAL: "a covariance that jitter cannot repair, or an estimate that is "
+    "no longer finite",
+    _kernel.STOP_REVERSE: "the estimated Vx fell to 0 m/s or below",
+    _kernel.STOP_SIDESLIP: "runaway: the estimated sideslip went beyond "
+    f"±{math.degrees(_kernel.RUNAWAY_BETA):.0f}°",
+    _kernel.STOP_SIDESLIP_HELD: "runaway: the estimated sideslip stayed beyond "
+    f"±{math.degrees(MAX_SIDESLIP):.0f}° for {_kernel.RUNAWAY_HOLD:g} s",
+    _kernel.STOP_SPEED: "runaway: the estimated Vx stayed more than "
+    f"{_kernel.RUNAWAY_VX:.0%} away from the measured Vx for {_kernel.RUNAWAY_HOLD:g} s",
+}
 
 _U_COLS = ("delta", "ax")
 _Z_COLS = ("Vx", "ay", "r")
@@ -88,7 +104,9 @@ class UKFResult:
         nis: (N,) normalised innovation squared [-] (χ² with 3 dof when consistent).
         diverged: True when the filter diverged (see ``diverged_step``).
         diverged_step: first step whose outputs are invalid (rows ≥ it are NaN); −1 if none.
+            For a runaway held over a time, the step it started.
         n_repairs: number of covariance factorisations that needed jitter.
+        diverged_cause: why it diverged, a key of :data:`DIVERGED_CAUSES` (0: it did not).
     """
 
     x: np.ndarray
@@ -99,11 +117,17 @@ class UKFResult:
     diverged: bool
     diverged_step: int
     n_repairs: int = 0
+    diverged_cause: int = 0
 
     @property
     def beta(self) -> np.ndarray:
         """(N,) estimated sideslip angle atan2(Vy, Vx) [rad]."""
         return np.arctan2(self.x[:, 1], self.x[:, 0])
+
+    @property
+    def diverged_reason(self) -> str:
+        """Why the filter diverged, in words ("" when it did not)."""
+        return DIVERGED_CAUSES[self.diverged_cause]
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,7 +136,7 @@ class UKFBatchResult:
 
     Attributes are those of :class:`UKFResult` with a leading axis B: x, P_diag, z_hat,
     innovation (B, N, 3); nis (B, N); diverged (B,) bool; diverged_step (B,) int (−1 if
-    none); n_repairs (B,) int.
+    none); n_repairs (B,) int; diverged_cause (B,) int.
     """
 
     x: np.ndarray
@@ -123,6 +147,7 @@ class UKFBatchResult:
     diverged: np.ndarray
     diverged_step: np.ndarray
     n_repairs: np.ndarray
+    diverged_cause: np.ndarray
 
     @property
     def beta(self) -> np.ndarray:
@@ -143,6 +168,7 @@ class UKFBatchResult:
             diverged=bool(self.diverged[b]),
             diverged_step=int(self.diverged_step[b]),
             n_repairs=int(self.n_repairs[b]),
+            diverged_cause=int(self.diverged_cause[b]),
         )
 
 
@@ -357,8 +383,14 @@ def _run_single(
 ) -> UKFResult:
     wm0, wc0, wi, c = _weights(settings)
     out = _alloc((u.shape[0],))
-    div, rep = _kernel.run_kernel(model, mp, u, z, dt, q, r, x0, P0, wm0, wc0, wi, c, *out)
-    return UKFResult(*out, diverged=div >= 0, diverged_step=int(div), n_repairs=int(rep))
+    div, rep, why = _kernel.run_kernel(model, mp, u, z, dt, q, r, x0, P0, wm0, wc0, wi, c, *out)
+    return UKFResult(
+        *out,
+        diverged=div >= 0,
+        diverged_step=int(div),
+        n_repairs=int(rep),
+        diverged_cause=int(why),
+    )
 
 
 def run_ukf(
@@ -446,8 +478,9 @@ def run_ukf_batch(
     xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
     div = np.empty(n_sets, dtype=np.int64)
     rep = np.empty(n_sets, dtype=np.int64)
+    why = np.empty(n_sets, dtype=np.int64)
     if n_sets == 1:  # no thread start-up for a single set
-        div[0], rep[0] = _kernel.run_kernel(
+        div[0], rep[0], why[0] = _kernel.run_kernel(
             _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
             x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
         )  # fmt: skip
@@ -458,11 +491,11 @@ def run_ukf_batch(
         try:
             _kernel.run_kernel_batch(
                 _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
-                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep,
+                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep, why,
             )  # fmt: skip
         finally:
             numba.set_parallel_chunksize(previous)
-    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep)
+    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why)
 
 
 def run_ukf_linear(
@@ -634,6 +667,14 @@ def run_ukf_reference(
     n = u_arr.shape[0]
     out = [np.full((n, 3), np.nan) for _ in range(4)]
     nis = np.full(n, np.nan)
+    n_hold = _kernel.hold_steps(dt_f)
+    held_beta = held_vx = 0  # consecutive steps beyond the held-runaway bounds
+
+    def stopped(k: int, cause: int) -> UKFResult:
+        for a in (*out, nis):
+            a[k:] = np.nan
+        return UKFResult(*out, nis, True, k, ukf.n_repairs, cause)
+
     for k in range(n):
         try:
             with np.errstate(over="ignore", invalid="ignore"):
@@ -642,9 +683,21 @@ def run_ukf_reference(
                 ukf.update(z_arr[k], u_arr[k])
                 z_hat = measure(ukf.x, u_arr[k], p)
         except (FilterDiverged, ValueError):  # ValueError: the model met a non-finite state
-            return UKFResult(*out, nis, diverged=True, diverged_step=k, n_repairs=ukf.n_repairs)
-        if not (np.isfinite(ukf.x).all() and ukf.x[0] > 0 and math.isfinite(ukf.nis)):
-            return UKFResult(*out, nis, diverged=True, diverged_step=k, n_repairs=ukf.n_repairs)
+            return stopped(k, _kernel.STOP_NUMERICAL)
+        if not (np.isfinite(ukf.x).all() and math.isfinite(ukf.nis)):
+            return stopped(k, _kernel.STOP_NUMERICAL)
+        if not ukf.x[0] > 0:
+            return stopped(k, _kernel.STOP_REVERSE)
+        beta = abs(math.atan2(ukf.x[1], ukf.x[0]))
+        if beta > _kernel.RUNAWAY_BETA:
+            return stopped(k, _kernel.STOP_SIDESLIP)
+        held_beta = held_beta + 1 if beta > MAX_SIDESLIP else 0
+        off = abs(ukf.x[0] - z_arr[k, 0]) > _kernel.RUNAWAY_VX * z_arr[k, 0]
+        held_vx = held_vx + 1 if off else 0
+        if held_beta >= n_hold:
+            return stopped(k + 1 - n_hold, _kernel.STOP_SIDESLIP_HELD)
+        if held_vx >= n_hold:
+            return stopped(k + 1 - n_hold, _kernel.STOP_SPEED)
         out[0][k] = ukf.x
         out[1][k] = np.diag(ukf.P)
         out[2][k] = z_hat

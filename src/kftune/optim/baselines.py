@@ -51,6 +51,8 @@ class ManualPoints(Optimizer):
         if points is None:
             pts = self.space.centre()[None, :]
         else:
+            if any(isinstance(v, (bool, np.bool_)) for v in np.ravel(np.asarray(points, object))):
+                raise ValueError(f"points must be numbers, not true/false; got {points!r}")
             pts = np.atleast_2d(np.asarray(points, dtype=float))
         if pts.ndim != 2 or pts.shape[1] != self.space.dim or pts.shape[0] == 0:
             raise ValueError(

@@ -145,8 +145,9 @@ def kpi_table(results: ExperimentResults, split: str) -> Table:
 
 
 def per_manoeuvre_table(results: ExperimentResults) -> Table:
-    """Every metric of every method on every manoeuvre (long format, for CSV)."""
-    metrics = (*KPI_NAMES, *CHANNEL_METRICS)
+    """Every metric of every method on every manoeuvre (long format, for CSV); ``diverged``
+    is 1 where the filter diverged or ran away there (its metrics are then NaN)."""
+    metrics = (*KPI_NAMES, *CHANNEL_METRICS, "diverged")
     rows = []
     for m in results.methods:
         for split, per in m.metrics.items():

@@ -59,7 +59,12 @@ class CostSpec:
         if unknown:
             raise ConfigError(f"unknown cost channel(s) {unknown}; expected some of {CHANNELS}")
         for name, w in self.weights.items():
-            if not (isinstance(w, (int, float)) and math.isfinite(w) and w >= 0):
+            if not (
+                isinstance(w, (int, float))
+                and not isinstance(w, bool)
+                and math.isfinite(w)
+                and w >= 0
+            ):
                 raise ConfigError(
                     f"cost weight for {name!r} must be a finite number >= 0, got {w!r}"
                 )

@@ -4,7 +4,8 @@
                        ──run_ukf per manoeuvre──▶ estimates
                        ──cost (paper Eq. 14–15 or NIS)──▶ J
 
-The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter raises
+The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter (also one
+that ran away to an impossible sideslip or speed, see :mod:`kftune.filters._kernel`) raises
 :class:`FilterDivergedError`, which :func:`kftune.minimize` records as a failed evaluation.
 """
 
@@ -158,6 +159,14 @@ def channel_estimate(
     return res.z_hat[:, column], measured
 
 
+def where_diverged(m: Manoeuvre, res: UKFResult) -> str:
+    """``"manoeuvre 'x' at step k (t = … s): <cause>"`` for a run that diverged on ``m``."""
+    return (
+        f"manoeuvre {m.name!r} at step {res.diverged_step} "
+        f"(t = {m.t[res.diverged_step]:.2f} s): {res.diverged_reason}"
+    )
+
+
 def first_scored(m: Manoeuvre, burn_in: float) -> int:
     """Index of the first sample scored after a burn-in of ``burn_in`` seconds."""
     return int(np.searchsorted(m.t - m.t[0], burn_in - 1e-9 * m.dt))
@@ -174,10 +183,7 @@ def _score(
 ) -> ManoeuvreScore:
     res = run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
     if res.diverged:
-        raise FilterDivergedError(
-            f"filter diverged on manoeuvre {m.name!r} at step {res.diverged_step} "
-            f"(t = {m.t[res.diverged_step]:.2f} s)"
-        )
+        raise FilterDivergedError(f"filter diverged on {where_diverged(m, res)}")
     k0 = first_scored(m, burn_in)
     channels = spec.channels if spec.kind == "nrmse" else ()
     scores = {}
@@ -256,7 +262,12 @@ class TuningProblem:
         self.manoeuvres = tuple(manoeuvres)
         if not self.manoeuvres:
             raise ConfigError("the tuning problem needs at least one manoeuvre")
-        if not (isinstance(burn_in, (int, float)) and math.isfinite(burn_in) and burn_in >= 0):
+        if not (
+            isinstance(burn_in, (int, float))
+            and not isinstance(burn_in, bool)
+            and math.isfinite(burn_in)
+            and burn_in >= 0
+        ):
             raise ConfigError(f"burn_in must be a number of seconds >= 0, got {burn_in!r}")
         self.burn_in = float(burn_in)
         for m in self.manoeuvres:

@@ -15,10 +15,31 @@ import numpy as np
 #: Gravitational acceleration [m/s²].
 G = 9.81
 
+#: Plausible range of each numeric field, (low, high, unit), both ends included: wide
+#: enough for any road vehicle from a light quadricycle (≈ 400 kg, 1.7 m wheelbase) to a
+#: loaded articulated truck (≈ 40 t, Iz ≈ 3·10⁵ kg·m², 4 m from CG to axle), narrow enough
+#: to refuse a typing or unit mistake (grams, millimetres, kN/rad) with a clear message.
+#: Cornering stiffness per axle: 40–200 kN/rad for cars, up to ≈ 10⁶ N/rad for trucks;
+#: μ from ice (≈ 0.05) to racing slicks on a hot track (≈ 2).
+PLAUSIBLE_RANGES: dict[str, tuple[float, float, str]] = {
+    "m": (100.0, 60_000.0, "kg"),
+    "Iz": (10.0, 1.0e6, "kg·m²"),
+    "a": (0.1, 10.0, "m"),
+    "b": (0.1, 10.0, "m"),
+    "h": (0.0, 3.0, "m"),
+    "C_af": (1.0e3, 2.0e6, "N/rad"),
+    "C_ar": (1.0e3, 2.0e6, "N/rad"),
+    "C_x": (1.0e3, 5.0e6, "N"),
+    "mu": (0.05, 2.0, "-"),
+    "track_f": (0.3, 3.5, "m"),
+    "track_r": (0.3, 3.5, "m"),
+    "steering_ratio": (1.0, 50.0, "-"),
+}
+
 
 @dataclass(frozen=True)
 class VehicleParams:
-    """Single-track model parameters.
+    """Single-track model parameters (each within :data:`PLAUSIBLE_RANGES`).
 
     Attributes:
         m: vehicle mass [kg].
@@ -29,7 +50,7 @@ class VehicleParams:
         C_af: front-axle cornering stiffness [N/rad] (both tyres together).
         C_ar: rear-axle cornering stiffness [N/rad] (both tyres together).
         C_x: longitudinal slip stiffness per axle [N] (Dugoff; only matters with wheel slip).
-        mu: tyre–road friction coefficient [-], in (0, 2].
+        mu: tyre–road friction coefficient [-].
         track_f: front track width [m] (informational; the single-track model lumps the axle).
         track_r: rear track width [m] (informational).
         steering_ratio: hand-wheel angle / road-wheel angle [-], used to convert recorded
@@ -54,32 +75,21 @@ class VehicleParams:
     def __post_init__(self) -> None:
         if not isinstance(self.name, str):
             raise ValueError(f"VehicleParams.name must be a string, got {self.name!r}")
-        for f in fields(self):
-            if f.name == "name":
-                continue
-            value = getattr(self, f.name)
-            if f.name == "steering_ratio" and value is None:
+        for name, (low, high, unit) in PLAUSIBLE_RANGES.items():
+            value = getattr(self, name)
+            if name == "steering_ratio" and value is None:
                 continue
             if (
                 isinstance(value, bool)
                 or not isinstance(value, (int, float))
                 or not math.isfinite(value)
             ):
-                raise ValueError(f"VehicleParams.{f.name} must be a finite number, got {value!r}")
-        positive = ("m", "Iz", "a", "b", "C_af", "C_ar", "C_x", "track_f", "track_r")
-        for name in positive:
-            if getattr(self, name) <= 0:
+                raise ValueError(f"VehicleParams.{name} must be a finite number, got {value!r}")
+            if not low <= value <= high:
                 raise ValueError(
-                    f"VehicleParams.{name} must be > 0 (SI units), got {getattr(self, name)!r}"
+                    f"VehicleParams.{name} = {value!r} {unit} is implausible for a road "
+                    f"vehicle: expected {low:g} to {high:g} {unit} (SI units)"
                 )
-        if self.h < 0:
-            raise ValueError(f"VehicleParams.h (CG height) must be >= 0 m, got {self.h!r}")
-        if not 0.0 < self.mu <= 2.0:
-            raise ValueError(f"VehicleParams.mu must be in (0, 2], got {self.mu!r}")
-        if self.steering_ratio is not None and not self.steering_ratio > 0:
-            raise ValueError(
-                f"VehicleParams.steering_ratio must be > 0 or None, got {self.steering_ratio!r}"
-            )
 
     @property
     def L(self) -> float:

@@ -57,6 +57,7 @@ from kftune.vehicle.params import PARAM_INDEX, G, VehicleParams
 from kftune.vehicle.tyre import _dugoff_unchecked, dugoff_fy_scalar
 
 __all__ = [
+    "MAX_SIDESLIP",
     "axle_loads",
     "derivatives",
     "lateral_forces",
@@ -66,6 +67,12 @@ __all__ = [
     "slip_angles",
     "step_rk4",
 ]
+
+#: Largest sideslip magnitude the single-track model is meant for [rad] (0.8 rad ≈ 46°).
+#: Beyond it a car is spinning rather than cornering (production cars stay below ≈ 10° in
+#: normal driving, drifting below ≈ 45°); the data loader refuses a reference sideslip
+#: beyond it, and the filter calls an estimate held beyond it a runaway.
+MAX_SIDESLIP = 0.8
 
 _POSITIVE = ("m", "Iz", "a", "b", "C_af", "C_ar", "C_x")
 _POS_IDX = np.array([PARAM_INDEX[n] for n in _POSITIVE])
