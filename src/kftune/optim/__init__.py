@@ -6,7 +6,9 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
 * :class:`Optimizer` — ``ask() -> Trial``, ``tell(trial, value)``; one per method in
   :data:`METHODS`, built with :func:`make_optimizer`;
 * :func:`minimize` — the loop on top, with failures, timeouts and SQLite studies;
-* :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind.
+* :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind;
+* :func:`minimize_widening` — follow-up runs on a wider box while the best point lies on
+  a bound.
 """
 
 from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
@@ -17,6 +19,7 @@ from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
 from kftune.optim.study import Study, StudyError, StudyInUseError
 from kftune.optim.tsbo import TSBO
+from kftune.optim.widen import minimize_widening
 from kftune.space import Param, Space
 
 __all__ = [
@@ -43,4 +46,5 @@ __all__ = [
     "Trial",
     "make_optimizer",
     "minimize",
+    "minimize_widening",
 ]
