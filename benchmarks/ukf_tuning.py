@@ -81,7 +81,7 @@ import numpy as np
 
 import kftune
 from kftune.data import open_dataset
-from kftune.errors import KftuneError
+from kftune.errors import ConfigError, KftuneError
 from kftune.optim import METHODS, PeerUnavailableError, make_optimizer, minimize
 from kftune.tuning.kpi import average_kpis
 from kftune.tuning.problem import TuningProblem, assess
@@ -281,13 +281,23 @@ def long_run_jstar(
     return {**entry, "cached": False}
 
 
+def writable_file(path: Path, option: str) -> None:
+    """Refuse, before any work, a file that could not be written (its folder is created)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{option} {path}: cannot create its folder ({exc.strerror})") from None
+    if path.is_dir() or not os.access(path.parent, os.W_OK):
+        raise ConfigError(f"{option} {path}: not a writable file")
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     if not path.is_file():
         return {}
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
-        raise SystemExit(f"ukf_tuning: cannot read the J* cache {path}: {exc}") from None
+        raise ConfigError(f"--jstar-cache {path}: not a readable JSON file ({exc})") from None
     return data if isinstance(data, dict) else {}
 
 
@@ -557,7 +567,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     spec = None if args.dataset in (None, "default") else str(args.dataset)
+    cache_path = args.jstar_cache or default_jstar_cache()
     try:
+        for path, option in ((cache_path, "--jstar-cache"), (args.json_out, "--json-out")):
+            if path is not None:
+                writable_file(Path(path), option)
         _init(spec)
     except KftuneError as exc:
         print(f"ukf_tuning: error: {exc}", file=sys.stderr)
@@ -594,7 +608,6 @@ def main(argv: list[str] | None = None) -> int:
 
     t_start = time.perf_counter()
     try:
-        cache_path = args.jstar_cache or default_jstar_cache()
         jkey = f"{fingerprint}|cma|{args.jstar_runs}x{args.jstar_evals}"
         ref = long_run_jstar(spec, jkey, cache_path, args.jstar_runs, args.jstar_evals, pool_map)
         print(
@@ -633,6 +646,9 @@ def main(argv: list[str] | None = None) -> int:
                 key = _unit_key(fingerprint, unit["label"], unit["seed"], budgets)
                 with open(log, "a") as fh:
                     fh.write(json.dumps({"key": key, "unit": unit}, allow_nan=False) + "\n")
+    except KftuneError as exc:
+        print(f"ukf_tuning: error: {exc}", file=sys.stderr)
+        return 3
     finally:
         if executor is not None:
             executor.shutdown(cancel_futures=True)
