@@ -4,6 +4,7 @@ end-to-end compare on a small subset, report rebuilding, and --resume after a SI
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sqlite3
 import subprocess
@@ -13,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from kftune.cli import SUBCOMMANDS
+from kftune.cli import SUBCOMMANDS, main
 from kftune.data import default_dataset, save_dataset
 
 SMALL_TRAIN = ("train-03-j-turn", "train-07-lane-change")
@@ -185,6 +186,12 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     cost = {row["Method"]: row for row in doc["tables"]["cost"]}
     assert set(cost) == {"Manual", "GA", "TSBO - GP", "TSBO - tSP"}
     assert cost["GA"]["Evaluations"] == 8 and cost["TSBO - tSP"]["Evaluations"] == 6
+    # results.json records, per method, where its best point lies on a bound (within 1 % of
+    # the range; closed form on the default log10 box [1e-10, 1])
+    for run in json.loads((out / "results.json").read_text())["methods"]:
+        u = {n: (math.log10(v) + 10.0) / 10.0 for n, v in run["params"].items()}
+        expected = [(n, "lower" if u[n] <= 0.01 else "upper") for n in u if abs(u[n] - 0.5) >= 0.49]
+        assert [(h["parameter"], h["side"]) for h in run["extra"]["on_bounds"]] == expected
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert "convergence.png" in figures and "cost_slice.png" in figures
     assert "improvement_test.png" in figures and "beta_test-05-j-turn.png" in figures
@@ -384,3 +391,50 @@ def test_manual_points_in_a_config_are_accepted(small, tmp_path):
                  "-o", str(tmp_path / "t.json"))  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["q"] == [1e-6, 1e-5, 1e-3]
+
+
+def test_tune_reports_a_best_point_on_a_bound(small, tmp_path, capsys):
+    """The manual point (1e-6, 1e-4, 1e-6) clipped into q ∈ [1e-10, 1e-7] lies on the upper
+    bound of every parameter: tune says so, and the file and --json record it. (In-process,
+    like the widening test below: each subprocess start costs seconds.)"""
+    cfg = tmp_path / "narrow.toml"
+    cfg.write_text("[parameters]\nq_bounds = [1e-10, 1e-7]\n")
+    out = tmp_path / "tuned.json"
+    args = ["tune", str(small), "--config", str(cfg), "-m", "manual", "--quiet", "-o", str(out)]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    for name in ("q_vx", "q_vy", "q_r"):
+        assert f"best point on a bound: {name} = 1e-07 lies within 1 % of its upper" in text
+    assert main([*args, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [(h["parameter"], h["side"], h["bound"]) for h in doc["on_bounds"]] == [
+        (n, "upper", 1e-7) for n in ("q_vx", "q_vy", "q_r")
+    ]
+    assert json.loads(out.read_text())["on_bounds"] == doc["on_bounds"]
+    assert main([*args, "--widen-bounds"]) == 3
+    assert "manual" in capsys.readouterr().err
+
+
+def test_tune_widen_bounds_runs_on_a_wider_box_and_resumes(small, tmp_path, capsys):
+    """In q ∈ [1e-10, 1e-9], far below the optimum, TSBO's best point (seed 0, 8
+    evaluations) ends on bounds; widen_bounds widens them and tunes again in a follow-up
+    study beside --storage, which --resume replays without evaluating anything."""
+    cfg = tmp_path / "narrow.toml"
+    cfg.write_text("widen_bounds = true\n[parameters]\nq_bounds = [1e-10, 1e-9]\n")
+    db = tmp_path / "study.db"
+    args = ["tune", str(small), "--config", str(cfg), "-n", "8", "--storage", str(db)]
+    assert main([*args, "--json", "-o", str(tmp_path / "t.json")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["n_evals"] > 8 and (tmp_path / "study.widen1.db").exists()
+    highs = [p["high"] for p in doc["search_space"]["params"]]
+    lows = [p["low"] for p in doc["search_space"]["params"]]
+    assert max(highs) == pytest.approx(1e-7) or min(lows) == pytest.approx(1e-12)
+    assert main([*args, "--quiet"]) == 3
+    assert "--resume" in capsys.readouterr().err
+    assert main([*args, "--resume", "--json", "-o", str(tmp_path / "r.json")]) == 0
+    back = json.loads(capsys.readouterr().out)
+    assert (back["cost"], back["params"], back["n_evals"]) == (
+        doc["cost"],
+        doc["params"],
+        doc["n_evals"],
+    )

@@ -220,3 +220,16 @@ def test_trial_points_are_read_only_and_resume_needs_storage():
         t.x[0] = 1.0
     with pytest.raises(ValueError, match="resume=True needs storage"):
         minimize(objective, SPACE, "random", resume=True)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_budget_independent_methods_make_a_prefix_of_a_longer_run(method):
+    """A method that declares its proposals budget-independent (benchmarks then read short
+    budgets off one long run) proposes, with budget 10, exactly the first 10 points of a
+    run with budget 25."""
+    method = _method(method)
+    if not type(make_optimizer(method, SPACE, **_options(method))).budget_independent:
+        pytest.skip(f"{method}: the budget shapes its run (run once per budget)")
+    short, long = _run(method, 3, budget=10), _run(method, 3, budget=25)
+    assert [r.x for r in short.history] == [r.x for r in long.history[: short.n_evals]]
+    assert short.n_evals == min(10, long.n_evals)

@@ -182,3 +182,18 @@ def test_values_that_print_alike_are_all_bold():
         t.to_markdown()
         == "| KPI | A | B | C |\n| --- | --- | --- | --- |\n| x | **0.454** | **0.454** | 0.500 |"
     )
+
+
+def test_report_names_best_points_on_a_bound(results, tmp_path):
+    hit = {"parameter": "q_r", "side": "upper", "value": 0.998, "bound": 1.0}
+    results.method("tsbo-tsp").extra["on_bounds"] = [hit]
+    results.method("ga").extra["on_bounds"] = []
+    results.traces, results.cost_slice = {}, None  # fewer figures: faster
+    results.save(tmp_path / "res")  # the report reads it back from results.json
+    text = write_report(ExperimentResults.load(tmp_path / "res"), tmp_path / "rep").read_text()
+    assert "## Best points on a bound of the search box" in text
+    assert "- TSBO - tSP: q_r = 0.998, on its upper bound 1\n" in text
+    assert "- GA:" not in text and "- Manual:" not in text
+    results.method("tsbo-tsp").extra["on_bounds"] = []
+    text = write_report(results, tmp_path / "rep2").read_text()
+    assert "No method's best point lies within 1 % of a bound" in text

@@ -22,9 +22,17 @@ from kftune import __version__
 from kftune.bo import make_surrogate
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
-from kftune.optim import DEFAULT_METHOD, METHODS, OptimizeResult, make_optimizer, minimize
+from kftune.optim import (
+    DEFAULT_METHOD,
+    METHODS,
+    OptimizeResult,
+    make_optimizer,
+    minimize,
+    minimize_widening,
+)
 from kftune.progress import ProgressBar
 from kftune.report.results import ExperimentResults, MethodRun
+from kftune.space import Space
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.kpi import average_kpis
 from kftune.tuning.problem import (
@@ -84,6 +92,7 @@ def tune(
     timeout: float | None = None,
     progress: bool | None = None,
     options: Mapping[str, Any] | None = None,
+    widen_bounds: bool = False,
 ) -> OptimizeResult:
     """Tune the filter of ``problem`` with one method (``kftune tune``).
 
@@ -93,12 +102,19 @@ def tune(
     The study (``storage``) records the problem's :meth:`~TuningProblem.fingerprint`, so
     resuming it on other data, another cost or another model is refused.
 
+    ``widen_bounds``: while the best point lies on a bound of a log10 parameter, move that
+    bound out by two decades and run the method again with the same budget (at most three
+    times; :func:`kftune.optim.minimize_widening`); the follow-up studies lie beside
+    ``storage`` (``study.widen1.db`` …) and resume with it. The result merges the runs.
+
     Raises:
         ConfigError: an unknown method or method option, or a bad budget/seed/timeout.
         kftune.optim.OptimizationInterrupted: Ctrl-C (``.result`` holds the partial run).
     """
     if method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+    if widen_bounds and method == "manual":
+        raise ConfigError("widening the bounds needs a search; the manual method has none")
     opts = dict(options or {})
     if method == "manual" and "points" not in opts:
         opts["points"] = manual_point(problem.parameterization)[None, :]
@@ -114,20 +130,35 @@ def tune(
             "it with workers = 1 (the worker cannot share its time limit with a pool)"
         )
     total = budget if budget is not None else _default_budget(method)
-    with ProgressBar(total, LABELS.get(method, method), enabled=progress) as bar:
-        return minimize(
-            problem,
-            problem.space,
-            method,
-            budget=budget,
-            seed=seed,
-            storage=None if storage is None else str(storage),
-            resume=resume,
-            timeout=timeout,
-            callback=bar,
-            objective=problem.fingerprint(),
-            **opts,
-        )
+
+    def run(space: Any, study: Path | None) -> OptimizeResult:
+        with ProgressBar(total, LABELS.get(method, method), enabled=progress) as bar:
+            return minimize(
+                problem,
+                space,
+                method,
+                budget=budget,
+                seed=seed,
+                storage=None if study is None else str(study),
+                resume=resume,
+                timeout=timeout,
+                callback=bar,
+                objective=problem.fingerprint(),
+                **opts,
+            )
+
+    if widen_bounds:
+        return minimize_widening(run, problem.space, storage=storage)
+    return run(problem.space, None if storage is None else Path(storage))
+
+
+def on_bounds(result: OptimizeResult) -> list[dict[str, Any]]:
+    """Where the best point of ``result`` lies on a bound of the space it was searched in
+    (within 1 % of the range): ``[{parameter, side, value, bound}, …]``, empty if none."""
+    if result.x is None:
+        return []
+    space = Space.from_dict(result.space)
+    return [h.to_dict() for h in space.on_bounds(space.to_unit(result.x))]
 
 
 def _default_budget(method: str) -> int:
@@ -254,6 +285,7 @@ def method_run(
             "failures": [
                 {"number": r.number, "reason": r.reason} for r in result.history if not r.ok
             ],
+            "on_bounds": on_bounds(result),
         },
     )
     return run, betas

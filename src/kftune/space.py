@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 
 SCALES = ("linear", "log10")
+#: A coordinate within this share of its range (in the unit cube) of a bound is "on" it.
+BOUND_TOL = 0.01
 
 
 @dataclass(frozen=True)
@@ -106,6 +108,31 @@ class Param:
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form."""
         return {"name": self.name, "low": self.low, "high": self.high, "scale": self.scale}
+
+
+@dataclass(frozen=True)
+class BoundHit:
+    """A coordinate of a point that lies on (within :data:`BOUND_TOL` of) a bound.
+
+    Attributes:
+        name: the parameter.
+        side: ``"lower"`` or ``"upper"``.
+        value: the coordinate in natural units.
+        bound: the bound it is next to, in natural units.
+    """
+
+    name: str
+    side: str
+    value: float
+    bound: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form."""
+        return {"parameter": self.name, "side": self.side, "value": self.value, "bound": self.bound}
+
+    def describe(self) -> str:
+        """``"q_r = 0.998 is on its upper bound 1"``."""
+        return f"{self.name} = {self.value:.4g} is on its {self.side} bound {self.bound:g}"
 
 
 @dataclass(frozen=True)
@@ -218,6 +245,41 @@ class Space:
         """True if every coordinate of the (d,) natural-units point lies within its bounds."""
         xa = self._check_shape(x, "x")
         return bool(np.all((xa >= self.lows) & (xa <= self.highs)))
+
+    def on_bounds(self, u: Any, tol: float = BOUND_TOL) -> list[BoundHit]:
+        """The coordinates of a ``(d,)`` unit-cube point that lie within ``tol`` of a face
+        of the cube (``u_i ≤ tol`` or ``u_i ≥ 1 − tol``), in parameter order — where the
+        best point of a search sits against the box, so the optimum may lie beyond it."""
+        ua = self._check_shape(u, "u")
+        if ua.ndim != 1:
+            raise ValueError(f"on_bounds expects one (d,) point, got shape {ua.shape}")
+        x = self.from_unit(ua)
+        hits = []
+        for p, ui, xi in zip(self.params, ua, x):
+            if ui <= tol:
+                hits.append(BoundHit(p.name, "lower", float(xi), p.low))
+            elif ui >= 1.0 - tol:
+                hits.append(BoundHit(p.name, "upper", float(xi), p.high))
+        return hits
+
+    def widened(self, hits: Sequence[BoundHit], decades: float) -> Space:
+        """This space with the bounds named in ``hits`` moved outwards by ``decades``
+        decades, on log10 parameters only (a linear parameter has no scale-free extension,
+        and its bounds are often physical limits: it keeps its bounds). Returns ``self``
+        when nothing changes."""
+        if not decades > 0:
+            raise ValueError(f"decades must be positive, got {decades!r}")
+        factor = 10.0**decades
+        bounds = {p.name: [p.low, p.high] for p in self.params}
+        for h in hits:
+            if not self.params[self.names.index(h.name)].log:
+                continue
+            if h.side == "lower":
+                bounds[h.name][0] /= factor
+            else:
+                bounds[h.name][1] *= factor
+        params = tuple(Param(p.name, *bounds[p.name], scale=p.scale) for p in self.params)
+        return self if params == self.params else Space(params)
 
     def _check_shape(self, a: Any, what: str) -> np.ndarray:
         arr = np.asarray(a, dtype=float)

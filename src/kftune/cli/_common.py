@@ -8,6 +8,7 @@ does not use is an error, not silently ignored::
     method = "trbo"                # tune only (the paper's: "tsbo-tsp")
     budget = 40                    # tune only
     timeout = 30.0                 # tune only: per-evaluation limit [s]
+    widen_bounds = false           # tune only: see kftune tune --widen-bounds
     methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp", "trbo"]   # compare only
     budgets = { ga = 225, tsbo-tsp = 40 }               # compare only
     seed = 0
@@ -67,6 +68,7 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "seed": int,
     "workers": int,
     "timeout": (int, float),
+    "widen_bounds": bool,
     "burn_in": (int, float),
     "cost": dict,
     "parameters": dict,
@@ -78,6 +80,7 @@ USED_ONLY_BY: dict[str, set[str]] = {
     "method": {"tune"},
     "budget": {"tune"},
     "timeout": {"tune"},
+    "widen_bounds": {"tune"},
     "methods": {"compare"},
     "budgets": {"compare"},
     "seed": {"tune", "compare"},

@@ -4,6 +4,13 @@ Writes the tuned parameters to a JSON file (``--out``, default ``tuned.json``) t
 ``kftune evaluate --params`` reads. With ``--storage study.db`` every evaluation is saved as
 it happens; ``--resume`` continues a study that was interrupted or killed, without
 re-evaluating anything finished.
+
+When the best point lies on a bound of the search box (within 1 % of a parameter's range),
+tune says which parameter and which bound, and the file records it (``on_bounds``): the
+optimum may lie beyond. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
+bound out by two decades and runs the method again on the wider box with the same budget,
+at most three times; the follow-up studies lie beside ``--storage`` (``study.widen1.db`` …)
+and ``--resume`` continues them too. The best point of all runs is kept.
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ from kftune.cli._common import (
 )
 from kftune.errors import ConfigError
 from kftune.optim import DEFAULT_METHOD, METHODS
+from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 
 if TYPE_CHECKING:
     from kftune.optim import OptimizeResult
@@ -68,6 +76,13 @@ def register(subparsers: Any) -> None:
         help="per-evaluation time limit [s]; a slower evaluation fails and the run goes on",
     )
     p.add_argument(
+        "--widen-bounds",
+        action="store_true",
+        default=None,
+        help="when the best point lies on a bound of a log10 parameter, widen that bound by "
+        "two decades and tune again with the same budget (at most 3 times)",
+    )
+    p.add_argument(
         "--out",
         "-o",
         type=Path,
@@ -90,11 +105,15 @@ def run(args: argparse.Namespace) -> int:
     output_file(args.out, "--out")
     if args.storage is not None and not args.resume:
         output_file(args.storage, "--storage")
-    if args.storage is not None and args.storage.exists() and not args.resume:
-        raise ConfigError(
-            f"study file {args.storage} already exists; pass --resume to continue it, or "
-            "choose another --storage"
-        )
+    widen = bool(pick(args, config, "widen_bounds", False))
+    if args.storage is not None and not args.resume:
+        for k in range(WIDEN_ROUNDS + 1 if widen else 1):
+            study = round_storage(args.storage, k)
+            if study is not None and study.exists():
+                raise ConfigError(
+                    f"study file {study} already exists; pass --resume to continue it, or "
+                    "choose another --storage"
+                )
     dataset = open_dataset(pick(args, config, "dataset", None))
     method = pick(args, config, "method", DEFAULT_METHOD)
     if method not in METHODS:
@@ -123,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
                 timeout=pick(args, config, "timeout", None),
                 progress=False if (args.quiet or args.json) else None,
                 options=config.get("options", {}).get(method),
+                widen_bounds=widen,
             )
         except OptimizationInterrupted as stop:
             _interrupted(stop.result, problem, dataset.name, args)
@@ -140,8 +160,31 @@ def run(args: argparse.Namespace) -> int:
         )
         for name, value in (result.params or {}).items():
             print(f"  {name:10s} = {value:.4e}")
+        for line in bound_lines(doc, problem, widen):
+            print(line)
         print(f"tuned parameters written to {args.out}")
     return EXIT_OK
+
+
+def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> list[str]:
+    """What ``tune`` says about the search box: bounds it widened, and parameters whose
+    best value lies on a bound."""
+    lines = []
+    initial = {p.name: p for p in problem.space.params}
+    for p in doc["search_space"]["params"]:
+        was = initial[p["name"]]
+        if (p["low"], p["high"]) != (was.low, was.high):
+            lines.append(
+                f"search box widened: {p['name']} in [{was.low:g}, {was.high:g}] -> "
+                f"[{p['low']:g}, {p['high']:g}]"
+            )
+    for hit in doc["on_bounds"]:
+        lines.append(
+            f"best point on a bound: {hit['parameter']} = {hit['value']:.4g} lies within 1 % "
+            f"of its {hit['side']} bound {hit['bound']:g}; the optimum may lie beyond it"
+            + ("" if widened else " (widen the box with --widen-bounds)")
+        )
+    return lines
 
 
 def _interrupted(
@@ -166,6 +209,8 @@ def _interrupted(
 
 def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str) -> dict[str, Any]:
     """The tuned-parameters file: what was found, and how, in strict JSON."""
+    from kftune.experiment import on_bounds
+
     q, r, ukf = problem.decode(result.x)
     return {
         "format": TUNED_FORMAT,
@@ -184,6 +229,8 @@ def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str)
         "n_failed": result.n_failed,
         "status": result.status,
         "params": result.params,
+        "search_space": result.space,
+        "on_bounds": on_bounds(result),
         "q": q.tolist(),
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},

@@ -7,7 +7,9 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
   :data:`METHODS`, built with :func:`make_optimizer`; :data:`DEFAULT_METHOD` is
   :class:`TrustRegionBO` (``"trbo"``), the paper's TSBO is ``"tsbo-tsp"``;
 * :func:`minimize` — the loop on top, with failures, timeouts and SQLite studies;
-* :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind.
+* :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind;
+* :func:`minimize_widening` — follow-up runs on a wider box while the best point lies on
+  a bound.
 """
 
 from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
@@ -25,6 +27,7 @@ from kftune.optim.result import EvalRecord, OptimizeResult
 from kftune.optim.study import Study, StudyError, StudyInUseError
 from kftune.optim.trbo import TrustRegionBO
 from kftune.optim.tsbo import TSBO
+from kftune.optim.widen import minimize_widening
 from kftune.space import Param, Space
 
 __all__ = [
@@ -53,4 +56,5 @@ __all__ = [
     "TrustRegionBO",
     "make_optimizer",
     "minimize",
+    "minimize_widening",
 ]

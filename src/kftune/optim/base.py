@@ -98,6 +98,12 @@ class Optimizer(ABC):
     method: ClassVar[str] = "base"
     #: Budget used when ``budget=None``.
     default_budget: ClassVar[int] = 40
+    #: True when the proposals never depend on ``budget`` (for every option): a run with
+    #: budget b then equals the first b evaluations of a run with a larger budget, so a
+    #: benchmark may run once and read shorter budgets as prefixes. False (the safe
+    #: default) where the budget shapes the run (TSBO: MAX_SM and the stage-2 reserve; GA:
+    #: the number of generations and with it the mutation schedule).
+    budget_independent: ClassVar[bool] = False
 
     def __init__(self, space: Any, *, budget: int | None = None, seed: int = 0) -> None:
         self.space = Space.coerce(space)

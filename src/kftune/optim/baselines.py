@@ -18,6 +18,7 @@ class RandomSearch(Optimizer):
 
     method: ClassVar[str] = "random"
     default_budget: ClassVar[int] = 40
+    budget_independent: ClassVar[bool] = True
 
     def _propose(self) -> Proposal:
         return Proposal(u=self.rng.random(self.space.dim), acquisition="uniform")
@@ -38,6 +39,7 @@ class ManualPoints(Optimizer):
 
     method: ClassVar[str] = "manual"
     default_budget: ClassVar[int] = 1
+    budget_independent: ClassVar[bool] = True
 
     def __init__(
         self,

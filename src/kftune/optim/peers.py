@@ -41,7 +41,12 @@ def _require(module: str, method: str, hint: str) -> None:
 
 
 class _OptunaAdapter(Optimizer):
-    """Common part of the Optuna adapters: an in-memory Optuna study driven by ask/tell."""
+    """Common part of the Optuna adapters: an in-memory Optuna study driven by ask/tell.
+
+    Optuna's samplers never see the number of trials, so the proposals do not depend on
+    the budget."""
+
+    budget_independent: ClassVar[bool] = True
 
     def __init__(self, space: Any, *, budget: int | None = None, seed: int = 0) -> None:
         super().__init__(space, budget=budget, seed=seed)
@@ -107,6 +112,9 @@ class CMAES(Optimizer):
     """
 
     method: ClassVar[str] = "cma"
+    #: ``cma`` is never told the budget (no ``maxfevals``); its own termination criteria
+    #: and the restarts do not depend on it.
+    budget_independent: ClassVar[bool] = True
 
     def __init__(
         self,

@@ -108,6 +108,7 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
     for stem in ("cost", "kpi_train", "kpi_test", "parameters"):
         if stem in tables:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
+    md += _bound_lines(results)
     for file, heading, caption in figures:
         md += [f"## {heading}", "", caption, "", f"![{heading}](figures/{file})", ""]
     if not results.traces:
@@ -121,6 +122,29 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
     path = out / "report.md"
     path.write_text("\n".join(md))
     return path
+
+
+def _bound_lines(results: ExperimentResults) -> list[str]:
+    """Which methods' best points lie on a bound of the search box (``extra["on_bounds"]``,
+    written by ``kftune compare``); nothing for results that do not record it."""
+    runs = [m for m in results.methods if "on_bounds" in m.extra]
+    if not runs:
+        return []
+    hits = [(m.label, h) for m in runs for h in m.extra["on_bounds"]]
+    md = ["## Best points on a bound of the search box", ""]
+    if not hits:
+        return [*md, "No method's best point lies within 1 % of a bound of the search box.", ""]
+    md += [
+        "These tuned parameters lie within 1 % of the range of a bound, so the optimum may "
+        "lie beyond it (widen the box: `kftune tune --widen-bounds`, or `[parameters] "
+        "q_bounds`):",
+        "",
+    ]
+    md += [
+        f"- {label}: {h['parameter']} = {h['value']:.4g}, on its {h['side']} bound {h['bound']:g}"
+        for label, h in hits
+    ]
+    return [*md, ""]
 
 
 def _slug(name: str) -> str:
