@@ -22,7 +22,7 @@ from kftune import __version__
 from kftune.bo import make_surrogate
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
-from kftune.optim import METHODS, OptimizeResult, make_optimizer, minimize
+from kftune.optim import MAX_TIMEOUT, METHODS, OptimizeResult, make_optimizer, minimize
 from kftune.progress import ProgressBar
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.tuning.cost import CostSpec
@@ -103,8 +103,10 @@ def tune(
         make_optimizer(method, problem.space, budget=budget, seed=seed, **opts)
     except ValueError as exc:
         raise ConfigError(f"{method}: {exc}") from None
-    if timeout is not None and not timeout > 0:
-        raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    if timeout is not None and not 0 < timeout <= MAX_TIMEOUT:
+        raise ConfigError(
+            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}], got {timeout!r}"
+        )
     if timeout is not None and problem.workers > 1:
         raise ConfigError(
             "a per-evaluation timeout runs every evaluation in one worker process; combine "

@@ -12,15 +12,22 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
 from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
 from kftune.optim.baselines import ManualPoints, RandomSearch
 from kftune.optim.ga import GeneticAlgorithm
-from kftune.optim.minimize import METHODS, OptimizationInterrupted, make_optimizer, minimize
+from kftune.optim.minimize import (
+    MAX_TIMEOUT,
+    METHODS,
+    OptimizationInterrupted,
+    make_optimizer,
+    minimize,
+)
 from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
-from kftune.optim.study import Study, StudyError, StudyInUseError
+from kftune.optim.study import Study, StudyError, StudyInUseError, StudyWriteError
 from kftune.optim.tsbo import TSBO
 from kftune.space import Param, Space
 
 __all__ = [
     "CMAES",
+    "MAX_TIMEOUT",
     "METHODS",
     "TSBO",
     "EvalRecord",
@@ -40,6 +47,7 @@ __all__ = [
     "Study",
     "StudyError",
     "StudyInUseError",
+    "StudyWriteError",
     "Trial",
     "make_optimizer",
     "minimize",
