@@ -13,11 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from conftest import SMALL_TRAIN
 from kftune.cli import SUBCOMMANDS
 from kftune.data import default_dataset, save_dataset
-
-SMALL_TRAIN = ("train-03-j-turn", "train-07-lane-change")
-SMALL_TEST = ("test-05-j-turn", "test-14-lane-change")
 
 
 def kftune(
@@ -30,14 +28,6 @@ def kftune(
         cwd=cwd,
         timeout=timeout,
     )
-
-
-@pytest.fixture(scope="module")
-def small(tmp_path_factory) -> Path:
-    """Two training and two test manoeuvres of the bundled set, as a dataset directory."""
-    out = tmp_path_factory.mktemp("small")
-    save_dataset(default_dataset().subset(SMALL_TRAIN + SMALL_TEST), out)
-    return out
 
 
 def test_help_of_every_command():

@@ -39,3 +39,8 @@ class RunFailedError(KftuneError):
 
 class ConfigError(KftuneError, ValueError):
     """An option or configuration value is invalid; the message names it."""
+
+
+class UsageError(ConfigError):
+    """Command-line options that contradict each other; the CLI exits with 2 (usage), as
+    for options argparse refuses. The message names the options."""
