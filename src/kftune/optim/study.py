@@ -110,6 +110,8 @@ class _FileLock:
         Raises:
             OSError: the file cannot be opened for writing.
         """
+        if self._held_here():
+            return False
         fh = open(self.path, "a+b")  # noqa: SIM115 - kept open while the lock is held
         try:
             if os.name == "nt":  # pragma: no cover - exercised on Windows only
@@ -127,6 +129,18 @@ class _FileLock:
         self._fh = fh
         _HELD.add(fh)
         return True
+
+    def _held_here(self) -> bool:
+        """Whether this process holds the lock already. Checked without opening the file:
+        closing a second descriptor of it would drop every POSIX lock this process holds
+        on it, those of SQLite included."""
+        try:
+            st = os.stat(self.path)
+        except OSError:
+            return False
+        return any(
+            not fh.closed and os.path.samestat(os.fstat(fh.fileno()), st) for fh in list(_HELD)
+        )
 
     def release(self) -> None:
         if self._fh is not None and self._fh.closed:  # a forked child's copy, closed at fork
