@@ -80,11 +80,6 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``kftune tune``."""
-    from kftune.data import open_dataset
-    from kftune.experiment import require_success, tune
-    from kftune.optim import OptimizationInterrupted
-    from kftune.tuning.problem import TuningProblem
-
     config = load_config(args.config, "tune")
     if args.resume and args.storage is None:
         raise ConfigError("--resume needs --storage (the study file to continue)")
@@ -96,7 +91,12 @@ def run(args: argparse.Namespace) -> int:
             f"study file {args.storage} already exists; pass --resume to continue it, or "
             "choose another --storage"
         )
-    try:
+    try:  # from here on a Ctrl-C says what was kept, also before the first evaluation
+        from kftune.data import open_dataset
+        from kftune.experiment import require_success, tune
+        from kftune.optim import OptimizationInterrupted
+        from kftune.tuning.problem import TuningProblem
+
         dataset = open_dataset(pick(args, config, "dataset", None))
         method = pick(args, config, "method", "tsbo-tsp")
         if method not in METHODS:
