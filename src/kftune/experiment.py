@@ -216,7 +216,8 @@ def method_run(
     """
     require_success(result, key)
     # time = what the optimiser and the evaluations took (stored in the study, so a resumed
-    # run reports the same as an uninterrupted one; the study's own I/O is ~0.1 ms a step)
+    # run reports the same as an uninterrupted one; the study's own I/O, a few fsyncs a
+    # step, is left out: it depends on the disk, see benchmarks/study_io.py)
     steps = np.array([r.t_propose + r.t_eval for r in result.history])
     metrics: dict[str, dict[str, dict[str, float]]] = {}
     averages: dict[str, dict[str, float]] = {}

@@ -34,7 +34,8 @@ class MethodRun:
         best_cost: best training cost J found [-].
         n_evals: number of cost evaluations (failed ones included).
         wall_time_s: time of the tuning run [s]: the optimiser's proposals plus the cost
-            evaluations (not the progress bar or the study's I/O, ~0.1 ms a step).
+            evaluations (not the progress bar or the study's I/O, a few fsyncs a step:
+            ``benchmarks/study_io.py``).
         history_cost: (n_evals,) cost of each evaluation in order (NaN where it failed).
         history_time_s: (n_evals,) that time accumulated up to each evaluation [s].
         metrics: split → manoeuvre name → metric → value. Metrics: the β KPIs
