@@ -37,3 +37,18 @@ def revs_dir(shared_data: Path) -> Path:
     if not (path / "t.txt").is_file():
         pytest.skip("revs-250lm recording not present")
     return path
+
+
+#: A small dataset for command-line tests: two training and two test manoeuvres.
+SMALL_TRAIN = ("train-03-j-turn", "train-07-lane-change")
+SMALL_TEST = ("test-05-j-turn", "test-14-lane-change")
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """Two training and two test manoeuvres of the bundled set, as a dataset directory."""
+    from kftune.data import default_dataset, save_dataset
+
+    out = tmp_path_factory.mktemp("small")
+    save_dataset(default_dataset().subset(SMALL_TRAIN + SMALL_TEST), out)
+    return out

@@ -19,12 +19,13 @@ SRC = Path(kftune.__file__).parent
 #: layer → kftune top-level modules it may import (itself and ``errors`` always allowed).
 ALLOWED: dict[str, set[str]] = {
     "space": set(),
+    "processes": set(),
     "bo": set(),
     "vehicle": set(),
     "filters": {"vehicle"},
     "data": {"vehicle", "progress"},
-    "optim": {"space", "bo"},
-    "tuning": {"vehicle", "filters", "data", "space"},
+    "optim": {"space", "bo", "processes"},
+    "tuning": {"vehicle", "filters", "data", "space", "processes"},
     "report": {"vehicle", "filters", "data", "space", "tuning"},
 }
 

@@ -65,7 +65,7 @@ def test_show_writes_a_png(tmp_path):
 
 def test_bad_input_exit_codes(tmp_path):
     res = kftune("dataset", "show", "-m", "no-such-manoeuvre", "-o", tmp_path / "x.png")
-    assert res.returncode == 2 and "no-such-manoeuvre" in res.stderr
+    assert res.returncode == 3 and "no-such-manoeuvre" in res.stderr and "--manoeuvre" in res.stderr
     res = kftune("dataset", "info", tmp_path)
     assert res.returncode == 3 and str(tmp_path) in res.stderr
     res = kftune("dataset", "generate", tmp_path / "g", "--only", "nope", "--quiet")

@@ -3,11 +3,16 @@ of the paper's settings (Table IV)."""
 
 from __future__ import annotations
 
+from decimal import ROUND_HALF_UP, Decimal
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from kftune.optim.ga import (
     GeneticAlgorithm,
+    matlab_round,
     rank_scaling,
     reflect_unit,
     stochastic_uniform_selection,
@@ -138,3 +143,29 @@ def test_no_point_is_evaluated_twice_and_failed_points_are_not_reproposed(seed):
     gaps = np.max(np.abs(u[:, None, :] - u[None, :, :]), axis=2)
     np.fill_diagonal(gaps, np.inf)
     assert gaps.min() > 1e-9
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.one_of(
+        st.floats(min_value=0.0, max_value=1e6, allow_nan=False),
+        st.integers(0, 10_000).map(lambda k: k + 0.5),  # exact halves
+        st.integers(0, 10_000).map(lambda k: np.nextafter(k + 0.5, 0.0)),  # just below
+    )
+)
+def test_matlab_round_takes_halves_away_from_zero(x):
+    """Against decimal's ROUND_HALF_UP on the exact binary value (MATLAB's ``round``)."""
+    expected = int(Decimal(float(x)).quantize(Decimal(1), rounding=ROUND_HALF_UP))
+    assert matlab_round(float(x)) == expected
+
+
+@pytest.mark.parametrize(
+    ("population", "fraction", "n_xover"),
+    [(14, 0.5, 7), (6, 0.5, 3), (16, 0.3, 5), (16, 0.7, 11), (15, 0.8, 11)],
+)
+def test_crossover_children_are_rounded_as_matlab_does(population, fraction, n_xover):
+    """MATLAB ``stepGA``: round(0.5 · 13) = 7 crossover children for a population of 14
+    with one elite; Python's round would give 6."""
+    ga = GeneticAlgorithm({"a": (0, 1)}, population_size=population, crossover_fraction=fraction)
+    assert ga.n_elite == 1
+    assert (ga.n_xover, ga.n_mut) == (n_xover, population - 1 - n_xover)

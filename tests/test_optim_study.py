@@ -443,3 +443,47 @@ def _starts_a_process(x):
 def test_timeout_worker_may_start_processes():
     res = minimize(_starts_a_process, SPACE, "random", budget=3, seed=0, timeout=30)
     assert res.n_failed == 0, [r.reason for r in res.history]
+
+
+def test_resume_refuses_when_the_code_now_proposes_other_points(tmp_path, monkeypatch):
+    """The stored settings are equal, but the optimiser's code changed (simulated by a
+    shifted proposal from trial 3 on): the replay notices and names the trial, instead of
+    mixing the two runs' histories."""
+    from kftune.optim.base import Proposal
+    from kftune.optim.baselines import RandomSearch
+
+    db = tmp_path / "s.db"
+    minimize(objective, SPACE, "random", budget=8, seed=0, storage=db,
+             callback=lambda r: r.number == 5)  # fmt: skip
+    original = RandomSearch._propose
+
+    def changed(self):
+        p = original(self)
+        if self.n_evals >= 3:
+            return Proposal(u=(p.u + 0.01) % 1.0, acquisition=p.acquisition)
+        return p
+
+    monkeypatch.setattr(RandomSearch, "_propose", changed)
+    calls = []
+    with pytest.raises(StudyError, match=r"replay diverged at trial 3.*different code"):
+        minimize(lambda x: calls.append(x) or objective(x), SPACE, "random", budget=8, seed=0,
+                 storage=db, resume=True)  # fmt: skip
+    assert calls == []  # nothing was evaluated on top of the foreign history
+    assert [r[1] for r in rows(db)] == ["complete"] * 6  # and the study is untouched
+
+
+def test_resume_refuses_an_in_flight_point_the_code_no_longer_proposes(tmp_path):
+    """The proposal in flight when a run stopped must be the next one the replay makes."""
+    db = tmp_path / "s.db"
+
+    def interrupted(x):
+        if len(rows(db)) == 4:
+            raise KeyboardInterrupt
+        return objective(x)
+
+    with pytest.raises(OptimizationInterrupted):
+        minimize(interrupted, SPACE, "random", budget=8, seed=0, storage=str(db))
+    with sqlite3.connect(db) as conn:
+        conn.execute("UPDATE trials SET u = '[0.5, 0.5]' WHERE state = 'running'")
+    with pytest.raises(StudyError, match=r"replay diverged at trial 3"):
+        minimize(objective, SPACE, "random", budget=8, seed=0, storage=str(db), resume=True)

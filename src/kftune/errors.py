@@ -45,3 +45,8 @@ class DataWarning(UserWarning):
     """Input data load but look implausible (e.g. samples held at a lower rate); the
     message names the dataset and manoeuvre and says how much of it is affected. The CLI
     prints it as ``kftune: warning: …``."""
+
+
+class UsageError(ConfigError):
+    """Command-line options that contradict each other; the CLI exits with 2 (usage), as
+    for options argparse refuses. The message names the options."""

@@ -24,6 +24,7 @@ from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import (
     DEFAULT_METHOD,
+    MAX_TIMEOUT,
     METHODS,
     OptimizeResult,
     make_optimizer,
@@ -122,8 +123,10 @@ def tune(
         make_optimizer(method, problem.space, budget=budget, seed=seed, **opts)
     except ValueError as exc:
         raise ConfigError(f"{method}: {exc}") from None
-    if timeout is not None and not timeout > 0:
-        raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    if timeout is not None and not 0 < timeout <= MAX_TIMEOUT:
+        raise ConfigError(
+            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}], got {timeout!r}"
+        )
     if timeout is not None and problem.workers > 1:
         raise ConfigError(
             "a per-evaluation timeout runs every evaluation in one worker process; combine "
@@ -249,7 +252,8 @@ def method_run(
     """
     require_success(result, key)
     # time = what the optimiser and the evaluations took (stored in the study, so a resumed
-    # run reports the same as an uninterrupted one; the study's own I/O is ~0.1 ms a step)
+    # run reports the same as an uninterrupted one; the study's own I/O, a few fsyncs a
+    # step, is left out: it depends on the disk, see benchmarks/study_io.py)
     steps = np.array([r.t_propose + r.t_eval for r in result.history])
     metrics: dict[str, dict[str, dict[str, float]]] = {}
     averages: dict[str, dict[str, float]] = {}

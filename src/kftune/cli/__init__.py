@@ -7,7 +7,8 @@ maps errors to exit codes.
 Exit codes:
     0  success
     1  the job ran but failed (e.g. every evaluation failed, a filter diverged)
-    2  usage error: bad command-line options (argparse's convention)
+    2  usage error: bad command-line options (argparse's convention), or ``--json`` with
+       standard output closed
     3  bad input: a data file, manifest, configuration or study file is unusable
     130 interrupted (Ctrl-C); whatever finished has been saved
     141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
@@ -24,7 +25,7 @@ from collections.abc import Callable, Sequence
 from typing import TextIO
 
 from kftune import __version__
-from kftune.errors import DataWarning, KftuneError, RunFailedError
+from kftune.errors import DataWarning, KftuneError, RunFailedError, UsageError
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -73,8 +74,20 @@ def _plain_warnings(fallback: Callable[..., None]) -> Callable[..., None]:
     return show
 
 
+def _occupy_closed_std_streams() -> None:
+    """Open the null device on standard descriptors 0–2 that were closed at start
+    (``kftune … >&-``): otherwise the next file opened (a study, an output) would get the
+    number 1 or 2, and whatever a worker process prints would land in it."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            os.open(os.devnull, os.O_RDWR)  # the lowest free number: this one
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
+    _occupy_closed_std_streams()
     parser = build_parser()
     args = parser.parse_args(argv)
     with warnings.catch_warnings():
@@ -83,13 +96,20 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if getattr(args, "json", False) and sys.stdout is None:  # closed before Python started
+        print(f"kftune {args.command}: error: --json: standard output is closed", file=sys.stderr)
+        return EXIT_USAGE
     try:
         code = int(args.func(args))
-        sys.stdout.flush()  # a closed pipe surfaces here, not at interpreter exit
+        if sys.stdout is not None:
+            sys.stdout.flush()  # a closed pipe surfaces here, not at interpreter exit
         return code
     except KeyboardInterrupt:
         print("kftune: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except UsageError as exc:
+        print(f"kftune {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     except RunFailedError as exc:
         print(f"kftune: failed: {exc}", file=sys.stderr)
         return EXIT_FAILURE

@@ -7,7 +7,7 @@ does not use is an error, not silently ignored::
     dataset = "default"            # or a dataset directory (relative to this file)
     method = "trbo"                # tune only (the paper's: "tsbo-tsp")
     budget = 40                    # tune only
-    timeout = 30.0                 # tune only: per-evaluation limit [s]
+    timeout = 30.0                 # tune only: per-evaluation limit [s], at most 1e6
     widen_bounds = false           # tune only: see kftune tune --widen-bounds
     methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp", "trbo"]   # compare only
     budgets = { ga = 225, tsbo-tsp = 40 }               # compare only
@@ -37,15 +37,19 @@ does not use is an error, not silently ignored::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import stat
 import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from kftune.errors import ConfigError
-from kftune.optim import METHODS, PeerUnavailableError, make_optimizer
+from kftune.errors import ConfigError, RunFailedError, UsageError
+from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
 from kftune.tuning.cost import CHANNELS
 
 if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
@@ -86,13 +90,13 @@ USED_ONLY_BY: dict[str, set[str]] = {
     "seed": {"tune", "compare"},
     "options": {"tune", "compare"},
 }
-#: Lower limits of numeric keys: (limit, strict).
-_LIMITS = {
-    "budget": (1, False),
-    "seed": (0, False),
-    "workers": (1, False),
-    "timeout": (0, True),
-    "burn_in": (0, False),
+#: Limits of numeric keys: (lower limit, strict, upper limit or None); every one finite.
+_LIMITS: dict[str, tuple[float, bool, float | None]] = {
+    "budget": (1, False, None),
+    "seed": (0, False, None),
+    "workers": (1, False, None),
+    "timeout": (0, True, MAX_TIMEOUT),
+    "burn_in": (0, False, None),
 }
 _SECTION_KEYS = {
     "cost": {"kind": str, "weights": dict, "estimate": str},
@@ -127,10 +131,20 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
         raise ConfigError(f"cannot read configuration file {p}: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"configuration file {p} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"configuration file {p} nests arrays or tables too deeply") from None
     _check_keys(data, CONFIG_KEYS, str(p))
-    for key, (limit, strict) in _LIMITS.items():
-        if key in data and (data[key] <= limit if strict else data[key] < limit):
-            raise ConfigError(f"{p}: {key} must be {'>' if strict else '>='} {limit}")
+    for key, (low, strict, high) in _LIMITS.items():
+        value = data.get(key)
+        if value is not None and not (
+            math.isfinite(value)
+            and (value > low if strict else value >= low)
+            and (high is None or value <= high)
+        ):
+            upper = "" if high is None else f" and <= {high:g}"
+            raise ConfigError(
+                f"{p}: {key} must be {'>' if strict else '>='} {low}{upper}, got {value!r}"
+            )
     if command is not None:
         for key in sorted(data):
             users = USED_ONLY_BY.get(key)
@@ -232,18 +246,25 @@ def _plain(text: str) -> bool:
     return "_" not in text and text.isascii()
 
 
-def _number(kind: type, low: float, strict: bool) -> Any:
-    """An argparse type: a number of ``kind`` above ``low`` (errors exit with code 2)."""
+def _number(kind: type, low: float, strict: bool, high: float | None = None) -> Any:
+    """An argparse type: a number of ``kind`` above ``low`` and at most ``high`` (errors
+    exit with code 2)."""
 
     def parse(text: str) -> Any:
         try:
             value = kind(text) if _plain(text) else None
         except ValueError:
             value = None
-        if value is None or not math.isfinite(value) or (value <= low if strict else value < low):
+        if (
+            value is None
+            or not math.isfinite(value)
+            or (value <= low if strict else value < low)
+            or (high is not None and value > high)
+        ):
             raise argparse.ArgumentTypeError(
                 f"expected {'an integer' if kind is int else 'a number'} "
-                f"{'>' if strict else '>='} {low:g}, got {text!r}"
+                f"{'>' if strict else '>='} {low:g}"
+                f"{'' if high is None else f' and <= {high:g}'}, got {text!r}"
             )
         return value
 
@@ -254,6 +275,7 @@ POSITIVE_INT = _number(int, 1, strict=False)
 NON_NEGATIVE_INT = _number(int, 0, strict=False)
 POSITIVE_FLOAT = _number(float, 0.0, strict=True)
 NON_NEGATIVE_FLOAT = _number(float, 0.0, strict=False)
+TIMEOUT_SECONDS = _number(float, 0.0, strict=True, high=MAX_TIMEOUT)
 
 
 def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
@@ -352,6 +374,17 @@ def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
         "kind": args.cost or section.get("kind", "nrmse"),
         "estimate": args.estimate or section.get("estimate", "posterior"),
     }
+    if kwargs["kind"] == "nis":  # weights would be ignored: say so instead
+        if args.weights:
+            raise UsageError(
+                "--weights: the NIS cost (--cost nis) weighs no channels; leave --weights "
+                "out or use the nrmse cost"
+            )
+        if "weights" in section:
+            raise ConfigError(
+                f"{_where(config, 'cost')}: weights apply to the nrmse cost only, but the cost "
+                f"is nis{' (from --cost)' if args.cost else ''}; remove them or use nrmse"
+            )
     if args.weights:
         kwargs["weights"] = args.weights
     elif "weights" in section:
@@ -407,28 +440,43 @@ def _ukf_settings(config: dict[str, Any]) -> UKFSettings:
 
 
 def output_file(path: Path, option: str) -> Path:
-    """``path`` if a file can be written there; checked before any work starts.
+    """``path`` if a file can be written there; checked before any work starts, so that no
+    run is spent before a crash at the end.
 
     Raises:
-        ConfigError: naming ``option``, when ``path`` is a folder or its folder is missing,
-            not a folder or not writable.
+        ConfigError: naming ``option``, when ``path`` is a folder, a pipe, socket or other
+            non-file, an existing file that cannot be replaced, a link into a missing
+            folder, or its folder is missing or lets no file be created (tried, not
+            inferred from permission bits, which do not hold for root or read-only mounts).
     """
     if path.is_dir():
         raise ConfigError(f"{option} {path}: is a folder; expected a file name")
-    parent = path.parent
-    if not parent.is_dir():
-        raise ConfigError(f"{option} {path}: the folder {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise ConfigError(f"{option} {path}: the folder {parent} is not writable")
+    real = Path(os.path.realpath(path))  # the file a link points to, also a dangling one
+    where = f"{option} {path}" + (f" (a link to {real})" if path.is_symlink() else "")
+    if real.exists():
+        mode = real.stat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISCHR(mode)):  # a FIFO would block forever
+            raise ConfigError(f"{where}: is not a regular file (a pipe, socket or device)")
+        if not os.access(real, os.W_OK):
+            raise ConfigError(f"{where}: the file cannot be written (read-only or immutable)")
+    if not real.parent.is_dir():
+        raise ConfigError(f"{where}: the folder {real.parent} does not exist")
+    _check_can_create(real.parent, where)
     return path
+
+
+#: Files of a report folder that ``compare`` and ``report`` replace.
+#: (The names of kftune.report, which is not imported here: it loads matplotlib.)
+REPORT_FILES = ("results.json", "traces.npz", "report.md")
 
 
 def output_dir(path: Path, option: str) -> Path:
     """``path`` if it is, or can be created as, a writable folder; checked before any work.
 
     Raises:
-        ConfigError: naming ``option``, when ``path`` or one of its ancestors is a file, or
-            the nearest existing ancestor is not writable.
+        ConfigError: naming ``option``, when ``path`` or one of its ancestors is a file, no
+            file can be created in the nearest existing ancestor, or one of the
+            :data:`REPORT_FILES` in it cannot be replaced (see :func:`output_file`).
     """
     existing = path
     while not existing.exists() and existing != existing.parent:
@@ -436,9 +484,88 @@ def output_dir(path: Path, option: str) -> Path:
     if not existing.is_dir():
         where = "is a file" if existing == path else f"lies below the file {existing}"
         raise ConfigError(f"{option} {path}: {where}; expected a folder")
-    if not os.access(existing, os.W_OK):
-        raise ConfigError(f"{option} {path}: {existing} is not writable")
+    _check_can_create(existing, f"{option} {path}")
+    for name in REPORT_FILES:  # files a report replaces must be replaceable
+        if (path / name).exists() or (path / name).is_symlink():
+            output_file(path / name, option)
     return path
+
+
+def _check_can_create(folder: Path, where: str) -> None:
+    """Create and drop a nameless file in ``folder`` (``ConfigError`` naming ``where`` if
+    that fails: read-only mount, immutable folder, ``/proc``, permissions)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise ConfigError(
+            f"{where}: no file can be created in {folder} ({exc.strerror or exc})"
+        ) from None
+
+
+def write_output(path: Path, text: str, option: str, keep: str = "") -> None:
+    """Write ``text`` to ``path`` (an output checked by :func:`output_file`) atomically:
+    into a temporary file beside the real target, then renamed over it, so a failure
+    (disk full, the file made immutable meanwhile) never leaves a truncated file. A link
+    is written through; a character device (``/dev/null``) is written in place.
+
+    Raises:
+        RunFailedError: (exit 1) writing failed; ``text`` was saved to a fallback file in
+            the temporary folder, which the message names — or, if that fails too, the
+            message holds ``text`` itself — and says what else keeps the result (``keep``,
+            e.g. the study).
+    """
+    real = Path(os.path.realpath(path))
+    try:
+        if real.exists() and not stat.S_ISREG(real.stat().st_mode):
+            real.write_text(text)
+        else:
+            _replace(real, text)
+        return
+    except OSError as exc:
+        reason = f"cannot write {option} {path} ({exc.strerror or exc})"
+    also = f"; {keep}" if keep else ""
+    fallback = Path(tempfile.gettempdir()) / f"kftune-{real.stem}-{os.getpid()}{real.suffix}"
+    try:
+        _replace(fallback, text)
+    except OSError:
+        raise RunFailedError(
+            f"{reason}, nor in the temporary folder{also}; here it is:\n{text}"
+        ) from None
+    raise RunFailedError(f"{reason}; it was written to {fallback} instead{also}")
+
+
+def _replace(path: Path, text: str) -> None:
+    """Write ``text`` into a temporary file beside ``path`` and rename it over ``path``
+    (with the permissions a plain write would give: the old file's, or 0o666 less the
+    umask)."""
+    if path.exists():
+        mode = path.stat().st_mode & 0o7777
+    else:
+        umask = os.umask(0o022)
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.chmod(tmp, mode)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def writing(what: str, keep: str) -> Iterator[None]:
+    """Run the body; an ``OSError`` in it (disk full, file-size limit, a folder made
+    read-only meanwhile) becomes :class:`~kftune.errors.RunFailedError` (exit 1) saying
+    what could not be written and what ``keep``s the result."""
+    try:
+        yield
+    except OSError as exc:
+        raise RunFailedError(f"cannot write {what} ({exc.strerror or exc}); {keep}") from None
 
 
 def emit_json(obj: Any) -> None:

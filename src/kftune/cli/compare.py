@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kftune.cli import EXIT_OK
+from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
     add_command,
     add_common,
@@ -25,6 +25,7 @@ from kftune.cli._common import (
     output_dir,
     parameterization,
     pick,
+    writing,
 )
 from kftune.optim import METHODS
 
@@ -103,15 +104,31 @@ def run(args: argparse.Namespace) -> int:
         burn_in=burn_in(args, config),
         method_options=config.get("options", {}),
     )
-    results = run_compare(
-        dataset,
-        args.out,
-        settings,
-        resume=args.resume,
-        force=args.force,
-        progress=False if (args.quiet or args.json) else None,
+    studies = args.out / "studies"
+    keep = (
+        f"every finished evaluation is saved in {studies}; once that is fixed, the same "
+        "command plus --resume writes the report without tuning again"
     )
-    report = write_report(results, args.out)
+    try:
+        with writing(f"the report to {args.out}", keep):
+            results = run_compare(
+                dataset,
+                args.out,
+                settings,
+                resume=args.resume,
+                force=args.force,
+                progress=False if (args.quiet or args.json) else None,
+            )
+            report = write_report(results, args.out)
+    except KeyboardInterrupt as stop:
+        partial = getattr(stop, "result", None)  # an OptimizationInterrupted's partial run
+        during = f" during {partial.method} after {partial.n_evals} evaluations" if partial else ""
+        print(
+            f"kftune: interrupted{during}; every finished evaluation is saved in {studies}; "
+            "continue with the same command plus --resume",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     tables = all_tables(results)
     if args.json:
         emit_json(

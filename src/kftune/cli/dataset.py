@@ -277,9 +277,8 @@ def run_show(args: argparse.Namespace) -> int:
     else:
         try:
             m = dataset[args.manoeuvre]
-        except KeyError as exc:
-            print(f"kftune: error: {exc.args[0]}", file=sys.stderr)
-            return 2
+        except KeyError as exc:  # a name the data do not hold: bad input (3), not usage
+            raise ConfigError(f"--manoeuvre: {exc.args[0]}") from None
     from kftune.cli._common import output_file
 
     out = output_file(args.out if args.out is not None else Path(f"{m.name}.png"), "--out")

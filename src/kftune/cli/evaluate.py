@@ -74,6 +74,8 @@ def read_tuned(path: Path) -> dict[str, Any]:
         raise DataError("file does not exist", file=str(path)) from None
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"not a readable JSON file ({exc})", file=str(path)) from None
+    except RecursionError:
+        raise DataError("nests arrays or objects too deeply", file=str(path)) from None
     if not isinstance(doc, dict) or doc.get("format") != TUNED_FORMAT:
         raise DataError(
             f'not a tuned-parameters file (expected "format": "{TUNED_FORMAT}", written '
@@ -84,34 +86,41 @@ def read_tuned(path: Path) -> dict[str, Any]:
         if key not in doc:
             raise DataError(f"missing key {key!r}", file=str(path))
     q = doc["q"]
-    if not (isinstance(q, list) and len(q) == 3 and all(_real(v) and v >= 0 for v in q)):
+    if not (isinstance(q, list) and len(q) == 3 and all(_finite(v) and v >= 0 for v in q)):
         raise DataError(
-            f"'q' must be 3 numbers >= 0 (not true/false or strings), got {q!r}", file=str(path)
-        )
-    r_scale = doc["params"].get("r_scale", 1.0) if isinstance(doc["params"], dict) else None
-    if not (_real(r_scale) and r_scale > 0):
-        raise DataError(
-            f"'params' must be an object whose 'r_scale', if any, is a number > 0; got "
-            f"{doc['params']!r}",
+            f"'q' must be 3 numbers >= 0 (not true/false or strings), got {q!r:.80}",
             file=str(path),
         )
-    burn = doc.get("burn_in", 0.0)
-    if not (_real(burn) and burn >= 0):
-        raise DataError(f"'burn_in' must be a number of seconds >= 0, got {burn!r}", file=str(path))
     from kftune.filters import UKFSettings
     from kftune.tuning.cost import CostSpec
 
     try:  # the settings must make a filter and a cost, or the file is not usable
         UKFSettings(**doc["ukf"]).check_dim(3)
         CostSpec(**doc.get("cost_spec", {}))
-    except (TypeError, ValueError, AttributeError) as exc:
+    except (TypeError, ValueError, AttributeError, OverflowError) as exc:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
+    if not isinstance(doc["params"], dict):
+        raise DataError("'params' must be an object of parameter values", file=str(path))
+    for key, value, strict in (
+        ("burn_in", doc.get("burn_in", 0.0), False),  # [s], >= 0
+        ("params.r_scale", doc["params"].get("r_scale", 1.0), True),  # [-], > 0
+    ):
+        if not _finite(value) or (value <= 0 if strict else value < 0):
+            raise DataError(
+                f"{key!r} must be a finite number {'>' if strict else '>='} 0, got {value!r:.40}",
+                file=str(path),
+            )
     return doc
 
 
-def _real(value: Any) -> bool:
-    """A finite JSON number; true and false are not numbers here (Python reads them as 1, 0)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+def _finite(value: Any) -> bool:
+    """A JSON number (not a boolean) that is finite as a float (a huge integer is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def _check_tuned_on(tuned: dict[str, Any], dataset: str, path: Path, named: str | None) -> None:

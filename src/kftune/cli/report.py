@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from kftune.cli import EXIT_OK
-from kftune.cli._common import add_command, emit_json, output_dir
+from kftune.cli._common import add_command, emit_json, output_dir, writing
 
 
 def register(subparsers: Any) -> None:
@@ -39,7 +39,9 @@ def run(args: argparse.Namespace) -> int:
             "β figures (paper Figs. 8–10) are left out",
             file=sys.stderr,
         )
-    path = write_report(results, output_dir(args.out or args.results, "--out"))
+    out = output_dir(args.out or args.results, "--out")
+    with writing(f"the report to {out}", f"the results in {args.results} are unchanged"):
+        path = write_report(results, out)
     if args.json:
         tables = all_tables(results)
         emit_json({"report": str(path), "tables": {k: t.to_records() for k, t in tables.items()}})

@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING, Any
 from kftune import __version__
 from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
-    POSITIVE_FLOAT,
     POSITIVE_INT,
+    TIMEOUT_SECONDS,
     add_command,
     add_common,
     burn_in,
@@ -35,8 +35,9 @@ from kftune.cli._common import (
     output_file,
     parameterization,
     pick,
+    write_output,
 )
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 
@@ -72,8 +73,9 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--timeout",
-        type=POSITIVE_FLOAT,
-        help="per-evaluation time limit [s]; a slower evaluation fails and the run goes on",
+        type=TIMEOUT_SECONDS,
+        help="per-evaluation time limit [s], at most 1e6; a slower evaluation fails and the "
+        "run goes on",
     )
     p.add_argument(
         "--widen-bounds",
@@ -94,16 +96,11 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``kftune tune``."""
-    from kftune.data import open_dataset
-    from kftune.experiment import require_success, tune
-    from kftune.optim import OptimizationInterrupted
-    from kftune.tuning.problem import TuningProblem
-
     config = load_config(args.config, "tune")
     if args.resume and args.storage is None:
         raise ConfigError("--resume needs --storage (the study file to continue)")
     output_file(args.out, "--out")
-    if args.storage is not None and not args.resume:
+    if args.storage is not None:
         output_file(args.storage, "--storage")
     widen = bool(pick(args, config, "widen_bounds", False))
     if args.storage is not None and not args.resume:
@@ -114,42 +111,48 @@ def run(args: argparse.Namespace) -> int:
                     f"study file {study} already exists; pass --resume to continue it, or "
                     "choose another --storage"
                 )
-    dataset = open_dataset(pick(args, config, "dataset", None))
-    method = pick(args, config, "method", DEFAULT_METHOD)
-    if method not in METHODS:
-        raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
-    budget = pick(args, config, "budget", None)
-    seed = pick(args, config, "seed", 0)
-    workers = pick(args, config, "workers", 1)
-    problem = TuningProblem(
-        dataset.train,
-        dataset.vehicle,
-        dataset.r_default,
-        cost=cost_spec(args, config),
-        parameterization=parameterization(args, config),
-        workers=workers,
-        burn_in=burn_in(args, config),
-    )
-    with problem:
-        try:
-            result = tune(
-                problem,
-                method,
-                budget=budget,
-                seed=seed,
-                storage=args.storage,
-                resume=args.resume,
-                timeout=pick(args, config, "timeout", None),
-                progress=False if (args.quiet or args.json) else None,
-                options=config.get("options", {}).get(method),
-                widen_bounds=widen,
-            )
-        except OptimizationInterrupted as stop:
-            _interrupted(stop.result, problem, dataset.name, args)
-            return EXIT_INTERRUPTED
+    try:  # from here on a Ctrl-C says what was kept, also before the first evaluation
+        from kftune.data import open_dataset
+        from kftune.experiment import require_success, tune
+        from kftune.optim import OptimizationInterrupted
+        from kftune.tuning.problem import TuningProblem
+
+        dataset = open_dataset(pick(args, config, "dataset", None))
+        method = pick(args, config, "method", DEFAULT_METHOD)
+        if method not in METHODS:
+            raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
+        problem = TuningProblem(
+            dataset.train,
+            dataset.vehicle,
+            dataset.r_default,
+            cost=cost_spec(args, config),
+            parameterization=parameterization(args, config),
+            workers=pick(args, config, "workers", 1),
+            burn_in=burn_in(args, config),
+        )
+        with problem:
+            try:
+                result = tune(
+                    problem,
+                    method,
+                    budget=pick(args, config, "budget", None),
+                    seed=pick(args, config, "seed", 0),
+                    storage=args.storage,
+                    resume=args.resume,
+                    timeout=pick(args, config, "timeout", None),
+                    progress=False if (args.quiet or args.json) else None,
+                    options=config.get("options", {}).get(method),
+                    widen_bounds=widen,
+                )
+            except OptimizationInterrupted as stop:
+                _interrupted(args, stop.result, problem, dataset.name)
+                return EXIT_INTERRUPTED
+    except KeyboardInterrupt:  # before the first evaluation: loading, starting workers
+        _interrupted(args)
+        return EXIT_INTERRUPTED
     require_success(result, method)
     doc = tuned_document(result, problem, dataset.name)
-    args.out.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
     if args.json:
         emit_json({**doc, "file": str(args.out)})
     else:
@@ -188,15 +191,21 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
 
 
 def _interrupted(
-    result: OptimizeResult, problem: TuningProblem, dataset: str, args: argparse.Namespace
+    args: argparse.Namespace,
+    result: OptimizeResult | None = None,
+    problem: TuningProblem | None = None,
+    dataset: str = "",
 ) -> None:
     """Ctrl-C: say what was kept, save the best point so far, and how to go on."""
-    lines = [f"kftune: interrupted after {result.n_evals} evaluations"]
-    if result.x is not None:
+    lines = [f"kftune: interrupted after {0 if result is None else result.n_evals} evaluations"]
+    if result is not None and result.x is not None and problem is not None:
         partial = args.out.with_name(args.out.stem + ".partial" + args.out.suffix)
         doc = tuned_document(result, problem, dataset)
-        partial.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-        lines.append(f"best cost so far {result.fun:.5g}, its parameters written to {partial}")
+        try:
+            write_output(partial, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
+            lines.append(f"best cost so far {result.fun:.5g}, its parameters written to {partial}")
+        except RunFailedError as exc:
+            lines.append(f"best cost so far {result.fun:.5g}; {exc}")
     if args.storage is not None:
         lines.append(
             f"every finished evaluation is saved in {args.storage}; continue with the same "
@@ -205,6 +214,13 @@ def _interrupted(
     else:
         lines.append("nothing else was saved (run with --storage FILE to be able to resume)")
     print("\n".join(lines), file=sys.stderr)
+
+
+def _kept(args: argparse.Namespace) -> str:
+    """What keeps a run's evaluations besides the tuned file, for error messages."""
+    if args.storage is None:
+        return ""
+    return f"every evaluation is saved in the study {args.storage}"
 
 
 def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str) -> dict[str, Any]:

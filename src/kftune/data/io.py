@@ -233,6 +233,8 @@ def _read_manifest(path: Path) -> dict[str, Any]:
         raise DataError(
             f"manifest is not valid {path.suffix[1:].upper()}: {exc}", file=str(path)
         ) from None
+    except RecursionError:
+        raise DataError("manifest nests arrays or tables too deeply", file=str(path)) from None
     if not isinstance(data, dict):
         raise DataError("manifest must be a table/object at the top level", file=str(path))
     return data

@@ -17,6 +17,7 @@ from kftune.optim.baselines import ManualPoints, RandomSearch
 from kftune.optim.ga import GeneticAlgorithm
 from kftune.optim.minimize import (
     DEFAULT_METHOD,
+    MAX_TIMEOUT,
     METHODS,
     OptimizationInterrupted,
     make_optimizer,
@@ -24,7 +25,7 @@ from kftune.optim.minimize import (
 )
 from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
-from kftune.optim.study import Study, StudyError, StudyInUseError
+from kftune.optim.study import Study, StudyError, StudyInUseError, StudyWriteError
 from kftune.optim.trbo import TrustRegionBO
 from kftune.optim.tsbo import TSBO
 from kftune.optim.widen import minimize_widening
@@ -33,6 +34,7 @@ from kftune.space import Param, Space
 __all__ = [
     "CMAES",
     "DEFAULT_METHOD",
+    "MAX_TIMEOUT",
     "METHODS",
     "TSBO",
     "EvalRecord",
@@ -52,6 +54,7 @@ __all__ = [
     "Study",
     "StudyError",
     "StudyInUseError",
+    "StudyWriteError",
     "Trial",
     "TrustRegionBO",
     "make_optimizer",

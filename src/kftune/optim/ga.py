@@ -11,8 +11,9 @@ generational replacement with elites. Hence this small GA, which follows MATLAB'
 2. Each later generation of N individuals:
    * elites: the ``elite_count`` best individuals survive unchanged and are *not*
      re-evaluated (MATLAB reuses their scores);
-   * ``n_xover = round(crossover_fraction · (N − elite_count))`` children by scattered
-     crossover (``crossoverscattered``: each gene from one of two parents with p = ½);
+   * ``n_xover = round(crossover_fraction · (N − elite_count))`` children (MATLAB's
+     ``round``, halves away from zero: :func:`matlab_round`) by scattered crossover
+     (``crossoverscattered``: each gene from one of two parents with p = ½);
    * ``n_mut = N − elite_count − n_xover`` children by Gaussian mutation;
    * parents: ``2·n_xover + n_mut`` of them, by rank fitness scaling (``fitscalingrank``:
      expectation ∝ 1/√rank) and stochastic-uniform selection (``selectionstochunif``: one
@@ -84,7 +85,7 @@ class GeneticAlgorithm(Optimizer):
         super().__init__(space, budget=budget, seed=seed)
         if not isinstance(population_size, (int, np.integer)) or population_size < 2:
             raise ValueError(f"population_size must be an integer >= 2, got {population_size!r}")
-        n_elite = max(1, round(elite_count)) if 0 < elite_count < 1 else int(elite_count)
+        n_elite = max(1, matlab_round(elite_count)) if 0 < elite_count < 1 else int(elite_count)
         if n_elite != elite_count and not 0 < elite_count < 1:
             raise ValueError(f"elite_count must be an integer or in (0, 1), got {elite_count!r}")
         if not 0 <= n_elite < population_size:
@@ -101,7 +102,7 @@ class GeneticAlgorithm(Optimizer):
         self.population_size = int(population_size)
         self.n_elite = n_elite
         n_kids = self.population_size - n_elite
-        self.n_xover = round(crossover_fraction * n_kids)
+        self.n_xover = matlab_round(crossover_fraction * n_kids)
         self.n_mut = n_kids - self.n_xover
         if generations is None:
             generations = max(0, math.ceil((self.budget - self.population_size) / n_kids))
@@ -197,6 +198,17 @@ class GeneticAlgorithm(Optimizer):
                 )
                 if not self._origin[i].endswith("+mutation"):
                     self._origin[i] += "+mutation"
+
+
+def matlab_round(x: float) -> int:
+    """MATLAB's ``round`` of a non-negative number: halves away from zero (2.5 → 3), where
+    Python's ``round`` takes halves to even (2.5 → 2). Exact for every float: ``x − ⌊x⌋`` is
+    computed without rounding error, so no ``x + 0.5`` carries a value just below a half
+    over it."""
+    if not x >= 0:
+        raise ValueError(f"expected a number >= 0, got {x!r}")
+    whole = math.floor(x)
+    return int(whole) + (x - whole >= 0.5)
 
 
 def rank_scaling(scores: np.ndarray, n_parents: int) -> np.ndarray:

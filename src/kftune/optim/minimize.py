@@ -34,9 +34,7 @@ from __future__ import annotations
 import inspect
 import multiprocessing
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -46,10 +44,15 @@ import numpy as np
 from kftune.optim.base import ExhaustedError, Optimizer
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
 from kftune.optim.study import Study, StudyError
+from kftune.processes import watch_parent
 from kftune.space import Space
 
 #: Tolerance (unit cube, max-norm) for a replayed proposal to count as the stored one.
 REPLAY_ATOL = 1e-9
+
+#: [s] the longest per-evaluation timeout (11.6 days): waiting on a worker takes a timeout
+#: below 2^31 ms, and a longer one is no limit at all (leave the timeout out instead).
+MAX_TIMEOUT = 1e6
 
 
 def _registry() -> dict[str, tuple[type[Optimizer], dict[str, Any]]]:
@@ -149,7 +152,8 @@ def minimize(
         seed: drives all randomness; same seed, same run.
         storage: path of a SQLite study file, or ``None`` for no persistence.
         resume: continue the study in ``storage`` (see the module docstring).
-        timeout: [s] per-evaluation time limit (runs ``fun`` in a worker process).
+        timeout: [s] per-evaluation time limit, at most :data:`MAX_TIMEOUT` (runs ``fun``
+            in a worker process).
         callback: called with every finished :class:`EvalRecord`, in order — on resume the
             replayed ones first — e.g. to drive a progress bar; returning ``True`` after a new
             evaluation stops the run (status ``"stopped"``; ignored for replayed records).
@@ -170,8 +174,12 @@ def minimize(
     """
     if not callable(fun):
         raise ValueError(f"fun must be callable, got {type(fun).__name__}")
-    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0):
-        raise ValueError(f"timeout must be a positive number of seconds or None, got {timeout!r}")
+    if timeout is not None and not (
+        isinstance(timeout, (int, float)) and 0 < timeout <= MAX_TIMEOUT
+    ):
+        raise ValueError(
+            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}] or None, got {timeout!r}"
+        )
     if resume and storage is None:
         raise ValueError("resume=True needs storage= (the study file to resume)")
     sp = Space.coerce(space)
@@ -230,7 +238,14 @@ def minimize(
                 t_eval=t_eval,
             )
             if study is not None:
-                study.write_result(rec)
+                try:
+                    study.write_result(rec)
+                except KeyboardInterrupt:
+                    # Ctrl-C after the commit (e.g. during the checkpoint): the record is
+                    # saved, so it belongs to the partial result, which matches the study
+                    if study.is_finished(rec.number):
+                        history.append(rec)
+                    raise
             history.append(rec)
             if callback is not None and callback(rec) is True:
                 status = "stopped"
@@ -334,26 +349,13 @@ class _Evaluator:
         self._kill()
 
 
-#: [s] how often an evaluation worker checks that its parent is still alive.
-_ORPHAN_POLL = 0.5
-
-
-def _exit_when_orphaned(parent_pid: int) -> None:  # pragma: no cover - in the child
-    """Watchdog thread of the evaluation worker: end the process as soon as the parent
-    ``parent_pid`` is gone, also in the middle of an evaluation (a hung one is what a
-    timeout exists for, and nobody is left to read its result)."""
-    while os.getppid() == parent_pid:
-        time.sleep(_ORPHAN_POLL)
-    os._exit(0)
-
-
 def _worker_loop(
     fun: Callable[[np.ndarray], float], conn: Any, parent_pid: int
 ) -> None:  # pragma: no cover - runs in the child process
     """Body of the evaluation worker: evaluate what arrives on ``conn`` until the pipe
-    closes or the parent process ``parent_pid`` is gone."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business
-    threading.Thread(target=_exit_when_orphaned, args=(parent_pid,), daemon=True).start()
+    closes or the parent process ``parent_pid`` is gone (also in the middle of an
+    evaluation: a hung one is what a timeout exists for, and nobody is left to read it)."""
+    watch_parent(parent_pid)
     conn.send(("ready", None))
     while True:
         try:

@@ -11,14 +11,27 @@ SQLite commits are atomic, so a process killed at any instant leaves the file wi
 of finished rows plus at most one ``running`` row. The database runs in WAL mode with
 ``synchronous=NORMAL``: a committed transaction survives the process being killed at any
 moment (the WAL is in the OS's hands once the commit returns); only an OS crash or power cut
-can lose the last commits (``synchronous=FULL`` would also cover that, at about 1.5 ms per
-commit instead of 0.03 ms — two commits per evaluation). An interrupted write is rolled back
-by SQLite on the next open.
+can lose the last commit (``synchronous=FULL`` would also cover that). An interrupted write
+is rolled back by SQLite on the next open.
+
+The named file is self-contained after every finished evaluation: each result's commit is
+followed by a checkpoint that copies the WAL into the database file, so a copy of the
+``.db`` file alone (without ``<study>-wal``), also one taken after a SIGKILL, holds every
+finished evaluation. A checkpoint is two or three ``fsync`` calls (``benchmarks/study_io.py``
+measures them against an evaluation). It is passive: while another process is reading the
+study it copies what it can, and the next one catches up.
+
+A write that fails (disk full, file-size limit, a folder made read-only) raises
+:class:`StudyWriteError`: the transaction is rolled back, every evaluation finished before
+stays in the file, and the message says how many and how to resume.
 
 One process at a time: opening a study takes an exclusive, non-blocking ``flock`` on the
-side file ``<study>.lock``; a second process gets :class:`StudyInUseError` at once. The OS
-drops the lock when the holder exits, however it exits (SIGKILL included), so no stale lock
-is ever left behind. (On Windows ``msvcrt.locking`` plays the same role.)
+database file itself, so deleting a file beside it cannot let a second process in; a second
+process gets :class:`StudyInUseError` at once. The OS drops the lock when the holder exits,
+however it exits (SIGKILL included), so no stale lock is ever left behind. ``flock`` locks
+are independent of the POSIX record locks SQLite takes on the same file on Linux; on systems
+where the two kinds interact (the BSDs, macOS) and on Windows (``msvcrt.locking``) the lock
+sits on the side file ``<study>.lock`` instead (Windows cannot delete a file held open).
 
 A study remembers the settings it was created with (method, seed, budget, search space,
 method options, and the caller's description of the objective, e.g. the dataset and cost of
@@ -32,16 +45,23 @@ import contextlib
 import json
 import os
 import sqlite3
+import sys
 import weakref
 from pathlib import Path
 from typing import Any
 
-from kftune.errors import ConfigError, KftuneError
+from kftune.errors import ConfigError, KftuneError, RunFailedError
 from kftune.optim.result import COMPLETE, FAILED, RUNNING, EvalRecord, jsonable
 
 #: Bumped when the table layout changes.
 FORMAT_VERSION = 1
 _APP = "kftune-study"
+
+#: Whether ``flock`` on the database file leaves SQLite's own (POSIX record) locks on it
+#: alone — Linux documents that the two kinds never interact; the BSDs and macOS do not.
+_LOCK_THE_DATABASE = sys.platform.startswith("linux")
+#: Files SQLite keeps beside a study ``s.db``: ``s.db-wal``, ``s.db-shm``, ``s.db-journal``.
+_SIDE_FILES = ("-wal", "-shm", "-journal")
 
 
 class StudyError(KftuneError):
@@ -50,6 +70,11 @@ class StudyError(KftuneError):
 
 class StudyInUseError(StudyError):
     """Another process holds the study open."""
+
+
+class StudyWriteError(StudyError, RunFailedError):
+    """Writing to the study failed (disk full, file-size limit, read-only folder); what
+    was committed before is kept (a run failure, not bad input: the CLI exits with 1)."""
 
 
 #: Open lock files of this process (weakly: a study dropped without close() still frees its
@@ -72,14 +97,21 @@ if hasattr(os, "register_at_fork"):
 
 
 class _FileLock:
-    """Exclusive non-blocking lock on ``path`` (released by the OS when the process dies;
-    not inherited by forked children)."""
+    """Exclusive non-blocking lock on ``path`` (created if absent; released by the OS when
+    the process dies; not inherited by forked children)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._fh: Any = None
 
     def acquire(self) -> bool:
+        """Take the lock; False if another process holds it.
+
+        Raises:
+            OSError: the file cannot be opened for writing.
+        """
+        if self._held_here():
+            return False
         fh = open(self.path, "a+b")  # noqa: SIM115 - kept open while the lock is held
         try:
             if os.name == "nt":  # pragma: no cover - exercised on Windows only
@@ -97,6 +129,18 @@ class _FileLock:
         self._fh = fh
         _HELD.add(fh)
         return True
+
+    def _held_here(self) -> bool:
+        """Whether this process holds the lock already. Checked without opening the file:
+        closing a second descriptor of it would drop every POSIX lock this process holds
+        on it, those of SQLite included."""
+        try:
+            st = os.stat(self.path)
+        except OSError:
+            return False
+        return any(
+            not fh.closed and os.path.samestat(os.fstat(fh.fileno()), st) for fh in list(_HELD)
+        )
 
     def release(self) -> None:
         if self._fh is not None and self._fh.closed:  # a forked child's copy, closed at fork
@@ -145,47 +189,69 @@ class Study:
 
         Raises:
             StudyInUseError: another process has the study open.
-            StudyError: the file exists and ``resume`` is False; or it is not a kftune study.
+            StudyError: the file exists and ``resume`` is False; it is not a kftune study or
+                a row is damaged; or it cannot be opened for writing.
+            StudyWriteError: the new study cannot be written (disk full, file-size limit).
             ConfigError: resuming with settings other than the stored ones (names the one).
         """
         p = Path(path)
         settings = jsonable(settings)
-        # The lock sits beside the real file, so two paths to one study (a symlink, a
-        # relative and an absolute path) share it.
+        # The lock follows the real file, so two paths to one study (a symlink, a relative
+        # and an absolute path) share it.
         real = p.resolve()
-        lock = _FileLock(real.with_name(real.name + ".lock"))
-        if not lock.acquire():
+        created = not real.exists()
+        lock = _FileLock(real if _LOCK_THE_DATABASE else real.with_name(real.name + ".lock"))
+        try:
+            held = lock.acquire()
+        except OSError as exc:
+            raise StudyError(f"cannot open study {p} for writing: {exc.strerror or exc}") from None
+        if not held:
             raise StudyInUseError(
-                f"study {p} is in use by another process (lock {lock.path.name} is held); "
-                "wait for it to finish or use another storage file"
+                f"study {p} is in use by another process (it holds the lock on "
+                f"{lock.path.name}); wait for it to finish or use another storage file"
             )
         try:
-            existed = p.exists() and p.stat().st_size > 0
-            try:
-                conn = sqlite3.connect(str(p), isolation_level=None)
-                conn.execute("PRAGMA journal_mode=WAL")
-                conn.execute("PRAGMA synchronous=NORMAL")
-            except sqlite3.DatabaseError as exc:
-                raise StudyError(f"study {p} is not a readable SQLite file: {exc}") from None
-            try:
-                if existed:
-                    stored = cls._read_meta(p, conn)
-                    if not resume:
-                        n = conn.execute("SELECT COUNT(*) FROM trials").fetchone()[0]
-                        raise StudyError(
-                            f"study {p} already exists ({n} evaluations stored); pass "
-                            "resume=True to continue it or choose another storage file"
-                        )
-                    _check_settings(p, stored, settings)
-                else:
-                    cls._create(conn, settings)
-            except BaseException:
-                conn.close()
-                raise
+            conn = cls._connect(p, settings, resume=resume)
         except BaseException:
+            if created:  # nothing finished can be in it: remove what the failed start left
+                for leftover in (real, *(real.with_name(real.name + e) for e in _SIDE_FILES)):
+                    with contextlib.suppress(OSError):
+                        leftover.unlink()
             lock.release()
             raise
         return cls(p, conn, lock, settings)
+
+    @classmethod
+    def _connect(cls, p: Path, settings: dict[str, Any], *, resume: bool) -> sqlite3.Connection:
+        """Open the database, then create the study in it or check the stored settings."""
+        existed = p.exists() and p.stat().st_size > 0
+        try:
+            conn = sqlite3.connect(str(p), isolation_level=None)
+        except sqlite3.Error as exc:
+            raise StudyError(f"cannot open study {p}: {exc}") from None
+        try:
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=NORMAL")
+            if existed:
+                stored = cls._read_meta(p, conn)
+                if not resume:
+                    n = conn.execute("SELECT COUNT(*) FROM trials").fetchone()[0]
+                    raise StudyError(
+                        f"study {p} already exists ({n} evaluations stored); pass "
+                        "resume=True to continue it or choose another storage file"
+                    )
+                _check_settings(p, stored, settings)
+            else:
+                cls._create(conn, settings)
+        except BaseException as exc:
+            with contextlib.suppress(sqlite3.Error):
+                conn.close()
+            if isinstance(exc, sqlite3.OperationalError):  # disk full, read-only, locked
+                raise StudyWriteError(f"cannot create or open study {p}: {exc}") from None
+            if isinstance(exc, sqlite3.DatabaseError):
+                raise StudyError(f"study {p} is not a readable SQLite file: {exc}") from None
+            raise
+        return conn
 
     @staticmethod
     def _create(conn: sqlite3.Connection, settings: dict[str, Any]) -> None:
@@ -223,7 +289,13 @@ class Study:
                 f"study {p} has format version {meta.get('format_version')}, this kftune "
                 f"reads version {FORMAT_VERSION}"
             )
-        return json.loads(meta["settings"])
+        try:
+            settings = json.loads(meta["settings"])
+        except (KeyError, TypeError, ValueError, RecursionError):
+            settings = None
+        if not isinstance(settings, dict):
+            raise StudyError(f"study {p}: its stored settings (table meta) are damaged")
+        return settings
 
     # ------------------------------------------------------------------ rows
     def records(self) -> tuple[list[EvalRecord], list[float] | None]:
@@ -231,58 +303,122 @@ class Study:
         ``running`` proposal (the one in flight when the previous process stopped), if any.
 
         Raises:
-            StudyError: rows are not numbered 0..n−1 or a running row is not the last.
+            StudyError: rows are not numbered 0..n−1, a running row is not the last, or a
+                row is damaged (named by its trial number; its content is not quoted).
         """
-        rows = self._conn.execute(
-            "SELECT number, state, u, record FROM trials ORDER BY number"
-        ).fetchall()
+        try:
+            rows = self._conn.execute(
+                "SELECT number, state, u, record FROM trials ORDER BY number"
+            ).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise StudyError(f"study {self.path} cannot be read: {exc}") from None
         done: list[EvalRecord] = []
         running: list[float] | None = None
         for i, (number, state, u, record) in enumerate(rows):
             if number != i:
                 raise StudyError(f"study {self.path}: trial numbers have a gap at {i}")
-            if state == RUNNING:
-                if i != len(rows) - 1:
-                    raise StudyError(f"study {self.path}: running trial {i} is not the last")
-                running = json.loads(u)
-            elif state in (COMPLETE, FAILED):
-                done.append(EvalRecord.from_dict(json.loads(record)))
-            else:
-                raise StudyError(f"study {self.path}: trial {i} has unknown state {state!r}")
+            if state not in (RUNNING, COMPLETE, FAILED):
+                raise StudyError(f"study {self.path}: trial {i} has an unknown state")
+            if state == RUNNING and i != len(rows) - 1:
+                raise StudyError(f"study {self.path}: running trial {i} is not the last")
+            try:
+                if state == RUNNING:
+                    running = [float(v) for v in json.loads(u)]
+                else:
+                    rec = EvalRecord.from_dict(json.loads(record))
+                    if rec.number != i or rec.state != state:
+                        raise ValueError("the record disagrees with its row")
+                    done.append(rec)
+            except (
+                TypeError,
+                ValueError,
+                KeyError,
+                AttributeError,
+                ArithmeticError,
+                RecursionError,
+            ):
+                column = "u" if state == RUNNING else "record"
+                raise StudyError(
+                    f"study {self.path}: trial {i} ({state}) is damaged: column {column!r} "
+                    "does not hold what kftune wrote there; resume from an intact copy of the "
+                    "study or start a new one"
+                ) from None
         return done, running
 
     def write_proposal(self, number: int, u: list[float]) -> None:
-        """Store a proposal (state ``running``) before it is evaluated; committed on return."""
-        with _transaction(self._conn):
-            self._conn.execute(
-                "INSERT OR REPLACE INTO trials (number, state, u) VALUES (?, ?, ?)",
-                (number, RUNNING, json.dumps(u)),
-            )
+        """Store a proposal (state ``running``) before it is evaluated; committed on return.
+
+        Raises:
+            StudyWriteError: the write failed (nothing finished is lost).
+        """
+        self._write(
+            f"store proposal {number}",
+            "INSERT OR REPLACE INTO trials (number, state, u) VALUES (?, ?, ?)",
+            (number, RUNNING, json.dumps(u)),
+        )
 
     def write_result(self, record: EvalRecord) -> None:
-        """Store a finished evaluation; committed on return."""
-        with _transaction(self._conn):
-            cur = self._conn.execute(
-                "UPDATE trials SET state = ?, value = ?, reason = ?, record = ? "
-                "WHERE number = ? AND state = ?",
-                (
-                    record.state,
-                    record.value,
-                    record.reason,
-                    json.dumps(record.to_dict(), allow_nan=False),
-                    record.number,
-                    RUNNING,
-                ),
-            )
-            if cur.rowcount != 1:
-                raise StudyError(
-                    f"study {self.path}: no running proposal {record.number} to complete"
-                )
+        """Store a finished evaluation, committed and copied into the database file on
+        return (see the module docstring).
+
+        Raises:
+            StudyWriteError: the write failed; this evaluation is evaluated again on resume,
+                every one finished before is kept.
+            StudyError: no running proposal of this number is stored.
+        """
+        what = f"store the result of evaluation {record.number} (evaluated again on resume)"
+        changed = self._write(
+            what,
+            "UPDATE trials SET state = ?, value = ?, reason = ?, record = ? "
+            "WHERE number = ? AND state = ?",
+            (
+                record.state,
+                record.value,
+                record.reason,
+                json.dumps(record.to_dict(), allow_nan=False),
+                record.number,
+                RUNNING,
+            ),
+        )
+        if changed != 1:
+            raise StudyError(f"study {self.path}: no running proposal {record.number} to complete")
+        try:
+            self._conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
+        except sqlite3.Error as exc:
+            what = f"copy evaluation {record.number} from the -wal file into the database file"
+            raise StudyWriteError(self._write_failure(what, exc)) from None
+
+    def is_finished(self, number: int) -> bool:
+        """Whether the result of trial ``number`` is stored (complete or failed)."""
+        row = self._conn.execute("SELECT state FROM trials WHERE number = ?", (number,)).fetchone()
+        return row is not None and row[0] in (COMPLETE, FAILED)
+
+    def _write(self, what: str, sql: str, params: tuple[Any, ...]) -> int:
+        """Run one statement in its own committed transaction; the number of rows changed."""
+        try:
+            with _transaction(self._conn):
+                return self._conn.execute(sql, params).rowcount
+        except sqlite3.Error as exc:
+            raise StudyWriteError(self._write_failure(what, exc)) from None
+
+    def _write_failure(self, what: str, exc: sqlite3.Error) -> str:
+        try:
+            n = self._conn.execute(
+                "SELECT COUNT(*) FROM trials WHERE state IN (?, ?)", (COMPLETE, FAILED)
+            ).fetchone()[0]
+            kept = f"it keeps the {n} evaluations finished so far"
+        except sqlite3.Error:
+            kept = "it keeps the evaluations finished so far"
+        return (
+            f"study {self.path}: cannot {what} ({exc}); {kept}; make room on the disk "
+            "(or make the folder writable), then continue with --resume (resume=True)"
+        )
 
     def close(self) -> None:
         """Close the database and release the lock (idempotent)."""
         if self._conn is not None:
-            self._conn.close()
+            with contextlib.suppress(sqlite3.Error):  # e.g. a checkpoint on a full disk
+                self._conn.close()
             self._conn = None  # type: ignore[assignment]
         self._lock.release()
 
@@ -294,7 +430,9 @@ class Study:
 
 
 class _transaction:
-    """``BEGIN IMMEDIATE`` … ``COMMIT`` (rolled back on error) on an autocommit connection."""
+    """``BEGIN IMMEDIATE`` … ``COMMIT`` on an autocommit connection; rolled back when the
+    body or the commit fails (a failed rollback — SQLite may have rolled back already — is
+    not an error of its own)."""
 
     def __init__(self, conn: sqlite3.Connection) -> None:
         self.conn = conn
@@ -303,7 +441,18 @@ class _transaction:
         self.conn.execute("BEGIN IMMEDIATE")
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
-        self.conn.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+        if exc_type is None:
+            try:
+                self.conn.execute("COMMIT")
+                return
+            except sqlite3.Error:
+                self._rollback()
+                raise
+        self._rollback()
+
+    def _rollback(self) -> None:
+        with contextlib.suppress(sqlite3.Error):
+            self.conn.execute("ROLLBACK")
 
 
 def _check_settings(p: Path, stored: dict[str, Any], current: dict[str, Any]) -> None:

@@ -88,6 +88,7 @@ class TrustRegionBO(Optimizer):
 
     method: ClassVar[str] = "trbo"
     default_budget: ClassVar[int] = 40
+    budget_independent: ClassVar[bool] = True
 
     def __init__(
         self,

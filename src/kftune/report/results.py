@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,8 @@ class MethodRun:
         best_cost: best training cost J found [-].
         n_evals: number of cost evaluations (failed ones included).
         wall_time_s: time of the tuning run [s]: the optimiser's proposals plus the cost
-            evaluations (not the progress bar or the study's I/O, ~0.1 ms a step).
+            evaluations (not the progress bar or the study's I/O, a few fsyncs a step:
+            ``benchmarks/study_io.py``).
         history_cost: (n_evals,) cost of each evaluation in order (NaN where it failed).
         history_time_s: (n_evals,) that time accumulated up to each evaluation [s].
         metrics: split → manoeuvre name → metric → value. Metrics: the β KPIs
@@ -111,7 +113,13 @@ class ExperimentResults:
 
     @classmethod
     def load(cls, directory: str | Path) -> ExperimentResults:
-        """Read a results directory written by :meth:`save`."""
+        """Read a results directory written by :meth:`save`.
+
+        Raises:
+            DataError: ``results.json`` is missing, unreadable or not what :meth:`save`
+                writes (the message names the file and the part at fault), or
+                ``traces.npz`` is damaged.
+        """
         src = Path(directory)
         path = src / RESULTS_FILE
         if not path.is_file():
@@ -120,27 +128,69 @@ class ExperimentResults:
                 file=str(src),
             )
         try:
-            doc = json.loads(path.read_text())
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DataError(f"cannot be read ({exc})", file=str(path)) from None
         except json.JSONDecodeError as exc:
             raise DataError(f"not valid JSON ({exc})", file=str(path)) from None
+        except RecursionError:
+            raise DataError("nests arrays or objects too deeply", file=str(path)) from None
+        if not isinstance(doc, dict):
+            raise DataError(
+                f"expected a JSON object written by 'kftune compare', got a {type(doc).__name__}",
+                file=str(path),
+            )
         if doc.get("schema") != SCHEMA_VERSION:
             raise DataError(
                 f"results schema {doc.get('schema')!r} is not the supported {SCHEMA_VERSION}",
                 file=str(path),
             )
-        methods = [_method_from_json(m) for m in doc["methods"]]
-        traces: dict[str, dict[str, np.ndarray]] = {}
-        if (src / TRACES_FILE).is_file():
-            with np.load(src / TRACES_FILE) as npz:
-                for key in npz.files:
-                    man, sig = key.split("::", 1)
-                    traces.setdefault(man, {})[sig] = npz[key]
+        if not isinstance(doc.get("meta"), dict) or not isinstance(doc.get("methods"), list):
+            raise DataError("expected an object 'meta' and a list 'methods'", file=str(path))
+        methods = []
+        for i, m in enumerate(doc["methods"]):
+            try:
+                methods.append(_method_from_json(m))
+            except (TypeError, ValueError, AttributeError):
+                raise DataError(
+                    f"methods[{i}] is not a method run written by 'kftune compare'",
+                    file=str(path),
+                ) from None
+        cost_slice = doc.get("cost_slice")
+        if cost_slice is not None and not isinstance(cost_slice, dict):
+            raise DataError("'cost_slice' must be an object or null", file=str(path))
         return cls(
             meta=doc["meta"],
             methods=methods,
-            cost_slice=_numbers(doc["cost_slice"]) if doc.get("cost_slice") else None,
-            traces=traces,
+            cost_slice=_numbers(cost_slice) if cost_slice else None,
+            traces=_load_traces(src / TRACES_FILE),
         )
+
+
+def _load_traces(path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """The β traces of ``traces.npz`` (none if the file is absent).
+
+    Raises:
+        DataError: the file is damaged (truncated, not a NumPy archive, or holding keys
+            other than ``<manoeuvre>::<signal>``).
+    """
+    traces: dict[str, dict[str, np.ndarray]] = {}
+    if not path.is_file():
+        return traces
+    try:
+        with np.load(path) as npz:
+            for key in npz.files:
+                man, sep, sig = key.partition("::")
+                if not sep:
+                    raise ValueError(f"key {key!r} is not <manoeuvre>::<signal>")
+                traces.setdefault(man, {})[sig] = npz[key]
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise DataError(
+            f"not a traces archive written by 'kftune compare' ({type(exc).__name__}); delete "
+            "it to build the report without the β figures",
+            file=str(path),
+        ) from None
+    return traces
 
 
 def _jsonable(obj: Any) -> Any:
@@ -191,5 +241,27 @@ _NUMERIC_FIELDS = (
 
 
 def _method_from_json(doc: dict[str, Any]) -> MethodRun:
-    """A :class:`MethodRun` from its JSON form (numeric fields restored, ``extra`` as is)."""
-    return MethodRun(**{k: _numbers(v) if k in _NUMERIC_FIELDS else v for k, v in doc.items()})
+    """A :class:`MethodRun` from its JSON form (numeric fields restored, ``extra`` as is).
+
+    Raises:
+        TypeError, ValueError, AttributeError: ``doc`` is not what :meth:`save` writes.
+    """
+    run = MethodRun(**{k: _numbers(v) if k in _NUMERIC_FIELDS else v for k, v in doc.items()})
+    number = (int, float)
+    fields_ok = (
+        isinstance(run.key, str)
+        and isinstance(run.label, str)
+        and isinstance(run.n_evals, int)
+        and isinstance(run.best_cost, number)
+        and isinstance(run.wall_time_s, number)
+        and isinstance(run.params, dict)
+        and all(isinstance(v, number) for v in run.params.values())
+        and all(
+            isinstance(h, list) and all(isinstance(v, number) for v in h)
+            for h in (run.history_cost, run.history_time_s)
+        )
+        and all(isinstance(d, dict) for d in (run.metrics, run.averages, run.extra))
+    )
+    if not fields_ok:
+        raise ValueError("a field has the wrong type")
+    return run

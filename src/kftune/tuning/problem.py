@@ -15,6 +15,7 @@ import hashlib
 import json
 import math
 import multiprocessing
+import os
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ import numpy as np
 from kftune.data.manoeuvre import Manoeuvre
 from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf
+from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
 from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
 from kftune.tuning.kpi import sideslip_kpis
@@ -204,7 +206,10 @@ def _score(
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(manoeuvres: tuple[Manoeuvre, ...], vehicle: VehicleParams) -> None:
+def _init_worker(
+    manoeuvres: tuple[Manoeuvre, ...], vehicle: VehicleParams, parent_pid: int
+) -> None:  # pragma: no cover - runs in the pool's workers
+    watch_parent(parent_pid)  # exit with a killed parent; Ctrl-C stops the parent only
     _WORKER["manoeuvres"] = manoeuvres
     _WORKER["vehicle"] = vehicle
     # load the compiled kernel now, so no evaluation's timing includes it
@@ -324,10 +329,11 @@ class TuningProblem:
             ]
         else:
             pool = self._get_pool()
-            futures = [
-                pool.submit(_score_chunk, chunk, q, r, settings, spec, self.burn_in)
-                for chunk in self._chunks
-            ]
+            with sigint_blocked():  # workers started by a submit inherit it (see there)
+                futures = [
+                    pool.submit(_score_chunk, chunk, q, r, settings, spec, self.burn_in)
+                    for chunk in self._chunks
+                ]
             by_index: dict[int, ManoeuvreScore] = {}
             for chunk, fut in zip(self._chunks, futures):
                 by_index.update(zip(chunk, fut.result()))
@@ -384,7 +390,7 @@ class TuningProblem:
                 max_workers=self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_init_worker,
-                initargs=(self.manoeuvres, self.vehicle),
+                initargs=(self.manoeuvres, self.vehicle, os.getpid()),
             )
         return self._pool
 
