@@ -30,7 +30,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from kftune.errors import DataError
+from kftune.errors import DataError, excerpt
 from kftune.vehicle.params import G
 
 #: Channels every manoeuvre must have, in file order.
@@ -110,12 +110,14 @@ def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: s
         dim, factor = UNITS[unit.strip()]
     except (KeyError, AttributeError):
         raise DataError(
-            f"unknown unit {unit!r}; expected one of {sorted(UNITS)}", file=file, column=column
+            f"unknown unit {excerpt(unit)}; expected one of {sorted(UNITS)}",
+            file=file,
+            column=column,
         ) from None
     if dimension is not None and dim != dimension:
         allowed = sorted(u for u, (d, _) in UNITS.items() if d == dimension)
         raise DataError(
-            f"unit {unit!r} is a {dim} unit, but this channel is a {dimension}; "
+            f"unit {excerpt(unit)} is a {dim} unit, but this channel is a {dimension}; "
             f"expected one of {allowed}",
             file=file,
             column=column,
@@ -127,7 +129,7 @@ def check_channel_name(name: str, *, file: str | None) -> None:
     """Channel names must be identifiers (they become CSV headers and attributes)."""
     if not isinstance(name, str) or not _NAME.match(name):
         raise DataError(
-            f"channel name {name!r} is not an identifier (letters, digits, _)",
+            f"channel name {excerpt(name)} is not an identifier (letters, digits, _)",
             file=file,
             column=str(name),
         )
