@@ -284,6 +284,12 @@ def test_a_five_megabyte_line_gives_a_short_message(tmp_path: Path):
     assert (info.value.column, info.value.row) == ("t", 3) and len(str(info.value)) < 400
 
 
+def test_the_command_quotes_no_five_megabyte_line(dataset_dir: Path):
+    (dataset_dir / "tr0.csv").write_text(f"t,{SECRET}" + "x" * (5 * 2**20) + "\n1\n")
+    res = kftune("dataset", "info", dataset_dir)
+    assert_clean_failure(res, 3, str(dataset_dir / "tr0.csv"), "row 1", "line longer than")
+
+
 @pytest.mark.parametrize(
     ("variant", "make"),
     [
