@@ -335,6 +335,8 @@ def _row_changed(row: int, edit) -> str:
             9,
             None,
         ),
+        (_row_changed(5, lambda x: "2_2.5" + x[x.index(",") :]), "cannot read '2_2.5'", 5, "t"),
+        (_row_changed(6, lambda x: x[: x.rindex(",") + 1] + "１２"), "cannot read", 6, "beta_ref"),
         ("t\rdelta\r1\r2\r", "lone CR", 1, None),
         (csv_text().replace("\n", "\n\n", 5), "empty line inside the data", 2, None),
         (_row_changed(40, lambda x: ""), "empty line inside the data", 40, None),
@@ -379,7 +381,7 @@ def test_binary_content_is_named(tmp_path: Path, content: bytes, message: str):
     block=st.integers(16, 4096),
     bad_row=st.integers(0, 299),
     bad_col=st.integers(0, 6),
-    junk=st.sampled_from(["x", "", "1.2.3", "--", "nan!", "0x10"]),
+    junk=st.sampled_from(["x", "", "1.2.3", "--", "nan!", "0x10", "2_2.5", "１２", "1e"]),
     corrupt=st.booleans(),
 )
 def test_block_boundaries_never_move_a_row(

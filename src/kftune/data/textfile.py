@@ -32,6 +32,7 @@ import array
 import contextlib
 import gzip
 import os
+import re
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -220,8 +221,15 @@ def _start(text: str, file: str) -> str:
 
 
 # ----------------------------------------------------------------------------- numbers
+#: A plain decimal number (what NumPy's parser reads; ``float`` alone would also take
+#: ``"2_2.5"`` as 22.5 and non-ASCII digits).
+_NUMBER = re.compile(
+    r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf(?:inity)?)", re.ASCII | re.I
+)
+
+
 class NumericRows:
-    """Rows of numbers fed in blocks, kept as float64 pieces per column.
+    """Rows of numbers fed in blocks, appended to one growing float64 buffer per column.
 
     Args:
         file: reported in errors. names: column names, for errors (their number fixes the
@@ -305,6 +313,8 @@ class NumericRows:
                 )
             for j, text in enumerate(fields):
                 try:
+                    if not _NUMBER.fullmatch(text.strip()):
+                        raise ValueError(text)
                     out[i, j] = float(text)
                 except ValueError:
                     hint = ""
