@@ -10,6 +10,7 @@ pytest.importorskip("vehiclemodels")
 from kftune.data import default_dataset, save_dataset
 from kftune.data.catalogue import default_catalogue
 from kftune.data.generate import DEFAULT_SEED, TRUE_CHANNELS, generate_dataset, generate_manoeuvre
+from test_data_helpers import storage_step_differences
 
 SHORT = ("train-03-j-turn", "test-09-j-turn")
 MEASURED = ("delta", "ax", "ay", "r", "vx", "beta_ref")
@@ -51,11 +52,16 @@ def test_a_manoeuvres_noise_does_not_depend_on_the_others(seeded):
     "name", ["train-04-j-turn", "train-07-lane-change", "test-18-random-steer", "test-20-track-lap"]
 )
 def test_bundled_dataset_is_this_generators_output(name):
-    """Regenerating a bundled manoeuvre with the default seed reproduces it bit for bit, on
-    whatever CPU the test runs. The lane change, the random steer and the track lap are the
-    paths whose arithmetic NumPy would otherwise hand to CPU-specific kernels (``pow``,
-    BLAS ``dot``/``convolve``): the set made on an AVX-512 machine differed in their last
-    digits from one made on an AVX2 machine, until ``kftune.data._libm``."""
+    """Regenerating a bundled manoeuvre with the default seed reproduces it to within what
+    floating point allows across CPUs: at most one storage step, on a small share of the
+    samples (:func:`storage_step_differences`). Bit-for-bit identity holds on one machine
+    (``test_same_seed_same_bytes``), not across machines: the generator's own arithmetic
+    avoids CPU-specific kernels (``kftune.data._libm``), but SciPy's LSODA calls the BLAS,
+    whose kernels OpenBLAS picks by CPU — on an AVX-512 Xeon a few stored values of these
+    manoeuvres round one step apart from the bundle made on an AVX2 machine."""
     spec = next(s for s in default_catalogue() if s.name == name)
-    assert generate_manoeuvre(spec, DEFAULT_SEED).equals(default_dataset()[name])
+    problems = storage_step_differences(
+        generate_manoeuvre(spec, DEFAULT_SEED), default_dataset()[name]
+    )
+    assert not problems, "\n".join(problems)
     assert default_dataset().meta["generator"]["seed"] == DEFAULT_SEED

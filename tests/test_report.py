@@ -168,6 +168,27 @@ def test_write_report_writes_everything(results, tmp_path):
         ).read_text()
 
 
+def test_figure_names_from_manoeuvre_names_stay_in_the_figures_folder(
+    results, tmp_path, monkeypatch
+):
+    """Trace names come from a dataset's manifest: a name that is a path, or two names that
+    reduce to the same file name, still give one figure each inside ``figures/``."""
+    from kftune.report import plots
+
+    for name in ("convergence", "beta_trace"):  # the names matter here, not the drawing
+        monkeypatch.setattr(plots, name, lambda *args: None)
+    monkeypatch.setattr(plots, "save", lambda fig, path: path.write_bytes(b"png"))
+    trace = results.traces["skidpad-1"]
+    results.traces = {"../../evil": trace, "a/b": trace, "a_b": trace}
+    results.methods = [m for m in results.methods if m.key != "ga"]  # no improvement figure
+    results.cost_slice = {}
+    text = write_report(results, tmp_path / "rep").read_text()
+    figures = sorted(p.name for p in (tmp_path / "rep" / "figures").iterdir())
+    assert figures == ["beta__.._evil.png", "beta_a_b.png", "beta_a_b_.png", "convergence.png"]
+    assert all(f"figures/{f}" in text for f in figures)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]
+
+
 def test_values_that_print_alike_are_all_bold():
     from kftune.report.tables import Table
 

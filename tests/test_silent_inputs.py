@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from kftune.cli import main
 from kftune.data import Dataset, Manoeuvre, save_dataset, validate_channels
-from kftune.data.validate import HELD_SHARE, STEER_L_EFF, parse_number, plausibility_warnings
+from kftune.data.validate import HELD_SHARE, STEER_L_EFF, plausibility_warnings
 from kftune.errors import DataError, DataWarning
 from kftune.optim import make_optimizer
 from kftune.tuning.cost import CostSpec
@@ -150,19 +150,6 @@ def test_digit_separators_in_a_csv_are_refused_naming_column_and_row(cli, good, 
     bad = corrupt(good, tmp_path, csv=one_value)
     err = clean_failure(cli("dataset", "info", str(bad)), 3)
     assert f"file {bad / 'tr0.csv'}, column 'vx', row 10: cannot read '2_0.25'" in err
-
-
-@pytest.mark.parametrize("text", ["2_2.5", "1_000", "١٢", " 3.5e1_0"])
-def test_parse_number_refuses_what_float_alone_would_accept(text):
-    float(text)  # Python reads each of them
-    with pytest.raises(ValueError, match="not a plain decimal number"):
-        parse_number(text)
-
-
-@pytest.mark.parametrize("text", ["2.5", "-1e-3", " 7 ", "nan", "-inf", "+.5"])
-def test_parse_number_reads_plain_numbers_as_float_does(text):
-    got, want = parse_number(text), float(text)
-    assert got == want or (math.isnan(got) and math.isnan(want))
 
 
 # ------------------------------------------------------------------ absurd vehicles

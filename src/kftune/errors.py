@@ -2,6 +2,23 @@
 
 from __future__ import annotations
 
+#: Most characters of a file's (or a user's) text that a message quotes: :func:`excerpt`.
+EXCERPT_CHARS = 60
+#: Most characters of a :class:`DataError` message; longer ones are cut (a last resort:
+#: each message quotes file content through :func:`excerpt` already).
+MAX_MESSAGE_CHARS = 2000
+
+
+def excerpt(value: object, limit: int = EXCERPT_CHARS) -> str:
+    """``repr(value)`` cut to about ``limit`` characters, for quoting a file's or a user's
+    text in an error message: a long one ends in ``…`` and says how long it was."""
+    if isinstance(value, (str, bytes)) and len(value) > limit:
+        return f"{value[:limit]!r}… ({len(value):,} characters)"
+    text = repr(value)
+    if len(text) > limit:
+        return f"{text[:limit]}… ({len(text):,} characters)"
+    return text
+
 
 class KftuneError(Exception):
     """Base class of errors kftune raises on purpose (bad input, bad options)."""
@@ -23,9 +40,11 @@ class DataError(KftuneError, ValueError):
         if file is not None:
             where.append(f"file {file}")
         if column is not None:
-            where.append(f"column {column!r}")
+            where.append(f"column {excerpt(column)}")
         if row is not None:
             where.append(f"row {row}")
+        if len(message) > MAX_MESSAGE_CHARS:
+            message = message[:MAX_MESSAGE_CHARS] + "… (message cut)"
         super().__init__(f"{', '.join(where)}: {message}" if where else message)
         self.file = file
         self.column = column

@@ -20,6 +20,7 @@ import numpy as np
 
 from kftune import __version__
 from kftune.bo import make_surrogate
+from kftune.data.io import file_stem
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import (
@@ -399,7 +400,7 @@ def run_compare(
         with contextlib.suppress(FilterDivergedError):  # the manual run will record it
             problem(manual_point(problem.parameterization))
         for method in settings.methods:
-            storage = studies / f"{method}.db"
+            storage = studies / f"{file_stem(method)}.db"  # a registry name: unchanged
             result = tune(
                 problem,
                 method,

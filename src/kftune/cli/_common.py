@@ -242,7 +242,7 @@ def add_command(subparsers: Any, name: str, help: str, doc: str | None) -> argpa
 
 def _plain(text: str) -> bool:
     """Not the digit separators and non-ASCII digits that int() and float() accept ("2_2.5"
-    would read as 22.5); :func:`kftune.data.validate.parse_number` refuses them in files."""
+    would read as 22.5); :mod:`kftune.data.textfile` refuses them in files."""
     return "_" not in text and text.isascii()
 
 

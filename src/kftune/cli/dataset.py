@@ -40,7 +40,7 @@ def register(subparsers: Any) -> None:
         help="simulate the 31 reference manoeuvres and write them (needs [simulate])",
         description="Simulate the reference manoeuvres on CommonRoad's multi-body model, "
         "measure them with the sensor models and write a dataset in the kftune format. "
-        "The same seed gives the same bytes.",
+        "The same seed gives the same bytes on the same machine.",
     )
     gen.add_argument("out", type=Path, help="output directory (created if needed)")
     gen.add_argument(
@@ -66,7 +66,12 @@ def register(subparsers: Any) -> None:
         "--manoeuvre", "-m", default=None, help="manoeuvre name (default: the first one)"
     )
     show.add_argument(
-        "--out", "-o", type=Path, default=None, help="PNG file (default: <manoeuvre>.png)"
+        "--out",
+        "-o",
+        type=Path,
+        default=None,
+        help="PNG file (default: <manoeuvre>.png in the working folder, the name reduced to "
+        "letters, digits, '.', '_' and '-')",
     )
     show.set_defaults(func=run_show)
 
@@ -114,7 +119,8 @@ def run_generate(args: argparse.Namespace) -> int:
 def _files_to_replace(out: Path, force: bool) -> list[Path]:
     """The files of the kftune dataset in ``out`` that ``--force`` replaces (none for a new
     or empty folder). Refuses a non-empty folder without ``force``, and with it a folder
-    that holds no kftune dataset or whose manifest lists files outside it."""
+    that holds no kftune dataset or whose manifest lists files outside it
+    (:func:`kftune.data.io.dataset_files` refuses those)."""
     if not out.is_dir() or not any(out.iterdir()):
         return []
     if not force:
@@ -128,10 +134,6 @@ def _files_to_replace(out: Path, force: bool) -> list[Path]:
         files = dataset_files(out)
     except KftuneError as exc:
         raise ConfigError(f"OUT {out}: --force replaces only a kftune dataset: {exc}") from None
-    root = out.resolve()
-    outside = [f for f in files if root not in f.resolve().parents]
-    if outside:
-        raise ConfigError(f"OUT {out}: its manifest lists files outside the folder: {outside[0]}")
     folders = [f for f in files if f.is_dir()]
     if folders:
         raise ConfigError(f"OUT {out}: its manifest lists a folder as a file: {folders[0]}")
@@ -280,8 +282,10 @@ def run_show(args: argparse.Namespace) -> int:
         except KeyError as exc:  # a name the data do not hold: bad input (3), not usage
             raise ConfigError(f"--manoeuvre: {exc.args[0]}") from None
     from kftune.cli._common import output_file
+    from kftune.data.io import file_stem
 
-    out = output_file(args.out if args.out is not None else Path(f"{m.name}.png"), "--out")
+    default = Path(f"{file_stem(m.name)}.png")  # the name comes from a manifest: no path
+    out = output_file(args.out if args.out is not None else default, "--out")
     plot_manoeuvre(m, out)
     print(f"wrote {out}")
     return 0

@@ -31,6 +31,7 @@ from kftune.data.io import (
 )
 from kftune.data.manoeuvre import KINDS, SPLITS, Dataset, Manoeuvre
 from kftune.data.noise import estimate_measurement_noise
+from kftune.data.textfile import ReadLimits
 from kftune.data.validate import REQUIRED_CHANNELS, UNITS, validate_channels
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "UNITS",
     "Dataset",
     "Manoeuvre",
+    "ReadLimits",
     "Source",
     "bundled_dataset_path",
     "default_dataset",

@@ -2,8 +2,10 @@
 CommonRoad's multi-body plant (:mod:`kftune.data.plant`), measured by the sensor models of
 :mod:`kftune.data.sensors`. Needs the extra ``[simulate]`` (commonroad-vehicle-models).
 
-``generate_dataset(seed)`` is deterministic: the plant and drivers do not depend on the
-seed at all (LSODA on the same programme gives the same numbers), the sensor noise of each
+``generate_dataset(seed)`` is deterministic on one machine: the plant and drivers do not
+depend on the seed at all (LSODA on the same programme gives the same numbers; on another
+CPU its BLAS kernels may round differently, so a few stored values can differ by one
+storage step, see :mod:`kftune.data._libm`), the sensor noise of each
 manoeuvre comes from ``numpy.random.default_rng([seed, crc32(name)])`` — so a manoeuvre's
 noise does not change when others are added or left out — and every channel is rounded to
 a fixed number of decimals before it is stored, so that the files are short and a written

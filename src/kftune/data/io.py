@@ -17,15 +17,22 @@ For 2 and 3 a *column mapping* says which source signal is which kftune channel 
 which unit (``deg``→rad, ``km/h``→m/s, ``deg/s``→rad/s, ``g``→m/s², …); a long recording
 can be cut into segments split deterministically into training and test
 (:func:`recording_to_dataset`).
+
+Input is treated as untrusted: text files are read in blocks within size limits
+(:mod:`kftune.data.textfile`, :class:`~kftune.data.textfile.ReadLimits`), so memory follows
+the arrays kept; a manifest's file paths must stay inside the dataset folder; names become
+file names only through :func:`file_stem`; messages quote at most a short excerpt of a file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import io
 import itertools
 import json
 import math
+import re
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -37,17 +44,24 @@ from typing import Any
 import numpy as np
 
 from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
+from kftune.data.textfile import (
+    ENV_MAX_ROWS,
+    SEPARATORS,
+    NumericRows,
+    ReadLimits,
+    line_blocks,
+    read_values,
+)
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
     MIN_SAMPLES,
     REQUIRED_CHANNELS,
     SI_UNIT,
     check_channel_name,
-    parse_number,
     unit_factor,
     validate_channels,
 )
-from kftune.errors import DataError
+from kftune.errors import DataError, excerpt
 from kftune.vehicle.params import VehicleParams, preset
 
 if sys.version_info >= (3, 11):
@@ -78,6 +92,19 @@ MANIFEST_NAMES = ("manifest.toml", "manifest.json")
 
 
 # =============================================================================== writing
+_UNSAFE_IN_FILE_NAME = re.compile(r"[^A-Za-z0-9._-]")
+
+
+def file_stem(name: str, limit: int = 100) -> str:
+    """A file-name stem for a user-supplied name (manoeuvre, dataset, method) that stays in
+    the folder it is joined to: every character but ASCII letters, digits, ``.``, ``_`` and
+    ``-`` becomes ``_`` (no ``/``, ``\\``, ``:`` or NUL), leading dots are dropped (no
+    ``..``, no hidden file), and it is cut to ``limit`` characters; never empty.
+    ``"train-01-j-turn"`` stays as it is, ``"../../tmp/x"`` becomes ``"_.._tmp_x"``.
+    """
+    return _UNSAFE_IN_FILE_NAME.sub("_", name).lstrip(".")[:limit] or "_"
+
+
 def _toml_value(value: Any, key: str) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
@@ -92,7 +119,9 @@ def _toml_value(value: Any, key: str) -> str:
         return json.dumps(value, ensure_ascii=False)  # a valid TOML basic string
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v, key) for v in value) + "]"
-    raise ValueError(f"cannot write {key} = {value!r} ({type(value).__name__}) to a manifest")
+    raise ValueError(
+        f"cannot write {key} = {excerpt(value)} ({type(value).__name__}) to a manifest"
+    )
 
 
 def _toml_table(table: Mapping[str, Any], prefix: str, lines: list[str]) -> None:
@@ -134,7 +163,9 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
     """Write ``dataset`` in the kftune format: ``manifest.toml`` and one CSV per manoeuvre.
 
     Files are byte-for-byte reproducible (gzip without timestamp or file name). Existing
-    files of the same names are overwritten; nothing else in ``directory`` is touched.
+    files of the same names are overwritten; nothing else in ``directory`` is touched. A
+    manoeuvre's file is named :func:`file_stem` of its name, so that no name can place it
+    outside ``directory``.
 
     Args:
         compress: write ``<name>.csv.gz`` (gzip) instead of ``<name>.csv``.
@@ -149,14 +180,21 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
     for k in extras:
         units[k] = _extra_unit(dataset, k)
     entries = []
+    files: dict[str, str] = {}
     for m in dataset.manoeuvres:
         missing = [k for k in extras if k not in m.extra]
         if missing:
             raise ValueError(
-                f"manoeuvre {m.name!r} lacks extra channel(s) {missing} that others have; "
+                f"manoeuvre {excerpt(m.name)} lacks extra channel(s) {missing} that others have; "
                 "the format needs the same columns in every file"
             )
-        file = f"{m.name}.csv.gz" if compress else f"{m.name}.csv"
+        file = f"{file_stem(m.name)}.csv.gz" if compress else f"{file_stem(m.name)}.csv"
+        if file in files:
+            raise ValueError(
+                f"manoeuvres {excerpt(files[file])} and {excerpt(m.name)} would both be written "
+                f"to {file}; rename one"
+            )
+        files[file] = m.name
         text = _format_csv({c: m.channel(c) for c in (*REQUIRED_CHANNELS, *extras)})
         data = text.encode("utf-8")
         if compress:
@@ -221,14 +259,25 @@ def _extra_unit(dataset: Dataset, name: str) -> str:
 
 
 # =============================================================================== reading
+#: Largest manifest read [bytes] (one with a thousand manoeuvres is about 150 kB).
+MAX_MANIFEST_BYTES = 16 * 2**20
+
+
 def _read_manifest(path: Path) -> dict[str, Any]:
     try:
-        if path.suffix == ".json":
-            data = json.loads(path.read_text(encoding="utf-8"))
-        else:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_MANIFEST_BYTES + 1)
+        if len(raw) > MAX_MANIFEST_BYTES:
+            raise DataError(
+                f"manifest larger than {MAX_MANIFEST_BYTES:,} bytes: not a kftune manifest",
+                file=str(path),
+            )
+        text = raw.decode("utf-8")
+        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
     except FileNotFoundError:
         raise DataError("manifest not found", file=str(path)) from None
+    except OSError as exc:
+        raise DataError(f"cannot read the manifest: {exc.strerror}", file=str(path)) from None
     except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(
             f"manifest is not valid {path.suffix[1:].upper()}: {exc}", file=str(path)
@@ -257,7 +306,7 @@ def _field(
     kinds = kind if isinstance(kind, tuple) else (kind,)
     if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
         names = " or ".join(k.__name__ for k in kinds)
-        raise DataError(f"field '{where}{key}' must be {names}, got {value!r}", file=file)
+        raise DataError(f"field '{where}{key}' must be {names}, got {excerpt(value)}", file=file)
     return value
 
 
@@ -272,13 +321,40 @@ def _find_manifest(path: Path) -> Path:
         )
     if not path.exists():
         raise DataError("dataset not found", file=str(path))
-    if path.suffix not in (".toml", ".json"):
+    if path.suffix not in (".toml", ".json") or not path.is_file():
         raise DataError(
-            "not a dataset: expected a dataset folder or its manifest "
+            "not a dataset: expected a dataset folder or its manifest file "
             f"({' or '.join(MANIFEST_NAMES)})",
             file=str(path),
         )
     return path
+
+
+def _member(manifest: Path, rel: str, index: int) -> Path:
+    """The manoeuvre file ``rel`` of a manifest's ``manoeuvres[index]``, which must lie in the
+    manifest's folder or below it once ``..`` and symbolic links are resolved: a manifest
+    cannot make kftune read (or ``--force`` delete) a file elsewhere.
+
+    Raises:
+        DataError: an absolute path, or one that leads out of the dataset folder (the
+            message names the entry, not the target's content).
+    """
+    base = manifest.parent
+    target = base / rel
+    inside = not Path(rel).is_absolute() and "\0" not in rel
+    if inside:
+        try:
+            inside = target.resolve().is_relative_to(base.resolve())
+        except (OSError, RuntimeError):  # a symlink loop
+            inside = False
+    if not inside:
+        raise DataError(
+            f"field manoeuvres[{index}].file = {excerpt(rel)} leads outside the dataset folder; "
+            "a manoeuvre file must be a relative path inside it (no '..', absolute path or "
+            "symbolic link out of it)",
+            file=str(manifest),
+        )
+    return target
 
 
 def dataset_files(directory: str | Path) -> list[Path]:
@@ -286,7 +362,8 @@ def dataset_files(directory: str | Path) -> list[Path]:
     files it lists (existing or not), nothing else.
 
     Raises:
-        DataError: no manifest, or one that is unreadable or lists no files.
+        DataError: no manifest, one that is unreadable or lists no files, or one that lists
+            a file outside the dataset folder.
     """
     manifest = _find_manifest(Path(directory))
     data = _read_manifest(manifest)
@@ -295,15 +372,16 @@ def dataset_files(directory: str | Path) -> list[Path]:
         isinstance(e, dict) and isinstance(e.get("file"), str) for e in entries
     ):
         raise DataError("manifest lists no manoeuvre files", file=str(manifest))
-    base = manifest.parent
-    return [manifest, *(base / e["file"] for e in entries)]
+    return [manifest, *(_member(manifest, e["file"], i) for i, e in enumerate(entries))]
 
 
-def load_dataset(path: str | Path | None = None) -> Dataset:
+def load_dataset(path: str | Path | None = None, *, limits: ReadLimits | None = None) -> Dataset:
     """Load a dataset in the kftune format (``None``: the bundled default dataset).
 
     Args:
         path: a dataset directory, or its manifest file.
+        limits: size limits of each manoeuvre file (``None``: the defaults, or the
+            environment variables; see :class:`~kftune.data.textfile.ReadLimits`).
 
     Raises:
         DataError: anything wrong with the manifest or a manoeuvre file; names the file,
@@ -321,7 +399,7 @@ def load_dataset(path: str | Path | None = None) -> Dataset:
         )
     if data.get("format") != FORMAT_TAG:
         raise DataError(
-            f"field 'format' must be {FORMAT_TAG!r}, got {data.get('format')!r}", file=mfile
+            f"field 'format' must be {FORMAT_TAG!r}, got {excerpt(data.get('format'))}", file=mfile
         )
     version = _field(data, "format_version", int, "", mfile)
     if version != FORMAT_VERSION:
@@ -340,7 +418,9 @@ def load_dataset(path: str | Path | None = None) -> Dataset:
     for col, unit in units.items():
         check_channel_name(col, file=mfile)
         if not isinstance(unit, str):
-            raise DataError(f"field 'units.{col}' must be a unit string, got {unit!r}", file=mfile)
+            raise DataError(
+                f"field 'units.{col}' must be a unit string, got {excerpt(unit)}", file=mfile
+            )
         factors[col] = unit_factor(unit, CHANNEL_DIMENSION.get(col), file=mfile, column=col)
     for col in REQUIRED_CHANNELS:
         factors.setdefault(col, 1.0)
@@ -353,7 +433,9 @@ def load_dataset(path: str | Path | None = None) -> Dataset:
     for i, entry in enumerate(entries):
         where = f"manoeuvres[{i}]."
         if not isinstance(entry, dict):
-            raise DataError(f"field 'manoeuvres[{i}]' must be a table, got {entry!r}", file=mfile)
+            raise DataError(
+                f"field 'manoeuvres[{i}]' must be a table, got {excerpt(entry)}", file=mfile
+            )
         extra_keys = sorted(set(entry) - set(MANOEUVRE_KEYS))
         if extra_keys:
             raise DataError(
@@ -364,22 +446,25 @@ def load_dataset(path: str | Path | None = None) -> Dataset:
         m_name = _field(entry, "name", str, where, mfile)
         if m_name in seen:
             raise DataError(
-                f"manoeuvre name {m_name!r} appears twice (manoeuvres[{i}])", file=mfile
+                f"manoeuvre name {excerpt(m_name)} appears twice (manoeuvres[{i}])", file=mfile
             )
         seen.add(m_name)
         kind = _field(entry, "kind", str, where, mfile)
         split = _field(entry, "split", str, where, mfile)
         if split not in SPLITS:
             raise DataError(
-                f"field manoeuvres[{i}].split must be one of {list(SPLITS)}, got {split!r}",
+                f"field manoeuvres[{i}].split must be one of {list(SPLITS)}, got {excerpt(split)}",
                 file=mfile,
             )
         rel = _field(entry, "file", str, where, mfile)
         m_desc = _field(entry, "description", str, where, mfile, required=False) or ""
-        csv_path = manifest.parent / rel
+        csv_path = _member(manifest, rel, i)
         if not csv_path.is_file():
-            raise DataError(f"manoeuvre {m_name!r} points at missing file {rel!r}", file=mfile)
-        channels = read_csv(csv_path, factors)
+            what = "a file that is not a regular file" if csv_path.exists() else "missing file"
+            raise DataError(
+                f"manoeuvre {excerpt(m_name)} points at {what} {excerpt(rel)}", file=mfile
+            )
+        channels = read_csv(csv_path, factors, limits)
         validate_channels(channels, file=str(csv_path), row_offset=2)
         step = float(np.median(np.diff(channels["t"])))
         if abs(step - dt) > 0.01 * dt:
@@ -443,36 +528,48 @@ def _manoeuvre(
         raise DataError(str(exc), file=file) from None
 
 
-def _open_text(path: Path) -> io.TextIOBase:
-    if path.name.endswith(".gz"):
-        return gzip.open(path, "rt", encoding="utf-8", newline="")
-    return open(path, encoding="utf-8", newline="")
-
-
-def read_csv(path: str | Path, factors: Mapping[str, float]) -> dict[str, np.ndarray]:
+def read_csv(
+    path: str | Path, factors: Mapping[str, float], limits: ReadLimits | None = None
+) -> dict[str, np.ndarray]:
     """Read one manoeuvre CSV of the kftune format into SI channels.
 
     The header row names the columns; every column must be declared (``factors`` holds the
     SI conversion factor of each declared column) and every required channel present.
-    Values are plain decimal numbers; the first malformed value is reported by column and
-    row (the header is row 1).
+    Values are plain decimal numbers, separated by commas (or by the ``;`` or tab that
+    separates the header's names); the first malformed value is reported by column and row
+    (the header is row 1). The file is read in blocks, within ``limits``
+    (:class:`~kftune.data.textfile.ReadLimits`; ``None``: the defaults or the environment).
     """
     path = Path(path)
     file = str(path)
-    try:
-        with _open_text(path) as fh:
-            text = fh.read()
-    except (OSError, EOFError, UnicodeDecodeError) as exc:
-        raise DataError(f"cannot read: {exc}", file=file) from None
-    lines = text.splitlines()
-    if not lines or not lines[0].strip():
-        raise DataError("empty file: expected a header row naming the columns", file=file, row=1)
-    header = [h.strip() for h in lines[0].split(",")]
+    with contextlib.closing(line_blocks(path, limits)) as blocks:
+        first_row, lines = next(blocks, (1, []))
+        if not lines or not lines[0].strip():
+            raise DataError(
+                "empty file: expected a header row naming the columns", file=file, row=1
+            )
+        separator = next((s for s in SEPARATORS if s in lines[0]), ",")
+        header = [h.strip() for h in lines[0].split(separator)]
+        _check_header(header, factors, file)
+        rows = NumericRows(file, header, separator, limits=limits)
+        rows.add(first_row + 1, lines[1:])
+        for first_row, lines in blocks:
+            rows.add(first_row, lines)
+    if rows.n == 0:
+        raise DataError("no data rows after the header", file=file, row=2)
+    columns = dict(zip(header, rows.columns()))
+    for h, values in columns.items():
+        if factors[h] != 1.0:
+            values *= factors[h]
+    return columns
+
+
+def _check_header(header: list[str], factors: Mapping[str, float], file: str) -> None:
     for h in header:
         check_channel_name(h, file=file)
     dup = sorted({h for h in header if header.count(h) > 1})
     if dup:
-        raise DataError(f"duplicated column(s) {dup} in the header", file=file, row=1)
+        raise DataError(f"duplicated column(s) {excerpt(dup)} in the header", file=file, row=1)
     unknown = [h for h in header if h not in factors]
     if unknown:
         raise DataError(
@@ -485,47 +582,11 @@ def read_csv(path: str | Path, factors: Mapping[str, float]) -> dict[str, np.nda
     for c in REQUIRED_CHANNELS:
         if c not in header:
             raise DataError(
-                f"missing required column; the header has {header}", file=file, column=c, row=1
+                f"missing required column; the header has {excerpt(header, 200)}",
+                file=file,
+                column=c,
+                row=1,
             )
-    body = lines[1:]
-    while body and not body[-1].strip():
-        body.pop()
-    if not body:
-        raise DataError("no data rows after the header", file=file, row=2)
-    for i, line in enumerate(body):
-        if not line.strip():
-            raise DataError("empty line inside the data", file=file, row=i + 2)
-    try:
-        with np.errstate(all="ignore"):
-            values = np.loadtxt(body, delimiter=",", dtype=np.float64, ndmin=2, comments=None)
-        if values.shape[1] != len(header):
-            raise ValueError("column count")
-    except ValueError:
-        values = _parse_rows(body, header, file)
-    return {h: values[:, j] * factors[h] for j, h in enumerate(header)}
-
-
-def _parse_rows(body: list[str], header: list[str], file: str) -> np.ndarray:
-    """Slow path that finds the first bad row of a CSV body (row numbers as in the file)."""
-    out = np.empty((len(body), len(header)))
-    for i, line in enumerate(body):
-        fields = line.split(",")
-        row = i + 2
-        if len(fields) != len(header):
-            raise DataError(
-                f"has {len(fields)} fields, the header has {len(header)}", file=file, row=row
-            )
-        for j, text in enumerate(fields):
-            try:
-                out[i, j] = parse_number(text)
-            except ValueError:
-                raise DataError(
-                    f"cannot read {text.strip()!r} as a number",
-                    file=file,
-                    column=header[j],
-                    row=row,
-                ) from None
-    return out
 
 
 # ------------------------------------------------------------------- mapped recordings
@@ -582,47 +643,20 @@ def _normalise_mapping(mapping: ColumnMapping, file: str) -> dict[str, Source]:
     return out
 
 
-def _read_value_file(path: Path) -> np.ndarray:
-    """One value per line; ``#``/``%`` comment lines allowed; errors name the line."""
-    file = str(path)
-    if not path.is_file():
-        raise DataError("file not found (named in the column mapping)", file=file)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"cannot read: {exc}", file=file) from None
-    while lines and not lines[-1].strip():
-        lines.pop()
-    rows = [i for i, line in enumerate(lines) if not line.lstrip().startswith(("#", "%"))]
-    for i in rows:
-        if not lines[i].strip():
-            raise DataError("empty line inside the data", file=file, row=i + 1)
-    data = [lines[i] for i in rows]
-    try:
-        with np.errstate(all="ignore"):
-            values = np.loadtxt(data, dtype=np.float64, ndmin=1, comments=None)
-        if values.ndim == 1 and values.size == len(data):
-            return values
-    except ValueError:
-        pass
-    out = np.empty(len(data))
-    for k, i in enumerate(rows):
-        text = lines[i].strip()
-        try:
-            out[k] = parse_number(text)
-        except ValueError:
-            raise DataError(f"cannot read {text!r} as one number", file=file, row=i + 1) from None
-    return out
-
-
 def read_columns(
-    directory: str | Path, mapping: ColumnMapping, suffix: str = ".txt"
+    directory: str | Path,
+    mapping: ColumnMapping,
+    suffix: str = ".txt",
+    limits: ReadLimits | None = None,
 ) -> dict[str, np.ndarray]:
     """Read and validate a column-per-file recording into SI channels.
 
     Args:
-        directory: holds one file per signal (``<source name><suffix>``).
+        directory: holds one file per signal (``<source name><suffix>``), one value a line
+            (lines starting with ``#`` or ``%`` are comments).
         mapping: kftune channel → source (see :class:`Source`).
+        limits: size limits of each file (``None``: the defaults or the environment; see
+            :class:`~kftune.data.textfile.ReadLimits`).
 
     Returns:
         channel → (n,) array in SI units, validated (rows reported as file line numbers).
@@ -636,22 +670,36 @@ def read_columns(
     for channel, src in sources.items():
         path = directory / (src.name if src.name.endswith(suffix) else src.name + suffix)
         files[channel] = str(path)
-        channels[channel] = _read_value_file(path) * unit_factor(
+        if not path.is_file():
+            raise DataError("file not found (named in the column mapping)", file=str(path))
+        factor = unit_factor(
             src.unit, CHANNEL_DIMENSION.get(channel), file=str(path), column=channel
         )
+        channels[channel] = read_values(path, limits)
+        if factor != 1.0:
+            channels[channel] *= factor
     validate_channels(channels, file=str(directory), row_offset=1, files=files)
     return channels
 
 
 def read_mat(
-    path: str | Path, mapping: ColumnMapping, struct: str | None = None
+    path: str | Path,
+    mapping: ColumnMapping,
+    struct: str | None = None,
+    limits: ReadLimits | None = None,
 ) -> dict[str, np.ndarray]:
     """Read and validate a MATLAB recording into SI channels.
+
+    Only the variables the mapping names (or the struct holding them) are loaded. A
+    top-level variable with more elements than ``limits.max_rows`` is refused before it is
+    read (signals inside a struct are checked only once loaded).
 
     Args:
         path: a ``.mat`` file (v4–v7.2; v7.3/HDF5 is refused with advice).
         mapping: kftune channel → source variable (or struct field) name and unit.
         struct: dotted path of the struct holding the signals (``None``: top level).
+        limits: see :class:`~kftune.data.textfile.ReadLimits` (``None``: the defaults or the
+            environment).
 
     Returns:
         channel → (n,) array in SI units, validated (rows reported 1-based, as MATLAB).
@@ -662,35 +710,60 @@ def read_mat(
     file = str(path)
     if not path.is_file():
         raise DataError("file not found", file=file)
+    sources = _normalise_mapping(mapping, file)
+    lim = ReadLimits.from_env() if limits is None else limits
+    wanted = [struct.split(".")[0]] if struct else [s.name for s in sources.values()]
     try:
-        data = sio.loadmat(str(path), simplify_cells=True)
+        sizes = {name: math.prod(shape) for name, shape, _ in sio.whosmat(str(path))}
+        big = [n for n in wanted if sizes.get(n, 0) > lim.max_rows]
+        if big and not struct:
+            raise DataError(
+                f"variable {excerpt(big[0])} has {sizes[big[0]]:,} elements, more than the "
+                f"limit of {lim.max_rows:,} rows: raise it with the environment variable "
+                f"{ENV_MAX_ROWS} (or ReadLimits(max_rows=...)) if the file is genuine",
+                file=file,
+            )
+        data = sio.loadmat(str(path), simplify_cells=True, variable_names=wanted)
+    except DataError:
+        raise
     except NotImplementedError:
         raise DataError(
             "MATLAB v7.3 (HDF5) files are not supported: save with save(..., '-v7')",
             file=file,
         ) from None
-    except (ValueError, TypeError, OSError) as exc:
-        raise DataError(f"not a readable MATLAB file: {exc}", file=file) from None
+    except Exception as exc:
+        # SciPy's reader fails on a damaged or foreign file with any of a dozen exception
+        # types (MatReadError, ValueError, zlib.error, IndexError, even UnboundLocalError,
+        # found by fuzzing): each is bad input, reported without a traceback
+        raise DataError(
+            f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+            file=file,
+        ) from None
     container: Any = data
     if struct:
         for part in struct.split("."):
             if not isinstance(container, dict) or part not in container:
-                raise DataError(f"struct {struct!r} not found (no field {part!r})", file=file)
+                raise DataError(
+                    f"struct {excerpt(struct)} not found (no field {excerpt(part)})", file=file
+                )
             container = container[part]
+        known = sorted(container) if isinstance(container, dict) else []
+    else:
+        known = sorted(sizes)
     if not isinstance(container, dict):
-        raise DataError(f"{struct or 'top level'} is not a struct", file=file)
-    sources = _normalise_mapping(mapping, file)
+        raise DataError(f"{excerpt(struct or 'top level')} is not a struct", file=file)
     channels: dict[str, np.ndarray] = {}
     for channel, src in sources.items():
         if src.name not in container:
-            known = sorted(k for k in container if not k.startswith("__"))
             raise DataError(
-                f"variable {src.name!r} not found; the file has {known}", file=file, column=channel
+                f"variable {excerpt(src.name)} not found; the file has {excerpt(known, 300)}",
+                file=file,
+                column=channel,
             )
         a = np.asarray(container[src.name])
         if np.iscomplexobj(a):
             raise DataError(
-                f"variable {src.name!r} is complex; expected real numbers",
+                f"variable {excerpt(src.name)} is complex; expected real numbers",
                 file=file,
                 column=channel,
             )
@@ -698,7 +771,7 @@ def read_mat(
             a = a.ravel()
         if a.ndim != 1 or not np.issubdtype(a.dtype, np.number):
             raise DataError(
-                f"variable {src.name!r} must be a numeric vector, got shape {a.shape} "
+                f"variable {excerpt(src.name)} must be a numeric vector, got shape {a.shape} "
                 f"dtype {a.dtype}",
                 file=file,
                 column=channel,
@@ -776,11 +849,12 @@ def load_columns(
     segment_length: float | None = None,
     train_every: int = 3,
     suffix: str = ".txt",
+    limits: ReadLimits | None = None,
 ) -> Dataset:
     """A column-per-file recording as a dataset (see :func:`read_columns` and
     :func:`recording_to_dataset`)."""
     directory = Path(directory)
-    channels = read_columns(directory, mapping, suffix)
+    channels = read_columns(directory, mapping, suffix, limits)
     return recording_to_dataset(
         channels,
         name=name or directory.name,
@@ -800,11 +874,12 @@ def load_mat(
     name: str | None = None,
     segment_length: float | None = None,
     train_every: int = 3,
+    limits: ReadLimits | None = None,
 ) -> Dataset:
     """A MATLAB recording as a dataset (see :func:`read_mat` and
     :func:`recording_to_dataset`)."""
     path = Path(path)
-    channels = read_mat(path, mapping, struct)
+    channels = read_mat(path, mapping, struct, limits)
     return recording_to_dataset(
         channels,
         name=name or path.stem,
@@ -849,6 +924,7 @@ def load_revs(
     train_every: int = 3,
     vx_noise: float = 0.05,
     seed: int = 0,
+    limits: ReadLimits | None = None,
 ) -> Dataset:
     """The revs-250lm race-car recording, loaded through the column-per-file path with its
     vehicle parameters (preset ``"revs-250lm"``) and cut into training and test segments.
@@ -864,7 +940,7 @@ def load_revs(
     the INS sideslip ``beta_true`` (= atan2(vy, vx)).
     """
     directory = Path(directory)
-    channels = read_columns(directory, REVS_MAPPING)
+    channels = read_columns(directory, REVS_MAPPING, limits=limits)
     if vx_noise < 0:
         raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
     channels["vx_ins"] = channels["vx"]

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from kftune.data.validate import REQUIRED_CHANNELS, plausibility_warnings, validate_channels
-from kftune.errors import DataError, DataWarning
+from kftune.errors import DataError, DataWarning, excerpt
 from kftune.vehicle.params import VehicleParams
 
 #: Manoeuvre types of the paper's dataset (Sec. V-A), plus "segment" for a piece of a long
@@ -74,16 +74,20 @@ class Manoeuvre:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
-            raise DataError(f"manoeuvre name must be a non-empty string, got {self.name!r}")
-        where = f"manoeuvre {self.name!r}"
+            raise DataError(f"manoeuvre name must be a non-empty string, got {excerpt(self.name)}")
+        where = f"manoeuvre {excerpt(self.name)}"
         if not isinstance(self.kind, str) or not self.kind.strip():
-            raise DataError(f"{where}: kind must be a non-empty string, got {self.kind!r}")
+            raise DataError(f"{where}: kind must be a non-empty string, got {excerpt(self.kind)}")
         if self.split not in SPLITS:
-            raise DataError(f"{where}: split must be one of {list(SPLITS)}, got {self.split!r}")
+            raise DataError(
+                f"{where}: split must be one of {list(SPLITS)}, got {excerpt(self.split)}"
+            )
         channels = {name: getattr(self, name) for name in REQUIRED_CHANNELS}
         for name, values in dict(self.extra).items():
             if name in channels:
-                raise DataError(f"{where}: extra channel {name!r} shadows a required channel")
+                raise DataError(
+                    f"{where}: extra channel {excerpt(name)} shadows a required channel"
+                )
             channels[name] = values
         validate_channels(channels, file=where)
         for name in REQUIRED_CHANNELS:
@@ -127,7 +131,7 @@ class Manoeuvre:
         except KeyError:
             known = list(REQUIRED_CHANNELS) + sorted(self.extra)
             raise KeyError(
-                f"manoeuvre {self.name!r} has no channel {name!r}; has {known}"
+                f"manoeuvre {excerpt(self.name)} has no channel {excerpt(name)}; has {known}"
             ) from None
 
     @property
@@ -214,22 +218,26 @@ class Dataset:
     def __post_init__(self) -> None:
         object.__setattr__(self, "manoeuvres", tuple(self.manoeuvres))
         if not isinstance(self.vehicle, VehicleParams):
-            raise DataError(f"dataset {self.name!r}: vehicle must be VehicleParams")
+            raise DataError(f"dataset {excerpt(self.name)}: vehicle must be VehicleParams")
         if not self.manoeuvres:
-            raise DataError(f"dataset {self.name!r} has no manoeuvres")
+            raise DataError(f"dataset {excerpt(self.name)} has no manoeuvres")
         if not (isinstance(self.dt, (int, float)) and 0.0 < self.dt <= 1.0):
-            raise DataError(f"dataset {self.name!r}: dt must be in (0, 1] s, got {self.dt!r}")
+            raise DataError(
+                f"dataset {excerpt(self.name)}: dt must be in (0, 1] s, got {self.dt!r}"
+            )
         seen: set[str] = set()
         for m in self.manoeuvres:
             if not isinstance(m, Manoeuvre):
-                raise DataError(f"dataset {self.name!r}: {m!r} is not a Manoeuvre")
+                raise DataError(f"dataset {excerpt(self.name)}: {excerpt(m)} is not a Manoeuvre")
             if m.name in seen:
-                raise DataError(f"dataset {self.name!r}: manoeuvre name {m.name!r} is duplicated")
+                raise DataError(
+                    f"dataset {excerpt(self.name)}: manoeuvre name {excerpt(m.name)} is duplicated"
+                )
             seen.add(m.name)
             if abs(m.dt - self.dt) > 0.01 * self.dt:
                 raise DataError(
-                    f"dataset {self.name!r}: manoeuvre {m.name!r} has sample time {m.dt!r} s, "
-                    f"the dataset {self.dt!r} s"
+                    f"dataset {excerpt(self.name)}: manoeuvre {excerpt(m.name)} has sample "
+                    f"time {m.dt!r} s, the dataset {self.dt!r} s"
                 )
         object.__setattr__(self, "meta", MappingProxyType(dict(self.meta)))
         for m in self.manoeuvres:
@@ -275,7 +283,10 @@ class Dataset:
         for m in self.manoeuvres:
             if m.name == name:
                 return m
-        raise KeyError(f"dataset {self.name!r} has no manoeuvre {name!r}; has {list(self.names)}")
+        raise KeyError(
+            f"dataset {excerpt(self.name)} has no manoeuvre {excerpt(name)}; "
+            f"has {excerpt(list(self.names), 400)}"
+        )
 
     def __len__(self) -> int:
         return len(self.manoeuvres)

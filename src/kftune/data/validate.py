@@ -35,7 +35,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from kftune.errors import DataError
+from kftune.errors import DataError, excerpt
 from kftune.vehicle.params import G
 from kftune.vehicle.single_track import MAX_SIDESLIP
 
@@ -137,18 +137,6 @@ LATERAL_SHARE = 0.01
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-def parse_number(text: str) -> float:
-    """A number of a data file: what ``float()`` reads, less its digit separators and
-    non-ASCII digits (``"2_2.5"`` would read as 22.5, ``"١٢"`` as 12).
-
-    Raises:
-        ValueError: not a plain decimal number.
-    """
-    if "_" in text or not text.isascii():
-        raise ValueError(f"not a plain decimal number: {text!r}")
-    return float(text)
-
-
 def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: str) -> float:
     """Factor that converts ``unit`` to SI, checking it measures ``dimension``.
 
@@ -159,12 +147,14 @@ def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: s
         dim, factor = UNITS[unit.strip()]
     except (KeyError, AttributeError):
         raise DataError(
-            f"unknown unit {unit!r}; expected one of {sorted(UNITS)}", file=file, column=column
+            f"unknown unit {excerpt(unit)}; expected one of {sorted(UNITS)}",
+            file=file,
+            column=column,
         ) from None
     if dimension is not None and dim != dimension:
         allowed = sorted(u for u, (d, _) in UNITS.items() if d == dimension)
         raise DataError(
-            f"unit {unit!r} is a {dim} unit, but this channel is a {dimension}; "
+            f"unit {excerpt(unit)} is a {dim} unit, but this channel is a {dimension}; "
             f"expected one of {allowed}",
             file=file,
             column=column,
@@ -176,7 +166,7 @@ def check_channel_name(name: str, *, file: str | None) -> None:
     """Channel names must be identifiers (they become CSV headers and attributes)."""
     if not isinstance(name, str) or not _NAME.match(name):
         raise DataError(
-            f"channel name {name!r} is not an identifier (letters, digits, _)",
+            f"channel name {excerpt(name)} is not an identifier (letters, digits, _)",
             file=file,
             column=str(name),
         )

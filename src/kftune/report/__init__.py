@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from kftune.data.io import file_stem
 from kftune.report import plots
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.report.tables import (
@@ -75,8 +76,12 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
                 "on every test manoeuvre, for β, yaw rate and ay.",
             )
         )
+    stems: set[str] = set()
     for name in results.traces:
-        stem = f"beta_{_slug(name)}.png"
+        stem = f"beta_{file_stem(name)}.png"  # names come from a manifest: never a path
+        while stem in stems:  # two names reduced to the same stem
+            stem = stem.removesuffix(".png") + "_.png"
+        stems.add(stem)
         shown = tuple(k for k in ("ga", "tsbo-tsp") if k in keys)
         plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
         kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
@@ -145,10 +150,6 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
         for label, h in hits
     ]
     return [*md, ""]
-
-
-def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
 
 
 def _meta_lines(meta: dict) -> list[str]:

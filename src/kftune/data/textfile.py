@@ -1,0 +1,351 @@
+"""Bounded, streaming reading of numeric text files: the CSV files of the kftune format and
+the one-value-per-line signal files of column-per-file recordings.
+
+A file is read in blocks of :data:`BLOCK_BYTES` (decompressed on the fly when its name ends
+in ``.gz``); each block's rows are parsed by NumPy and appended to one growing buffer per
+column (:class:`array.array`, which grows in place by ``realloc`` with 1/16 spare room and
+is handed to NumPy without a copy). Memory therefore follows the arrays that are kept (plus
+one block), never the size of the file's text. (Small per-block pieces joined at the end
+would do as well on paper, but the C allocator keeps their freed heap: resident memory then
+stays a whole copy higher than what Python counts.)
+
+Limits — each stops the read with a :class:`~kftune.errors.DataError` naming the file, the
+limit and how to raise it:
+
+* ``max_bytes``: bytes read from one file, counted after decompression (a small gzip bomb
+  stops here instead of filling the memory); environment variable ``KFTUNE_MAX_BYTES``,
+  default :data:`DEFAULT_MAX_BYTES` (8 GiB);
+* ``max_rows``: rows (samples) of one file or signal, which fix the memory the kept arrays
+  take (8 bytes per value); ``KFTUNE_MAX_ROWS``, default :data:`DEFAULT_MAX_ROWS`
+  (40 million: 100 hours at 100 Hz, and some);
+* :data:`MAX_LINE_BYTES`: one line; a binary or sparse file without line breaks is refused
+  after its first block.
+
+Line ends LF or CRLF, a UTF-8 byte-order mark, and (in a CSV) a ``;`` or tab separator
+named by the header row are handled. Trailing empty lines are ignored; an empty line with
+data after it is an error naming its row. Messages quote at most a short excerpt of a file.
+"""
+
+from __future__ import annotations
+
+import array
+import contextlib
+import gzip
+import os
+import re
+import zlib
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from kftune.errors import ConfigError, DataError, excerpt
+
+#: Default of ``max_bytes``: the most bytes read from one file, after decompression.
+DEFAULT_MAX_BYTES = 8 * 2**30
+#: Default of ``max_rows``: the most rows (samples) of one file or signal.
+DEFAULT_MAX_ROWS = 40_000_000
+#: Environment variables that override the two defaults (integers, ``4e9`` allowed).
+ENV_MAX_BYTES = "KFTUNE_MAX_BYTES"
+ENV_MAX_ROWS = "KFTUNE_MAX_ROWS"
+#: Longest line accepted [bytes] (a CSV row of the kftune format is about 100 bytes).
+MAX_LINE_BYTES = 64 * 2**10
+#: Bytes read (and lines parsed) at a time.
+BLOCK_BYTES = 2**20
+
+#: CSV field separators recognised in a header row, in the order they are looked for.
+SEPARATORS: dict[str, str] = {",": "comma", ";": "semicolon", "\t": "tab"}
+
+
+@dataclass(frozen=True)
+class ReadLimits:
+    """How much one file may hold before reading stops (see the module docstring).
+
+    Attributes:
+        max_bytes: bytes read from one file, after decompression.
+        max_rows: rows (samples) of one file or signal.
+    """
+
+    max_bytes: int = DEFAULT_MAX_BYTES
+    max_rows: int = DEFAULT_MAX_ROWS
+
+    def __post_init__(self) -> None:
+        for name in ("max_bytes", "max_rows"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"ReadLimits.{name} must be an integer >= 1, got {value!r}")
+
+    @classmethod
+    def from_env(cls) -> ReadLimits:
+        """The defaults, overridden by ``KFTUNE_MAX_BYTES`` / ``KFTUNE_MAX_ROWS`` when set.
+
+        Raises:
+            ConfigError: a variable that is not a whole number >= 1 (names it).
+        """
+        return cls(
+            max_bytes=_env_int(ENV_MAX_BYTES, DEFAULT_MAX_BYTES),
+            max_rows=_env_int(ENV_MAX_ROWS, DEFAULT_MAX_ROWS),
+        )
+
+
+def _env_int(name: str, default: int) -> int:
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value >= 1 and value < 2**63 and value == int(value)):
+        raise ConfigError(
+            f"environment variable {name} must be a whole number >= 1, got {excerpt(text)}"
+        )
+    return int(value)
+
+
+def _limits(limits: ReadLimits | None) -> ReadLimits:
+    return ReadLimits.from_env() if limits is None else limits
+
+
+# ----------------------------------------------------------------------------- lines
+def _open(path: Path) -> BinaryIO:
+    if path.name.endswith(".gz"):
+        return gzip.open(path, "rb")  # decompresses at most what each read asks for
+    return open(path, "rb")
+
+
+def _decode(data: bytes, file: str, row: int) -> str:
+    """UTF-8 text with LF line ends (a CR before each LF dropped)."""
+    if row == 1 and data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise DataError("UTF-16 text; expected UTF-8 (save it as UTF-8)", file=file, row=1)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataError(
+            f"not UTF-8 text (byte 0x{data[exc.start]:02x}): expected a text file",
+            file=file,
+            row=row + data.count(b"\n", 0, exc.start),
+        ) from None
+    if "\x00" in text:
+        raise DataError(
+            "holds NUL bytes: a binary file, not text",
+            file=file,
+            row=row + text.count("\n", 0, text.index("\x00")),
+        )
+    if "\r" in text:
+        text = text.replace("\r\n", "\n").removesuffix("\r")
+    return text
+
+
+def line_blocks(
+    path: str | Path, limits: ReadLimits | None = None
+) -> Iterator[tuple[int, list[str]]]:
+    """The lines of a text file, in blocks: ``(number of the block's first line, lines)``.
+
+    Lines are numbered from 1 and come without their line end (LF or CRLF); a UTF-8
+    byte-order mark at the start is dropped.
+
+    Raises:
+        DataError: unreadable or not UTF-8, a line longer than :data:`MAX_LINE_BYTES`, line
+            breaks that are a lone CR, or more than ``limits.max_bytes`` bytes.
+    """
+    path = Path(path)
+    file = str(path)
+    lim = _limits(limits)
+    total = 0
+    row = 1
+    carry = b""
+    first = True
+    try:
+        with _open(path) as fh:
+            while True:
+                chunk = fh.read(BLOCK_BYTES)
+                if not chunk:
+                    break
+                total += len(chunk)
+                if total > lim.max_bytes:
+                    raise DataError(
+                        f"more than {lim.max_bytes:,} bytes (after decompression); reading "
+                        f"stopped at this limit: raise it with the environment variable "
+                        f"{ENV_MAX_BYTES} (or ReadLimits(max_bytes=...)) if the file is genuine",
+                        file=file,
+                    )
+                data = carry + chunk
+                cut = data.rfind(b"\n")
+                if cut < 0:
+                    carry = data
+                    _check_line_length(carry, file, row)
+                    continue
+                carry = data[cut + 1 :]
+                _check_line_length(carry, file, row + data.count(b"\n", 0, cut + 1))
+                text = _decode(data[:cut], file, row)
+                if first:
+                    text = _start(text, file)
+                    first = False
+                lines = text.split("\n")
+                yield row, lines
+                row += len(lines)
+    except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
+        raise DataError(f"not a valid gzip file: {excerpt(str(exc), 120)}", file=file) from None
+    except OSError as exc:
+        raise DataError(f"cannot read: {exc.strerror or type(exc).__name__}", file=file) from None
+    if carry:
+        text = _decode(carry, file, row)
+        if first:
+            text = _start(text, file)
+        yield row, [text]
+
+
+def _check_line_length(pending: bytes, file: str, row: int) -> None:
+    if len(pending) > MAX_LINE_BYTES:
+        raise DataError(
+            f"line longer than {MAX_LINE_BYTES:,} bytes without a line break: expected a text "
+            "file with one row per line (is it binary, or empty space?)",
+            file=file,
+            row=row,
+        )
+
+
+def _start(text: str, file: str) -> str:
+    """The first block's text without a byte-order mark; refuses lone-CR line breaks."""
+    text = text.removeprefix("\ufeff")
+    if "\r" in text.split("\n", 1)[0]:
+        raise DataError(
+            "lines end in a lone CR (classic Mac OS line breaks); expected LF or CRLF",
+            file=file,
+            row=1,
+        )
+    return text
+
+
+# ----------------------------------------------------------------------------- numbers
+#: A plain decimal number (what NumPy's parser reads; ``float`` alone would also take
+#: ``"2_2.5"`` as 22.5 and non-ASCII digits).
+_NUMBER = re.compile(
+    r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf(?:inity)?)", re.ASCII | re.I
+)
+
+
+class NumericRows:
+    """Rows of numbers fed in blocks, appended to one growing float64 buffer per column.
+
+    Args:
+        file: reported in errors. names: column names, for errors (their number fixes the
+            number of fields of a row). separator: field separator (``None``: one value a
+            line). comments: prefixes of lines to skip. limits: ``max_rows``.
+    """
+
+    def __init__(
+        self,
+        file: str,
+        names: list[str],
+        separator: str | None,
+        comments: tuple[str, ...] = (),
+        limits: ReadLimits | None = None,
+    ) -> None:
+        self.file = file
+        self.names = names
+        self.separator = separator
+        self.comments = comments
+        self.limits = _limits(limits)
+        self.n = 0
+        self._columns = [array.array("d") for _ in names]
+        self._blank_row: int | None = None  # an empty line, an error if data follow it
+
+    def add(self, first_row: int, lines: list[str]) -> None:
+        """Parse one block of lines (``first_row``: the file row of ``lines[0]``)."""
+        rows: Sequence[int] = range(first_row, first_row + len(lines))
+        if self.comments:
+            kept = [(r, x) for r, x in zip(rows, lines) if not x.lstrip().startswith(self.comments)]
+            rows, lines = [r for r, _ in kept], [x for _, x in kept]
+        blank = [k for k, x in enumerate(lines) if not x.strip()]
+        if self._blank_row is not None and len(blank) < len(lines):
+            raise DataError("empty line inside the data", file=self.file, row=self._blank_row)
+        if blank:
+            if blank[-1] - blank[0] + 1 != len(blank) or blank[-1] != len(lines) - 1:
+                raise DataError("empty line inside the data", file=self.file, row=rows[blank[0]])
+            if self._blank_row is None:
+                self._blank_row = rows[blank[0]]
+            lines, rows = lines[: blank[0]], rows[: blank[0]]
+        if not lines:
+            return
+        if self.n + len(lines) > self.limits.max_rows:
+            raise DataError(
+                f"more than {self.limits.max_rows:,} rows; reading stopped at this limit: raise "
+                f"it with the environment variable {ENV_MAX_ROWS} (or "
+                "ReadLimits(max_rows=...)) if the file is genuine",
+                file=self.file,
+                row=rows[self.limits.max_rows - self.n],
+            )
+        by_column = np.ascontiguousarray(self._parse(lines, rows).T)
+        for column, values in zip(self._columns, by_column):
+            column.frombytes(memoryview(values).cast("B"))
+        self.n += len(lines)
+
+    def _parse(self, lines: list[str], rows: Sequence[int]) -> np.ndarray:
+        width = len(self.names)
+        try:
+            with np.errstate(all="ignore"):
+                values = np.loadtxt(
+                    lines, delimiter=self.separator, dtype=np.float64, ndmin=2, comments=None
+                )
+            if values.shape == (len(lines), width):
+                return values
+        except ValueError:
+            pass
+        return self._parse_slowly(lines, rows)
+
+    def _parse_slowly(self, lines: list[str], rows: Sequence[int]) -> np.ndarray:
+        """Row by row, to name the first bad row and field (NumPy's parser stops at it
+        without saying where)."""
+        width = len(self.names)
+        out = np.empty((len(lines), width))
+        for i, (row, line) in enumerate(zip(rows, lines)):
+            fields = [line] if self.separator is None else line.split(self.separator)
+            if len(fields) != width:
+                raise DataError(
+                    f"has {len(fields)} fields, the header has {width} (fields separated by "
+                    f"{SEPARATORS.get(self.separator or ',', repr(self.separator))}s)",
+                    file=self.file,
+                    row=row,
+                )
+            for j, text in enumerate(fields):
+                try:
+                    if not _NUMBER.fullmatch(text.strip()):
+                        raise ValueError(text)
+                    out[i, j] = float(text)
+                except ValueError:
+                    hint = ""
+                    if self.separator != "," and "," in text:
+                        hint = " (a decimal comma? numbers need a decimal point)"
+                    what = "one number" if width == 1 else "a number"
+                    raise DataError(
+                        f"cannot read {excerpt(text.strip())} as {what}{hint}",
+                        file=self.file,
+                        column=self.names[j] if self.separator is not None else None,
+                        row=row,
+                    ) from None
+        return out
+
+    def columns(self) -> list[np.ndarray]:
+        """The columns, (n,) float64 each, writable views of the buffers (no copy); no rows
+        can be added afterwards."""
+        return [np.frombuffer(column, dtype=np.float64) for column in self._columns]
+
+
+def read_values(path: str | Path, limits: ReadLimits | None = None) -> np.ndarray:
+    """One number per line; lines starting with ``#`` or ``%`` are comments.
+
+    Returns:
+        (n,) float64 array.
+
+    Raises:
+        DataError: naming the file and the row (the file's line number).
+    """
+    rows = NumericRows(str(path), [Path(path).stem], None, comments=("#", "%"), limits=limits)
+    with contextlib.closing(line_blocks(path, limits)) as blocks:
+        for first, lines in blocks:
+            rows.add(first, lines)
+    return rows.columns()[0]
