@@ -39,7 +39,7 @@ def branin_log(x: np.ndarray) -> float:
 BRANIN_SPACE = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10")}
 
 
-@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("seed", range(3))
 def test_corner_minimum_found_exactly_in_40(seed):
     res = minimize(corner, CUBE3, "trbo", budget=40, seed=seed)
     # The minimiser over the box is the corner (1, 0, 1) itself.
@@ -54,11 +54,9 @@ def test_decoy_basin_is_left_on_most_seeds():
     assert sum(solved) >= 7, solved
 
 
-@pytest.mark.parametrize(
-    ("fun", "space"), [(decoy, CUBE3), (corner, CUBE3), (branin_log, BRANIN_SPACE)]
-)
+@pytest.mark.parametrize(("fun", "space"), [(decoy, CUBE3), (branin_log, BRANIN_SPACE)])
 def test_anytime_more_budget_never_ends_worse(fun, space):
-    for seed in range(3):
+    for seed in range(2):
         short = minimize(fun, space, "trbo", budget=40, seed=seed)
         long = minimize(fun, space, "trbo", budget=100, seed=seed)
         # The proposals do not depend on the budget: the long run starts as the short one.
@@ -69,7 +67,7 @@ def test_anytime_more_budget_never_ends_worse(fun, space):
 
 
 def test_trust_region_grows_shrinks_and_restarts():
-    opt = make_optimizer("trbo", CUBE3, budget=200, seed=0)
+    opt = make_optimizer("trbo", CUBE3, budget=120, seed=0)
     lengths, restarts = [], []
     while not opt.done:
         t = opt.ask()
