@@ -82,7 +82,7 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
         while stem in stems:  # two names reduced to the same stem
             stem = stem.removesuffix(".png") + "_.png"
         stems.add(stem)
-        shown = tuple(k for k in ("ga", "tsbo-tsp") if k in keys)
+        shown = tuple(k for k in ("ga", "tsbo-tsp", "trbo") if k in keys)
         plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
         kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
         figures.append(
