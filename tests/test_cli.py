@@ -152,7 +152,7 @@ def test_tune_then_evaluate_json(small, tmp_path):
     res = kftune("tune", str(small), "-n", "6", "--json", "-o", str(out))
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
-    assert doc["method"] == "tsbo-tsp" and doc["n_evals"] == 6
+    assert doc["method"] == "trbo" and doc["n_evals"] == 6  # the default method
     assert set(doc["params"]) == {"q_vx", "q_vy", "q_r"}
     assert json.loads(out.read_text())["cost"] == doc["cost"]
     ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
@@ -171,12 +171,14 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     res = kftune(
         "compare", str(small), "--out", str(out), "--json",
         "--budget", "ga=8", "--budget", "tsbo-gp=6", "--budget", "tsbo-tsp=6",
+        "--budget", "trbo=6",
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     cost = {row["Method"]: row for row in doc["tables"]["cost"]}
-    assert set(cost) == {"Manual", "GA", "TSBO - GP", "TSBO - tSP"}
+    assert set(cost) == {"Manual", "GA", "TSBO - GP", "TSBO - tSP", "TR-BO (kftune)"}
     assert cost["GA"]["Evaluations"] == 8 and cost["TSBO - tSP"]["Evaluations"] == 6
+    assert cost["TR-BO (kftune)"]["Evaluations"] == 6
     # results.json records, per method, where its best point lies on a bound (within 1 % of
     # the range; closed form on the default log10 box [1e-10, 1])
     for run in json.loads((out / "results.json").read_text())["methods"]:
@@ -193,6 +195,7 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     resumed = kftune(
         "compare", str(small), "--out", str(out), "--json", "--resume",
         "--budget", "ga=8", "--budget", "tsbo-gp=6", "--budget", "tsbo-tsp=6",
+        "--budget", "trbo=6",
     )  # fmt: skip
     assert resumed.returncode == 0, resumed.stderr
     assert json.loads(resumed.stdout)["tables"]["cost"] == doc["tables"]["cost"]
