@@ -381,7 +381,7 @@ def test_a_filter_that_diverges_everywhere_fails_cleanly(tmp_path):
     res = kftune("tune", str(tmp_path / "d"), "-n", "3", "-o", str(tmp_path / "t.json"), *common)
     assert res.returncode == 1, res.stderr
     assert "Traceback" not in res.stderr
-    assert "every evaluation of 'tsbo-tsp' failed (3 of 3)" in res.stderr
+    assert "every evaluation of 'trbo' failed (3 of 3)" in res.stderr  # the default method
     assert "diverged" in res.stderr
     res = kftune("compare", str(tmp_path / "d"), "--methods", "manual", "random",
                  "--budget", "random=3", "--out", str(tmp_path / "r"), *common)  # fmt: skip
@@ -427,7 +427,8 @@ def test_tune_widen_bounds_runs_on_a_wider_box_and_resumes(small, tmp_path, caps
     cfg = tmp_path / "narrow.toml"
     cfg.write_text("widen_bounds = true\n[parameters]\nq_bounds = [1e-10, 1e-9]\n")
     db = tmp_path / "study.db"
-    args = ["tune", str(small), "--config", str(cfg), "-n", "8", "--storage", str(db)]
+    args = ["tune", str(small), "--config", str(cfg), "-m", "tsbo-tsp", "-n", "8"]
+    args += ["--storage", str(db)]
     assert main([*args, "--json", "-o", str(tmp_path / "t.json")]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["n_evals"] > 8 and (tmp_path / "study.widen1.db").exists()
