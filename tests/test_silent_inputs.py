@@ -207,8 +207,8 @@ def tuned_file(path: Path, **changes) -> Path:
     [
         ({"q": [True, 1, 1]}, "'q' must be 3 numbers >= 0 (not true/false"),
         ({"q": ["1e-6", 1, 1]}, "'q' must be 3 numbers >= 0"),
-        ({"burn_in": True}, "'burn_in' must be a number of seconds >= 0, got True"),
-        ({"params": {"r_scale": False}}, "'params' must be an object whose 'r_scale', if any"),
+        ({"burn_in": True}, "'burn_in' must be a finite number >= 0, got True"),
+        ({"params": {"r_scale": False}}, "'params.r_scale' must be a finite number > 0, got False"),
     ],
 )
 def test_booleans_in_a_tuned_file_are_refused_naming_it(cli, tmp_path, change, says):
