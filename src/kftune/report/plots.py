@@ -98,7 +98,9 @@ def improvement(
 
 
 def beta_trace(
-    results: ExperimentResults, manoeuvre: str, methods: tuple[str, ...] = ("ga", "tsbo-tsp", "trbo")
+    results: ExperimentResults,
+    manoeuvre: str,
+    methods: tuple[str, ...] = ("ga", "tsbo-tsp", "trbo"),
 ) -> Figure:
     """Figs. 8–10: sideslip estimate against the reference in one manoeuvre, with errors."""
     tr = results.traces[manoeuvre]
