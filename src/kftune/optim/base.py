@@ -31,6 +31,19 @@ from kftune.space import Space
 SAME_POINT_ATOL = 1e-9
 
 
+def coincides(points: np.ndarray, others: np.ndarray, atol: float = SAME_POINT_ATOL) -> np.ndarray:
+    """(m,) True where a row of ``points`` (m, d) lies within ``atol`` (max-norm, inclusive;
+    default :data:`SAME_POINT_ATOL`) of a row of ``others`` (n, d)."""
+    if len(others) == 0 or len(points) == 0:
+        return np.zeros(len(points), dtype=bool)
+    out = np.zeros(len(points), dtype=bool)
+    for chunk in range(0, len(points), 4096):
+        p = points[chunk : chunk + 4096]
+        diff = np.abs(p[:, None, :] - others[None, :, :]).max(axis=2)
+        out[chunk : chunk + 4096] = (diff <= atol).any(axis=1)
+    return out
+
+
 @dataclass(frozen=True)
 class Proposal:
     """What an optimiser's ``_propose`` returns.

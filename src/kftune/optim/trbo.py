@@ -50,8 +50,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.stats import qmc
 
-from kftune.optim.base import SAME_POINT_ATOL, Optimizer, Proposal, Trial
-from kftune.optim.tsbo import coincides
+from kftune.optim.base import SAME_POINT_ATOL, Optimizer, Proposal, Trial, coincides
 
 WARPS = ("none", "log", "log-min")
 INIT_DESIGNS = ("axial", "sobol")

@@ -153,7 +153,13 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from kftune.optim.base import SAME_POINT_ATOL, ExhaustedError, Optimizer, Proposal, Trial
+from kftune.optim.base import (
+    ExhaustedError,
+    Optimizer,
+    Proposal,
+    Trial,
+    coincides,
+)
 
 #: Relative tolerance for AF ties.
 TIE_RTOL = 1e-9
@@ -234,19 +240,6 @@ class PartitionTree:
         self.active = np.concatenate([self.active, np.ones(len(combos), dtype=bool)])
         self.asked = np.concatenate([self.asked, coincides(centres, asked_points)])
         return np.arange(start, start + len(combos))
-
-
-def coincides(points: np.ndarray, others: np.ndarray, atol: float = SAME_POINT_ATOL) -> np.ndarray:
-    """(m,) True where a row of ``points`` (m, d) lies within ``atol`` (max-norm, inclusive;
-    default :data:`SAME_POINT_ATOL`) of a row of ``others`` (n, d)."""
-    if len(others) == 0 or len(points) == 0:
-        return np.zeros(len(points), dtype=bool)
-    out = np.zeros(len(points), dtype=bool)
-    for chunk in range(0, len(points), 4096):
-        p = points[chunk : chunk + 4096]
-        diff = np.abs(p[:, None, :] - others[None, :, :]).max(axis=2)
-        out[chunk : chunk + 4096] = (diff <= atol).any(axis=1)
-    return out
 
 
 def stage2_box(
