@@ -8,6 +8,7 @@ The real recording lives outside the repository, in ``../shared/data`` next to t
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -52,3 +53,10 @@ def small(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("small")
     save_dataset(default_dataset().subset(SMALL_TRAIN + SMALL_TEST), out)
     return out
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a child that the test interrupts with SIGINT: a shell that starts
+    the suite in the background without job control makes it ignore SIGINT, and children
+    inherit that (Python then installs no KeyboardInterrupt handler); restore the default."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import SMALL_TRAIN
+from conftest import SMALL_TRAIN, default_sigint
 from kftune.cli import SUBCOMMANDS, main
 from kftune.data import default_dataset, save_dataset
 
@@ -284,7 +284,7 @@ def _interrupt_tune(args: list[str], ready) -> subprocess.CompletedProcess:
     """Run ``kftune tune ARGS`` and send SIGINT once ``ready(process)`` holds."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "kftune", "tune", *args],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint,
     )  # fmt: skip
     deadline = time.monotonic() + 120
     while not ready(proc) and proc.poll() is None and time.monotonic() < deadline:

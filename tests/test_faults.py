@@ -25,6 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import default_sigint
 from kftune.cli import main
 from kftune.errors import DataError, RunFailedError
 from kftune.optim import StudyError, StudyInUseError, minimize
@@ -368,6 +369,7 @@ def _ctrl_c(args: list[str], ready, limit: float = 120) -> subprocess.CompletedP
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=default_sigint,
     )
     deadline = time.monotonic() + limit
     while not ready() and proc.poll() is None and time.monotonic() < deadline:
