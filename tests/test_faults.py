@@ -170,11 +170,15 @@ def test_a_study_that_cannot_grow_fails_cleanly_keeps_everything_and_resumes(sma
     assert len(after) == 80 and all(after[n] == v for n, v in kept)
 
 
-@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc")
+#: Linux's process file system: a folder that takes no new file, even for root.
+PROC = Path(os.sep, "proc")
+
+
+@pytest.mark.skipif(not (PROC / "self").is_dir(), reason="needs /proc")
 def test_a_study_or_output_where_no_file_can_be_made_is_refused_before_any_work(tmp_path, capsys):
     """As root, permission bits stop nothing: /proc is a folder that takes no new file,
     whatever os.access says; refused with exit 3 naming the option."""
-    for option, path in [("--storage", "/proc/kftune-study.db"), ("--out", "/proc/t.json")]:
+    for option, path in [("--storage", PROC / "kftune-study.db"), ("--out", PROC / "t.json")]:
         code, err = run_main(
             capsys, "tune", "-q", "-n", "1000", "-o", tmp_path / "t.json", option, path
         )
