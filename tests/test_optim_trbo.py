@@ -48,10 +48,13 @@ def test_corner_minimum_found_exactly_in_40(seed):
 
 def test_decoy_basin_is_left_on_most_seeds():
     """Measured: the global minimum is reached (value < 0.01; the decoy's floor is 0.3) within
-    100 evaluations on 8 of seeds 0-9 (two stay in the decoy); asserted: at least 7. The
-    decoy's region is left after its trust region collapses, by the escape steps."""
-    solved = [minimize(decoy, CUBE3, "trbo", budget=100, seed=s).fun < 0.01 for s in range(10)]
-    assert sum(solved) >= 7, solved
+    100 evaluations on 15 of seeds 0-19 (8 of 0-9, 7 of 10-19); the others stay in the
+    decoy. Asserted: at least 12 of 20, so that another CPU's rounding, which can change a
+    run's path, does not turn the measured rate into a failure (P(< 12) ≈ 0.04 for a rate
+    of 0.75 on fresh draws). The decoy is left after its trust region collapses, by the
+    escape steps."""
+    solved = [minimize(decoy, CUBE3, "trbo", budget=100, seed=s).fun < 0.01 for s in range(20)]
+    assert sum(solved) >= 12, solved
 
 
 @pytest.mark.parametrize(("fun", "space"), [(decoy, CUBE3), (branin_log, BRANIN_SPACE)])
