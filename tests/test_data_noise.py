@@ -70,7 +70,7 @@ def test_a_dataset_a_manoeuvre_or_a_sequence_of_them_is_accepted():
 def test_bundled_dataset_r_matches_the_sensor_model():
     """On the generated data the estimate finds the sensor model's white noise (noise +
     resolution; the biases are constant and invisible to it). Needs no CommonRoad."""
-    from kftune.data.sensors import SensorModel
+    from kftune.sim.sensors import SensorModel
 
     ds = open_dataset(None)
     np.testing.assert_allclose(ds.r_default, SensorModel().white_noise_variances(), rtol=0.1)
