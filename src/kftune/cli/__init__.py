@@ -4,14 +4,8 @@ Each subcommand lives in its own module with ``register(subparsers)``, which add
 and sets ``func`` to a callable ``(args) -> int``. This module only wires them together and
 maps errors to exit codes.
 
-Exit codes (:mod:`kftune.cli.exit_codes`, also importable from here):
-    0  success
-    1  the job ran but failed (e.g. every evaluation failed, a filter diverged)
-    2  usage error: bad command-line options (argparse's convention), or ``--json`` with
-       standard output closed
-    3  bad input: a data file, manifest, configuration or study file is unusable
-    130 interrupted (Ctrl-C); whatever finished has been saved
-    141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
+The exit codes (0 success, 1 failure, 2 usage, 3 bad input, 130 interrupted, 141 broken
+pipe) are listed in :mod:`kftune.cli.exit_codes`; this module re-exports them.
 """
 
 from __future__ import annotations
