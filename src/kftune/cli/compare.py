@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
     add_command,
     add_common,
@@ -27,6 +26,7 @@ from kftune.cli._common import (
     pick,
     writing,
 )
+from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from kftune.optim import METHODS
 
 

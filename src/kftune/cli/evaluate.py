@@ -21,7 +21,6 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from kftune.cli import EXIT_FAILURE, EXIT_OK
 from kftune.cli._common import (
     NON_NEGATIVE_FLOAT,
     add_command,
@@ -33,6 +32,7 @@ from kftune.cli._common import (
     parameterization,
     pick,
 )
+from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
 from kftune.errors import ConfigError, DataError, DataWarning
 from kftune.tuning.kpi import KPI_NAMES

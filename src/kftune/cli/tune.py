@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kftune import __version__
-from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
     POSITIVE_INT,
     TIMEOUT_SECONDS,
@@ -37,6 +36,7 @@ from kftune.cli._common import (
     pick,
     write_output,
 )
+from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage

@@ -41,7 +41,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from kftune.filters import _kernel
+import kftune.filters._kernel as _kernel
 from kftune.filters.sigma_points import (
     UKFSettings,
     merwe_weights,
