@@ -16,7 +16,7 @@ import json
 import math
 import multiprocessing
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +34,14 @@ from kftune.vehicle.params import VehicleParams
 
 #: Paper Sec. VI: every process-noise parameter searched in [1e-10, 1] (log10 scale here).
 Q_BOUNDS = (1e-10, 1.0)
-Q_NAMES = ("q_vx", "q_vy", "q_r")
+#: The single-track model's states and measurements (the paper's filter).
+SIDESLIP_STATES = ("vx", "vy", "r")
+SIDESLIP_MEASUREMENTS = ("vx", "ay", "r")
+Q_NAMES = tuple(f"q_{s}" for s in SIDESLIP_STATES)
+#: How R is tuned: not at all (paper), one factor on R₀, or one factor per measurement.
+R_MODES = ("none", "scale", "diag")
+
+Bounds = tuple[float, float]
 
 
 class FilterDivergedError(RuntimeError):
@@ -45,17 +52,25 @@ class FilterDivergedError(RuntimeError):
 class NoiseParameterization:
     """What the optimiser tunes, and how its vector maps onto the filter.
 
-    Always the diagonal of Q: ``q_vx, q_vy, q_r`` [(m/s)², (m/s)², (rad/s)²] on a log10
-    scale over ``q_bounds`` (paper: [1e-10, 1]). Optionally (the paper's future work):
+    Always the diagonal of Q, one parameter ``q_<state>`` per state of the model (default:
+    the single-track model's ``q_vx, q_vy, q_r`` [(m/s)², (m/s)², (rad/s)²]), on a log10
+    scale over ``q_bounds`` (paper: [1e-10, 1]) — one box for all, or a box per name
+    (``{"q_vy": (1e-8, 1e-2)}``; names not given keep :data:`Q_BOUNDS`). Optionally (the
+    paper's future work), R as factors on the measurement-noise variances R₀ from sensor
+    statistics, log10 over ``r_scale_bounds``:
 
-    * ``r_scale`` [-], log10 over ``r_scale_bounds``: R = r_scale·R₀, with R₀ from sensor
-      statistics. Only the ratio of Q to R shapes the gain, so this matters mostly for the
-      NIS cost and for filters whose R₀ is poorly known.
-    * ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa`` (linear): the sigma-point
-      parameters (FilterPy's ``MerweScaledSigmaPoints`` convention; κ > −2 keeps n + κ ≥ 1).
+    * ``tune_r="scale"`` (or ``tune_r_scale=True``): one ``r_scale`` [-], R = r_scale·R₀.
+      Only the ratio of Q to R shapes the gain, so this matters mostly for the NIS cost
+      and for filters whose R₀ is poorly known;
+    * ``tune_r="diag"``: one factor ``r_<measurement>_scale`` [-] per measurement,
+      R = diag(f)·R₀.
+
+    And ``tune_sigma_points``: ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa``
+    (linear), the sigma-point parameters (FilterPy's ``MerweScaledSigmaPoints`` convention;
+    κ > −2 keeps n + κ ≥ 1).
     """
 
-    q_bounds: tuple[float, float] = Q_BOUNDS
+    q_bounds: Bounds | Mapping[str, Bounds] = Q_BOUNDS
     tune_r_scale: bool = False
     r_scale_bounds: tuple[float, float] = (1e-2, 1e2)
     tune_sigma_points: bool = False
@@ -63,13 +78,52 @@ class NoiseParameterization:
     beta_bounds: tuple[float, float] = (0.0, 4.0)
     kappa_bounds: tuple[float, float] = (-2.0, 3.0)
     default_settings: UKFSettings = field(default_factory=UKFSettings)
+    states: tuple[str, ...] = SIDESLIP_STATES
+    measurements: tuple[str, ...] = SIDESLIP_MEASUREMENTS
+    tune_r: str = "none"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "states", tuple(self.states))
+        object.__setattr__(self, "measurements", tuple(self.measurements))
+        if self.tune_r not in R_MODES:
+            raise ValueError(f"tune_r must be one of {list(R_MODES)}, got {self.tune_r!r}")
+        if self.tune_r_scale and self.tune_r == "diag":
+            raise ValueError('tune_r_scale and tune_r="diag" exclude each other')
+        if self.tune_r_scale:
+            object.__setattr__(self, "tune_r", "scale")
+        if isinstance(self.q_bounds, Mapping):
+            unknown = sorted(set(self.q_bounds) - set(self.q_names))
+            if unknown:
+                raise ValueError(
+                    f"q_bounds names {unknown} are not parameters of this model; "
+                    f"expected some of {list(self.q_names)}"
+                )
+
+    @property
+    def q_names(self) -> tuple[str, ...]:
+        """``q_<state>`` for every state, in state order."""
+        return tuple(f"q_{s}" for s in self.states)
+
+    @property
+    def r_names(self) -> tuple[str, ...]:
+        """The R parameters: none, ``("r_scale",)`` or ``r_<measurement>_scale`` each."""
+        if self.tune_r == "scale":
+            return ("r_scale",)
+        if self.tune_r == "diag":
+            return tuple(f"r_{m}_scale" for m in self.measurements)
+        return ()
+
+    def q_box(self, name: str) -> Bounds:
+        """The (low, high) box of a Q parameter."""
+        if isinstance(self.q_bounds, Mapping):
+            return tuple(self.q_bounds.get(name, Q_BOUNDS))  # type: ignore[return-value]
+        return self.q_bounds
 
     @property
     def space(self) -> Space:
         """The search space (validates the bounds)."""
-        params = [Param(name, *self.q_bounds, scale="log10") for name in Q_NAMES]
-        if self.tune_r_scale:
-            params.append(Param("r_scale", *self.r_scale_bounds, scale="log10"))
+        params = [Param(name, *self.q_box(name), scale="log10") for name in self.q_names]
+        params += [Param(name, *self.r_scale_bounds, scale="log10") for name in self.r_names]
         if self.tune_sigma_points:
             params += [
                 Param("ukf_alpha", *self.alpha_bounds, scale="log10"),
@@ -81,14 +135,16 @@ class NoiseParameterization:
     def decode(
         self, x: Sequence[float] | np.ndarray, r0: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
-        """Map a point of :attr:`space` (natural units) to (q (3,), r (3,), settings)."""
+        """Map a point of :attr:`space` (natural units) to (q (n,), r (m,), settings)."""
         names = self.space.names
         x = np.asarray(x, dtype=float)
         if x.shape != (len(names),):
             raise ValueError(f"expected a point with {len(names)} values {names}, got {x.shape}")
         values = dict(zip(names, x.tolist()))
-        q = np.array([values[n] for n in Q_NAMES])
+        q = np.array([values[n] for n in self.q_names])
         r = np.asarray(r0, dtype=float) * values.get("r_scale", 1.0)
+        if self.tune_r == "diag":
+            r = r * np.array([values[n] for n in self.r_names])
         settings = self.default_settings
         if self.tune_sigma_points:
             settings = UKFSettings(values["ukf_alpha"], values["ukf_beta"], values["ukf_kappa"])
@@ -96,7 +152,7 @@ class NoiseParameterization:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable description (for reports and study metadata)."""
-        return {
+        out: dict[str, Any] = {
             "names": list(self.space.names),
             "space": self.space.to_dict(),
             "sigma_points": None
@@ -107,6 +163,9 @@ class NoiseParameterization:
                 "kappa": self.default_settings.kappa,
             },
         }
+        if self.states != SIDESLIP_STATES or self.measurements != SIDESLIP_MEASUREMENTS:
+            out["states"], out["measurements"] = list(self.states), list(self.measurements)
+        return out
 
 
 @dataclass(frozen=True)
