@@ -62,6 +62,7 @@ ALLOWED: dict[str, set[str]] = {
     "vehicle": set(),  # single-track model, Dugoff tyres, parameters and presets
     "models": set(),  # the state-space model type, its registry, generic built-in models
     "models.sideslip": {"vehicle"},  # the paper's problem as a model: only it knows cars
+    "models._single_track_jacobians": {"vehicle"},  # its analytic Jacobians
     "filters": {"models", "vehicle"},
     # data and the simulator
     "data": {"models", "vehicle"},

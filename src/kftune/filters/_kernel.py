@@ -58,6 +58,16 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from kftune.models.base import STOP_NONE, STOP_NUMERICAL
+from kftune.models.sideslip import (
+    RUNAWAY_BETA,
+    RUNAWAY_HOLD,
+    RUNAWAY_VX,
+    STOP_REVERSE,
+    STOP_SIDESLIP,
+    STOP_SIDESLIP_HELD,
+    STOP_SPEED,
+)
 from kftune.vehicle.single_track import (
     MAX_SIDESLIP,
     measure_scalar,
@@ -73,18 +83,9 @@ MODEL_LINEAR = 1
 JITTER_START = 1e-12
 JITTER_MAX = 1e-6
 
-#: Why a run stopped (the third value :func:`run_kernel` returns).
-STOP_NONE = 0
-STOP_NUMERICAL = 1  # covariance not repairable, or a non-finite state, NIS or estimate
-STOP_REVERSE = 2  # estimated Vx ≤ 0
-STOP_SIDESLIP = 3  # |β⁺| > RUNAWAY_BETA
-STOP_SIDESLIP_HELD = 4  # |β⁺| > MAX_SIDESLIP for RUNAWAY_HOLD
-STOP_SPEED = 5  # |Vx⁺ − Vx measured| > RUNAWAY_VX·Vx measured for RUNAWAY_HOLD
-
-#: Runaway bounds of the single-track model (module docstring).
-RUNAWAY_BETA = math.radians(60.0)  # [rad]
-RUNAWAY_VX = 0.5  # [-] relative to the measured Vx
-RUNAWAY_HOLD = 0.5  # [s]
+# Why a run stopped (the third value :func:`run_kernel` returns), STOP_*: the generic causes
+# (kftune.models.base) and the single-track model's (kftune.models.sideslip, where its
+# runaway bounds RUNAWAY_* are defined), imported above.
 
 _NAN = math.nan
 _TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)

@@ -42,10 +42,20 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 import kftune.filters._kernel as _kernel
+from kftune.filters._checks import check_covariance, check_dt, check_state
+from kftune.filters._checks import check_noise as _check_noise
+from kftune.filters._checks import check_table as _check_table
 from kftune.filters.sigma_points import (
     UKFSettings,
     merwe_weights,
     unscented_transform,
+)
+from kftune.models.base import GENERIC_STOP_REASONS
+from kftune.models.sideslip import (
+    P0_VY_SPEED_FRACTION,
+    STOP_REASONS,
+    check_forward_speed,
+    single_track_prior,
 )
 from kftune.vehicle.params import VehicleParams
 from kftune.vehicle.single_track import MAX_SIDESLIP, measure, pack_params, step_rk4
@@ -64,25 +74,12 @@ __all__ = [
     "run_ukf_reference",
 ]
 
-#: Default prior standard deviation of Vy as a fraction of the first measured Vx [-].
-P0_VY_SPEED_FRACTION = 0.05
-
 #: What each ``diverged_cause`` code means (``_kernel.STOP_*``), for messages.
-DIVERGED_CAUSES: dict[int, str] = {
-    _kernel.STOP_NONE: "",
-    _kernel.STOP_NUMERICAL: "a covariance that jitter cannot repair, or an estimate that is "
-    "no longer finite",
-    _kernel.STOP_REVERSE: "the estimated Vx fell to 0 m/s or below",
-    _kernel.STOP_SIDESLIP: "runaway: the estimated sideslip went beyond "
-    f"±{math.degrees(_kernel.RUNAWAY_BETA):.0f}°",
-    _kernel.STOP_SIDESLIP_HELD: "runaway: the estimated sideslip stayed beyond "
-    f"±{math.degrees(MAX_SIDESLIP):.0f}° for {_kernel.RUNAWAY_HOLD:g} s",
-    _kernel.STOP_SPEED: "runaway: the estimated Vx stayed more than "
-    f"{_kernel.RUNAWAY_VX:.0%} away from the measured Vx for {_kernel.RUNAWAY_HOLD:g} s",
-}
+DIVERGED_CAUSES: dict[int, str] = {**GENERIC_STOP_REASONS, **STOP_REASONS}
 
 _U_COLS = ("delta", "ax")
 _Z_COLS = ("Vx", "ay", "r")
+_X_COLS = ("Vx", "Vy", "r")
 _Q_UNITS = "[(m/s)², (m/s)², (rad/s)²] for [Vx, Vy, r]"
 _R_UNITS = "[(m/s)², (m/s²)², (rad/s)²] for [Vx, ay, r]"
 
@@ -177,44 +174,6 @@ class UKFBatchResult:
 # --------------------------------------------------------------------------------------
 
 
-def _first_bad(mask: np.ndarray) -> tuple[int, ...]:
-    return tuple(int(i) for i in np.argwhere(mask)[0])
-
-
-#: Largest |value| accepted in u and z: covariances are squares of such values and must stay
-#: finite in float64 (no physical signal of a car comes anywhere near it).
-MAX_ABS_INPUT = 1e100
-
-
-def _check_table(name: str, value: ArrayLike, cols: tuple[str, ...], units: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(
-            f"{name} must be a numeric array of shape (N, {len(cols)}): {exc}"
-        ) from None
-    if arr.ndim != 2 or arr.shape[1] != len(cols) or arr.shape[0] < 1:
-        raise ValueError(
-            f"{name} must have shape (N, {len(cols)}) with N >= 1, columns "
-            f"[{', '.join(cols)}] {units}; got shape {arr.shape}"
-        )
-    finite = np.isfinite(arr)
-    if not finite.all():
-        row, col = _first_bad(~finite)
-        raise ValueError(
-            f"{name}[{row}, {col}] ({cols[col]}) is {float(arr[row, col])}; all {name} values "
-            "must be finite"
-        )
-    huge = np.abs(arr) > MAX_ABS_INPUT
-    if huge.any():
-        row, col = _first_bad(huge)
-        raise ValueError(
-            f"{name}[{row}, {col}] ({cols[col]}) is {float(arr[row, col])}: beyond "
-            f"±{MAX_ABS_INPUT:g}, where covariances (squares) overflow; check the units"
-        )
-    return np.ascontiguousarray(arr)
-
-
 def _check_manoeuvre(
     u: ArrayLike, z: ArrayLike, dt: float, *, positive_vx: bool = True
 ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -226,47 +185,8 @@ def _check_manoeuvre(
             f"{u_arr.shape[0]} rows and z with {z_arr.shape[0]} rows"
         )
     if positive_vx:
-        bad = z_arr[:, 0] <= 0
-        if bad.any():
-            row = int(np.argmax(bad))
-            raise ValueError(
-                f"z[{row}, 0] (Vx) = {float(z_arr[row, 0])} m/s; the measured longitudinal speed "
-                "must be > 0 (the single-track slip-angle model is for forward driving)"
-            )
-    try:
-        dt_f = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a number (sample time in s), got {dt!r}") from None
-    if not (math.isfinite(dt_f) and dt_f > 0):
-        raise ValueError(f"dt must be a finite sample time > 0 s, got {dt!r}")
-    return u_arr, z_arr, dt_f
-
-
-def _check_noise(
-    name: str, value: ArrayLike, units: str, *, strictly_positive: bool, batch: bool
-) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    want = "(B, 3)" if batch else "(3,)"
-    ok_shape = (
-        (arr.ndim == 2 and arr.shape[1] == 3 and arr.shape[0] >= 1)
-        if batch
-        else (arr.shape == (3,))
-    )
-    if not ok_shape:
-        raise ValueError(
-            f"{name} must have shape {want}: the diagonal of the covariance, variances "
-            f"{units}; got shape {arr.shape}"
-        )
-    finite = np.isfinite(arr)
-    if not finite.all():
-        idx = _first_bad(~finite)
-        raise ValueError(f"{name}{list(idx)} is {float(arr[idx])}; variances must be finite")
-    bad = arr <= 0 if strictly_positive else arr < 0
-    if bad.any():
-        idx = _first_bad(bad)
-        need = "> 0" if strictly_positive else ">= 0"
-        raise ValueError(f"{name}{list(idx)} = {float(arr[idx])}; variances {units} must be {need}")
-    return np.ascontiguousarray(arr)
+        check_forward_speed(z_arr)
+    return u_arr, z_arr, check_dt(dt)
 
 
 def default_initial_state(z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -278,10 +198,7 @@ def default_initial_state(z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.
     Returns:
         x0 (3,) = [z[0,0], 0, z[0,2]], P0 (3, 3) = diag(r[0], (0.05·z[0,0])², r[2]).
     """
-    vx0 = float(z[0, 0])
-    x0 = np.array([vx0, 0.0, float(z[0, 2])])
-    P0 = np.diag([float(r[0]), (P0_VY_SPEED_FRACTION * vx0) ** 2, float(r[2])])
-    return x0, P0
+    return single_track_prior(z[0], r, np.empty(0))
 
 
 def _check_prior(
@@ -296,33 +213,10 @@ def _check_prior(
     if x0 is None:
         x_arr = dx0
     else:
-        x_arr = np.asarray(x0, dtype=np.float64)
-        if x_arr.shape != (3,):
-            raise ValueError(f"x0 must have shape (3,) [Vx, Vy, r], got shape {x_arr.shape}")
-        if not np.isfinite(x_arr).all():
-            raise ValueError(f"x0 must be finite, got {x_arr.tolist()}")
+        x_arr = check_state(x0, _X_COLS)
         if positive_vx and not x_arr[0] > 0:
             raise ValueError(f"x0[0] (Vx) must be > 0 m/s, got {float(x_arr[0])}")
-    if P0 is None:
-        P_arr = dP0
-    else:
-        P_arr = np.asarray(P0, dtype=np.float64)
-        if P_arr.shape == (3,):
-            P_arr = np.diag(P_arr)
-        if P_arr.shape != (3, 3):
-            raise ValueError(
-                f"P0 must be a (3, 3) covariance or a (3,) diagonal, got shape {P_arr.shape}"
-            )
-        if not np.isfinite(P_arr).all():
-            raise ValueError("P0 must be finite")
-        if not np.allclose(P_arr, P_arr.T, rtol=1e-10, atol=0.0):
-            raise ValueError("P0 must be symmetric")
-        try:
-            np.linalg.cholesky(P_arr)
-        except np.linalg.LinAlgError:
-            raise ValueError(
-                f"P0 must be positive definite, got eigenvalues {np.linalg.eigvalsh(P_arr)}"
-            ) from None
+    P_arr = dP0 if P0 is None else check_covariance(P0, 3)
     return np.ascontiguousarray(x_arr), np.ascontiguousarray(P_arr)
 
 

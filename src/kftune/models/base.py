@@ -1,0 +1,269 @@
+"""The state-space model type: what a filter needs to know about a system, and nothing else.
+
+A model is discrete-time with additive Gaussian noise (Simon, *Optimal State Estimation*,
+2006, Ch. 13.1 and 14.2; Särkkä, *Bayesian Filtering and Smoothing*, 2013, Ch. 5.1):
+
+    x_k = f(x_{k−1}, u_{k−1}, p, dt) + w_{k−1},   w ~ N(0, Q)
+    z_k = h(x_k, u_k, p) + v_k,                   v ~ N(0, R)
+
+with x the (n,) state, u the (n_u,) input (held over the step, zero-order hold), z the
+(m,) measurement and p a float64 parameter vector. f and h are numba-compiled (``@njit``)
+functions that write their result into a preallocated output array, so a filter step
+allocates nothing:
+
+    f(x: (n,), u: (n_w,), p: (n_p,), dt: float, out: (n,)) -> None
+    h(x: (n,), u: (n_w,), p: (n_p,), out: (m,)) -> None
+
+``u`` here is the *prepared* input row. Most models see the raw input row (n_w = n_u). A
+model whose f and h share work that depends on the input only (the single-track model's
+tan δ, cos δ and axle loads) declares a compiled ``prepare(u_raw: (n_u,), p, out: (n_w,))``;
+the filters then compute every sample's prepared row once per run, instead of once per
+sigma point. By convention the prepared row starts with the raw inputs.
+
+Optional compiled hooks:
+
+* Jacobians ``F(x, u, p, dt, out: (n, n))`` = ∂f/∂x and ``H(x, u, p, out: (m, n))`` = ∂h/∂x
+  (the EKF's linearisation, Simon 2006 Ch. 13.2). When a model gives none, the EKF uses
+  central finite differences of f and h (:mod:`kftune.models.jacobians`).
+* ``check(x: (n,), z: (m,), u: (n_w,), p, held: (n_held,) bool) -> int``: model-specific
+  validity of a posterior estimate (a car's forward speed, a sideslip no car can have). It
+  returns 0 when the estimate is valid now, or a stop cause (≥ :data:`FIRST_MODEL_STOP`) that
+  ends the run at this step; and it sets ``held[j]`` when condition j is violated. A
+  condition violated for ``hold_time`` seconds in a row ends the run with cause
+  ``held_causes[j]`` at the step where it started. The counting is the filters' business.
+
+Python-level hooks, run before a filter starts: ``initial_state(z0, r, p) -> (x0, P0)``
+(the prior at step 0 from the first measurement), ``pack_params(params) -> (n_p,) array``
+(a model's own parameter object, checked) and ``validate_data(u, z)`` (refuse data the model
+is not meant for, raising ``ValueError`` that names the argument, row and expectation).
+"""
+
+from __future__ import annotations
+
+import math
+import types
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numba import njit
+from numba.core.dispatcher import Dispatcher
+from numpy.typing import ArrayLike
+
+__all__ = [
+    "FIRST_MODEL_STOP",
+    "GENERIC_STOP_REASONS",
+    "STOP_NONE",
+    "STOP_NUMERICAL",
+    "StateSpaceModel",
+    "prepare_inputs",
+]
+
+#: Why a run stopped: generic causes. Models number their own causes from FIRST_MODEL_STOP.
+STOP_NONE = 0
+STOP_NUMERICAL = 1  # covariance not repairable, or a non-finite state, NIS or estimate
+FIRST_MODEL_STOP = 2
+
+#: The generic stop causes in words.
+GENERIC_STOP_REASONS: dict[int, str] = {
+    STOP_NONE: "",
+    STOP_NUMERICAL: "a covariance that jitter cannot repair, or an estimate that is no longer "
+    "finite",
+}
+
+PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def _names(model: str, what: str, names: tuple[str, ...], units: tuple[str, ...]) -> None:
+    if not all(isinstance(s, str) and s for s in names):
+        raise ValueError(f"model {model!r}: {what} names must be non-empty strings: {names}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"model {model!r}: {what} names must be unique: {names}")
+    if len(units) != len(names):
+        raise ValueError(
+            f"model {model!r}: {len(names)} {what} names but {len(units)} units ({units})"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class StateSpaceModel:
+    """A discrete-time state-space model with additive noise (module docstring).
+
+    Attributes:
+        name: registry key, e.g. ``"single-track"``.
+        state_names, state_units: (n,) names and SI units of the states.
+        input_names, input_units: (n_u,) of the raw inputs (both may be empty).
+        measurement_names, measurement_units: (m,) of the measurements.
+        f: compiled process model ``f(x, u, p, dt, out)``.
+        h: compiled measurement model ``h(x, u, p, out)``.
+        param_names, param_units: (n_p,) of the parameter vector p (may be empty).
+        param_defaults: (n_p,) default p.
+        initial_state: ``(z0 (m,), r (m,), p (n_p,)) -> (x0 (n,), P0 (n, n))``, the prior at
+            step 0 from the first measurement and the measurement variances; None: callers
+            must give x0 and P0.
+        prepare: compiled ``prepare(u_raw, p, out)`` of the input-only quantities, or None.
+        prepared_size: n_w, the length of a prepared row (ignored without ``prepare``).
+        check: compiled validity check (module docstring), or None (numerical checks only).
+        held_causes: stop cause of each held condition ``check`` reports.
+        hold_time: how long [s] a held condition must last to stop the run.
+        stop_reasons: the model's stop causes (≥ FIRST_MODEL_STOP) in words.
+        F, H: compiled Jacobians ``F(x, u, p, dt, out)``, ``H(x, u, p, out)``, or None
+            (finite differences).
+        pack_params: the model's parameter object (e.g. a VehicleParams) → checked (n_p,)
+            array; None: any finite (n_p,) array.
+        validate_data: ``(u (N, n_u), z (N, m)) -> None``, raises ValueError for data the
+            model is not meant for; None: no model-specific checks.
+        description: one line for listings.
+    """
+
+    name: str
+    state_names: tuple[str, ...]
+    state_units: tuple[str, ...]
+    input_names: tuple[str, ...]
+    input_units: tuple[str, ...]
+    measurement_names: tuple[str, ...]
+    measurement_units: tuple[str, ...]
+    f: Dispatcher
+    h: Dispatcher
+    param_names: tuple[str, ...] = ()
+    param_units: tuple[str, ...] = ()
+    param_defaults: tuple[float, ...] = ()
+    initial_state: PriorRule | None = None
+    prepare: Dispatcher | None = None
+    prepared_size: int = 0
+    check: Dispatcher | None = None
+    held_causes: tuple[int, ...] = ()
+    hold_time: float = 0.0
+    stop_reasons: Mapping[int, str] = field(default_factory=dict)
+    F: Dispatcher | None = None
+    H: Dispatcher | None = None
+    pack_params: Callable[[Any], np.ndarray] | None = None
+    validate_data: Callable[[np.ndarray, np.ndarray], None] | None = None
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        name = self.name
+        if not isinstance(name, str) or not name or name != name.strip():
+            raise ValueError(f"model name must be a non-empty string, got {name!r}")
+        for attr in ("state", "input", "measurement", "param"):
+            names = tuple(getattr(self, f"{attr}_names"))
+            units = tuple(getattr(self, f"{attr}_units"))
+            if attr == "param" and not units:
+                units = ("",) * len(names)
+            object.__setattr__(self, f"{attr}_names", names)
+            object.__setattr__(self, f"{attr}_units", units)
+            _names(name, attr, names, units)
+        if not self.state_names or not self.measurement_names:
+            raise ValueError(f"model {name!r} needs at least one state and one measurement")
+        both = set(self.input_names) & set(self.measurement_names)
+        if both:
+            raise ValueError(
+                f"model {name!r}: {sorted(both)} named both as input and as measurement "
+                "(each is a data channel and needs its own name)"
+            )
+        defaults = tuple(float(v) for v in self.param_defaults)
+        if len(defaults) != len(self.param_names) or not all(map(math.isfinite, defaults)):
+            raise ValueError(
+                f"model {name!r}: param_defaults must be {len(self.param_names)} finite numbers "
+                f"({self.param_names}), got {self.param_defaults}"
+            )
+        object.__setattr__(self, "param_defaults", defaults)
+        for hook in ("f", "h", "prepare", "check", "F", "H"):
+            fn = getattr(self, hook)
+            if (fn is not None or hook in ("f", "h")) and not isinstance(fn, Dispatcher):
+                raise ValueError(
+                    f"model {name!r}: {hook} must be a numba-compiled function (@njit), "
+                    f"got {type(fn).__name__}"
+                )
+        if self.prepare is not None and not (
+            isinstance(self.prepared_size, int) and self.prepared_size >= 0
+        ):
+            raise ValueError(f"model {name!r}: prepared_size must be an integer >= 0")
+        held = tuple(int(c) for c in self.held_causes)
+        object.__setattr__(self, "held_causes", held)
+        reasons = types.MappingProxyType(dict(self.stop_reasons))
+        object.__setattr__(self, "stop_reasons", reasons)
+        for code in (*held, *reasons):
+            if code < FIRST_MODEL_STOP:
+                raise ValueError(
+                    f"model {name!r}: stop causes must be >= {FIRST_MODEL_STOP} "
+                    f"(0 and 1 are the filters' own), got {code}"
+                )
+        if held and (self.check is None or not self.hold_time > 0):
+            raise ValueError(f"model {name!r}: held_causes need a check and a hold_time > 0")
+
+    # ---------------------------------------------------------------- sizes and names ----
+
+    @property
+    def n_states(self) -> int:
+        """n, the state dimension."""
+        return len(self.state_names)
+
+    @property
+    def n_inputs(self) -> int:
+        """n_u, the raw input dimension."""
+        return len(self.input_names)
+
+    @property
+    def n_measurements(self) -> int:
+        """m, the measurement dimension."""
+        return len(self.measurement_names)
+
+    @property
+    def n_params(self) -> int:
+        """n_p, the length of the parameter vector."""
+        return len(self.param_names)
+
+    def stop_reason(self, cause: int) -> str:
+        """A stop cause in words ("" for STOP_NONE)."""
+        if cause in GENERIC_STOP_REASONS:
+            return GENERIC_STOP_REASONS[cause]
+        return self.stop_reasons.get(cause, f"stop cause {cause} of model {self.name!r}")
+
+    # ---------------------------------------------------------------- parameters and data --
+
+    def default_params(self) -> np.ndarray:
+        """(n_p,) float64 copy of the default parameter vector."""
+        return np.array(self.param_defaults, dtype=np.float64)
+
+    def params_vector(self, params: Any = None) -> np.ndarray:
+        """The checked (n_p,) float64 parameter vector of ``params`` (None: the defaults).
+
+        Raises:
+            ValueError: wrong shape or non-finite entries (naming the entry).
+        """
+        if params is None:
+            return self.default_params()
+        if self.pack_params is not None:
+            return np.ascontiguousarray(self.pack_params(params), dtype=np.float64)
+        try:
+            arr = np.array(params, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"params of model {self.name!r} must be numeric: {exc}") from None
+        if arr.shape != (self.n_params,):
+            raise ValueError(
+                f"params of model {self.name!r} must have shape ({self.n_params},) "
+                f"[{', '.join(self.param_names)}], got shape {arr.shape}"
+            )
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"params[{i}] ({self.param_names[i]}) must be finite, got {arr[i]}")
+        return arr
+
+    def prepared_inputs(self, u: ArrayLike, p: np.ndarray) -> np.ndarray:
+        """(N, n_w) prepared input rows of (N, n_u) raw inputs ``u`` (u itself without prepare)."""
+        u_arr = np.ascontiguousarray(u, dtype=np.float64)
+        if self.prepare is None:
+            return u_arr
+        out = np.empty((u_arr.shape[0], self.prepared_size))
+        prepare_inputs(self.prepare, u_arr, p, out)
+        return out
+
+
+@njit(error_model="numpy")
+def prepare_inputs(prepare: Dispatcher, u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """out[k] = prepare(u[k], p) for every row: (N, n_u) → (N, n_w)."""
+    for k in range(u.shape[0]):
+        prepare(u[k], p, out[k])

@@ -1,0 +1,309 @@
+"""The paper's sideslip problem as state-space models: the single-track/Dugoff model and
+variants with sensor-bias states.
+
+``single-track`` (paper Sec. V, :mod:`kftune.vehicle.single_track`): x = [Vx, Vy, r],
+u = [δ, ax], z = [Vx, ay, r]; one RK4 step per sample with the input held, the compiled
+scalar functions of :mod:`kftune.vehicle.single_track` unchanged. The input-only
+quantities (tan δ, cos δ, axle loads Fz_f, Fz_r) are computed once per sample by
+``prepare``: the prepared row is [δ, ax, tan δ, cos δ, Fz_f, Fz_r].
+
+``single-track-ay-bias`` adds a lateral-accelerometer bias b_ay [m/s²] as a random walk
+(x = [Vx, Vy, r, b_ay], b_ay,k = b_ay,k−1 + w): the measured ay is the model's ay + b_ay. A
+road bank of 3° alone puts g·sin 3° ≈ 0.5 m/s² on a body-fixed accelerometer, and a
+consumer-grade MEMS sensor adds a turn-on bias of the same order.
+
+``single-track-biases`` (n = 6) puts a random-walk bias on every measurement:
+x = [Vx, Vy, r, b_Vx, b_ay, b_r], z = [Vx + b_Vx, ay + b_ay, r + b_r] (wheel-speed scale
+error, accelerometer bias and bank, gyro bias).
+
+Validity (all three): Vx > 0 and the runaway rules of the 3×3 kernel
+(:mod:`kftune.filters._kernel`): |β⁺| > 60° stops the run at once; |β⁺| > 46°
+(:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`) or |Vx⁺ − Vx_measured| > 50 % of the
+measured Vx held for 0.5 s stops it where it began. The measured Vx is z[0], which for
+``single-track-biases`` includes the wheel-speed bias.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from kftune.models.base import FIRST_MODEL_STOP, PriorRule, StateSpaceModel
+from kftune.vehicle.params import PARAM_INDEX, PRESETS
+from kftune.vehicle.single_track import (
+    MAX_SIDESLIP,
+    measure_scalar,
+    pack_params,
+    rk4_scalar,
+    step_context_scalar,
+)
+
+__all__ = [
+    "AY_BIAS_PRIOR_STD",
+    "DEFAULT_VEHICLE",
+    "P0_VY_SPEED_FRACTION",
+    "RUNAWAY_BETA",
+    "RUNAWAY_HOLD",
+    "RUNAWAY_VX",
+    "SINGLE_TRACK",
+    "SINGLE_TRACK_AY_BIAS",
+    "SINGLE_TRACK_BIASES",
+    "STOP_REASONS",
+    "STOP_REVERSE",
+    "STOP_SIDESLIP",
+    "STOP_SIDESLIP_HELD",
+    "STOP_SPEED",
+    "check_forward_speed",
+    "single_track_prior",
+]
+
+#: Stop causes of the single-track models (the codes of the 3×3 kernel).
+STOP_REVERSE = FIRST_MODEL_STOP  # estimated Vx ≤ 0
+STOP_SIDESLIP = FIRST_MODEL_STOP + 1  # |β⁺| > RUNAWAY_BETA
+STOP_SIDESLIP_HELD = FIRST_MODEL_STOP + 2  # |β⁺| > MAX_SIDESLIP for RUNAWAY_HOLD
+STOP_SPEED = FIRST_MODEL_STOP + 3  # |Vx⁺ − Vx measured| > RUNAWAY_VX·Vx measured, held
+
+#: Runaway bounds (module docstring; the reasons in :mod:`kftune.filters._kernel`).
+RUNAWAY_BETA = math.radians(60.0)  # [rad]
+RUNAWAY_VX = 0.5  # [-] relative to the measured Vx
+RUNAWAY_HOLD = 0.5  # [s]
+
+STOP_REASONS: dict[int, str] = {
+    STOP_REVERSE: "the estimated Vx fell to 0 m/s or below",
+    STOP_SIDESLIP: "runaway: the estimated sideslip went beyond "
+    f"±{math.degrees(RUNAWAY_BETA):.0f}°",
+    STOP_SIDESLIP_HELD: "runaway: the estimated sideslip stayed beyond "
+    f"±{math.degrees(MAX_SIDESLIP):.0f}° for {RUNAWAY_HOLD:g} s",
+    STOP_SPEED: "runaway: the estimated Vx stayed more than "
+    f"{RUNAWAY_VX:.0%} away from the measured Vx for {RUNAWAY_HOLD:g} s",
+}
+
+#: Default prior standard deviation of Vy as a fraction of the first measured Vx [-].
+P0_VY_SPEED_FRACTION = 0.05
+#: Prior standard deviation of the lateral-accelerometer bias [m/s²] (a 3° bank).
+AY_BIAS_PRIOR_STD = 0.5
+#: Prior standard deviations of the wheel-speed bias [m/s] and the gyro bias [rad/s].
+VX_BIAS_PRIOR_STD = 0.2
+R_BIAS_PRIOR_STD = math.radians(0.5)
+
+#: The vehicle whose parameters are the models' defaults.
+DEFAULT_VEHICLE = "bmw-320i"
+
+_TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
+_TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
+
+_INPUTS = (("delta", "rad"), ("ax", "m/s^2"))
+_MEASUREMENTS = (("Vx", "m/s"), ("ay", "m/s^2"), ("r", "rad/s"))
+_STATES = (("Vx", "m/s"), ("Vy", "m/s"), ("r", "rad/s"))
+_PARAM_UNITS = {
+    "m": "kg",
+    "Iz": "kg*m^2",
+    "a": "m",
+    "b": "m",
+    "h": "m",
+    "C_af": "N/rad",
+    "C_ar": "N/rad",
+    "C_x": "N",
+    "mu": "-",
+}
+
+
+# --------------------------------------------------------------------------------------
+# Compiled model functions
+# --------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def prepare(u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """(6,) prepared row [δ, ax, tan δ, cos δ, Fz_f, Fz_r] of an input row u = [δ, ax]."""
+    tan_d, cos_d, fzf, fzr = step_context_scalar(u[0], u[1], p)
+    out[0] = u[0]
+    out[1] = u[1]
+    out[2] = tan_d
+    out[3] = cos_d
+    out[4] = fzf
+    out[5] = fzr
+
+
+@njit(cache=True, error_model="numpy")
+def process(x: np.ndarray, u: np.ndarray, p: np.ndarray, dt: float, out: np.ndarray) -> None:
+    """One RK4 step of x = [Vx, Vy, r] with the prepared input row u."""
+    out[0], out[1], out[2] = rk4_scalar(x[0], x[1], x[2], u[2], u[3], u[1], u[4], u[5], p, dt)
+
+
+@njit(cache=True, error_model="numpy")
+def process_biases(x: np.ndarray, u: np.ndarray, p: np.ndarray, dt: float, out: np.ndarray) -> None:
+    """One RK4 step of [Vx, Vy, r]; the further states (biases) are random walks, kept.
+
+    (A function of its own: the loop over the biases costs the 3-state model a third of
+    its time when the two share one function.)
+    """
+    out[0], out[1], out[2] = rk4_scalar(x[0], x[1], x[2], u[2], u[3], u[1], u[4], u[5], p, dt)
+    for j in range(3, x.shape[0]):
+        out[j] = x[j]
+
+
+@njit(cache=True, error_model="numpy")
+def measurement(x: np.ndarray, u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """z = [Vx, ay, r] = h(x, u) (:func:`kftune.vehicle.single_track.measure`)."""
+    out[0], out[1], out[2] = measure_scalar(x[0], x[1], x[2], u[2], u[3], u[4], u[5], p)
+
+
+@njit(cache=True, error_model="numpy")
+def measurement_ay_bias(x: np.ndarray, u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """z = [Vx, ay + b_ay, r] for x = [Vx, Vy, r, b_ay]."""
+    measurement(x, u, p, out)
+    out[1] += x[3]
+
+
+@njit(cache=True, error_model="numpy")
+def measurement_biases(x: np.ndarray, u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """z = [Vx + b_Vx, ay + b_ay, r + b_r] for x = [Vx, Vy, r, b_Vx, b_ay, b_r]."""
+    measurement(x, u, p, out)
+    out[0] += x[3]
+    out[1] += x[4]
+    out[2] += x[5]
+
+
+@njit(cache=True, error_model="numpy")
+def check(x: np.ndarray, z: np.ndarray, u: np.ndarray, p: np.ndarray, held: np.ndarray) -> int:
+    """Vx > 0 and the runaway rules (module docstring); |Vy| > tan(bound)·Vx, no atan2.
+
+    held[0]: |β⁺| > MAX_SIDESLIP; held[1]: |Vx⁺ − z_Vx| > RUNAWAY_VX·z_Vx.
+    """
+    vx = x[0]
+    vy = x[1]
+    if not vx > 0.0:
+        return STOP_REVERSE
+    if abs(vy) > _TAN_RUNAWAY_BETA * vx:
+        return STOP_SIDESLIP
+    held[0] = abs(vy) > _TAN_MAX_SIDESLIP * vx
+    held[1] = abs(vx - z[0]) > RUNAWAY_VX * z[0]
+    return 0
+
+
+# --------------------------------------------------------------------------------------
+# Python-level hooks
+# --------------------------------------------------------------------------------------
+
+
+def single_track_prior(
+    z0: np.ndarray, r: np.ndarray, p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Prior at step 0: x0 = [z0_Vx, 0, z0_r], P0 = diag(r_Vx, (0.05·z0_Vx)², r_r).
+
+    The measured states as uncertain as their sensors, Vy with a standard deviation of 5 %
+    of the speed (a sideslip of about 3°).
+
+    Args:
+        z0: (3,) first measurement [Vx m/s, ay m/s², r rad/s]; r: (3,) measurement
+        variances; p: vehicle parameters (unused).
+    """
+    vx0 = float(z0[0])
+    x0 = np.array([vx0, 0.0, float(z0[2])])
+    P0 = np.diag([float(r[0]), (P0_VY_SPEED_FRACTION * vx0) ** 2, float(r[2])])
+    return x0, P0
+
+
+def _prior_with_biases(stds: tuple[float, ...]) -> PriorRule:
+    def prior(z0: np.ndarray, r: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x0, P0 = single_track_prior(z0, r, p)
+        n = 3 + len(stds)
+        x = np.zeros(n)
+        P = np.zeros((n, n))
+        x[:3] = x0
+        P[:3, :3] = P0
+        P[3:, 3:] = np.diag(np.square(stds))
+        return x, P
+
+    prior.__doc__ = f"The single-track prior, and zero biases with standard deviations {stds}."
+    return prior
+
+
+def check_forward_speed(z: np.ndarray) -> None:
+    """Refuse measurements with Vx ≤ 0 (the slip-angle model is for forward driving).
+
+    Args:
+        z: (N, 3) measurements [Vx, ay, r]; checked: z[:, 0] > 0.
+
+    Raises:
+        ValueError: naming the first row with Vx ≤ 0.
+    """
+    bad = z[:, 0] <= 0
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise ValueError(
+            f"z[{row}, 0] (Vx) = {float(z[row, 0])} m/s; the measured longitudinal speed "
+            "must be > 0 (the single-track slip-angle model is for forward driving)"
+        )
+
+
+def _validate(u: np.ndarray, z: np.ndarray) -> None:
+    check_forward_speed(z)
+
+
+def _model(
+    name: str,
+    states: tuple[tuple[str, str], ...],
+    f: object,
+    h: object,
+    prior: object,
+    description: str,
+) -> StateSpaceModel:
+    return StateSpaceModel(
+        name=name,
+        state_names=tuple(s for s, _ in states),
+        state_units=tuple(u for _, u in states),
+        input_names=tuple(s for s, _ in _INPUTS),
+        input_units=tuple(u for _, u in _INPUTS),
+        measurement_names=tuple(s for s, _ in _MEASUREMENTS),
+        measurement_units=tuple(u for _, u in _MEASUREMENTS),
+        f=f,
+        h=h,
+        param_names=tuple(PARAM_INDEX),
+        param_units=tuple(_PARAM_UNITS[k] for k in PARAM_INDEX),
+        param_defaults=tuple(PRESETS[DEFAULT_VEHICLE].to_array()),
+        initial_state=prior,
+        prepare=prepare,
+        prepared_size=6,
+        check=check,
+        held_causes=(STOP_SIDESLIP_HELD, STOP_SPEED),
+        hold_time=RUNAWAY_HOLD,
+        stop_reasons=STOP_REASONS,
+        pack_params=pack_params,
+        validate_data=_validate,
+        description=description,
+    )
+
+
+#: The paper's model (3 states, 3 measurements).
+SINGLE_TRACK = _model(
+    "single-track",
+    _STATES,
+    process,
+    measurement,
+    single_track_prior,
+    "single-track vehicle with Dugoff axle forces, states [Vx, Vy, r] (the paper's model)",
+)
+
+#: The single-track model with a lateral-accelerometer bias state (4 states).
+SINGLE_TRACK_AY_BIAS = _model(
+    "single-track-ay-bias",
+    (*_STATES, ("b_ay", "m/s^2")),
+    process_biases,
+    measurement_ay_bias,
+    _prior_with_biases((AY_BIAS_PRIOR_STD,)),
+    "single-track/Dugoff with a random-walk lateral-accelerometer bias b_ay",
+)
+
+#: The single-track model with a bias state on every measurement (6 states).
+SINGLE_TRACK_BIASES = _model(
+    "single-track-biases",
+    (*_STATES, ("b_Vx", "m/s"), ("b_ay", "m/s^2"), ("b_r", "rad/s")),
+    process_biases,
+    measurement_biases,
+    _prior_with_biases((VX_BIAS_PRIOR_STD, AY_BIAS_PRIOR_STD, R_BIAS_PRIOR_STD)),
+    "single-track/Dugoff with random-walk biases on the Vx, ay and r sensors",
+)
