@@ -224,3 +224,35 @@ def test_fingerprint_tells_objectives_apart(ds):
         TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, burn_in=0.5),
     ]
     assert len({a["sha256"], *(p.fingerprint()["sha256"] for p in others)}) == 6
+
+
+def test_a_problem_over_another_model_names_its_parameters_and_checks_its_channels(ds):
+    """The tuned parameters follow the model; cost channels and R₀ are checked against it
+    before anything runs (no filter is compiled here)."""
+    from kftune.models import get_model
+    from kftune.tuning.problem import default_r0
+
+    bias = get_model("single-track-ay-bias")
+    r0 = default_r0(bias, ds.r_default)
+    np.testing.assert_array_equal(r0, ds.r_default)  # same measurements: the dataset's R₀
+    problem = TuningProblem(ds.train[:1], ds.vehicle, r0, model="single-track-ay-bias")
+    assert problem.space.names == ("q_vx", "q_vy", "q_r", "q_b_ay")
+    assert problem.model is bias and problem.filter == "ukf"
+    assert (
+        problem.fingerprint()["sha256"]
+        != TuningProblem(ds.train[:1], ds.vehicle, ds.r_default).fingerprint()["sha256"]
+    )
+    with pytest.raises(ConfigError, match=r"unknown cost channel 'vy'"):
+        TuningProblem(ds.train[:1], ds.vehicle, r0, model=bias, cost=CostSpec(weights={"vy": 1.0}))
+    with pytest.raises(ConfigError, match=r"for states \['vx', 'vy', 'r'\]"):
+        TuningProblem(
+            ds.train[:1], ds.vehicle, r0, model=bias, parameterization=NoiseParameterization()
+        )
+    ctrv = get_model("ctrv")
+    with pytest.raises(ConfigError, match=r"no measurement-noise variance for 'px'.*r0 ="):
+        default_r0(ctrv, ds.r_default)
+    np.testing.assert_array_equal(default_r0(ctrv, ds.r_default, {"px": 1.0, "py": 2.0}), [1, 2])
+    with pytest.raises(ConfigError, match=r"r0 names \['vz'\] are not measurements"):
+        default_r0(bias, ds.r_default, {"vz": 1.0})
+    with pytest.raises(DataError, match=r"needs measurement channel\(s\) \['px', 'py'\]"):
+        TuningProblem(ds.train[:1], ds.vehicle, [1.0, 1.0], model=ctrv, cost=CostSpec(kind="nis"))

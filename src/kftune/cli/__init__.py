@@ -42,7 +42,15 @@ __all__ = [
 ]
 
 #: Subcommand modules, in the order ``--help`` lists them.
-SUBCOMMANDS: tuple[str, ...] = ("compare", "tune", "evaluate", "report", "dataset", "demo")
+SUBCOMMANDS: tuple[str, ...] = (
+    "compare",
+    "tune",
+    "evaluate",
+    "report",
+    "dataset",
+    "models",
+    "demo",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,6 +16,9 @@ consumer-grade MEMS sensor adds a turn-on bias of the same order.
 x = [Vx, Vy, r, b_Vx, b_ay, b_r], z = [Vx + b_Vx, ay + b_ay, r + b_r] (wheel-speed scale
 error, accelerometer bias and bank, gyro bias).
 
+Jacobians (all three): analytic, the exact derivative of the RK4 step and of h
+(:mod:`kftune.models._single_track_jacobians`), so that the EKF needs no finite differences.
+
 Validity (all three): Vx > 0 and the runaway rules of the 3×3 kernel
 (:mod:`kftune.filters._kernel`): |β⁺| > 60° stops the run at once; |β⁺| > 46°
 (:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`) or |Vx⁺ − Vx_measured| > 50 % of the
@@ -30,6 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
+from kftune.models._single_track_jacobians import single_track_F, single_track_H
 from kftune.models.base import FIRST_MODEL_STOP, PriorRule, StateSpaceModel
 from kftune.vehicle.params import PARAM_INDEX, PRESETS
 from kftune.vehicle.single_track import (
@@ -95,8 +99,8 @@ _TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
 _TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
 
 _INPUTS = (("delta", "rad"), ("ax", "m/s^2"))
-_MEASUREMENTS = (("Vx", "m/s"), ("ay", "m/s^2"), ("r", "rad/s"))
-_STATES = (("Vx", "m/s"), ("Vy", "m/s"), ("r", "rad/s"))
+_MEASUREMENTS = (("vx", "m/s"), ("ay", "m/s^2"), ("r", "rad/s"))
+_STATES = (("vx", "m/s"), ("vy", "m/s"), ("r", "rad/s"))
 _PARAM_UNITS = {
     "m": "kg",
     "Iz": "kg*m^2",
@@ -244,6 +248,11 @@ def _validate(u: np.ndarray, z: np.ndarray) -> None:
     check_forward_speed(z)
 
 
+def sideslip_angle(x: np.ndarray) -> np.ndarray:
+    """(N,) the sideslip angle atan2(Vy, Vx) [rad] of posterior states x (N, n ≥ 2)."""
+    return np.arctan2(x[:, 1], x[:, 0])
+
+
 def _model(
     name: str,
     states: tuple[tuple[str, str], ...],
@@ -272,9 +281,12 @@ def _model(
         held_causes=(STOP_SIDESLIP_HELD, STOP_SPEED),
         hold_time=RUNAWAY_HOLD,
         stop_reasons=STOP_REASONS,
+        F=single_track_F,
+        H=single_track_H,
         pack_params=pack_params,
         validate_data=_validate,
         description=description,
+        outputs={"beta": sideslip_angle},
     )
 
 
@@ -301,7 +313,7 @@ SINGLE_TRACK_AY_BIAS = _model(
 #: The single-track model with a bias state on every measurement (6 states).
 SINGLE_TRACK_BIASES = _model(
     "single-track-biases",
-    (*_STATES, ("b_Vx", "m/s"), ("b_ay", "m/s^2"), ("b_r", "rad/s")),
+    (*_STATES, ("b_vx", "m/s"), ("b_ay", "m/s^2"), ("b_r", "rad/s")),
     process_biases,
     measurement_biases,
     _prior_with_biases((VX_BIAS_PRIOR_STD, AY_BIAS_PRIOR_STD, R_BIAS_PRIOR_STD)),
