@@ -454,11 +454,15 @@ def run_compare(
             "vehicle": dataset.vehicle.name,
         },
         "manoeuvres": {m.name: {"kind": m.kind, "split": m.split} for m in dataset.manoeuvres},
+        "filter": f"{problem.filter.upper()} on model {problem.model.name!r}"
+        + (f" ({problem.model_spec})" if problem.model_spec != problem.model.name else ""),
         "cost": _describe_cost(settings.cost),
         "parameters": ", ".join(
             f"{p.name} ∈ [{p.low:g}, {p.high:g}] ({p.scale})" for p in problem.space.params
         ),
-        "R": "[" + ", ".join(f"{v:.3g}" for v in problem.r0) + "] (Vx, ay, r variances)",
+        "R": "["
+        + ", ".join(f"{v:.3g}" for v in problem.r0)
+        + f"] ({', '.join(problem.model.measurement_names)} variances)",
         "seed": settings.seed,
         "burn_in_s": settings.burn_in,
         "budgets": {r.key: r.n_evals for r in runs},
