@@ -16,6 +16,9 @@ consumer-grade MEMS sensor adds a turn-on bias of the same order.
 x = [Vx, Vy, r, b_Vx, b_ay, b_r], z = [Vx + b_Vx, ay + b_ay, r + b_r] (wheel-speed scale
 error, accelerometer bias and bank, gyro bias).
 
+Jacobians (all three): analytic, the exact derivative of the RK4 step and of h
+(:mod:`kftune.models._single_track_jacobians`), so that the EKF needs no finite differences.
+
 Validity (all three): Vx > 0 and the runaway rules of the 3×3 kernel
 (:mod:`kftune.filters._kernel`): |β⁺| > 60° stops the run at once; |β⁺| > 46°
 (:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`) or |Vx⁺ − Vx_measured| > 50 % of the
@@ -30,6 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
+from kftune.models._single_track_jacobians import single_track_F, single_track_H
 from kftune.models.base import FIRST_MODEL_STOP, PriorRule, StateSpaceModel
 from kftune.vehicle.params import PARAM_INDEX, PRESETS
 from kftune.vehicle.single_track import (
@@ -272,6 +276,8 @@ def _model(
         held_causes=(STOP_SIDESLIP_HELD, STOP_SPEED),
         hold_time=RUNAWAY_HOLD,
         stop_reasons=STOP_REASONS,
+        F=single_track_F,
+        H=single_track_H,
         pack_params=pack_params,
         validate_data=_validate,
         description=description,
