@@ -1,5 +1,15 @@
-"""Unscented Kalman filter: compiled kernel, batch entry point and a numpy reference path."""
+"""Kalman filters: UKF and EKF over any state-space model (one interface, one result type),
+the hand-written 3×3 single-track UKF (``run_ukf``, the fast path), and a numpy reference."""
 
+from kftune.filters.generic import (
+    EKF,
+    UKF,
+    FilterBatchResult,
+    FilterResult,
+    ModelFilter,
+    filter_names,
+    get_filter,
+)
 from kftune.filters.sigma_points import (
     UKFSettings,
     merwe_weights,
@@ -19,12 +29,19 @@ from kftune.filters.ukf import (
 )
 
 __all__ = [
+    "EKF",
+    "UKF",
+    "FilterBatchResult",
     "FilterDiverged",
+    "FilterResult",
+    "ModelFilter",
     "UKFBatchResult",
     "UKFResult",
     "UKFSettings",
     "UnscentedKalmanFilter",
     "default_initial_state",
+    "filter_names",
+    "get_filter",
     "merwe_weights",
     "run_ukf",
     "run_ukf_batch",
