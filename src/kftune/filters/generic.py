@@ -29,6 +29,7 @@ model and filter, once per process; numba cannot cache it on disk).
 
 from __future__ import annotations
 
+import functools
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -194,6 +195,17 @@ class _Run:
         )  # fmt: skip
 
 
+@functools.lru_cache(maxsize=64)
+def _unit_texts(model: StateSpaceModel) -> tuple[str, str, str, str]:
+    """How the messages name the units of u, z, q and r, e.g. "[m/s, rad] for [Vx, r]"."""
+    return (
+        _units(model.input_names, model.input_units, square=False),
+        _units(model.measurement_names, model.measurement_units, square=False),
+        _units(model.state_names, model.state_units, square=True),
+        _units(model.measurement_names, model.measurement_units, square=True),
+    )
+
+
 def _units(names: tuple[str, ...], units: tuple[str, ...], square: bool) -> str:
     fmt = "({})²" if square else "{}"
     return "[" + ", ".join(fmt.format(u or "-") for u in units) + "] for [" + ", ".join(names) + "]"
@@ -215,8 +227,7 @@ def _check_run(
     """All checks of a run, in the order of :func:`kftune.filters.run_ukf`'s."""
     model = resolve_model(model)
     n, m = model.n_states, model.n_measurements
-    u_units = _units(model.input_names, model.input_units, square=False)
-    z_units = _units(model.measurement_names, model.measurement_units, square=False)
+    u_units, z_units, q_units, r_units = _unit_texts(model)
     no_u = u is None and model.n_inputs == 0
     u_arr = None if no_u else check_table("u", u, model.input_names, u_units)
     z_arr = check_table("z", z, model.measurement_names, z_units)
@@ -231,8 +242,6 @@ def _check_run(
         model.validate_data(u_arr, z_arr)
     dt_f = check_dt(dt)
     p = model.params_vector(params)
-    q_units = _units(model.state_names, model.state_units, square=True)
-    r_units = _units(model.measurement_names, model.measurement_units, square=True)
     q_arr = check_noise("q", q, q_units, strictly_positive=False, batch=batch, dim=n)
     q_arr = q_arr if batch else q_arr[None, :]
     n_sets = q_arr.shape[0]
