@@ -543,7 +543,8 @@ def test_unrepairable_prior_is_divergence_at_step_0_and_singular_is_repaired(cas
         if run_kernel == "ukf":
             stop, rep, cause = gk.ukf_run(*head, *UKF()._options(model), *outs)
         else:
-            stop, rep, cause = gk.ekf_run(*head, *EKF()._options(model), *outs)
+            ways = (gk.given_process_jacobian, model.F, gk.given_measurement_jacobian, model.H)
+            stop, rep, cause = gk.ekf_run(*head, *ways, *outs)
         return stop, rep, cause, outs
 
     for bad in (np.diag([1.0, 1.0, -1.0, 1.0, 1.0]), np.diag([1.0, math.nan, 1.0, 1.0, 1.0])):

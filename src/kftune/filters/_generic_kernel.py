@@ -93,7 +93,7 @@ def chol(P: np.ndarray, L: np.ndarray, jitter: float, n_token: Token) -> bool:
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def chol_repair(P: np.ndarray, L: np.ndarray, n_token: Token) -> tuple[int, float]:
     """Cholesky with jitter escalation (as ``chol3_repair``).
 
@@ -187,7 +187,7 @@ def sigma_points(
                 X[1 + n + i, j] = x[j] - d if j >= i else x[j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def unscented_moments(
     Y: np.ndarray,
     mean: np.ndarray,
@@ -225,7 +225,7 @@ def unscented_moments(
             cov[b, a] = cov[a, b]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def cross_covariance(
     D: np.ndarray, dZ: np.ndarray, Pxz: np.ndarray, wi: float, n_token: Token, m_token: Token
 ) -> None:
@@ -260,7 +260,7 @@ def linearised_prediction(
             P[b, a] = P[a, b]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def linearised_moments(
     P: np.ndarray,
     Hm: np.ndarray,
@@ -287,7 +287,7 @@ def linearised_moments(
             S[b, a] = S[a, b]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def kalman_update(
     x: np.ndarray,
     P: np.ndarray,
@@ -445,7 +445,7 @@ def linearised_update(
     return st_s, nis, st, jit
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def all_finite(x: np.ndarray, zh: np.ndarray, nis: float, n_token: Token, m_token: Token) -> bool:
     """x⁺, h(x⁺) and the NIS are finite."""
     ok = math.isfinite(nis)
@@ -474,7 +474,7 @@ def fill_nan(
         out_nis[k] = _NAN
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def commit(
     k: int,
     st: int,
