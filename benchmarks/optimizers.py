@@ -180,6 +180,7 @@ RES_UNIT: dict[str, Any] = {"min_resolution": 1e-3, "tr_fe_units": "unit-cube"}
 #: name → (kftune method, options, per_budget). per_budget: run once per budget (TSBO);
 #: otherwise one run at the method's own largest budget, read as prefixes.
 METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
+    "trbo": ("trbo", {}, False),
     "tsbo-tsp": ("tsbo-tsp", {}, True),
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
@@ -201,6 +202,7 @@ METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     "cma": ("cma", {}, False),
 }
 DEFAULT_METHODS = [
+    "trbo",
     "tsbo-tsp",
     "tsbo-gp",
     "tsbo-tsp-improved",
@@ -215,6 +217,8 @@ DEFAULT_METHODS = [
 GA_BUDGET = 225
 #: (variant, base) pairs compared seed by seed when both ran.
 PAIRS: list[tuple[str, str]] = [
+    ("trbo", "tsbo-tsp-improved"),
+    ("trbo", "optuna-gp"),
     ("tsbo-tsp-improved", "tsbo-tsp"),
     ("tsbo-gp-improved", "tsbo-gp"),
     ("tsbo-tsp-improved-prev", "tsbo-tsp"),

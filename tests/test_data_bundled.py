@@ -9,8 +9,8 @@ from collections import Counter
 import numpy as np
 
 from kftune.data import bundled_dataset_path, default_dataset
-from kftune.data.generate import TRUE_CHANNELS  # a table: imports no CommonRoad
 from kftune.data.validate import REQUIRED_CHANNELS
+from kftune.sim.generate import TRUE_CHANNELS  # a table: imports no CommonRoad
 from test_data_helpers import MAX_SHARE_ONE_STEP, storage_step_differences
 
 
@@ -61,7 +61,7 @@ def test_generated_channels_are_consistent():
 
 def test_cross_machine_comparison_allows_one_storage_step_on_a_few_samples_only():
     """The comparison that replaces bit-for-bit identity across CPUs (see
-    test_data_generate) still fails on a real difference, and says where and how large."""
+    test_sim_generate) still fails on a real difference, and says where and how large."""
     stored = default_dataset()["train-04-j-turn"]
 
     def ay_moved(rows: np.ndarray, by: float):

@@ -65,10 +65,10 @@ MAX_SHARE_ONE_STEP = 0.10
 def storage_step_differences(generated: Manoeuvre, stored: Manoeuvre) -> list[str]:
     """How ``generated`` differs from ``stored`` beyond what floating point allows: any
     difference in metadata or length, a value off by more than one storage step
-    (``10**-decimals`` of :data:`kftune.data.generate.STORAGE_DECIMALS`), or more than
+    (``10**-decimals`` of :data:`kftune.sim.generate.STORAGE_DECIMALS`), or more than
     :data:`MAX_SHARE_ONE_STEP` of a channel's samples off by one step. Each problem names
     the channel, how many samples differ and by how much; an empty list means none."""
-    from kftune.data.generate import STORAGE_DECIMALS
+    from kftune.sim.generate import STORAGE_DECIMALS
 
     head = (generated.name, generated.kind, generated.split, generated.description)
     if head != (stored.name, stored.kind, stored.split, stored.description):

@@ -53,10 +53,24 @@ def test_per_channel_and_pooled_over_manoeuvres():
         estimate_measurement_noise([])
 
 
+def test_a_dataset_a_manoeuvre_or_a_sequence_of_them_is_accepted():
+    """The estimator tells its inputs apart by their attributes (it does not import the
+    classes, whose ``Dataset.r_default`` calls it)."""
+    ds = open_dataset(None)
+    pooled = estimate_measurement_noise(ds)
+    np.testing.assert_array_equal(pooled, estimate_measurement_noise(list(ds.manoeuvres)))
+    one = ds.manoeuvres[0]
+    np.testing.assert_array_equal(
+        estimate_measurement_noise(one), estimate_measurement_noise([one])
+    )
+    with pytest.raises(ValueError, match="sequence of Manoeuvre"):
+        estimate_measurement_noise([one, "not a manoeuvre"])
+
+
 def test_bundled_dataset_r_matches_the_sensor_model():
     """On the generated data the estimate finds the sensor model's white noise (noise +
     resolution; the biases are constant and invisible to it). Needs no CommonRoad."""
-    from kftune.data.sensors import SensorModel
+    from kftune.sim.sensors import SensorModel
 
     ds = open_dataset(None)
     np.testing.assert_allclose(ds.r_default, SensorModel().white_noise_variances(), rtol=0.1)

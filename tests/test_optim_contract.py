@@ -8,8 +8,11 @@ import importlib.util
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from kftune.optim import METHODS, ExhaustedError, make_optimizer, minimize
+from kftune.optim.base import coincides
 
 SPACE = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10"), "c": (0.0, 1.0)}
 BUDGET = 12
@@ -238,3 +241,26 @@ def test_kftunes_own_methods_are_never_skipped(method):
     surrogates unimportable, the TSBO tests must fail, not skip."""
     assert _available(method)
     assert _method(method) == method
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    m=st.integers(0, 30),
+    n=st.integers(0, 30),
+    d=st.integers(1, 4),
+    seed=st.integers(0, 2**32 - 1),
+    atol=st.sampled_from([0.0, 1e-9, 0.05, 0.3]),
+)
+def test_coincides_equals_a_dense_max_norm_comparison(m, n, d, seed, atol):
+    """The k-d tree answer equals the brute-force one, also for exact copies, points at
+    exactly ``atol`` on a grid, and duplicated rows among the others."""
+    rng = np.random.default_rng(seed)
+    grid = np.round(rng.random((n, d)) * 4) / 4  # many exact ties at distance 0.25, 0.5, …
+    others = np.vstack([grid, grid[: n // 3]])
+    points = np.vstack([np.round(rng.random((m, d)) * 4) / 4, others[: m // 2] + atol])
+    dense = (
+        (np.abs(points[:, None, :] - others[None, :, :]).max(axis=2) <= atol).any(axis=1)
+        if len(others) and len(points)
+        else np.zeros(len(points), dtype=bool)
+    )
+    np.testing.assert_array_equal(coincides(points, others, atol), dense)

@@ -53,7 +53,7 @@ def test_weighted_cost_ignores_zero_weights_and_needs_weighted_channels():
     ("kwargs", "match"),
     [
         ({"kind": "mse"}, "cost kind"),
-        ({"weights": {"yaw": 1.0}}, "unknown cost channel"),
+        ({"weights": {"yaw rate": 1.0}}, "must be identifiers"),
         ({"weights": {"beta": -1.0}}, "'beta'"),
         ({"weights": {"beta": math.nan}}, "'beta'"),
         ({"weights": {"beta": 0.0}}, "at least one"),

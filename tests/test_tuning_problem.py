@@ -54,6 +54,35 @@ def test_decode_optional_parameters():
         par.decode([1e-3, 1e-3, 1e-3], np.ones(3))
 
 
+def test_any_model_size_with_per_parameter_boxes_and_a_tuned_r_diagonal():
+    """Q named after the model's states (any n), R's diagonal as factors on R₀ named after
+    its measurements, one log10 box per parameter."""
+    par = NoiseParameterization(
+        states=("px", "py", "v", "psi", "omega"),
+        measurements=("px", "py"),
+        q_bounds={"q_omega": (1e-6, 1e-1)},
+        tune_r="diag",
+        r_scale_bounds=(0.1, 10.0),
+    )
+    space = par.space
+    assert space.names == ("q_px", "q_py", "q_v", "q_psi", "q_omega", "r_px_scale", "r_py_scale")
+    assert [(p.low, p.high, p.scale) for p in space][3:] == [
+        (1e-10, 1.0, "log10"),
+        (1e-6, 1e-1, "log10"),
+        (0.1, 10.0, "log10"),
+        (0.1, 10.0, "log10"),
+    ]
+    q, r, _ = par.decode([1e-5, 2e-5, 3e-5, 4e-5, 5e-3, 0.5, 4.0], np.array([2.0, 3.0]))
+    np.testing.assert_array_equal(q, [1e-5, 2e-5, 3e-5, 4e-5, 5e-3])
+    np.testing.assert_array_equal(r, [1.0, 12.0])
+    assert par.to_dict()["states"] == ["px", "py", "v", "psi", "omega"]
+    assert "states" not in NoiseParameterization().to_dict()  # old study fingerprints hold
+    with pytest.raises(ValueError, match=r"q_bounds names \['q_vz'\] are not parameters"):
+        NoiseParameterization(q_bounds={"q_vz": (1e-6, 1.0)})
+    with pytest.raises(ValueError, match="tune_r must be one of"):
+        NoiseParameterization(tune_r="full")
+
+
 def test_cost_matches_paper_formula_computed_directly(ds):
     """J assembled by the problem = Eq. 14–15 written out here from raw filter runs."""
     train = ds.train[:3]
@@ -195,3 +224,35 @@ def test_fingerprint_tells_objectives_apart(ds):
         TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, burn_in=0.5),
     ]
     assert len({a["sha256"], *(p.fingerprint()["sha256"] for p in others)}) == 6
+
+
+def test_a_problem_over_another_model_names_its_parameters_and_checks_its_channels(ds):
+    """The tuned parameters follow the model; cost channels and R₀ are checked against it
+    before anything runs (no filter is compiled here)."""
+    from kftune.models import get_model
+    from kftune.tuning.problem import default_r0
+
+    bias = get_model("single-track-ay-bias")
+    r0 = default_r0(bias, ds.r_default)
+    np.testing.assert_array_equal(r0, ds.r_default)  # same measurements: the dataset's R₀
+    problem = TuningProblem(ds.train[:1], ds.vehicle, r0, model="single-track-ay-bias")
+    assert problem.space.names == ("q_vx", "q_vy", "q_r", "q_b_ay")
+    assert problem.model is bias and problem.filter == "ukf"
+    assert (
+        problem.fingerprint()["sha256"]
+        != TuningProblem(ds.train[:1], ds.vehicle, ds.r_default).fingerprint()["sha256"]
+    )
+    with pytest.raises(ConfigError, match=r"unknown cost channel 'vy'"):
+        TuningProblem(ds.train[:1], ds.vehicle, r0, model=bias, cost=CostSpec(weights={"vy": 1.0}))
+    with pytest.raises(ConfigError, match=r"for states \['vx', 'vy', 'r'\]"):
+        TuningProblem(
+            ds.train[:1], ds.vehicle, r0, model=bias, parameterization=NoiseParameterization()
+        )
+    ctrv = get_model("ctrv")
+    with pytest.raises(ConfigError, match=r"no measurement-noise variance for 'px'.*r0 ="):
+        default_r0(ctrv, ds.r_default)
+    np.testing.assert_array_equal(default_r0(ctrv, ds.r_default, {"px": 1.0, "py": 2.0}), [1, 2])
+    with pytest.raises(ConfigError, match=r"r0 names \['vz'\] are not measurements"):
+        default_r0(bias, ds.r_default, {"vz": 1.0})
+    with pytest.raises(DataError, match=r"needs measurement channel\(s\) \['px', 'py'\]"):
+        TuningProblem(ds.train[:1], ds.vehicle, [1.0, 1.0], model=ctrv, cost=CostSpec(kind="nis"))

@@ -4,12 +4,16 @@ Data → filter → cost → optimiser → report, one direction:
 
 * :mod:`kftune.vehicle` — single-track model with Dugoff tyres
 * :mod:`kftune.filters` — the unscented Kalman filter (compiled kernel + reference path)
-* :mod:`kftune.data` — manoeuvres, loading/validation, the reference-data generator
+* :mod:`kftune.data` — manoeuvres, loading/validation, noise statistics
+* :mod:`kftune.sim` — the reference-data generator (CommonRoad plant, drivers, sensors)
 * :mod:`kftune.bo` — surrogates (GP, Student-t process) and acquisition functions
 * :mod:`kftune.space` — search spaces (box bounds, linear or log10, mapped to [0, 1]^d)
 * :mod:`kftune.optim` — TSBO and baselines behind one ask/tell interface; persistent studies
 * :mod:`kftune.tuning` — the filter-tuning problem: parameter space, cost, KPIs
 * :mod:`kftune.report` — paper-style tables and figures
+* :mod:`kftune.experiment`, :mod:`kftune.cli` — the compare experiment, the command line
+
+``tests/test_architecture.py`` holds the layer table and refuses import cycles.
 """
 
 __version__ = "0.1.0"

@@ -12,7 +12,7 @@ import datetime as _dt
 import math
 import platform
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +43,9 @@ from kftune.tuning.problem import (
     NoiseParameterization,
     TuningProblem,
     assess,
+    default_r0,
+    filter_spec,
+    model_output,
 )
 
 #: Labels used in tables and legends (paper Table V naming).
@@ -74,11 +77,14 @@ MANUAL_Q: tuple[float, float, float] = (1e-6, 1e-4, 1e-6)
 
 def manual_point(parameterization: NoiseParameterization) -> np.ndarray:
     """The manual-tuning point in the space of ``parameterization`` (R unscaled, default
-    sigma points), clipped into the space's bounds if they exclude it."""
-    values = dict(zip(Q_NAMES, MANUAL_Q))
-    s = parameterization.default_settings
-    values.update(r_scale=1.0, ukf_alpha=s.alpha, ukf_beta=s.beta, ukf_kappa=s.kappa)
+    sigma points), clipped into the space's bounds if they exclude it. A state without a
+    rule of thumb (any but Vx, Vy, r) gets the geometric centre of its box."""
     space = parameterization.space
+    values = {p.name: float(np.sqrt(p.low * p.high)) for p in space if p.name.startswith("q_")}
+    values.update(zip(Q_NAMES, MANUAL_Q))
+    values.update({n: 1.0 for n in parameterization.r_names})
+    s = parameterization.default_settings
+    values.update(ukf_alpha=s.alpha, ukf_beta=s.beta, ukf_kappa=s.kappa)
     x = np.array([values[n] for n in space.names])
     return np.clip(x, space.lows, space.highs)
 
@@ -187,6 +193,9 @@ class CompareSettings:
         slice_parameter: the parameter of the Fig. 2 cost slice (paper: the Vy noise).
         figure_kinds: manoeuvre kinds whose first test manoeuvre gets a β figure (Figs. 8–10).
         method_options: method → extra optimiser options.
+        model, filter: the filter's model (a built-in name or a model file; it must have
+            the output ``beta``, which the report plots) and ``"ukf"`` / ``"ekf"``.
+        r0: measurement-noise variances of measurements the dataset has no estimate for.
     """
 
     methods: tuple[str, ...] = COMPARE_METHODS
@@ -199,6 +208,9 @@ class CompareSettings:
     slice_parameter: str = "q_vy"
     figure_kinds: tuple[str, ...] = ("skidpad", "slalom", "j-turn")
     method_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    model: str = "single-track"
+    filter: str = "ukf"
+    r0: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]
@@ -266,7 +278,7 @@ def method_run(
         metrics[split] = per
         averages[split] = average_kpis(per.values())
         for name, res in runs.items():
-            betas[name] = {f"beta_{key}": res.beta}
+            betas[name] = {f"beta_{key}": model_output(res, "beta")}
     q, r_diag, ukf = problem.decode(result.x)
     run = MethodRun(
         key=key,
@@ -379,14 +391,25 @@ def run_compare(
             if p.suffix in (".db", ".lock") or p.name.endswith(("-wal", "-shm")):
                 p.unlink()
     studies.mkdir(parents=True, exist_ok=True)
+    fs = filter_spec(settings.model, settings.filter, dataset.vehicle)
+    if "beta" not in fs.model.outputs:
+        raise ConfigError(
+            f"compare reports the sideslip angle; model {fs.model.name!r} has no output "
+            "'beta' (tune and evaluate it instead)"
+        )
+    par = settings.parameterization
+    if par.states != fs.model.state_names:
+        par = replace(par, states=fs.model.state_names, measurements=fs.model.measurement_names)
     problem = TuningProblem(
         dataset.train,
         dataset.vehicle,
-        dataset.r_default,
+        default_r0(fs.model, dataset.r_default, settings.r0),
         cost=settings.cost,
-        parameterization=settings.parameterization,
+        parameterization=par,
         workers=settings.workers,
         burn_in=settings.burn_in,
+        model=fs.spec,
+        filter=fs.filter,
     )
     splits = {"train": dataset.train, "test": dataset.test}
     shown = figure_manoeuvres(dataset, settings.figure_kinds)
@@ -431,11 +454,15 @@ def run_compare(
             "vehicle": dataset.vehicle.name,
         },
         "manoeuvres": {m.name: {"kind": m.kind, "split": m.split} for m in dataset.manoeuvres},
+        "filter": f"{problem.filter.upper()} on model {problem.model.name!r}"
+        + (f" ({problem.model_spec})" if problem.model_spec != problem.model.name else ""),
         "cost": _describe_cost(settings.cost),
         "parameters": ", ".join(
             f"{p.name} ∈ [{p.low:g}, {p.high:g}] ({p.scale})" for p in problem.space.params
         ),
-        "R": "[" + ", ".join(f"{v:.3g}" for v in problem.r0) + "] (Vx, ay, r variances)",
+        "R": "["
+        + ", ".join(f"{v:.3g}" for v in problem.r0)
+        + f"] ({', '.join(problem.model.measurement_names)} variances)",
         "seed": settings.seed,
         "burn_in_s": settings.burn_in,
         "budgets": {r.key: r.n_evals for r in runs},

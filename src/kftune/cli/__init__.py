@@ -4,14 +4,8 @@ Each subcommand lives in its own module with ``register(subparsers)``, which add
 and sets ``func`` to a callable ``(args) -> int``. This module only wires them together and
 maps errors to exit codes.
 
-Exit codes:
-    0  success
-    1  the job ran but failed (e.g. every evaluation failed, a filter diverged)
-    2  usage error: bad command-line options (argparse's convention), or ``--json`` with
-       standard output closed
-    3  bad input: a data file, manifest, configuration or study file is unusable
-    130 interrupted (Ctrl-C); whatever finished has been saved
-    141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
+The exit codes (0 success, 1 failure, 2 usage, 3 bad input, 130 interrupted, 141 broken
+pipe) are listed in :mod:`kftune.cli.exit_codes`; this module re-exports them.
 """
 
 from __future__ import annotations
@@ -25,17 +19,38 @@ from collections.abc import Callable, Sequence
 from typing import TextIO
 
 from kftune import __version__
+from kftune.cli.exit_codes import (
+    EXIT_BAD_INPUT,
+    EXIT_BROKEN_PIPE,
+    EXIT_FAILURE,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+)
 from kftune.errors import DataWarning, KftuneError, RunFailedError, UsageError
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
-EXIT_BAD_INPUT = 3
-EXIT_INTERRUPTED = 130
-EXIT_BROKEN_PIPE = 141
+__all__ = [
+    "EXIT_BAD_INPUT",
+    "EXIT_BROKEN_PIPE",
+    "EXIT_FAILURE",
+    "EXIT_INTERRUPTED",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "SUBCOMMANDS",
+    "build_parser",
+    "main",
+]
 
 #: Subcommand modules, in the order ``--help`` lists them.
-SUBCOMMANDS: tuple[str, ...] = ("compare", "tune", "evaluate", "report", "dataset", "demo")
+SUBCOMMANDS: tuple[str, ...] = (
+    "compare",
+    "tune",
+    "evaluate",
+    "report",
+    "dataset",
+    "models",
+    "demo",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

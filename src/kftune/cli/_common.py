@@ -12,6 +12,9 @@ does not use is an error, not silently ignored::
     methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp", "trbo"]   # compare only
     budgets = { ga = 225, tsbo-tsp = 40 }               # compare only
     seed = 0
+    model = "single-track"         # a built-in model, or your own: "my_model.py[:NAME]"
+    filter = "ukf"                 # or "ekf"
+    r0 = { b_ay = 0.01 }           # R0 of measurements the dataset has no estimate for
     workers = 1                    # processes per cost evaluation
     burn_in = 0.0                  # [s] left out of cost and KPIs at each manoeuvre's start
 
@@ -21,7 +24,8 @@ does not use is an error, not silently ignored::
     estimate = "posterior"         # or "prior" (see kftune.tuning.cost.CostSpec)
 
     [parameters]
-    q_bounds = [1e-10, 1.0]
+    q_bounds = [1e-10, 1.0]        # or one box per parameter: { q_vy = [1e-8, 1e-2] }
+    tune_r = "none"                # or "scale" (= tune_r_scale) or "diag": R's diagonal
     tune_r_scale = false
     tune_sigma_points = false
 
@@ -70,6 +74,9 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "budget": int,
     "budgets": dict,
     "seed": int,
+    "model": str,
+    "filter": str,
+    "r0": dict,
     "workers": int,
     "timeout": (int, float),
     "widen_bounds": bool,
@@ -101,7 +108,8 @@ _LIMITS: dict[str, tuple[float, bool, float | None]] = {
 _SECTION_KEYS = {
     "cost": {"kind": str, "weights": dict, "estimate": str},
     "parameters": {
-        "q_bounds": list,
+        "q_bounds": (list, dict),
+        "tune_r": str,
         "tune_r_scale": bool,
         "tune_sigma_points": bool,
         "r_scale_bounds": list,
@@ -180,6 +188,13 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     if "dataset" in data and data["dataset"] != "default":
         ds = Path(data["dataset"])
         data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
+    model = data.get("model")
+    if isinstance(model, str) and (model.endswith(".py") or ".py:" in model):
+        head, sep, var = model.partition(".py:") if ".py:" in model else (model[:-3], "", "")
+        mf = Path(head + ".py")
+        data["model"] = str(mf if mf.is_absolute() else (p.parent / mf)) + (
+            ":" + var if sep else ""
+        )
     data[_FILE] = str(p)
     return data
 
@@ -289,6 +304,15 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
         "directory or manifest, or a directory in the revs-250lm layout",
     )
     parser.add_argument("--config", type=Path, help="TOML file with these settings")
+    parser.add_argument(
+        "--model",
+        metavar="NAME|FILE.py[:VAR]",
+        help="the filter's state-space model: a built-in one (default single-track, the "
+        "paper's; see 'kftune models') or a Python file defining your own",
+    )
+    parser.add_argument(
+        "--filter", choices=("ukf", "ekf"), help="unscented (default) or extended Kalman filter"
+    )
     if tuning:
         parser.add_argument(
             "--seed", type=NON_NEGATIVE_INT, help="seed driving all randomness (default 0)"
@@ -400,8 +424,25 @@ def burn_in(args: argparse.Namespace, config: dict[str, Any]) -> float:
     return float(pick(args, config, "burn_in", 0.0))
 
 
-def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseParameterization:
-    """What is tuned, from the command line and configuration."""
+def model_choice(args: argparse.Namespace, config: dict[str, Any]) -> tuple[str, str]:
+    """(model spec, filter name) from the command line and configuration; a model file
+    named in a configuration is relative to that file."""
+    return pick(args, config, "model", "single-track"), pick(args, config, "filter", "ukf")
+
+
+def filter_spec_of(args: argparse.Namespace, config: dict[str, Any], vehicle: Any) -> Any:
+    """The :class:`~kftune.tuning.problem.FilterSpec` the options name (loads a model file)."""
+    from kftune.tuning.problem import filter_spec
+
+    model, filt = model_choice(args, config)
+    return filter_spec(model, filt, vehicle)
+
+
+def parameterization(
+    args: argparse.Namespace, config: dict[str, Any], model: Any = None
+) -> NoiseParameterization:
+    """What is tuned, from the command line and configuration, for ``model`` (a
+    StateSpaceModel; None: the single-track model)."""
     from kftune.tuning.problem import NoiseParameterization
 
     section = config.get("parameters", {})
@@ -410,18 +451,33 @@ def parameterization(args: argparse.Namespace, config: dict[str, Any]) -> NoiseP
         "tune_sigma_points": bool(pick(args, section, "tune_sigma_points", False)),
         "default_settings": _ukf_settings(config),
     }
+    if "tune_r" in section:
+        kwargs["tune_r"] = section["tune_r"]
+
+    def pair(key: str, bounds: Any) -> tuple[float, float]:
+        if (
+            not isinstance(bounds, list)
+            or len(bounds) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
+        ):
+            raise ConfigError(
+                f"{_where(config, 'parameters')}: {key} must be [low, high], got {bounds!r}"
+            )
+        return (float(bounds[0]), float(bounds[1]))
+
     for key in ("q_bounds", "r_scale_bounds"):
         if key in section:
             bounds = section[key]
-            if len(bounds) != 2 or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds
-            ):
-                raise ConfigError(
-                    f"{_where(config, 'parameters')}: {key} must be [low, high], got {bounds!r}"
-                )
-            kwargs[key] = (float(bounds[0]), float(bounds[1]))
-    p = NoiseParameterization(**kwargs)
+            if isinstance(bounds, dict):  # one box per parameter: { q_b_ay = [lo, hi] }
+                if key != "q_bounds":
+                    raise ConfigError(f"{_where(config, 'parameters')}: {key} must be [low, high]")
+                kwargs[key] = {name: pair(f"{key}.{name}", b) for name, b in bounds.items()}
+            else:
+                kwargs[key] = pair(key, bounds)
+    if model is not None:
+        kwargs.update(states=model.state_names, measurements=model.measurement_names)
     try:
+        p = NoiseParameterization(**kwargs)
         p.space  # noqa: B018 — validates the bounds
     except ValueError as exc:
         raise ConfigError(f"{_where(config, 'parameters')}: {exc}") from None

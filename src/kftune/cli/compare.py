@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
     add_command,
     add_common,
@@ -22,11 +21,13 @@ from kftune.cli._common import (
     cost_spec,
     emit_json,
     load_config,
+    model_choice,
     output_dir,
     parameterization,
     pick,
     writing,
 )
+from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from kftune.optim import METHODS
 
 
@@ -103,6 +104,9 @@ def run(args: argparse.Namespace) -> int:
         workers=pick(args, config, "workers", 1),
         burn_in=burn_in(args, config),
         method_options=config.get("options", {}),
+        model=model_choice(args, config)[0],
+        filter=model_choice(args, config)[1],
+        r0=config.get("r0", {}),
     )
     studies = args.out / "studies"
     keep = (

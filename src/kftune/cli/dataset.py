@@ -81,8 +81,8 @@ def run_generate(args: argparse.Namespace) -> int:
     """Simulate and write the reference dataset."""
     from kftune.cli._common import output_dir
     from kftune.data import save_dataset
-    from kftune.data.generate import DEFAULT_SEED, generate_dataset
-    from kftune.data.plant import SimulationError
+    from kftune.sim.generate import DEFAULT_SEED, generate_dataset
+    from kftune.sim.plant import SimulationError
 
     output_dir(args.out, "OUT")
     old_files = _files_to_replace(args.out, args.force)  # checked before the simulation

@@ -153,7 +153,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate, filter, print KPIs; exit code 1 if the filter diverged."""
-    from kftune.cli import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
+    from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 
     try:
         man = demo_manoeuvre(args.seed, stiffness_error=args.stiffness_error)

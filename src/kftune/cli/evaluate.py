@@ -21,7 +21,6 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from kftune.cli import EXIT_FAILURE, EXIT_OK
 from kftune.cli._common import (
     NON_NEGATIVE_FLOAT,
     add_command,
@@ -29,10 +28,12 @@ from kftune.cli._common import (
     burn_in,
     cost_spec,
     emit_json,
+    filter_spec_of,
     load_config,
     parameterization,
     pick,
 )
+from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
 from kftune.errors import ConfigError, DataError, DataWarning
 from kftune.tuning.kpi import KPI_NAMES
@@ -51,10 +52,11 @@ def register(subparsers: Any) -> None:
     src.add_argument("--params", "-p", type=Path, help="tuned-parameters file from 'kftune tune'")
     src.add_argument(
         "--q",
-        nargs=3,
+        nargs="+",
         type=NON_NEGATIVE_FLOAT,
-        metavar=("QVX", "QVY", "QR"),
-        help="process-noise variances [(m/s)², (m/s)², (rad/s)²]",
+        metavar="Q",
+        help="process-noise variances, one per state of the model (single-track: Vx, Vy, r "
+        "[(m/s)², (m/s)², (rad/s)²])",
     )
     src.add_argument("--manual", action="store_true", help="the manual-tuning rule of thumb")
     p.add_argument(
@@ -156,6 +158,7 @@ def run(args: argparse.Namespace) -> int:
         NoiseParameterization,
         TuningProblem,
         assess,
+        default_r0,
         where_diverged,
     )
 
@@ -174,6 +177,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
     spec = cost_spec(args, config)
     scored_after = burn_in(args, config)
+    if tuned is not None and args.model is None and "model" not in config:
+        args.model = tuned.get("model", "single-track")  # the model it was tuned for
+    if tuned is not None and args.filter is None and "filter" not in config:
+        args.filter = tuned.get("filter", "ukf")
+    fs = filter_spec_of(args, config, dataset.vehicle)
+    model = fs.model
     if tuned is not None:
         # unless told otherwise, score the way the parameters were tuned
         told = args.cost or args.weights or args.estimate or "cost" in config
@@ -181,22 +190,47 @@ def run(args: argparse.Namespace) -> int:
             spec = CostSpec(**tuned.get("cost_spec", {}))
         if args.burn_in is None and "burn_in" not in config:
             scored_after = float(tuned.get("burn_in", 0.0))
-        r_scale = float(tuned["params"].get("r_scale", 1.0))
+        params = tuned["params"]
+        r_scale = float(params.get("r_scale", 1.0))
         ukf = UKFSettings(**tuned["ukf"])
-        x = np.array([*tuned["q"], r_scale])
-        par = NoiseParameterization(tune_r_scale=True, default_settings=ukf)
+        if len(tuned["q"]) != model.n_states:
+            raise ConfigError(
+                f"{args.params} holds {len(tuned['q'])} Q values but model {model.name!r} "
+                f"has {model.n_states} states {list(model.state_names)}"
+            )
+        factors = [
+            r_scale * float(params.get(f"r_{m}_scale", 1.0)) for m in model.measurement_names
+        ]
+        x = np.array([*tuned["q"], *factors])
+        par = NoiseParameterization(
+            tune_r="diag",
+            default_settings=ukf,
+            states=model.state_names,
+            measurements=model.measurement_names,
+        )
     else:
-        par = parameterization(args, config)
-        par = NoiseParameterization(default_settings=par.default_settings)
+        par = parameterization(args, config, model)
+        par = NoiseParameterization(
+            default_settings=par.default_settings,
+            states=model.state_names,
+            measurements=model.measurement_names,
+        )
+        if args.q and len(args.q) != model.n_states:
+            raise ConfigError(
+                f"--q takes {model.n_states} values for model {model.name!r} "
+                f"{list(par.q_names)}, got {len(args.q)}"
+            )
         x = np.array(args.q) if args.q else manual_point(par)
     problem = TuningProblem(
         manoeuvres,
         dataset.vehicle,
-        dataset.r_default,
+        default_r0(model, dataset.r_default, config.get("r0")),
         cost=spec,
         parameterization=par,
         workers=pick(args, config, "workers", 1),
         burn_in=scored_after,
+        model=fs.spec,
+        filter=fs.filter,
     )
     with problem:
         try:

@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kftune.cli import EXIT_OK
 from kftune.cli._common import add_command, emit_json, output_dir, writing
+from kftune.cli.exit_codes import EXIT_OK
 
 
 def register(subparsers: Any) -> None:

@@ -1,4 +1,8 @@
-"""``kftune tune``: tune the UKF's process noise on a dataset's training manoeuvres.
+"""``kftune tune``: tune a filter's process noise on a dataset's training manoeuvres.
+
+The filter is the paper's single-track UKF unless ``--model`` (a built-in model or a Python
+file defining your own) and ``--filter ekf`` say otherwise; Q's diagonal is tuned, one
+``q_<state>`` per state of the model.
 
 Writes the tuned parameters to a JSON file (``--out``, default ``tuned.json``) that
 ``kftune evaluate --params`` reads. With ``--storage study.db`` every evaluation is saved as
@@ -22,7 +26,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kftune import __version__
-from kftune.cli import EXIT_INTERRUPTED, EXIT_OK
 from kftune.cli._common import (
     POSITIVE_INT,
     TIMEOUT_SECONDS,
@@ -31,12 +34,14 @@ from kftune.cli._common import (
     burn_in,
     cost_spec,
     emit_json,
+    filter_spec_of,
     load_config,
     output_file,
     parameterization,
     pick,
     write_output,
 )
+from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from kftune.errors import ConfigError, RunFailedError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
@@ -51,7 +56,7 @@ TUNED_FORMAT = "kftune-tuned-1"
 def register(subparsers: Any) -> None:
     """Add ``tune``."""
     p = add_command(
-        subparsers, "tune", "tune the UKF's process noise on the training manoeuvres", __doc__
+        subparsers, "tune", "tune a filter's process noise on the training manoeuvres", __doc__
     )
     add_common(p)
     p.add_argument(
@@ -115,20 +120,23 @@ def run(args: argparse.Namespace) -> int:
         from kftune.data import open_dataset
         from kftune.experiment import require_success, tune
         from kftune.optim import OptimizationInterrupted
-        from kftune.tuning.problem import TuningProblem
+        from kftune.tuning.problem import TuningProblem, default_r0
 
         dataset = open_dataset(pick(args, config, "dataset", None))
         method = pick(args, config, "method", DEFAULT_METHOD)
         if method not in METHODS:
             raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
+        fs = filter_spec_of(args, config, dataset.vehicle)
         problem = TuningProblem(
             dataset.train,
             dataset.vehicle,
-            dataset.r_default,
+            default_r0(fs.model, dataset.r_default, config.get("r0")),
             cost=cost_spec(args, config),
-            parameterization=parameterization(args, config),
+            parameterization=parameterization(args, config, fs.model),
             workers=pick(args, config, "workers", 1),
             burn_in=burn_in(args, config),
+            model=fs.spec,
+            filter=fs.filter,
         )
         with problem:
             try:
@@ -161,6 +169,8 @@ def run(args: argparse.Namespace) -> int:
             f"({result.n_failed} failed) on {len(dataset.train)} training manoeuvres of "
             f"{dataset.name!r}"
         )
+        if problem.model_spec != "single-track" or problem.filter != "ukf":
+            print(f"  model {problem.model.name!r}, filter {problem.filter}")
         for name, value in (result.params or {}).items():
             print(f"  {name:10s} = {value:.4e}")
         for line in bound_lines(doc, problem, widen):
@@ -241,6 +251,10 @@ def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str)
             "estimate": problem.cost_spec.estimate,
         },
         "burn_in": problem.burn_in,
+        "model": problem.model_spec,
+        "filter": problem.filter,
+        "states": list(problem.model.state_names),
+        "measurements": list(problem.model.measurement_names),
         "n_evals": result.n_evals,
         "n_failed": result.n_failed,
         "status": result.status,

@@ -1,5 +1,4 @@
-"""Manoeuvre data: the in-memory types, loading and validation, noise statistics, and the
-reference-data generator.
+"""Manoeuvre data: the in-memory types, loading and validation, and noise statistics.
 
 Typical use::
 
@@ -8,8 +7,8 @@ Typical use::
     m = ds.train[0]                        # a Manoeuvre: m.t, m.u (n, 2), m.z (n, 3), m.beta_ref
     R = ds.r_default                       # (3,) variances [Vx, ay, r] from sensor statistics
 
-The generator (:mod:`kftune.data.generate`) needs the ``[simulate]`` extra and is imported
-lazily; everything else needs only numpy and scipy.
+Everything here needs only numpy and scipy. The generator of the bundled data is a package
+of its own, :mod:`kftune.sim` (it needs the ``[simulate]`` extra).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ arrays are read-only float64 copies.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from types import MappingProxyType
@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from kftune.data.noise import estimate_measurement_noise
 from kftune.data.validate import REQUIRED_CHANNELS, plausibility_warnings, validate_channels
 from kftune.errors import DataError, DataWarning, excerpt
 from kftune.vehicle.params import VehicleParams
@@ -307,8 +308,6 @@ class Dataset:
         Estimated from the training manoeuvres (all manoeuvres if there are none) by
         :func:`kftune.data.noise.estimate_measurement_noise`; read-only.
         """
-        from kftune.data.noise import estimate_measurement_noise
-
         return _frozen(estimate_measurement_noise(self.train or self.manoeuvres))
 
     def summary(self) -> list[dict[str, Any]]:
@@ -340,15 +339,3 @@ def _plain(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {k: _plain(v) for k, v in value.items()}
     return value
-
-
-def manoeuvres_of(source: Dataset | Sequence[Manoeuvre] | Manoeuvre) -> tuple[Manoeuvre, ...]:
-    """Normalise a dataset, a manoeuvre or a sequence of manoeuvres to a tuple."""
-    if isinstance(source, Dataset):
-        return source.manoeuvres
-    if isinstance(source, Manoeuvre):
-        return (source,)
-    out = tuple(source)
-    if not out or not all(isinstance(m, Manoeuvre) for m in out):
-        raise ValueError("expected a Dataset, a Manoeuvre or a non-empty sequence of Manoeuvre")
-    return out

@@ -22,10 +22,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from functools import lru_cache
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from kftune.data.manoeuvre import Dataset, Manoeuvre, manoeuvres_of
+if TYPE_CHECKING:  # names only: Dataset.r_default calls this module, so no runtime import
+    from kftune.data.manoeuvre import Dataset, Manoeuvre
 
 #: High-pass corner as a fraction of the Nyquist frequency.
 CUTOFF = 0.25
@@ -87,7 +89,7 @@ def estimate_measurement_noise(
     """
     if not 0.0 < cutoff < 1.0:
         raise ValueError(f"cutoff must be a fraction of Nyquist in (0, 1), got {cutoff!r}")
-    manoeuvres = manoeuvres_of(source)
+    manoeuvres = _manoeuvres(source)
     sums = np.zeros(3)
     count = 0
     for m in manoeuvres:
@@ -97,3 +99,24 @@ def estimate_measurement_noise(
             sums[j] += ss
         count += n_used
     return np.maximum(sums / count, VARIANCE_FLOOR)
+
+
+def _manoeuvres(source: Any) -> tuple[Manoeuvre, ...]:
+    """A dataset, a manoeuvre or a sequence of manoeuvres as a tuple of manoeuvres.
+
+    Recognised by their attributes (a dataset has ``manoeuvres``, a manoeuvre the measured
+    channels), not by class, so that this module does not import
+    :mod:`kftune.data.manoeuvre`, whose ``Dataset.r_default`` calls it.
+    """
+    if _is_manoeuvre(source):
+        return (source,)
+    if hasattr(source, "manoeuvres"):
+        return tuple(source.manoeuvres)
+    out = tuple(source)
+    if not out or not all(_is_manoeuvre(m) for m in out):
+        raise ValueError("expected a Dataset, a Manoeuvre or a non-empty sequence of Manoeuvre")
+    return out
+
+
+def _is_manoeuvre(obj: Any) -> bool:
+    return all(hasattr(obj, name) for name in ("vx", "ay", "r", "beta_ref"))

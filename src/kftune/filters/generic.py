@@ -39,7 +39,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from kftune.filters import _generic_kernel as gk
+import kftune.filters._generic_kernel as gk
 from kftune.filters._checks import check_covariance, check_dt, check_noise, check_state, check_table
 from kftune.filters.sigma_points import UKFSettings, merwe_weights
 from kftune.models.base import STOP_NONE, StateSpaceModel

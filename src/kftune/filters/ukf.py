@@ -41,7 +41,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from kftune.filters import _kernel
+import kftune.filters._kernel as _kernel
 from kftune.filters._checks import check_covariance, check_dt, check_state
 from kftune.filters._checks import check_noise as _check_noise
 from kftune.filters._checks import check_table as _check_table

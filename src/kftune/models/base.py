@@ -116,6 +116,9 @@ class StateSpaceModel:
         validate_data: ``(u (N, n_u), z (N, m)) -> None``, raises ValueError for data the
             model is not meant for; None: no model-specific checks.
         description: one line for listings.
+        outputs: derived quantities a cost can score against a reference channel
+            ``<name>_ref`` of the data: name → ``g(x (N, n)) -> (N,)`` over the posterior
+            states (the single-track models' ``beta`` = atan2(Vy, Vx) [rad]).
     """
 
     name: str
@@ -142,6 +145,7 @@ class StateSpaceModel:
     pack_params: Callable[[Any], np.ndarray] | None = None
     validate_data: Callable[[np.ndarray, np.ndarray], None] | None = None
     description: str = ""
+    outputs: Mapping[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         name = self.name
@@ -183,6 +187,16 @@ class StateSpaceModel:
             raise ValueError(f"model {name!r}: prepared_size must be an integer >= 0")
         held = tuple(int(c) for c in self.held_causes)
         object.__setattr__(self, "held_causes", held)
+        outputs = dict(self.outputs)
+        for key, fn in outputs.items():
+            if not (isinstance(key, str) and key.isidentifier() and callable(fn)):
+                raise ValueError(
+                    f"model {name!r}: outputs must map identifiers to functions of the states, "
+                    f"got {key!r}: {type(fn).__name__}"
+                )
+            if key in self.measurement_names:
+                raise ValueError(f"model {name!r}: output {key!r} is also a measurement name")
+        object.__setattr__(self, "outputs", types.MappingProxyType(outputs))
         reasons = types.MappingProxyType(dict(self.stop_reasons))
         object.__setattr__(self, "stop_reasons", reasons)
         for code in (*held, *reasons):

@@ -99,8 +99,8 @@ _TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
 _TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
 
 _INPUTS = (("delta", "rad"), ("ax", "m/s^2"))
-_MEASUREMENTS = (("Vx", "m/s"), ("ay", "m/s^2"), ("r", "rad/s"))
-_STATES = (("Vx", "m/s"), ("Vy", "m/s"), ("r", "rad/s"))
+_MEASUREMENTS = (("vx", "m/s"), ("ay", "m/s^2"), ("r", "rad/s"))
+_STATES = (("vx", "m/s"), ("vy", "m/s"), ("r", "rad/s"))
 _PARAM_UNITS = {
     "m": "kg",
     "Iz": "kg*m^2",
@@ -248,6 +248,11 @@ def _validate(u: np.ndarray, z: np.ndarray) -> None:
     check_forward_speed(z)
 
 
+def sideslip_angle(x: np.ndarray) -> np.ndarray:
+    """(N,) the sideslip angle atan2(Vy, Vx) [rad] of posterior states x (N, n ≥ 2)."""
+    return np.arctan2(x[:, 1], x[:, 0])
+
+
 def _model(
     name: str,
     states: tuple[tuple[str, str], ...],
@@ -281,6 +286,7 @@ def _model(
         pack_params=pack_params,
         validate_data=_validate,
         description=description,
+        outputs={"beta": sideslip_angle},
     )
 
 
@@ -307,7 +313,7 @@ SINGLE_TRACK_AY_BIAS = _model(
 #: The single-track model with a bias state on every measurement (6 states).
 SINGLE_TRACK_BIASES = _model(
     "single-track-biases",
-    (*_STATES, ("b_Vx", "m/s"), ("b_ay", "m/s^2"), ("b_r", "rad/s")),
+    (*_STATES, ("b_vx", "m/s"), ("b_ay", "m/s^2"), ("b_r", "rad/s")),
     process_biases,
     measurement_biases,
     _prior_with_biases((VX_BIAS_PRIOR_STD, AY_BIAS_PRIOR_STD, R_BIAS_PRIOR_STD)),

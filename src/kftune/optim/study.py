@@ -17,7 +17,9 @@ is rolled back by SQLite on the next open.
 The named file is self-contained after every finished evaluation: each result's commit is
 followed by a checkpoint that copies the WAL into the database file, so a copy of the
 ``.db`` file alone (without ``<study>-wal``), also one taken after a SIGKILL, holds every
-finished evaluation. A checkpoint is two or three ``fsync`` calls (``benchmarks/study_io.py``
+finished evaluation — all but the last one if the kill fell inside that evaluation's
+checkpoint (a window of a few milliseconds; the ``.db`` with its ``-wal``, which a resume
+reads, holds that one too). A checkpoint is two or three ``fsync`` calls (``benchmarks/study_io.py``
 measures them against an evaluation). It is passive: while another process is reading the
 study it copies what it can, and the next one catches up.
 

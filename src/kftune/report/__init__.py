@@ -162,6 +162,7 @@ def _meta_lines(meta: dict) -> list[str]:
             + (f", vehicle: {ds['vehicle']}" if "vehicle" in ds else "")
         )
     for key, label in (
+        ("filter", "Filter"),
         ("cost", "Cost"),
         ("parameters", "Tuned parameters"),
         ("R", "Measurement noise R (from sensor statistics)"),

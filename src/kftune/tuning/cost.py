@@ -36,8 +36,9 @@ class CostSpec:
         kind: ``"nrmse"`` — the paper's J = Σ_j W_j·E_j (Eq. 14) over the weighted channels;
             ``"nis"`` — the consistency cost |log(mean NIS / n_z)| of Chen et al. (2018),
             which needs no reference sensor.
-        weights: channel → weight W_j ≥ 0 (``"nrmse"`` only); channels from
-            :data:`CHANNELS`.
+        weights: channel → weight W_j ≥ 0 (``"nrmse"`` only): a measurement of the
+            filter's model or one of its outputs (the single-track model's: :data:`CHANNELS`);
+            the tuning problem checks them against its model.
         estimate: which filter output the measured channels (r, ay, vx) are scored with.
             ``"posterior"`` (default; the paper's "estimated states"): h(x⁺_k), after the
             update with z_k. Because that update has already used z_k, a large process noise
@@ -55,9 +56,9 @@ class CostSpec:
     def __post_init__(self) -> None:
         if self.kind not in ("nrmse", "nis"):
             raise ConfigError(f"cost kind must be 'nrmse' or 'nis', got {self.kind!r}")
-        unknown = sorted(set(self.weights) - set(CHANNELS))
-        if unknown:
-            raise ConfigError(f"unknown cost channel(s) {unknown}; expected some of {CHANNELS}")
+        bad = sorted(c for c in self.weights if not (isinstance(c, str) and c.isidentifier()))
+        if bad:
+            raise ConfigError(f"cost channel names must be identifiers, got {bad}")
         for name, w in self.weights.items():
             if not (
                 isinstance(w, (int, float))
@@ -77,8 +78,11 @@ class CostSpec:
 
     @property
     def channels(self) -> tuple[str, ...]:
-        """Channels with a positive weight, in :data:`CHANNELS` order."""
-        return tuple(c for c in CHANNELS if self.weights.get(c, 0.0) > 0)
+        """Channels with a positive weight: those of :data:`CHANNELS` in its order, then
+        any others sorted."""
+        known = [c for c in CHANNELS if self.weights.get(c, 0.0) > 0]
+        other = sorted(c for c, w in self.weights.items() if c not in CHANNELS and w > 0)
+        return tuple(known + other)
 
 
 def nrmse(estimate: np.ndarray, reference: np.ndarray) -> float:

@@ -16,7 +16,7 @@ import json
 import math
 import multiprocessing
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,6 +26,9 @@ import numpy as np
 from kftune.data.manoeuvre import Manoeuvre
 from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf
+from kftune.filters.generic import FilterResult, ModelFilter, get_filter
+from kftune.models import StateSpaceModel
+from kftune.models.user import load_model
 from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
 from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
@@ -34,7 +37,14 @@ from kftune.vehicle.params import VehicleParams
 
 #: Paper Sec. VI: every process-noise parameter searched in [1e-10, 1] (log10 scale here).
 Q_BOUNDS = (1e-10, 1.0)
-Q_NAMES = ("q_vx", "q_vy", "q_r")
+#: The single-track model's states and measurements (the paper's filter).
+SIDESLIP_STATES = ("vx", "vy", "r")
+SIDESLIP_MEASUREMENTS = ("vx", "ay", "r")
+Q_NAMES = tuple(f"q_{s}" for s in SIDESLIP_STATES)
+#: How R is tuned: not at all (paper), one factor on R₀, or one factor per measurement.
+R_MODES = ("none", "scale", "diag")
+
+Bounds = tuple[float, float]
 
 
 class FilterDivergedError(RuntimeError):
@@ -45,17 +55,25 @@ class FilterDivergedError(RuntimeError):
 class NoiseParameterization:
     """What the optimiser tunes, and how its vector maps onto the filter.
 
-    Always the diagonal of Q: ``q_vx, q_vy, q_r`` [(m/s)², (m/s)², (rad/s)²] on a log10
-    scale over ``q_bounds`` (paper: [1e-10, 1]). Optionally (the paper's future work):
+    Always the diagonal of Q, one parameter ``q_<state>`` per state of the model (default:
+    the single-track model's ``q_vx, q_vy, q_r`` [(m/s)², (m/s)², (rad/s)²]), on a log10
+    scale over ``q_bounds`` (paper: [1e-10, 1]) — one box for all, or a box per name
+    (``{"q_vy": (1e-8, 1e-2)}``; names not given keep :data:`Q_BOUNDS`). Optionally (the
+    paper's future work), R as factors on the measurement-noise variances R₀ from sensor
+    statistics, log10 over ``r_scale_bounds``:
 
-    * ``r_scale`` [-], log10 over ``r_scale_bounds``: R = r_scale·R₀, with R₀ from sensor
-      statistics. Only the ratio of Q to R shapes the gain, so this matters mostly for the
-      NIS cost and for filters whose R₀ is poorly known.
-    * ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa`` (linear): the sigma-point
-      parameters (FilterPy's ``MerweScaledSigmaPoints`` convention; κ > −2 keeps n + κ ≥ 1).
+    * ``tune_r="scale"`` (or ``tune_r_scale=True``): one ``r_scale`` [-], R = r_scale·R₀.
+      Only the ratio of Q to R shapes the gain, so this matters mostly for the NIS cost
+      and for filters whose R₀ is poorly known;
+    * ``tune_r="diag"``: one factor ``r_<measurement>_scale`` [-] per measurement,
+      R = diag(f)·R₀.
+
+    And ``tune_sigma_points``: ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa``
+    (linear), the sigma-point parameters (FilterPy's ``MerweScaledSigmaPoints`` convention;
+    κ > −2 keeps n + κ ≥ 1).
     """
 
-    q_bounds: tuple[float, float] = Q_BOUNDS
+    q_bounds: Bounds | Mapping[str, Bounds] = Q_BOUNDS
     tune_r_scale: bool = False
     r_scale_bounds: tuple[float, float] = (1e-2, 1e2)
     tune_sigma_points: bool = False
@@ -63,13 +81,52 @@ class NoiseParameterization:
     beta_bounds: tuple[float, float] = (0.0, 4.0)
     kappa_bounds: tuple[float, float] = (-2.0, 3.0)
     default_settings: UKFSettings = field(default_factory=UKFSettings)
+    states: tuple[str, ...] = SIDESLIP_STATES
+    measurements: tuple[str, ...] = SIDESLIP_MEASUREMENTS
+    tune_r: str = "none"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "states", tuple(self.states))
+        object.__setattr__(self, "measurements", tuple(self.measurements))
+        if self.tune_r not in R_MODES:
+            raise ValueError(f"tune_r must be one of {list(R_MODES)}, got {self.tune_r!r}")
+        if self.tune_r_scale and self.tune_r == "diag":
+            raise ValueError('tune_r_scale and tune_r="diag" exclude each other')
+        if self.tune_r_scale:
+            object.__setattr__(self, "tune_r", "scale")
+        if isinstance(self.q_bounds, Mapping):
+            unknown = sorted(set(self.q_bounds) - set(self.q_names))
+            if unknown:
+                raise ValueError(
+                    f"q_bounds names {unknown} are not parameters of this model; "
+                    f"expected some of {list(self.q_names)}"
+                )
+
+    @property
+    def q_names(self) -> tuple[str, ...]:
+        """``q_<state>`` for every state, in state order."""
+        return tuple(f"q_{s}" for s in self.states)
+
+    @property
+    def r_names(self) -> tuple[str, ...]:
+        """The R parameters: none, ``("r_scale",)`` or ``r_<measurement>_scale`` each."""
+        if self.tune_r == "scale":
+            return ("r_scale",)
+        if self.tune_r == "diag":
+            return tuple(f"r_{m}_scale" for m in self.measurements)
+        return ()
+
+    def q_box(self, name: str) -> Bounds:
+        """The (low, high) box of a Q parameter."""
+        if isinstance(self.q_bounds, Mapping):
+            return tuple(self.q_bounds.get(name, Q_BOUNDS))  # type: ignore[return-value]
+        return self.q_bounds
 
     @property
     def space(self) -> Space:
         """The search space (validates the bounds)."""
-        params = [Param(name, *self.q_bounds, scale="log10") for name in Q_NAMES]
-        if self.tune_r_scale:
-            params.append(Param("r_scale", *self.r_scale_bounds, scale="log10"))
+        params = [Param(name, *self.q_box(name), scale="log10") for name in self.q_names]
+        params += [Param(name, *self.r_scale_bounds, scale="log10") for name in self.r_names]
         if self.tune_sigma_points:
             params += [
                 Param("ukf_alpha", *self.alpha_bounds, scale="log10"),
@@ -81,14 +138,16 @@ class NoiseParameterization:
     def decode(
         self, x: Sequence[float] | np.ndarray, r0: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
-        """Map a point of :attr:`space` (natural units) to (q (3,), r (3,), settings)."""
+        """Map a point of :attr:`space` (natural units) to (q (n,), r (m,), settings)."""
         names = self.space.names
         x = np.asarray(x, dtype=float)
         if x.shape != (len(names),):
             raise ValueError(f"expected a point with {len(names)} values {names}, got {x.shape}")
         values = dict(zip(names, x.tolist()))
-        q = np.array([values[n] for n in Q_NAMES])
+        q = np.array([values[n] for n in self.q_names])
         r = np.asarray(r0, dtype=float) * values.get("r_scale", 1.0)
+        if self.tune_r == "diag":
+            r = r * np.array([values[n] for n in self.r_names])
         settings = self.default_settings
         if self.tune_sigma_points:
             settings = UKFSettings(values["ukf_alpha"], values["ukf_beta"], values["ukf_kappa"])
@@ -96,7 +155,7 @@ class NoiseParameterization:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable description (for reports and study metadata)."""
-        return {
+        out: dict[str, Any] = {
             "names": list(self.space.names),
             "space": self.space.to_dict(),
             "sigma_points": None
@@ -107,6 +166,9 @@ class NoiseParameterization:
                 "kappa": self.default_settings.kappa,
             },
         }
+        if self.states != SIDESLIP_STATES or self.measurements != SIDESLIP_MEASUREMENTS:
+            out["states"], out["measurements"] = list(self.states), list(self.measurements)
+        return out
 
 
 @dataclass(frozen=True)
@@ -142,26 +204,45 @@ class Evaluation:
     scores: tuple[ManoeuvreScore, ...]
 
 
+#: A filter run's output: the paper's 3×3 kernel or the generic filters.
+RunResult = UKFResult | FilterResult
+
+
+def model_output(res: RunResult, name: str) -> np.ndarray:
+    """(N,) a derived output of the run's model, e.g. ``"beta"`` [rad] (the sideslip
+    atan2(Vy, Vx) of the single-track models), from the posterior states."""
+    if isinstance(res, UKFResult):
+        if name != "beta":
+            raise KeyError(f"the single-track model has no output {name!r}; it has ['beta']")
+        return res.beta
+    outputs = res.model.outputs
+    if name not in outputs:
+        raise KeyError(f"model {res.model.name!r} has no output {name!r}; it has {sorted(outputs)}")
+    return np.asarray(outputs[name](res.x), dtype=float)
+
+
 def channel_estimate(
-    m: Manoeuvre, res: UKFResult, channel: str, estimate: str = "posterior"
+    m: Manoeuvre, res: RunResult, channel: str, estimate: str = "posterior"
 ) -> tuple[np.ndarray, np.ndarray]:
     """(estimate, reference) of a cost channel over the whole manoeuvre.
 
-    β [rad] against the reference sensor, from the posterior state; yaw rate [rad/s], ay
-    [m/s²] and Vx [m/s] against their measurements, estimated by h(x⁺_k) (``"posterior"``)
-    or by the one-step prediction z_k − innovation_k (``"prior"``); see
-    :class:`~kftune.tuning.cost.CostSpec`.
+    A measurement of the model (yaw rate [rad/s], ay [m/s²], Vx [m/s] for the single-track
+    model) against its measured channel, estimated by h(x⁺_k) (``"posterior"``) or by the
+    one-step prediction z_k − innovation_k (``"prior"``); any other channel is a derived
+    output of the model (β [rad] from the posterior state) against the reference channel
+    ``<channel>_ref`` of the data (``beta_ref``); see :class:`~kftune.tuning.cost.CostSpec`.
     """
-    if channel == "beta":
-        return res.beta, m.beta_ref
-    column = {"vx": 0, "ay": 1, "r": 2}[channel]
-    measured = m.z[:, column]
+    names = SIDESLIP_MEASUREMENTS if isinstance(res, UKFResult) else res.model.measurement_names
+    if channel not in names:
+        return model_output(res, channel), m.channel(f"{channel}_ref")
+    column = names.index(channel)
+    measured = m.channel(channel)
     if estimate == "prior":
         return measured - res.innovation[:, column], measured
     return res.z_hat[:, column], measured
 
 
-def where_diverged(m: Manoeuvre, res: UKFResult) -> str:
+def where_diverged(m: Manoeuvre, res: RunResult) -> str:
     """``"manoeuvre 'x' at step k (t = … s): <cause>"`` for a run that diverged on ``m``."""
     return (
         f"manoeuvre {m.name!r} at step {res.diverged_step} "
@@ -174,16 +255,125 @@ def first_scored(m: Manoeuvre, burn_in: float) -> int:
     return int(np.searchsorted(m.t - m.t[0], burn_in - 1e-9 * m.dt))
 
 
+@dataclass(frozen=True)
+class FilterSpec:
+    """Which filter runs which model: the paper's pair (single-track UKF) runs on the
+    hand-written 3×3 kernel, every other pair on the generic kernels.
+
+    Attributes:
+        model: the state-space model. spec: how to load it again (a registered name or a
+            model file, for worker processes and tuned files).
+        filter: ``"ukf"`` or ``"ekf"``. params: (n_p,) the model's parameters.
+    """
+
+    model: StateSpaceModel
+    spec: str
+    filter: str
+    params: np.ndarray
+
+    @property
+    def fast(self) -> bool:
+        """Whether the 3×3 kernel runs it (the paper's model and filter)."""
+        from kftune.models import SINGLE_TRACK
+
+        return self.model is SINGLE_TRACK and self.filter == "ukf"
+
+    def inputs(self, m: Manoeuvre) -> tuple[np.ndarray | None, np.ndarray]:
+        """(u (N, n_u) or None, z (N, m)) of a manoeuvre, by the model's channel names."""
+        if self.fast:
+            return m.u, m.z
+        names = self.model.input_names
+        u = np.column_stack([m.channel(c) for c in names]) if names else None
+        return u, np.column_stack([m.channel(c) for c in self.model.measurement_names])
+
+    def run(
+        self,
+        m: Manoeuvre,
+        vehicle: VehicleParams,
+        q: np.ndarray,
+        r: np.ndarray,
+        settings: UKFSettings,
+    ) -> RunResult:
+        """The filter's run over one manoeuvre."""
+        if self.fast:
+            return run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
+        u, z = self.inputs(m)
+        return self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=self.params)
+
+    def filter_object(self, settings: UKFSettings) -> ModelFilter:
+        """The generic filter (the UKF with these sigma-point settings)."""
+        return get_filter("ukf", settings=settings) if self.filter == "ukf" else get_filter("ekf")
+
+
+def filter_spec(
+    model: str | StateSpaceModel, filter: str, vehicle: VehicleParams | None
+) -> FilterSpec:
+    """A :class:`FilterSpec` from a model name, model file or model, and a filter name; a
+    vehicle model's parameters come from ``vehicle``, another model's are its defaults.
+
+    Raises:
+        ConfigError: unknown model or filter, or a model file that cannot be loaded.
+    """
+    mod = load_model(model)
+    if filter not in ("ukf", "ekf"):
+        raise ConfigError(f"filter must be 'ukf' or 'ekf', got {filter!r}")
+    spec = model if isinstance(model, str) else mod.name
+    if vehicle is not None and mod.pack_params is not None:
+        try:
+            params = mod.pack_params(vehicle)
+        except (TypeError, ValueError, AttributeError):
+            params = np.asarray(mod.param_defaults, dtype=float)
+    else:
+        params = np.asarray(mod.param_defaults, dtype=float)
+    return FilterSpec(mod, spec, filter, np.asarray(params, dtype=float))
+
+
+def default_r0(
+    model: StateSpaceModel,
+    r_default: Sequence[float] | np.ndarray,
+    overrides: Mapping[str, float] | None = None,
+) -> np.ndarray:
+    """(m,) the measurement-noise variances R₀ of a model's measurements: ``overrides``
+    (name → variance, e.g. from a configuration's ``r0``) first, then the dataset's
+    estimate ``r_default`` of the single-track channels [Vx, ay, r].
+
+    Raises:
+        ConfigError: a measurement with neither, or an override that is not a measurement
+            or not a positive finite number.
+    """
+    known = dict(zip(SIDESLIP_MEASUREMENTS, np.asarray(r_default, dtype=float).tolist()))
+    given = dict(overrides or {})
+    extra = sorted(set(given) - set(model.measurement_names))
+    if extra:
+        raise ConfigError(
+            f"r0 names {extra} are not measurements of model {model.name!r} "
+            f"{list(model.measurement_names)}"
+        )
+    out = []
+    for name in model.measurement_names:
+        v = given.get(name, known.get(name))
+        if v is None:
+            raise ConfigError(
+                f"no measurement-noise variance for {name!r} of model {model.name!r}: give it "
+                f"in the configuration, e.g. r0 = {{ {name} = 0.01 }} (in its unit squared)"
+            )
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
+            raise ConfigError(f"r0 for {name!r} must be a positive finite number, got {v!r}")
+        out.append(float(v))
+    return np.array(out)
+
+
 def _score(
     m: Manoeuvre,
     vehicle: VehicleParams,
+    fs: FilterSpec,
     q: np.ndarray,
     r: np.ndarray,
     settings: UKFSettings,
     spec: CostSpec,
     burn_in: float,
 ) -> ManoeuvreScore:
-    res = run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
+    res = fs.run(m, vehicle, q, r, settings)
     if res.diverged:
         raise FilterDivergedError(f"filter diverged on {where_diverged(m, res)}")
     k0 = first_scored(m, burn_in)
@@ -207,14 +397,21 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(
-    manoeuvres: tuple[Manoeuvre, ...], vehicle: VehicleParams, parent_pid: int
+    manoeuvres: tuple[Manoeuvre, ...],
+    vehicle: VehicleParams,
+    model: str,
+    filter: str,
+    parent_pid: int,
 ) -> None:  # pragma: no cover - runs in the pool's workers
     watch_parent(parent_pid)  # exit with a killed parent; Ctrl-C stops the parent only
     _WORKER["manoeuvres"] = manoeuvres
     _WORKER["vehicle"] = vehicle
-    # load the compiled kernel now, so no evaluation's timing includes it
+    fs = filter_spec(model, filter, vehicle)  # a model file is loaded again here
+    _WORKER["filter"] = fs
+    # compile / load the kernel now, so no evaluation's timing includes it
     m = manoeuvres[0]
-    run_ukf(m.u[:10], m.z[:10], m.dt, vehicle, np.full(3, 1e-4), np.full(3, 1e-2))
+    n, k = fs.model.n_states, fs.model.n_measurements
+    fs.run(m, vehicle, np.full(n, 1e-4), np.full(k, 1e-2), UKFSettings())
 
 
 def _score_chunk(
@@ -225,8 +422,8 @@ def _score_chunk(
     spec: CostSpec,
     burn_in: float,
 ) -> list[ManoeuvreScore]:
-    ms, vehicle = _WORKER["manoeuvres"], _WORKER["vehicle"]
-    return [_score(ms[i], vehicle, q, r, settings, spec, burn_in) for i in indices]
+    ms, vehicle, fs = _WORKER["manoeuvres"], _WORKER["vehicle"], _WORKER["filter"]
+    return [_score(ms[i], vehicle, fs, q, r, settings, spec, burn_in) for i in indices]
 
 
 class TuningProblem:
@@ -241,6 +438,12 @@ class TuningProblem:
         parameterization: what is tuned (default: the three Q entries).
         workers: processes that run the manoeuvres in parallel; 1 (default) runs them in
             this process. Use as a context manager (or call :meth:`close`) when > 1.
+        model: the state-space model the filter runs: a registered name (default
+            ``"single-track"``, the paper's), a model file (``"my_model.py"``, see
+            :mod:`kftune.models.user`) or a :class:`~kftune.models.StateSpaceModel`. Its
+            inputs and measurements are read from the manoeuvres' channels of the same
+            names; a vehicle model takes its parameters from ``vehicle``.
+        filter: ``"ukf"`` (default) or ``"ekf"``.
         burn_in: [s] initial part of every manoeuvre left out of the cost (and of
             :func:`assess`'s KPIs), while the filter converges from its default prior; 0
             (default, the paper) scores every sample. Useful for segments cut out of a
@@ -263,8 +466,12 @@ class TuningProblem:
         parameterization: NoiseParameterization | None = None,
         workers: int = 1,
         burn_in: float = 0.0,
+        model: str | StateSpaceModel = "single-track",
+        filter: str = "ukf",
     ) -> None:
         self.manoeuvres = tuple(manoeuvres)
+        self._fs = filter_spec(model, filter, vehicle)
+        mod = self._fs.model
         if not self.manoeuvres:
             raise ConfigError("the tuning problem needs at least one manoeuvre")
         if not (
@@ -276,7 +483,8 @@ class TuningProblem:
             raise ConfigError(f"burn_in must be a number of seconds >= 0, got {burn_in!r}")
         self.burn_in = float(burn_in)
         for m in self.manoeuvres:
-            bad = np.flatnonzero(m.vx <= 0)
+            self._check_channels(m)
+            bad = np.flatnonzero(m.vx <= 0) if self._fs.fast else np.empty(0, dtype=int)
             if bad.size:
                 raise DataError(
                     f"measured speed vx = {m.vx[bad[0]]:g} m/s at t = {m.t[bad[0]]:.2f} s; "
@@ -292,10 +500,31 @@ class TuningProblem:
                 )
         self.vehicle = vehicle
         self.r0 = np.asarray(r0, dtype=float)
-        if self.r0.shape != (3,) or not np.all(np.isfinite(self.r0)) or np.any(self.r0 <= 0):
-            raise ConfigError(f"r0 must be 3 positive finite variances [Vx, ay, r], got {r0!r}")
+        k = mod.n_measurements
+        if self.r0.shape != (k,) or not np.all(np.isfinite(self.r0)) or np.any(self.r0 <= 0):
+            raise ConfigError(
+                f"r0 must be {k} positive finite variances {list(mod.measurement_names)}, "
+                f"got {r0!r}"
+            )
         self.cost_spec = cost or CostSpec()
-        self.parameterization = parameterization or NoiseParameterization()
+        self.parameterization = parameterization or NoiseParameterization(
+            states=mod.state_names, measurements=mod.measurement_names
+        )
+        par = self.parameterization
+        if par.states != mod.state_names or par.measurements != mod.measurement_names:
+            raise ConfigError(
+                f"the tuned parameters are for states {list(par.states)} and measurements "
+                f"{list(par.measurements)}, but model {mod.name!r} has "
+                f"{list(mod.state_names)} and {list(mod.measurement_names)}"
+            )
+        if self.cost_spec.kind == "nrmse":
+            for c in self.cost_spec.channels:
+                if c not in mod.measurement_names and c not in self._outputs():
+                    raise ConfigError(
+                        f"unknown cost channel {c!r}: neither a measurement of model "
+                        f"{mod.name!r} {list(mod.measurement_names)} nor one of its outputs "
+                        f"{sorted(self._outputs())}"
+                    )
         if not (isinstance(workers, int) and workers >= 1):
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.workers = min(workers, len(self.manoeuvres))
@@ -306,6 +535,47 @@ class TuningProblem:
     def space(self) -> Space:
         """The search space of the optimiser."""
         return self.parameterization.space
+
+    @property
+    def model(self) -> StateSpaceModel:
+        """The model the filter runs."""
+        return self._fs.model
+
+    @property
+    def filter(self) -> str:
+        """``"ukf"`` or ``"ekf"``."""
+        return self._fs.filter
+
+    @property
+    def model_spec(self) -> str:
+        """How the model was named (a registered name or a model file)."""
+        return self._fs.spec
+
+    def _outputs(self) -> set[str]:
+        return {"beta"} if self._fs.fast else set(self._fs.model.outputs)
+
+    def _check_channels(self, m: Manoeuvre) -> None:
+        """Refuse a manoeuvre without the model's channels, or data the model refuses."""
+        if self._fs.fast:
+            return
+        mod = self._fs.model
+        have = set(m.channel_names)
+        for kind, names in (("input", mod.input_names), ("measurement", mod.measurement_names)):
+            missing = [c for c in names if c not in have]
+            if missing:
+                raise DataError(
+                    f"model {mod.name!r} needs {kind} channel(s) {missing}; the manoeuvre has "
+                    f"{sorted(have)}",
+                    file=f"manoeuvre {m.name!r}",
+                )
+        if mod.validate_data is not None:
+            u, z = self._fs.inputs(m)
+            try:
+                mod.validate_data(np.zeros((m.n, 0)) if u is None else u, z)
+            except ValueError as exc:
+                raise DataError(
+                    f"model {mod.name!r} refuses this data: {exc}", file=f"manoeuvre {m.name!r}"
+                ) from None
 
     def decode(self, x: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
         """(q, r, settings) of a point."""
@@ -325,7 +595,8 @@ class TuningProblem:
         channels = spec.channels if spec.kind == "nrmse" else ()
         if self.workers == 1:
             scores = [
-                _score(m, self.vehicle, q, r, settings, spec, self.burn_in) for m in self.manoeuvres
+                _score(m, self.vehicle, self._fs, q, r, settings, spec, self.burn_in)
+                for m in self.manoeuvres
             ]
         else:
             pool = self._get_pool()
@@ -341,7 +612,7 @@ class TuningProblem:
         n_total = sum(s.n for s in scores)
         mean_nis = sum(s.nis_sum for s in scores) / n_total
         if spec.kind == "nis":
-            cost = nis_cost([np.array([mean_nis])], n_z=3)
+            cost = nis_cost([np.array([mean_nis])], n_z=self._fs.model.n_measurements)
             pooled: dict[str, float] = {}
         else:
             cost, pooled = weighted_cost(
@@ -368,6 +639,8 @@ class TuningProblem:
             "parameterization": self.parameterization.to_dict(),
             "burn_in": self.burn_in,
         }
+        if not self._fs.fast:  # the paper's pair keeps the fingerprints of earlier studies
+            described["model"] = {"name": self._fs.model.name, "filter": self._fs.filter}
         h.update(json.dumps(described, sort_keys=True).encode())
         names = [m.name for m in self.manoeuvres]
         return {
@@ -376,12 +649,10 @@ class TuningProblem:
             "sha256": h.hexdigest(),
         }
 
-    def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> UKFResult:
+    def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> RunResult:
         """The filter's full output on one manoeuvre for a point."""
         q, r, settings = self.decode(x)
-        return run_ukf(
-            manoeuvre.u, manoeuvre.z, manoeuvre.dt, self.vehicle, q, r, settings=settings
-        )
+        return self._fs.run(manoeuvre, self.vehicle, q, r, settings)
 
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
@@ -390,7 +661,13 @@ class TuningProblem:
                 max_workers=self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_init_worker,
-                initargs=(self.manoeuvres, self.vehicle, os.getpid()),
+                initargs=(
+                    self.manoeuvres,
+                    self.vehicle,
+                    self._fs.spec,
+                    self._fs.filter,
+                    os.getpid(),
+                ),
             )
         return self._pool
 
@@ -410,12 +687,19 @@ class TuningProblem:
         state = self.__dict__.copy()
         state["_pool"] = None  # a pool does not travel; a copy in another process is serial
         state["workers"] = 1
+        fs = state.pop("_fs")  # compiled model functions do not pickle: load them again
+        state["_fs_spec"] = (fs.spec, fs.filter)
         return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        spec, filt = state.pop("_fs_spec")
+        self.__dict__.update(state)
+        self._fs = filter_spec(spec, filt, self.vehicle)
 
 
 def assess(
     problem: TuningProblem, x: Sequence[float] | np.ndarray, manoeuvres: Sequence[Manoeuvre]
-) -> tuple[dict[str, dict[str, float]], dict[str, UKFResult]]:
+) -> tuple[dict[str, dict[str, float]], dict[str, RunResult]]:
     """KPIs and channel errors of a tuned filter on manoeuvres (for tables and figures).
 
     Scored like the problem's cost: after its burn-in, with its measured-channel estimate
@@ -427,7 +711,7 @@ def assess(
         [m/s²], ``diverged`` (0/1)}; and name → the filter's :class:`UKFResult`.
     """
     metrics: dict[str, dict[str, float]] = {}
-    results: dict[str, UKFResult] = {}
+    results: dict[str, RunResult] = {}
     estimate = problem.cost_spec.estimate
     for m in manoeuvres:
         res = problem.run(x, m)
@@ -438,7 +722,8 @@ def assess(
             metrics[m.name].update(rmse_beta=math.nan, rmse_r=math.nan, rmse_ay=math.nan)
             metrics[m.name]["diverged"] = 1.0
             continue
-        row: dict[str, float] = dict(sideslip_kpis(res.beta[k0:], m.beta_ref[k0:], m.ay[k0:]))
+        beta = model_output(res, "beta")
+        row: dict[str, float] = dict(sideslip_kpis(beta[k0:], m.beta_ref[k0:], m.ay[k0:]))
         row["rmse_beta"] = row["rmse"]
         est, ref = channel_estimate(m, res, "r", estimate)
         row["rmse_r"] = float(np.degrees(np.sqrt(np.mean((est[k0:] - ref[k0:]) ** 2))))

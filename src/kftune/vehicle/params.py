@@ -166,7 +166,7 @@ def _revs_250lm() -> VehicleParams:
 def _bmw_320i() -> VehicleParams:
     # CommonRoad vehicle parameter set 2 (BMW 320i; Althoff & Würsching, "CommonRoad:
     # Vehicle Models", 2020): m, I_z, a, b, h_cg, T_f, T_r as given there. The tyre numbers
-    # are what an engineer identifies on the reference dataset's plant (kftune.data.plant,
+    # are what an engineer identifies on the reference dataset's plant (kftune.sim.plant,
     # default PlantSetup), i.e. the single-track model of the car the default data come from:
     # - C_af, C_ar: slope of the plant's Pacejka tyres at zero slip and static load. Its
     #   K_y = |p_ky1|·F_z per tyre, so per axle C = |p_ky1|·F_z,axle with the static axle

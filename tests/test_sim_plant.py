@@ -18,8 +18,8 @@ pytest.importorskip("vehiclemodels")
 from vehiclemodels.parameters_vehicle2 import parameters_vehicle2
 from vehiclemodels.vehicle_dynamics_mb import vehicle_dynamics_mb
 
-from kftune.data.catalogue import K_DRIVER, WHEELBASE, j_turn
-from kftune.data.drivers import (
+from kftune.sim.catalogue import K_DRIVER, WHEELBASE, j_turn
+from kftune.sim.drivers import (
     PathFollower,
     Profile,
     SpeedLaw,
@@ -27,14 +27,14 @@ from kftune.data.drivers import (
     SteerProfile,
     circle_path,
 )
-from kftune.data.plant import (
+from kftune.sim.plant import (
     COMMONROAD_SETUP,
     MultiBodyPlant,
     PlantSetup,
     SimulationError,
 )
-from kftune.data.sensors import SensorModel, measure
-from kftune.data.simulate import (
+from kftune.sim.sensors import SensorModel, measure
+from kftune.sim.simulate import (
     ManoeuvreSpec,
     Phase,
     ramp_steer_understeer,

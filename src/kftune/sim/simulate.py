@@ -1,7 +1,7 @@
 """Closed-loop simulation of the reference plant: phases of driver laws, LSODA, 100 Hz.
 
 A manoeuvre is a sequence of :class:`Phase` objects, each with a steering law and a speed
-law (:mod:`kftune.data.drivers`). The driver closes its loops inside the right-hand side of
+law (:mod:`kftune.sim.drivers`). The driver closes its loops inside the right-hand side of
 the ODE, so one LSODA run per phase integrates plant and driver together (``rtol`` 1e-6,
 steps at most :data:`MAX_STEP`); the states are read at the 100 Hz sample instants from the
 solver's own output (no re-stepping). Deterministic: same specification, same numbers.
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from kftune.data.drivers import (
+from kftune.sim.drivers import (
     DriverView,
     Profile,
     SpeedLaw,
@@ -26,7 +26,7 @@ from kftune.data.drivers import (
     speed_control,
     steering_rate,
 )
-from kftune.data.plant import N_STATES, MultiBodyPlant, PlantOutputs, SimulationError
+from kftune.sim.plant import N_STATES, MultiBodyPlant, PlantOutputs, SimulationError
 
 #: Output sample time [s] (100 Hz, as the sensors).
 SAMPLE_TIME = 0.01
@@ -166,7 +166,7 @@ def simulate(
 
     Raises:
         SimulationError: the car left the plant's domain (see
-            :class:`~kftune.data.plant.MultiBodyPlant`) or the integrator failed; the
+            :class:`~kftune.sim.plant.MultiBodyPlant`) or the integrator failed; the
             message names the manoeuvre and the time.
     """
     plant = plant if plant is not None else MultiBodyPlant()

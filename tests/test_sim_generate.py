@@ -8,8 +8,8 @@ import pytest
 pytest.importorskip("vehiclemodels")
 
 from kftune.data import default_dataset, save_dataset
-from kftune.data.catalogue import default_catalogue
-from kftune.data.generate import DEFAULT_SEED, TRUE_CHANNELS, generate_dataset, generate_manoeuvre
+from kftune.sim.catalogue import default_catalogue
+from kftune.sim.generate import DEFAULT_SEED, TRUE_CHANNELS, generate_dataset, generate_manoeuvre
 from test_data_helpers import storage_step_differences
 
 SHORT = ("train-03-j-turn", "test-09-j-turn")
@@ -56,7 +56,7 @@ def test_bundled_dataset_is_this_generators_output(name):
     floating point allows across CPUs: at most one storage step, on a small share of the
     samples (:func:`storage_step_differences`). Bit-for-bit identity holds on one machine
     (``test_same_seed_same_bytes``), not across machines: the generator's own arithmetic
-    avoids CPU-specific kernels (``kftune.data._libm``), but SciPy's LSODA calls the BLAS,
+    avoids CPU-specific kernels (``kftune.sim._libm``), but SciPy's LSODA calls the BLAS,
     whose kernels OpenBLAS picks by CPU — on an AVX-512 Xeon a few stored values of these
     manoeuvres round one step apart from the bundle made on an AVX2 machine."""
     spec = next(s for s in default_catalogue() if s.name == name)

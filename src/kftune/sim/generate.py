@@ -1,11 +1,11 @@
-"""Reference-data generator: the 31 manoeuvres of :mod:`kftune.data.catalogue`, simulated on
-CommonRoad's multi-body plant (:mod:`kftune.data.plant`), measured by the sensor models of
-:mod:`kftune.data.sensors`. Needs the extra ``[simulate]`` (commonroad-vehicle-models).
+"""Reference-data generator: the 31 manoeuvres of :mod:`kftune.sim.catalogue`, simulated on
+CommonRoad's multi-body plant (:mod:`kftune.sim.plant`), measured by the sensor models of
+:mod:`kftune.sim.sensors`. Needs the extra ``[simulate]`` (commonroad-vehicle-models).
 
 ``generate_dataset(seed)`` is deterministic on one machine: the plant and drivers do not
 depend on the seed at all (LSODA on the same programme gives the same numbers; on another
 CPU its BLAS kernels may round differently, so a few stored values can differ by one
-storage step, see :mod:`kftune.data._libm`), the sensor noise of each
+storage step, see :mod:`kftune.sim._libm`), the sensor noise of each
 manoeuvre comes from ``numpy.random.default_rng([seed, crc32(name)])`` — so a manoeuvre's
 noise does not change when others are added or left out — and every channel is rounded to
 a fixed number of decimals before it is stored, so that the files are short and a written
@@ -20,11 +20,11 @@ from importlib import metadata
 
 import numpy as np
 
-from kftune.data.catalogue import default_catalogue
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.data.plant import MultiBodyPlant, PlantSetup
-from kftune.data.sensors import SensorModel, measure
-from kftune.data.simulate import SAMPLE_TIME, ManoeuvreSpec, ramp_steer_understeer, simulate
+from kftune.sim.catalogue import default_catalogue
+from kftune.sim.plant import MultiBodyPlant, PlantSetup
+from kftune.sim.sensors import SensorModel, measure
+from kftune.sim.simulate import SAMPLE_TIME, ManoeuvreSpec, ramp_steer_understeer, simulate
 from kftune.vehicle.params import preset
 
 #: Seed of the bundled default dataset.

@@ -29,8 +29,8 @@ import math
 
 import numpy as np
 
-from kftune.data import _libm
-from kftune.data.drivers import (
+from kftune.sim import _libm
+from kftune.sim.drivers import (
     Path,
     PathFollower,
     PathSpeed,
@@ -44,7 +44,7 @@ from kftune.data.drivers import (
     circle_path,
     iso3888_1_path,
 )
-from kftune.data.simulate import Brake, Hold, ManoeuvreSpec, Phase, steady_state_delta
+from kftune.sim.simulate import Brake, Hold, ManoeuvreSpec, Phase, steady_state_delta
 
 #: Wheelbase of the plant (CommonRoad parameter set 2: a + b) [m].
 WHEELBASE = 1.1561957064 + 1.4227170936
@@ -291,7 +291,7 @@ def track_path() -> Path:
     u_main = np.array([1.0, 0.0])
     u_back = np.array([math.cos(math.radians(120.0)), math.sin(math.radians(120.0))])
     gap = -np.array([base.X[-1], base.Y[-1]])
-    # 2×2 solve by Cramer's rule (no LAPACK: see data._libm)
+    # 2×2 solve by Cramer's rule (no LAPACK: see sim._libm)
     det = u_main[0] * u_back[1] - u_back[0] * u_main[1]
     main = (gap[0] * u_back[1] - u_back[0] * gap[1]) / det
     back = (u_main[0] * gap[1] - gap[0] * u_main[1]) / det

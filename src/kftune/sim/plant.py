@@ -38,8 +38,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from kftune.data import _libm
 from kftune.errors import KftuneError
+from kftune.sim import _libm
 
 #: Smallest wheel ground speed [m/s] the wrapper lets the model see (its slip divides by it).
 MIN_WHEEL_SPEED = 0.5
@@ -81,7 +81,7 @@ class PlantSetup:
     lower both to effective axle values that also stand in for the steering and suspension
     compliance the MB model lacks, the front more than the rear (−9.5 and −14: 28 and
     34 kN/rad per tyre at static load); with them the plant's understeer gradient, measured by
-    :func:`kftune.data.simulate.ramp_steer_understeer` (constant-speed ramp steer, ISO
+    :func:`kftune.sim.simulate.ramp_steer_understeer` (constant-speed ramp steer, ISO
     4138), is 3.68e-3 rad/(m/s²) = 2.07 deg/g, typical of a passenger car. Peak friction,
     curvature and the combined-slip functions stay CommonRoad's.
 
@@ -91,7 +91,7 @@ class PlantSetup:
     rolls about 9 deg/g, twice what a saloon with proper anti-roll bars does, and the
     roll-induced gravity error of a body-fixed accelerometer would be ~16 % of ay. The
     defaults (stiffer bars, slightly front-biased) give 4.9 deg/g, measured on the ramp
-    steer of :func:`kftune.data.simulate.ramp_steer_understeer`. A stronger front bias lifts
+    steer of :func:`kftune.sim.simulate.ramp_steer_understeer`. A stronger front bias lifts
     the inside front wheel near 1 g (the MB tyre spring then pulls on the road, see
     :meth:`MultiBodyPlant.tyre_loads`).
 

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from kftune.data import _libm
-from kftune.data.plant import PlantOutputs
+from kftune.sim import _libm
+from kftune.sim.plant import PlantOutputs
 from kftune.vehicle.params import G
 
 _DEG = math.pi / 180.0

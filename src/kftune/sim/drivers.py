@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kftune.data import _libm
+from kftune.sim import _libm
 
 #: Steering servo bandwidth [1/s]: δ̇ = δ̇_ref + SERVO_GAIN·(δ_ref − δ).
 SERVO_GAIN = 20.0
@@ -209,7 +209,7 @@ def iso3888_1_path(direction: int = 1, offset: float = 3.5, lead_in: float = 80.
 
     def smooth(u: np.ndarray) -> np.ndarray:
         u = np.clip(u, 0.0, 1.0)
-        return u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)  # no pow: see data._libm
+        return u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)  # no pow: see sim._libm
 
     x = X - lead_in
     Y = direction * offset * (smooth((x - 15.0) / 30.0) - smooth((x - 70.0) / 25.0))
@@ -292,7 +292,7 @@ class RandomSteer(SteerLaw):
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
-        ratio = self.f_high / self.f_low  # geometric spacing, through math (see data._libm)
+        ratio = self.f_high / self.f_low  # geometric spacing, through math (see sim._libm)
         n = self.n_components
         f = np.array([self.f_low * ratio ** (k / max(n - 1, 1)) for k in range(n)])
         f = f * (1.0 + 0.05 * rng.uniform(-1.0, 1.0, f.size))
@@ -313,7 +313,7 @@ class RandomSteer(SteerLaw):
                 dramp = sign * 0.5 * math.pi * math.sin(math.pi * edge)
         w = 2.0 * math.pi * self._f
         arg = w * (t - self.t0) + self._ph
-        value = math.fsum(self._a * _libm.sin(arg))  # no BLAS dot: see data._libm
+        value = math.fsum(self._a * _libm.sin(arg))  # no BLAS dot: see sim._libm
         rate = math.fsum(self._a * w * _libm.cos(arg))
         return ramp * value, ramp * rate + dramp * value, 0.0
 

@@ -1,0 +1,21 @@
+"""Exit codes of the ``kftune`` command.
+
+Exit codes:
+    0  success
+    1  the job ran but failed (e.g. every evaluation failed, a filter diverged)
+    2  usage error: bad command-line options (argparse's convention), or ``--json`` with
+       standard output closed
+    3  bad input: a data file, manifest, configuration or study file is unusable
+    130 interrupted (Ctrl-C); whatever finished has been saved
+    141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
+
+A module of their own so that the subcommand modules, which :mod:`kftune.cli` imports, do
+not import :mod:`kftune.cli` back.
+"""
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_BAD_INPUT = 3
+EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141

@@ -1,0 +1,117 @@
+"""Your own model, from a Python file: ``--model my_car.py`` or ``model = "my_car.py"``.
+
+A model file is plain Python that builds a :class:`~kftune.models.StateSpaceModel` from
+``@njit`` functions f and h (see the README's worked example). :func:`load_model` runs it
+and takes the model it defines:
+
+* ``"my_car.py"`` — the file's one module-level StateSpaceModel (or the one it registers);
+* ``"my_car.py:FAST"`` — the module-level variable ``FAST`` when it defines several;
+* ``"single-track"`` — a registered model, by name (:func:`~kftune.models.model_names`).
+
+A file is run once per process and path (numba compiles its functions then); the model is
+registered under its name, so results, tuned files and studies can name it. Worker
+processes (``--workers``) load the same file again from the spec string.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import sys
+from pathlib import Path
+
+from kftune.errors import ConfigError
+from kftune.models.base import StateSpaceModel
+from kftune.models.registry import get_model, model_names, register_model
+
+__all__ = ["is_model_file", "load_model"]
+
+_LOADED: dict[tuple[str, str], StateSpaceModel] = {}
+
+
+def is_model_file(spec: str) -> bool:
+    """Whether ``spec`` names a Python file (``x.py`` or ``x.py:NAME``), not a model name."""
+    path, _, _ = spec.partition(".py:")
+    return spec.endswith(".py") or path != spec
+
+
+def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:
+    """The model a spec names (module docstring).
+
+    Raises:
+        ConfigError: no such file or model; the file fails to run, defines no model or
+            several without a ``:NAME``; the name does not hold a model. The message names
+            the file and what was expected, never the file's text.
+    """
+    if isinstance(spec, StateSpaceModel):
+        return spec
+    if not isinstance(spec, str) or not spec.strip():
+        raise ConfigError(f"model must be a model name or a Python file, got {spec!r}")
+    if not is_model_file(spec):
+        try:
+            return get_model(spec)
+        except ValueError:
+            raise ConfigError(
+                f"unknown model {spec!r}; built-in models: {', '.join(model_names())}; or "
+                "give a Python file that defines one (e.g. --model my_model.py)"
+            ) from None
+    if spec.endswith(".py"):
+        file, attr = spec, ""
+    else:
+        head, _, attr = spec.partition(".py:")
+        file = head + ".py"
+    path = Path(file).expanduser().resolve()
+    key = (str(path), attr)
+    if key in _LOADED:
+        return _LOADED[key]
+    if not path.is_file():
+        raise ConfigError(f"model file {file} does not exist (or is not a file)")
+    module = _run(path, file)
+    found = {k: v for k, v in vars(module).items() if isinstance(v, StateSpaceModel)}
+    if attr:
+        if attr not in found:
+            raise ConfigError(
+                f"model file {file} has no StateSpaceModel named {attr!r}; it defines "
+                f"{sorted(found) or 'none'}"
+            )
+        model = found[attr]
+    else:
+        distinct = {id(m): m for m in found.values()}
+        if len(distinct) != 1:
+            raise ConfigError(
+                f"model file {file} defines {len(distinct)} StateSpaceModel objects "
+                f"({sorted(found) or 'none'}); it must define exactly one, or name it: "
+                f"{file}:NAME"
+            )
+        model = next(iter(distinct.values()))
+    try:
+        register_model(model, replace=True)
+    except ValueError as exc:  # pragma: no cover - a StateSpaceModel always registers
+        raise ConfigError(f"model file {file}: {exc}") from None
+    _LOADED[key] = model
+    return model
+
+
+def _run(path: Path, shown: str) -> object:
+    """Import the file as a module of its own (a name unique to its path)."""
+    name = "kftune_user_model_" + hashlib.sha256(str(path).encode()).hexdigest()[:16]
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ConfigError(f"model file {shown} cannot be loaded as Python")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # numba and pickle look functions up by module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:  # any failure of the user's code is reported
+        del sys.modules[name]
+        where = f" (line {exc.lineno})" if isinstance(exc, SyntaxError) else ""
+        tb = exc.__traceback__
+        while tb is not None:
+            if Path(tb.tb_frame.f_code.co_filename) == path:
+                where = f" (line {tb.tb_lineno})"
+            tb = tb.tb_next
+        text = exc.msg if isinstance(exc, SyntaxError) else str(exc)  # not the source line
+        raise ConfigError(
+            f"model file {shown} failed to run{where}: {type(exc).__name__}: {text[:200]}"
+        ) from None
+    return module
