@@ -45,22 +45,11 @@ import numpy as np
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
 from kftune.filters import EKF, UKF, run_ukf, run_ukf_batch
 from kftune.models import SINGLE_TRACK, SINGLE_TRACK_BIASES
-from ukf_speed import compiled_model, filterpy_run
+from ukf_speed import compiled_model, filterpy_run, max_rel_diff, timed
 
 #: Sensor biases of the 6-state runs [m/s, m/s², rad/s] and their random-walk variances.
 BIASES = np.array([0.1, 0.3, 0.005])
 Q_BIASES = np.array([1e-7, 1e-6, 1e-9])
-
-
-def timed(fn: Callable[[], object]) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
-def first_call(fn: Callable[[], object]) -> float:
-    """Wall time of the first call (compilation included)."""
-    return timed(fn)
 
 
 def main() -> None:
@@ -98,9 +87,9 @@ def main() -> None:
         "batch16_1thread_ukf": lambda: ukf.run_batch(SINGLE_TRACK, *common, q16, man.r_var),
     }
     compile_s = {
-        "ukf": first_call(lambda: ukf.run(SINGLE_TRACK, *common, q, man.r_var)),
-        "ekf": first_call(lambda: ekf.run(SINGLE_TRACK, *common, q, man.r_var)),
-        "ukf6": first_call(lambda: ukf.run(SINGLE_TRACK_BIASES, man.u, z6, man.dt, q6, man.r_var)),
+        "ukf": timed(lambda: ukf.run(SINGLE_TRACK, *common, q, man.r_var)),
+        "ekf": timed(lambda: ekf.run(SINGLE_TRACK, *common, q, man.r_var)),
+        "ukf6": timed(lambda: ukf.run(SINGLE_TRACK_BIASES, man.u, z6, man.dt, q6, man.r_var)),
     }
     threads = numba.get_num_threads()
     numba.set_num_threads(1)  # the batches on one thread: per-set cost, not parallelism
@@ -108,7 +97,7 @@ def main() -> None:
         fn()
     res3 = run_ukf(*common, man.params, q, man.r_var)
     res = ukf.run(SINGLE_TRACK, *common, q, man.r_var)
-    rel = float(np.max(np.max(np.abs(res.x - res3.x), axis=0) / np.max(np.abs(res3.x), axis=0)))
+    rel = max_rel_diff(res.x, res3.x)
     fx, hx = compiled_model(man.params.to_array())
 
     times: dict[str, list[float]] = {k: [] for k in (*cases, "filterpy")}

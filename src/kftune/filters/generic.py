@@ -29,6 +29,7 @@ model and filter, once per process; numba cannot cache it on disk).
 
 from __future__ import annotations
 
+import functools
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -182,16 +183,24 @@ class _Run:
             np.empty((b, n_steps)),
         )
 
-    def head(self, b: int) -> tuple[Any, ...]:
-        """The leading kernel arguments for setting b (b = None: all B, for the batch)."""
-        model = self.model
+    def head(self, b: int | None) -> tuple[Any, ...]:
+        """The data arguments of a bound kernel for setting b (None: all B, for the batch)."""
         sl = slice(None) if b is None else b
         return (
-            model.f, model.h, model.check, self.u, self.z, self.p, self.dt,
-            self.q[sl], self.r[sl], self.x_init[sl], self.P_init[sl],
-            self.n_hold, self.held_causes, (0.0,) * model.n_states,
-            (0.0,) * model.n_measurements,
+            self.u, self.z, self.p, self.dt, self.q[sl], self.r[sl], self.x_init[sl],
+            self.P_init[sl], self.n_hold, self.held_causes,
         )  # fmt: skip
+
+
+@functools.lru_cache(maxsize=64)
+def _unit_texts(model: StateSpaceModel) -> tuple[str, str, str, str]:
+    """How the messages name the units of u, z, q and r, e.g. "[m/s, rad] for [Vx, r]"."""
+    return (
+        _units(model.input_names, model.input_units, square=False),
+        _units(model.measurement_names, model.measurement_units, square=False),
+        _units(model.state_names, model.state_units, square=True),
+        _units(model.measurement_names, model.measurement_units, square=True),
+    )
 
 
 def _units(names: tuple[str, ...], units: tuple[str, ...], square: bool) -> str:
@@ -215,8 +224,7 @@ def _check_run(
     """All checks of a run, in the order of :func:`kftune.filters.run_ukf`'s."""
     model = resolve_model(model)
     n, m = model.n_states, model.n_measurements
-    u_units = _units(model.input_names, model.input_units, square=False)
-    z_units = _units(model.measurement_names, model.measurement_units, square=False)
+    u_units, z_units, q_units, r_units = _unit_texts(model)
     no_u = u is None and model.n_inputs == 0
     u_arr = None if no_u else check_table("u", u, model.input_names, u_units)
     z_arr = check_table("z", z, model.measurement_names, z_units)
@@ -231,8 +239,6 @@ def _check_run(
         model.validate_data(u_arr, z_arr)
     dt_f = check_dt(dt)
     p = model.params_vector(params)
-    q_units = _units(model.state_names, model.state_units, square=True)
-    r_units = _units(model.measurement_names, model.measurement_units, square=True)
     q_arr = check_noise("q", q, q_units, strictly_positive=False, batch=batch, dim=n)
     q_arr = q_arr if batch else q_arr[None, :]
     n_sets = q_arr.shape[0]
@@ -295,11 +301,11 @@ class ModelFilter(ABC):
 
     @abstractmethod
     def _options(self, model: StateSpaceModel) -> tuple[Any, ...]:
-        """The kernel arguments after the shared ones (sigma-point weights, Jacobians)."""
+        """The numeric kernel arguments after the data (the UKF's sigma-point weights)."""
 
     @abstractmethod
-    def _kernels(self) -> tuple[Any, Any]:
-        """(single-run kernel, batch kernel)."""
+    def _bound(self, model: StateSpaceModel) -> tuple[Any, Any]:
+        """(single-run, batch) kernels bound to the model's functions."""
 
     def run(
         self,
@@ -336,7 +342,7 @@ class ModelFilter(ABC):
         """
         run = _check_run(model, u, z, dt, q, r, params, x0, P0, batch=False)
         outs = [a[0] for a in run.outputs()]
-        single, _ = self._kernels()
+        single, _ = self._bound(run.model)
         stop, rep, cause = single(*run.head(0), *self._options(run.model), *outs)
         return FilterResult(*outs, stop >= 0, int(stop), int(rep), int(cause), run.model, self.name)
 
@@ -370,7 +376,7 @@ class ModelFilter(ABC):
         stop = np.empty(n_sets, dtype=np.int64)
         rep = np.empty(n_sets, dtype=np.int64)
         cause = np.empty(n_sets, dtype=np.int64)
-        single, batch = self._kernels()
+        single, batch = self._bound(run.model)
         opts = self._options(run.model)
         if n_sets == 1:  # no thread start-up for a single set
             stop[0], rep[0], cause[0] = single(*run.head(0), *opts, *(a[0] for a in outs))
@@ -404,8 +410,8 @@ class UKF(ModelFilter):
         wm, wc = merwe_weights(n, self.settings)
         return float(wm[0]), float(wc[0]), float(wm[1]), math.sqrt(n + self.settings.lam(n))
 
-    def _kernels(self) -> tuple[Any, Any]:
-        return gk.ukf_run, gk.ukf_batch
+    def _bound(self, model: StateSpaceModel) -> tuple[Any, Any]:
+        return _bound_ukf(model)
 
 
 @dataclass(frozen=True)
@@ -420,17 +426,88 @@ class EKF(ModelFilter):
     name: ClassVar[str] = "ekf"
 
     def _options(self, model: StateSpaceModel) -> tuple[Any, ...]:
-        fd_F = model.F is None or self.numerical_jacobians
-        fd_H = model.H is None or self.numerical_jacobians
-        return (
-            gk.numerical_process_jacobian if fd_F else gk.given_process_jacobian,
-            model.f if fd_F else model.F,
-            gk.numerical_measurement_jacobian if fd_H else gk.given_measurement_jacobian,
-            model.h if fd_H else model.H,
-        )
+        return ()
 
-    def _kernels(self) -> tuple[Any, Any]:
-        return gk.ekf_run, gk.ekf_batch
+    def _bound(self, model: StateSpaceModel) -> tuple[Any, Any]:
+        return _bound_ekf(model, self.numerical_jacobians)
+
+
+# --------------------------------------------------------------------------------------
+# Kernels bound to a model's functions
+# --------------------------------------------------------------------------------------
+
+# The kernels take the model's functions as arguments. Passing a compiled function from
+# Python costs numba some 10 µs of typing per argument and call; these small closures hold
+# the functions (and the size tokens) as constants instead, so that a run passes arrays and
+# numbers only. One pair per model and filter, compiled on first use.
+
+
+Arr = np.ndarray
+
+
+@functools.cache
+def _bound_ukf(model: StateSpaceModel) -> tuple[Any, Any]:
+    f, h, check = model.f, model.h, model.check
+    n_tok, m_tok = (0.0,) * model.n_states, (0.0,) * model.n_measurements
+
+    @numba.njit(error_model="numpy")
+    def single(
+        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
+        n_hold: int, held_causes: Arr, wm0: float, wc0: float, wi: float, c: float,
+        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr,
+    ) -> tuple[int, int, int]:  # fmt: skip
+        return gk.ukf_run(
+            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
+            wm0, wc0, wi, c, ox, op, oz, oi, on,
+        )  # fmt: skip
+
+    @numba.njit(error_model="numpy")
+    def batch(
+        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
+        n_hold: int, held_causes: Arr, wm0: float, wc0: float, wi: float, c: float,
+        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, stop: Arr, rep: Arr, cause: Arr,
+    ) -> None:  # fmt: skip
+        gk.ukf_batch(
+            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
+            wm0, wc0, wi, c, ox, op, oz, oi, on, stop, rep, cause,
+        )  # fmt: skip
+
+    return single, batch
+
+
+@functools.cache
+def _bound_ekf(model: StateSpaceModel, numerical: bool) -> tuple[Any, Any]:
+    f, h, check = model.f, model.h, model.check
+    n_tok, m_tok = (0.0,) * model.n_states, (0.0,) * model.n_measurements
+    fd_F = model.F is None or numerical
+    fd_H = model.H is None or numerical
+    F_way = gk.numerical_process_jacobian if fd_F else gk.given_process_jacobian
+    F_jac = f if fd_F else model.F
+    H_way = gk.numerical_measurement_jacobian if fd_H else gk.given_measurement_jacobian
+    H_jac = h if fd_H else model.H
+
+    @numba.njit(error_model="numpy")
+    def single(
+        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
+        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr,
+    ) -> tuple[int, int, int]:  # fmt: skip
+        return gk.ekf_run(
+            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
+            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on,
+        )  # fmt: skip
+
+    @numba.njit(error_model="numpy")
+    def batch(
+        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
+        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr,
+        stop: Arr, rep: Arr, cause: Arr,
+    ) -> None:  # fmt: skip
+        gk.ekf_batch(
+            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
+            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on, stop, rep, cause,
+        )  # fmt: skip
+
+    return single, batch
 
 
 _FILTERS: dict[str, type[ModelFilter]] = {"ukf": UKF, "ekf": EKF}
