@@ -593,9 +593,9 @@ def test_kernel_cholesky_matches_the_3x3_one_and_repairs_alike():
     ):
         ref = chol3_repair(P[0, 0], P[0, 1], P[0, 2], P[1, 1], P[1, 2], P[2, 2])
         assert gk.chol_repair(P, L, (0.0,) * 3) == (ref[0], ref[-1])
-    # a subnormal scale underflows the first jitter to 0: the escalation ends (chol3_repair's
-    # would not: its loop never ends for this matrix)
+    # a subnormal scale underflows the first jitter to 0: both escalations end (not repairable)
     assert gk.chol_repair(np.diag([1e-320, 1e-320, -1e-320]), L, (0.0,) * 3) == (2, 0.0)
+    assert chol3_repair(1e-320, 0.0, 0.0, 1e-320, 0.0, -1e-320)[0] == 2
 
 
 @pytest.mark.parametrize(

@@ -147,7 +147,8 @@ def chol3_repair(
     )
     if finite and scale > 0.0:
         jitter = JITTER_START * scale
-        while jitter <= JITTER_MAX * scale * 1.0000001:
+        # (0 < jitter: a subnormal scale underflows the jitter to 0, which never grows)
+        while 0.0 < jitter <= JITTER_MAX * scale * 1.0000001:
             ok, l00, l10, l11, l20, l21, l22 = chol3(
                 p00 + jitter, p01, p02, p11 + jitter, p12, p22 + jitter
             )

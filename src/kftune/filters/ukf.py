@@ -460,7 +460,7 @@ def _cholesky_repaired(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         pass
     scale = float(np.max(np.diag(P)))
     jitter = _kernel.JITTER_START * scale
-    while scale > 0 and jitter <= _kernel.JITTER_MAX * scale * 1.0000001:
+    while scale > 0 and 0.0 < jitter <= _kernel.JITTER_MAX * scale * 1.0000001:
         Pj = P + jitter * np.eye(P.shape[0])
         try:
             return np.linalg.cholesky(Pj), Pj, True
