@@ -46,6 +46,8 @@ SUBCOMMANDS: tuple[str, ...] = (
     "compare",
     "tune",
     "evaluate",
+    "estimate",
+    "export",
     "report",
     "dataset",
     "models",

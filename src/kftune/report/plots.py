@@ -32,6 +32,7 @@ COLOURS = {
     "optuna-gp": "#bcbd22",
     "cma": "#e377c2",
     "reference": "#000000",
+    "estimate": "#1f77b4",
 }
 
 
@@ -192,4 +193,48 @@ def cost_slice(results: ExperimentResults) -> Figure:
     ax.set_title("GP and Student-t process fits of a slice of the cost")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
+    return fig
+
+
+def estimate_trace(
+    t: np.ndarray,
+    beta: np.ndarray,
+    beta_std: np.ndarray | None,
+    beta_ref: np.ndarray | None,
+    title: str,
+) -> Figure:
+    """``kftune estimate``: the sideslip estimate [rad in, degrees shown] with its ±2σ band
+    and, when there is one, the reference and the error."""
+    rows = 2 if beta_ref is not None else 1
+    fig, axes = plt.subplots(
+        rows,
+        1,
+        figsize=(8, 4.8 if rows == 2 else 3.4),
+        sharex=True,
+        squeeze=False,
+        gridspec_kw={"height_ratios": [2, 1][:rows]},
+    )
+    ax = axes[0, 0]
+    est = np.degrees(beta)
+    colour = COLOURS["estimate"]
+    if beta_std is not None:
+        band = 2.0 * np.degrees(beta_std)
+        ax.fill_between(t, est - band, est + band, color=colour, alpha=0.25, lw=0, label="±2σ")
+    ax.plot(t, est, color=colour, lw=1.0, label="estimate")
+    if beta_ref is not None:
+        ref = np.degrees(beta_ref)
+        ax.plot(t, ref, color=COLOURS["reference"], lw=1.0, label="reference")
+        ax_e = axes[1, 0]
+        ax_e.axhline(0.0, color="black", lw=0.6)
+        if beta_std is not None:
+            ax_e.fill_between(t, -band, band, color=colour, alpha=0.25, lw=0, label="±2σ")
+        ax_e.plot(t, est - ref, color=colour, lw=0.9, label="estimate − reference")
+        ax_e.set_ylabel("error [deg]")
+        ax_e.legend(fontsize=8, loc="best")
+    ax.set_ylabel("β [deg]")
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc="best")
+    axes[-1, 0].set_xlabel("time [s]")
+    for a in axes[:, 0]:
+        a.grid(True, alpha=0.3)
     return fig
