@@ -186,9 +186,7 @@ def run(args: argparse.Namespace) -> int:
             kpis.append(kpi)
             row["kpis"] = {k: _num(v) for k, v in kpi.items()}
         out["manoeuvres"][m.name] = row
-    out["average"] = (
-        {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
-    )
+    out["average"] = {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
     if args.json:
         emit_json(out)
     else:
@@ -271,4 +269,3 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
 
 def _cell(v: float | None) -> str:
     return f"{'–':>10s}" if v is None else f"{v:10.4f}"
-

@@ -205,8 +205,7 @@ def provenance(doc: Mapping[str, Any], source: str) -> str:
             f"kftune filter: {doc['filter'].upper()} on model {doc['model']!r}, {tuned})",
             f"on dataset {doc['dataset']!r} ({doc['dataset_manoeuvres']} manoeuvres, "
             f"{doc['dataset_samples']} samples, sha256 {doc['dataset_sha256']}),",
-            f"exported from {source} by {doc['exported_with']} "
-            f"(tuned with {doc['tuned_with']}).",
+            f"exported from {source} by {doc['exported_with']} (tuned with {doc['tuned_with']}).",
             "Q and R are diagonal; Q is the process-noise variance per step of dt.",
             f"Initial state: {doc['initial_state']}",
         ]

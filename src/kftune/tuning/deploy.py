@@ -82,8 +82,7 @@ def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[
         "states": [{"name": n, "unit": u} for n, u in zip(model.state_names, model.state_units)],
         "inputs": [{"name": n, "unit": u} for n, u in zip(model.input_names, model.input_units)],
         "measurements": [
-            {"name": n, "unit": u}
-            for n, u in zip(model.measurement_names, model.measurement_units)
+            {"name": n, "unit": u} for n, u in zip(model.measurement_names, model.measurement_units)
         ],
         "Q": [
             {"name": n, "variance": float(v), "unit": _squared(u)}
@@ -161,7 +160,9 @@ class TunedFilter:
             )
         dt = dep.get("dt")
         if dt is not None and not (_number(dt) and 0 < dt < math.inf):
-            raise DataError(f"'deployment.dt' must be a positive number [s], got {dt!r}", file=source)
+            raise DataError(
+                f"'deployment.dt' must be a positive number [s], got {dt!r}", file=source
+            )
         vehicle = dep.get("vehicle")
         if vehicle is not None:
             try:
