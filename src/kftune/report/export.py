@@ -24,6 +24,7 @@ from typing import Any
 
 from kftune import __version__
 from kftune.errors import DataError
+from kftune.vehicle.params import PLAUSIBLE_RANGES
 
 #: The ``format`` of an exported filter.
 EXPORT_FORMAT = "kftune-filter-1"
@@ -31,20 +32,7 @@ EXPORT_FORMAT = "kftune-filter-1"
 EXPORT_FORMATS = ("json", "yaml", "c", "matlab")
 
 #: Units of the vehicle parameters (VehicleParams), for comments.
-VEHICLE_UNITS = {
-    "m": "kg",
-    "Iz": "kg*m^2",
-    "a": "m",
-    "b": "m",
-    "h": "m",
-    "C_af": "N/rad",
-    "C_ar": "N/rad",
-    "C_x": "N",
-    "mu": "-",
-    "track_f": "m",
-    "track_r": "m",
-    "steering_ratio": "-",
-}
+VEHICLE_UNITS = {name: unit for name, (_, _, unit) in PLAUSIBLE_RANGES.items()}
 
 
 def export_document(tuned: Mapping[str, Any], source: str) -> dict[str, Any]:
@@ -273,6 +261,7 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
         if key.startswith("vehicle_") and key != "vehicle_name" and value is not None:
             name = key.removeprefix("vehicle_")
             unit = VEHICLE_UNITS.get(name, "")
+            unit = _c_comment(unit)
             out.append(f"#define {p}VEHICLE_{_c_name(name)} {_float(value)} /* [{unit}] */")
     out += ["", f"#endif /* {guard} */", ""]
     return "\n".join(out)
