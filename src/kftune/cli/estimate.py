@@ -264,7 +264,8 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
             + (f", after a burn-in of {burn_in:g} s" if burn_in else "")
             + "; MAE = maximum absolute error; _NON: samples with |ay| ≥ 4 m/s²"
         )
-    print(f"estimates written to {doc['out']} ({len(rows)} {doc['format']} files)")
+    files = f"{len(rows)} {doc['format']} file{'s' if len(rows) != 1 else ''}"
+    print(f"estimates written to {doc['out']} ({files})")
 
 
 def _cell(v: float | None) -> str:

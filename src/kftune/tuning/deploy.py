@@ -204,7 +204,8 @@ class TunedFilter:
             if differ:
                 out.append(
                     f"the recording's vehicle {dataset.vehicle.name!r} differs from the tuned "
-                    f"one {self.vehicle.name!r} in {', '.join(differ)}"
+                    f"one {self.vehicle.name!r} in {', '.join(differ[:3])}"
+                    + (f" and {len(differ) - 3} more parameters" if len(differ) > 3 else "")
                 )
         return out
 
