@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import math
-import platform
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -33,9 +32,11 @@ from kftune.optim import (
     minimize_widening,
 )
 from kftune.progress import ProgressBar
+from kftune.report.provenance import machine, package_versions
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.space import Space
 from kftune.tuning.cost import CostSpec
+from kftune.tuning.deploy import dataset_fingerprint
 from kftune.tuning.kpi import average_kpis
 from kftune.tuning.problem import (
     Q_NAMES,
@@ -303,6 +304,7 @@ def method_run(
                 {"number": r.number, "reason": r.reason} for r in result.history if not r.ok
             ],
             "on_bounds": on_bounds(result),
+            "options": result.options,  # every option, defaults included (e.g. TSBO's mode)
         },
     )
     return run, betas
@@ -365,6 +367,7 @@ def run_compare(
     resume: bool = False,
     force: bool = False,
     progress: bool | None = None,
+    command: str | None = None,
 ) -> ExperimentResults:
     """Run the comparison and store its results in ``out_dir`` (``results.json``,
     ``traces.npz`` and one SQLite study per method under ``studies/``).
@@ -468,8 +471,11 @@ def run_compare(
         "budgets": {r.key: r.n_evals for r in runs},
         "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "kftune_version": __version__,
-        "machine": f"{platform.machine()}, {platform.python_implementation()} "
-        f"{platform.python_version()}",
+        "command": command,
+        "dataset_fingerprint": dataset_fingerprint(dataset),
+        "method_options": {r.key: r.extra["options"] for r in runs},
+        "packages": package_versions(),
+        "machine": machine(),
     }
     results = ExperimentResults(meta=meta, methods=runs, cost_slice=sl, traces=traces)
     results.save(out)

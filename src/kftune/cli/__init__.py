@@ -46,6 +46,8 @@ SUBCOMMANDS: tuple[str, ...] = (
     "compare",
     "tune",
     "evaluate",
+    "estimate",
+    "export",
     "report",
     "dataset",
     "models",
@@ -105,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _occupy_closed_std_streams()
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by reports
     with warnings.catch_warnings():
         warnings.showwarning = _plain_warnings(warnings.showwarning)
         return _run(args)

@@ -198,4 +198,5 @@ def run(args: argparse.Namespace) -> int:
             print(f"  sideslip KPIs [deg] (NON: |ay| >= 4 m/s², {out['n_non']} samples):")
             print(f"    RMSE     {k['rmse']:.4f}    MAE     {k['mae']:.4f}")
             print(f"    RMSE_NON {k['rmse_non']:.4f}    MAE_NON {k['mae_non']:.4f}")
+            print("    (MAE: maximum absolute error)")
     return EXIT_FAILURE if res.diverged else EXIT_OK

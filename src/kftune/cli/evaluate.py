@@ -7,6 +7,9 @@ tuned ``r_scale`` if there is one. Parameters tuned on another dataset than the 
 are refused when no dataset is named (the bundled one would be scored by default) and
 scored with a warning when one is.
 
+The sideslip KPIs, in degrees: RMSE, MAE — the maximum absolute error, as in the paper,
+not the mean — and both again over the samples with |ay| ≥ 4 m/s² (RMSE_NON, MAE_NON).
+
 Exit code 1 (after the KPI table, which shows "–" there) when the filter diverged or ran
 away on any manoeuvre; the message names each, with the step and the cause.
 """
@@ -290,6 +293,7 @@ def _print_table(doc: dict[str, Any]) -> None:
         cells = " ".join(_cell(row.get(c)) for c in cols)
         print(f"{name:{width}s} {cells}")
     print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in KPI_NAMES))
+    print("MAE: maximum absolute error; _NON: samples with |ay| >= 4 m/s²")
     if doc["cost"] is not None:
         print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
     if doc["diverged"] is not None:

@@ -47,6 +47,7 @@ from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 
 if TYPE_CHECKING:
+    from kftune.data import Dataset
     from kftune.optim import OptimizeResult
     from kftune.tuning.problem import TuningProblem
 
@@ -153,13 +154,13 @@ def run(args: argparse.Namespace) -> int:
                     widen_bounds=widen,
                 )
             except OptimizationInterrupted as stop:
-                _interrupted(args, stop.result, problem, dataset.name)
+                _interrupted(args, stop.result, problem, dataset)
                 return EXIT_INTERRUPTED
     except KeyboardInterrupt:  # before the first evaluation: loading, starting workers
         _interrupted(args)
         return EXIT_INTERRUPTED
     require_success(result, method)
-    doc = tuned_document(result, problem, dataset.name)
+    doc = tuned_document(result, problem, dataset)
     write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
     if args.json:
         emit_json({**doc, "file": str(args.out)})
@@ -204,11 +205,11 @@ def _interrupted(
     args: argparse.Namespace,
     result: OptimizeResult | None = None,
     problem: TuningProblem | None = None,
-    dataset: str = "",
+    dataset: Dataset | None = None,
 ) -> None:
     """Ctrl-C: say what was kept, save the best point so far, and how to go on."""
     lines = [f"kftune: interrupted after {0 if result is None else result.n_evals} evaluations"]
-    if result is not None and result.x is not None and problem is not None:
+    if result is not None and result.x is not None and problem is not None and dataset is not None:
         partial = args.out.with_name(args.out.stem + ".partial" + args.out.suffix)
         doc = tuned_document(result, problem, dataset)
         try:
@@ -233,15 +234,20 @@ def _kept(args: argparse.Namespace) -> str:
     return f"every evaluation is saved in the study {args.storage}"
 
 
-def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str) -> dict[str, Any]:
-    """The tuned-parameters file: what was found, and how, in strict JSON."""
+def tuned_document(
+    result: OptimizeResult, problem: TuningProblem, dataset: Dataset
+) -> dict[str, Any]:
+    """The tuned-parameters file: what was found, and how, in strict JSON; ``deployment``
+    holds everything needed to run the filter elsewhere (``kftune export``, see
+    :func:`kftune.tuning.deploy.deployment_record`)."""
     from kftune.experiment import on_bounds
+    from kftune.tuning.deploy import deployment_record
 
     q, r, ukf = problem.decode(result.x)
     return {
         "format": TUNED_FORMAT,
         "kftune_version": __version__,
-        "dataset": dataset,
+        "dataset": dataset.name,
         "method": result.method,
         "seed": result.seed,
         "cost": result.fun,
@@ -264,4 +270,5 @@ def tuned_document(result: OptimizeResult, problem: TuningProblem, dataset: str)
         "q": q.tolist(),
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
+        "deployment": deployment_record(problem, result.x, dataset),
     }

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -113,7 +114,10 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
     for stem in ("cost", "kpi_train", "kpi_test", "parameters"):
         if stem in tables:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
+            if stem.startswith("kpi_"):
+                md += [MAE_NOTE, ""]
     md += _bound_lines(results)
+    md += _option_lines(results)
     for file, heading, caption in figures:
         md += [f"## {heading}", "", caption, "", f"![{heading}](figures/{file})", ""]
     if not results.traces:
@@ -152,6 +156,31 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
     return [*md, ""]
 
 
+#: What the KPI names mean, under every KPI table.
+MAE_NOTE = (
+    "RMSE: root-mean-square error; MAE: the *maximum* absolute error (the paper's "
+    "definition, not the mean); _NON: only the samples with |ay| ≥ 4 m/s²."
+)
+
+
+def _option_lines(results: ExperimentResults) -> list[str]:
+    """Every method's options, defaults included (``extra["options"]``; results written
+    before they were recorded have none)."""
+    runs = [m for m in results.methods if "options" in m.extra]
+    if not runs:
+        return []
+    md = ["## Method options", "", "Every option of every method, defaults included:", ""]
+    for m in runs:
+        opts = m.extra["options"] or {}
+        text = ", ".join(f"{k} = {_value(v)}" for k, v in opts.items()) or "none"
+        md.append(f"- {m.label} (`{m.key}`): {text}")
+    return [*md, ""]
+
+
+def _value(value: object) -> str:
+    return json.dumps(value, separators=(", ", ": "))
+
+
 def _meta_lines(meta: dict) -> list[str]:
     lines = []
     ds = meta.get("dataset", {})
@@ -169,8 +198,28 @@ def _meta_lines(meta: dict) -> list[str]:
         ("seed", "Seed"),
         ("created", "Created"),
         ("kftune_version", "kftune version"),
-        ("machine", "Machine"),
     ):
         if key in meta:
             lines.append(f"- {label}: {meta[key]}")
+    if meta.get("command"):
+        lines.append(f"- Command: `{meta['command']}`")
+    fp = meta.get("dataset_fingerprint")
+    if isinstance(fp, dict):
+        lines.append(
+            f"- Dataset fingerprint: SHA-256 `{fp.get('sha256')}` ({fp.get('n_manoeuvres')} "
+            f"manoeuvres, {fp.get('n_samples')} samples)"
+        )
+    packages = meta.get("packages")
+    if isinstance(packages, dict):
+        lines.append(
+            "- Packages: " + ", ".join(f"{k} {v}" for k, v in packages.items() if v is not None)
+        )
+    mach = meta.get("machine")
+    if isinstance(mach, dict):
+        lines.append(
+            f"- Machine: {mach.get('platform')}, {mach.get('processor') or mach.get('machine')}"
+            f", {mach.get('cpu_count')} CPUs ({mach.get('cpus_usable')} usable by this process)"
+        )
+    elif mach:
+        lines.append(f"- Machine: {mach}")
     return [*lines, ""]

@@ -19,20 +19,27 @@ from matplotlib.figure import Figure
 from kftune.report.results import ExperimentResults
 from kftune.report.tables import CHANNEL_METRICS, relative_improvement
 
-#: Fixed colours per method so every figure agrees.
+#: The one registry of colours: every method keeps its colour in every figure (and no
+#: figure uses a method's colour for anything else). Distinct hues, at least ΔE 20 apart
+#: in CIELAB (tests/test_report.py checks both); "reference" and "estimate" are the
+#: sideslip reference and ``kftune estimate``'s estimate.
 COLOURS = {
-    "manual": "#7f7f7f",
-    "ga": "#d62728",
-    "tsbo-gp": "#1f77b4",
-    "tsbo-tsp": "#2ca02c",
-    "tsbo-robust": "#9467bd",
-    "random": "#8c564b",
-    "trbo": "#ff7f0e",
-    "optuna-tpe": "#17becf",
-    "optuna-gp": "#bcbd22",
-    "cma": "#e377c2",
+    "manual": "#7f7f7f",  # grey
+    "ga": "#d62728",  # red
+    "tsbo-gp": "#1f77b4",  # blue
+    "tsbo-tsp": "#2ca02c",  # green
+    "tsbo-robust": "#9467bd",  # purple
+    "random": "#8c564b",  # brown
+    "trbo": "#ff7f0e",  # orange
+    "optuna-tpe": "#ff00ff",  # magenta (was cyan, too close to TSBO-GP's blue)
+    "optuna-gp": "#bcbd22",  # olive
+    "cma": "#e377c2",  # pink
     "reference": "#000000",
+    "estimate": "#1b9e77",  # teal
 }
+
+#: Fills of the per-channel bars of Fig. 7: greys and hatches, no method's colour.
+CHANNEL_STYLES = (("#404040", ""), ("#909090", "//"), ("#d0d0d0", ".."))
 
 
 def _colour(key: str) -> str | None:
@@ -86,7 +93,17 @@ def improvement(
     fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(names) + 2), 3.8))
     for i, (metric, label) in enumerate(CHANNEL_METRICS.items()):
         values = [rel[n][metric] for n in names]
-        ax.bar(x + (i - 1) * width, values, width, label=f"RMSE {label}")
+        colour, hatch = CHANNEL_STYLES[i % len(CHANNEL_STYLES)]
+        ax.bar(
+            x + (i - 1) * width,
+            values,
+            width,
+            color=colour,
+            hatch=hatch,
+            edgecolor="black",
+            lw=0.4,
+            label=f"RMSE {label}",
+        )
     ax.axhline(0.0, color="black", lw=0.8)
     ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
     ax.set_ylabel("relative improvement [%]")
@@ -192,4 +209,48 @@ def cost_slice(results: ExperimentResults) -> Figure:
     ax.set_title("GP and Student-t process fits of a slice of the cost")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
+    return fig
+
+
+def estimate_trace(
+    t: np.ndarray,
+    beta: np.ndarray,
+    beta_std: np.ndarray | None,
+    beta_ref: np.ndarray | None,
+    title: str,
+) -> Figure:
+    """``kftune estimate``: the sideslip estimate [rad in, degrees shown] with its ±2σ band
+    and, when there is one, the reference and the error."""
+    rows = 2 if beta_ref is not None else 1
+    fig, axes = plt.subplots(
+        rows,
+        1,
+        figsize=(8, 4.8 if rows == 2 else 3.4),
+        sharex=True,
+        squeeze=False,
+        gridspec_kw={"height_ratios": [2, 1][:rows]},
+    )
+    ax = axes[0, 0]
+    est = np.degrees(beta)
+    colour = COLOURS["estimate"]
+    if beta_std is not None:
+        band = 2.0 * np.degrees(beta_std)
+        ax.fill_between(t, est - band, est + band, color=colour, alpha=0.25, lw=0, label="±2σ")
+    ax.plot(t, est, color=colour, lw=1.0, label="estimate")
+    if beta_ref is not None:
+        ref = np.degrees(beta_ref)
+        ax.plot(t, ref, color=COLOURS["reference"], lw=1.0, label="reference")
+        ax_e = axes[1, 0]
+        ax_e.axhline(0.0, color="black", lw=0.6)
+        if beta_std is not None:
+            ax_e.fill_between(t, -band, band, color=colour, alpha=0.25, lw=0, label="±2σ")
+        ax_e.plot(t, est - ref, color=colour, lw=0.9, label="estimate − reference")
+        ax_e.set_ylabel("error [deg]")
+        ax_e.legend(fontsize=8, loc="best")
+    ax.set_ylabel("β [deg]")
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc="best")
+    axes[-1, 0].set_xlabel("time [s]")
+    for a in axes[:, 0]:
+        a.grid(True, alpha=0.3)
     return fig

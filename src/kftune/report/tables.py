@@ -17,9 +17,9 @@ from kftune.tuning.kpi import KPI_NAMES
 
 KPI_LABELS = {
     "rmse": "RMSE [deg]",
-    "mae": "MAE [deg]",
+    "mae": "MAE (max. abs. error) [deg]",
     "rmse_non": "RMSE_NON [deg]",
-    "mae_non": "MAE_NON [deg]",
+    "mae_non": "MAE_NON (max. abs. error) [deg]",
 }
 
 #: Channel RMSE metrics compared in Fig. 7, with their labels.

@@ -1,0 +1,272 @@
+"""``kftune estimate``: run a tuned filter on recordings and write its estimates.
+
+Reads the filter from a file written by ``kftune tune`` (``--params tuned.json``) — its Q
+and R as tuned, not re-estimated from the recordings — and runs it on every manoeuvre of
+DATASET (a kftune dataset directory or manifest, a revs-250lm directory, or 'default';
+``--manoeuvre`` picks some). For each manoeuvre it writes, into ``--out`` (default
+./estimates), one table (CSV, or Parquet with ``--format parquet``, which needs pyarrow:
+pip install pyarrow) and one figure (``--no-plot`` leaves them out):
+
+  NAME.csv   t [s]; the model's states (single-track: vx, vy [m/s], r [rad/s]) and their
+             standard deviations <state>_std from the diagonal of the covariance P; beta
+             [rad] = atan2(vy, vx) and beta_std [rad] by the delta method from the Vx and Vy
+             variances (their covariance is not kept, so it is left out); the innovations
+             innovation_<measurement> (z − predicted z, in the measurement's unit); nis [-]
+             (normalised innovation squared); and beta_ref [rad] where the recording has a
+             reference sideslip. SI units throughout.
+  NAME.png   β with its ±2σ band, and the reference and the error where there is one.
+
+With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error, and both
+for |ay| ≥ 4 m/s², in degrees) after the file's burn-in.
+
+It refuses (exit 3) recordings whose sample time differs from the tuned one by more than
+1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones;
+--force runs anyway and warns. Files written before kftune recorded the sample time and
+vehicle are run with the recording's vehicle, with a warning. Exit 1 when the filter
+diverged on a manoeuvre (its rows from that step on are empty).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from kftune.cli._common import add_command, emit_json, output_dir, write_output, writing
+from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
+from kftune.errors import ConfigError, DataWarning, UsageError
+
+FORMATS = ("csv", "parquet")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``estimate``."""
+    p = add_command(
+        subparsers,
+        "estimate",
+        "run a tuned filter on recordings; write estimates, std, innovations, NIS and plots",
+        __doc__,
+    )
+    p.add_argument(
+        "dataset",
+        nargs="?",
+        default=None,
+        help="recordings: 'default' (the bundled set), a kftune dataset directory or "
+        "manifest, or a directory in the revs-250lm layout",
+    )
+    p.add_argument(
+        "--params", "-p", type=Path, required=True, help="tuned-parameters file ('kftune tune')"
+    )
+    p.add_argument(
+        "--manoeuvre",
+        "-m",
+        action="append",
+        metavar="NAME",
+        help="only this manoeuvre (repeat for more; default: all)",
+    )
+    p.add_argument(
+        "--out", "-o", type=Path, default=Path("estimates"), help="folder (default ./estimates)"
+    )
+    p.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="csv",
+        help="table format (default csv; parquet needs pyarrow)",
+    )
+    p.add_argument("--no-plot", action="store_true", help="write no figures")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="run even when the sample time or vehicle differ from the tuned ones (warns)",
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=run)
+
+
+def _parquet_writer() -> Any:
+    try:
+        import pyarrow
+        import pyarrow.parquet
+    except ImportError:
+        raise UsageError(
+            "--format parquet needs the package pyarrow, which is not installed "
+            "(pip install pyarrow); or use --format csv"
+        ) from None
+    return pyarrow, pyarrow.parquet
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``kftune estimate``."""
+    import numpy as np
+
+    from kftune.cli.evaluate import read_tuned
+    from kftune.data import open_dataset
+    from kftune.data.io import file_stem
+    from kftune.tuning.deploy import TunedFilter, estimate
+    from kftune.tuning.kpi import average_kpis, sideslip_kpis
+    from kftune.tuning.problem import first_scored, where_diverged
+
+    parquet = _parquet_writer() if args.format == "parquet" else None
+    output_dir(args.out, "--out")
+    tuned = TunedFilter.from_document(read_tuned(args.params), str(args.params))
+    dataset = open_dataset(args.dataset)
+    if args.manoeuvre:
+        unknown = [n for n in args.manoeuvre if n not in dataset.names]
+        if unknown:
+            raise ConfigError(
+                f"--manoeuvre: no manoeuvre {unknown[0]!r} in dataset {dataset.name!r}; it has "
+                f"{list(dataset.names)}"
+            )
+        manoeuvres = [dataset[n] for n in dict.fromkeys(args.manoeuvre)]
+    else:
+        manoeuvres = list(dataset.manoeuvres)
+    notes = _check(tuned, dataset, manoeuvres, args)
+    vehicle = tuned.vehicle or dataset.vehicle
+    out: dict[str, Any] = {
+        "params": str(args.params),
+        "dataset": dataset.name,
+        "out": str(args.out),
+        "format": args.format,
+        "warnings": notes,
+        "manoeuvres": {},
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    stems: set[str] = set()
+    kpis: list[dict[str, float]] = []
+    diverged: list[str] = []
+    keep = "nothing else is lost; fix it and run the command again"
+    for m in manoeuvres:
+        est = estimate(tuned, m, vehicle)
+        stem = file_stem(m.name)
+        while stem in stems:  # two names reduced to the same stem
+            stem += "_"
+        stems.add(stem)
+        table = args.out / f"{stem}.{'parquet' if parquet else 'csv'}"
+        with writing(f"the estimates to {table}", keep):
+            if parquet is not None:
+                pa, pq = parquet
+                pq.write_table(pa.table(est.columns), table)
+            else:
+                write_output(table, _csv(est.columns), "--out", keep)
+        row: dict[str, Any] = {
+            "file": str(table),
+            "n": m.n,
+            "columns": est.units,
+            "mean_nis": _num(float(np.nanmean(est.result.nis))) if m.n else None,
+        }
+        if est.result.diverged:
+            row["diverged_at"] = where_diverged(m, est.result)
+            diverged.append(row["diverged_at"])
+        if not args.no_plot and "beta" in est.columns:
+            from kftune.report import plots
+
+            figure = args.out / f"{stem}.png"
+            fig = plots.estimate_trace(
+                m.t,
+                est.columns["beta"],
+                est.columns.get("beta_std"),
+                est.columns.get("beta_ref"),
+                f"Sideslip estimate, {m.name}",
+            )
+            with writing(f"the figure {figure}", keep):
+                plots.save(fig, figure)
+            row["figure"] = str(figure)
+        if "beta_ref" in est.columns and "beta" in est.columns:
+            k0 = first_scored(m, tuned.burn_in)
+            if est.result.diverged:
+                kpi = {k: math.nan for k in ("rmse", "mae", "rmse_non", "mae_non")}
+                kpi["diverged"] = 1.0
+            else:
+                kpi = sideslip_kpis(
+                    est.columns["beta"][k0:], est.columns["beta_ref"][k0:], m.ay[k0:]
+                )
+            kpis.append(kpi)
+            row["kpis"] = {k: _num(v) for k, v in kpi.items()}
+        out["manoeuvres"][m.name] = row
+    out["average"] = {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
+    if args.json:
+        emit_json(out)
+    else:
+        _print(out, tuned.burn_in)
+    if diverged:
+        more = f" (and {len(diverged) - 1} more)" if len(diverged) > 1 else ""
+        print(
+            f"kftune: failed: the filter diverged on {len(diverged)} of {len(manoeuvres)} "
+            f"manoeuvres; first: {diverged[0]}{more}",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    return EXIT_OK
+
+
+def _check(tuned: Any, dataset: Any, manoeuvres: list[Any], args: argparse.Namespace) -> list[str]:
+    """Refuse recordings the filter was not tuned for (unless --force); warnings in words."""
+    notes = []
+    missing = tuned.missing()
+    if missing:
+        notes.append(
+            f"{args.params} does not record {', '.join(missing)} (written before kftune "
+            "recorded deployments): the sample time and vehicle cannot be checked, the "
+            f"recording's vehicle {dataset.vehicle.name!r} is used"
+        )
+    bad = tuned.mismatches(dataset, manoeuvres)
+    if bad and not args.force:
+        raise ConfigError(
+            f"{args.params}: the filter was not tuned for these recordings: {bad[0]}"
+            + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else "")
+            + "; tune it on recordings like these, or pass --force to run it anyway"
+        )
+    for b in bad:
+        notes.append(f"--force: {b}; the estimates may be poor")
+    for note in notes:
+        warnings.warn(note, DataWarning, stacklevel=2)
+    return notes
+
+
+def _csv(columns: dict[str, Any]) -> str:
+    """The columns as CSV text: a header row, then one row per sample, ``%.17g`` (every
+    float64 exactly); a NaN (after a divergence) as an empty cell."""
+    import numpy as np
+
+    names = list(columns)
+    data = np.column_stack([np.asarray(columns[n], dtype=float) for n in names])
+    lines = [",".join(names)]
+    for row in data:
+        lines.append(",".join("" if math.isnan(v) else f"{v:.17g}" for v in row.tolist()))
+    return "\n".join(lines) + "\n"
+
+
+def _num(v: float) -> float | None:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _print(doc: dict[str, Any], burn_in: float) -> None:
+    rows = doc["manoeuvres"]
+    width = max(12, *(len(n) for n in rows))
+    with_kpis = any("kpis" in r for r in rows.values())
+    heads = ("mean NIS", "RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°") if with_kpis else ("mean NIS",)
+    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>10s}" for h in heads))
+    for name, row in rows.items():
+        cells = [_cell(row.get("mean_nis"))]
+        if with_kpis:
+            k = row.get("kpis", {})
+            cells += [_cell(k.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
+        print(f"{name:{width}s} " + " ".join(cells))
+    if doc["average"] is not None:
+        avg = doc["average"]
+        cells = [" " * 10] + [_cell(avg.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
+        print(f"{'average':{width}s} " + " ".join(cells))
+        print(
+            "β KPIs in degrees against the reference"
+            + (f", after a burn-in of {burn_in:g} s" if burn_in else "")
+            + "; MAE = maximum absolute error; _NON: samples with |ay| ≥ 4 m/s²"
+        )
+    files = f"{len(rows)} {doc['format']} file{'s' if len(rows) != 1 else ''}"
+    print(f"estimates written to {doc['out']} ({files})")
+
+
+def _cell(v: float | None) -> str:
+    return f"{'–':>10s}" if v is None else f"{v:10.4f}"

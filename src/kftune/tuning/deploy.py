@@ -1,0 +1,314 @@
+"""A tuned filter as a deployment needs it, and running it on recordings.
+
+``kftune tune`` writes, under the key ``"deployment"`` of the tuned-parameters file,
+everything needed to rebuild the filter elsewhere (:func:`deployment_record`): the model
+and filter, the sample time dt [s] (Q is a variance *per step* of dt), the vehicle and
+model parameters, Q and R (diagonals, named by state and measurement, with units), the
+sigma-point settings, the rule that sets the initial state and covariance, and the
+fingerprint of the dataset it was tuned on (:func:`dataset_fingerprint`).
+:class:`TunedFilter` reads that back (files written before it existed load with ``dt``,
+``vehicle`` and ``dataset`` unknown) and :func:`estimate` runs it on a manoeuvre.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from kftune.data.manoeuvre import Dataset, Manoeuvre
+from kftune.errors import DataError
+from kftune.filters import UKFSettings
+from kftune.models import StateSpaceModel
+from kftune.tuning.problem import RunResult, TuningProblem, filter_spec, model_output
+from kftune.vehicle.params import VehicleParams
+
+#: Relative difference of sample times beyond which a recording is not the tuned one's.
+DT_TOLERANCE = 0.01
+
+
+def dataset_fingerprint(dataset: Dataset) -> dict[str, Any]:
+    """What identifies a dataset's data: its name, size, and a SHA-256 over every
+    manoeuvre's name, split, kind and channels (names and float64 values, in order)."""
+    h = hashlib.sha256()
+    for m in dataset.manoeuvres:
+        h.update(f"{m.name}\0{m.split}\0{m.kind}\0".encode())
+        h.update(np.ascontiguousarray(m.t, dtype=np.float64).tobytes())
+        for name in m.channel_names:
+            h.update(name.encode() + b"\0")
+            h.update(np.ascontiguousarray(m.channel(name), dtype=np.float64).tobytes())
+    return {
+        "name": dataset.name,
+        "n_manoeuvres": len(dataset.manoeuvres),
+        "n_samples": int(sum(m.n for m in dataset.manoeuvres)),
+        "sha256": h.hexdigest(),
+    }
+
+
+def _squared(unit: str) -> str:
+    """``"m/s"`` → ``"(m/s)^2"``, ``"rad"`` → ``"rad^2"``, ``""`` → ``""``."""
+    if not unit or unit == "-":
+        return unit
+    return f"({unit})^2" if any(c in unit for c in "/*^ ") else f"{unit}^2"
+
+
+def _initial_rule(model: StateSpaceModel) -> str:
+    """The first line of the model's prior rule's docstring (how x0 and P0 are set)."""
+    doc = (getattr(model.initial_state, "__doc__", None) or "").strip()
+    if not doc:
+        return "none: the caller gives x0 and P0"
+    return doc.splitlines()[0].strip()
+
+
+def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[str, Any]:
+    """The ``"deployment"`` part of a tuned-parameters file for the point ``x`` of
+    ``problem`` tuned on ``dataset`` (strict-JSON values)."""
+    q, r, settings = problem.decode(x)
+    model = problem.model
+    fs = filter_spec(problem.model_spec, problem.filter, problem.vehicle)
+    return {
+        "model": problem.model_spec,
+        "filter": problem.filter,
+        "dt": float(dataset.dt),
+        "vehicle": problem.vehicle.to_dict(),
+        "model_params": [
+            {"name": n, "unit": u, "value": float(v)}
+            for n, u, v in zip(model.param_names, model.param_units, fs.params.tolist())
+        ],
+        "states": [{"name": n, "unit": u} for n, u in zip(model.state_names, model.state_units)],
+        "inputs": [{"name": n, "unit": u} for n, u in zip(model.input_names, model.input_units)],
+        "measurements": [
+            {"name": n, "unit": u} for n, u in zip(model.measurement_names, model.measurement_units)
+        ],
+        "Q": [
+            {"name": n, "variance": float(v), "unit": _squared(u)}
+            for n, u, v in zip(model.state_names, model.state_units, q.tolist())
+        ],
+        "R": [
+            {"name": n, "variance": float(v), "unit": _squared(u)}
+            for n, u, v in zip(model.measurement_names, model.measurement_units, r.tolist())
+        ],
+        "sigma_points": None
+        if problem.filter != "ukf"
+        else {
+            "alpha": settings.alpha,
+            "beta": settings.beta,
+            "kappa": settings.kappa,
+            "convention": "scaled sigma points (Van der Merwe; FilterPy MerweScaledSigmaPoints)",
+        },
+        "initial_state": _initial_rule(model),
+        "dataset": dataset_fingerprint(dataset),
+    }
+
+
+@dataclass(frozen=True)
+class TunedFilter:
+    """A tuned filter read from a tuned-parameters file.
+
+    Attributes:
+        model, filter: the model spec (a registered name or a model file) and ``"ukf"`` /
+            ``"ekf"``.
+        q, r: (n,), (m,) the diagonals of Q (per step of ``dt``) and R, in the squared
+            units of the states and measurements.
+        settings: the UKF's sigma-point settings.
+        dt: [s] the sample time it was tuned at (None: an old file that does not say).
+        vehicle: the vehicle it was tuned for (None: an old file that does not say).
+        dataset: the fingerprint of the dataset it was tuned on (None: not recorded).
+        burn_in: [s] left out of the KPIs at each manoeuvre's start.
+        source: the file it came from (for messages).
+        document: the whole file.
+    """
+
+    model: str
+    filter: str
+    q: np.ndarray
+    r: np.ndarray
+    settings: UKFSettings
+    dt: float | None
+    vehicle: VehicleParams | None
+    dataset: Mapping[str, Any] | None
+    burn_in: float
+    source: str
+    document: Mapping[str, Any]
+
+    @classmethod
+    def from_document(cls, doc: Mapping[str, Any], source: str) -> TunedFilter:
+        """From a tuned-parameters file already read and checked by
+        :func:`kftune.cli.evaluate.read_tuned` (``q``, ``ukf``, ``params`` are valid).
+
+        Raises:
+            DataError: naming ``source``, when ``r`` is missing or not one positive number
+                per measurement, or the ``deployment`` part is damaged.
+        """
+        dep = doc.get("deployment")
+        if dep is not None and not isinstance(dep, Mapping):
+            raise DataError("'deployment' must be an object", file=source)
+        dep = dep or {}
+        r = doc.get("r")
+        if not (
+            isinstance(r, list)
+            and r
+            and all(_number(v) and 0 < v < math.inf for v in r)
+            and len(r) == len(doc.get("measurements", r))
+        ):
+            raise DataError(
+                f"'r' must be one positive variance per measurement, got {r!r:.80}", file=source
+            )
+        dt = dep.get("dt")
+        if dt is not None and not (_number(dt) and 0 < dt < math.inf):
+            raise DataError(
+                f"'deployment.dt' must be a positive number [s], got {dt!r}", file=source
+            )
+        vehicle = dep.get("vehicle")
+        if vehicle is not None:
+            try:
+                vehicle = VehicleParams.from_dict(dict(vehicle))
+            except (TypeError, ValueError) as exc:
+                raise DataError(f"'deployment.vehicle': {exc}", file=source) from None
+        return cls(
+            model=str(doc.get("model", "single-track")),
+            filter=str(doc.get("filter", "ukf")),
+            q=np.array(doc["q"], dtype=float),
+            r=np.array(r, dtype=float),
+            settings=UKFSettings(**doc["ukf"]),
+            dt=None if dt is None else float(dt),
+            vehicle=vehicle,
+            dataset=dep.get("dataset"),
+            burn_in=float(doc.get("burn_in", 0.0)),
+            source=source,
+            document=doc,
+        )
+
+    def missing(self) -> list[str]:
+        """What a deployment needs that this (older) file does not record."""
+        dep = self.document.get("deployment") or {}
+        return [k for k in ("dt", "vehicle", "dataset") if dep.get(k) is None]
+
+    def mismatches(self, dataset: Dataset, manoeuvres: list[Manoeuvre]) -> list[str]:
+        """How the recordings differ from what the filter was tuned for: a sample time off
+        by more than :data:`DT_TOLERANCE` (each manoeuvre named), other vehicle parameters."""
+        out = []
+        if self.dt is not None:
+            for m in manoeuvres:
+                if abs(m.dt - self.dt) > DT_TOLERANCE * self.dt:
+                    out.append(
+                        f"manoeuvre {m.name!r} is sampled every {m.dt:.6g} s, the filter was "
+                        f"tuned at dt = {self.dt:.6g} s (Q is a variance per step)"
+                    )
+        if self.vehicle is not None:
+            differ = vehicle_differences(self.vehicle, dataset.vehicle)
+            if differ:
+                out.append(
+                    f"the recording's vehicle {dataset.vehicle.name!r} differs from the tuned "
+                    f"one {self.vehicle.name!r} in {', '.join(differ[:3])}"
+                    + (f" and {len(differ) - 3} more parameters" if len(differ) > 3 else "")
+                )
+        return out
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def vehicle_differences(a: VehicleParams, b: VehicleParams, rtol: float = 1e-9) -> list[str]:
+    """``["m: 1500 vs 1600", …]``: the parameters (not the name) in which two vehicles differ."""
+    da, db = a.to_dict(), b.to_dict()
+    out = []
+    for key in da:
+        if key == "name":
+            continue
+        va, vb = da[key], db[key]
+        if va is None or vb is None:
+            same = va is vb
+        else:
+            same = math.isclose(va, vb, rel_tol=rtol, abs_tol=0.0)
+        if not same:
+            out.append(f"{key} {va!r} vs {vb!r}")
+    return out
+
+
+def beta_std(x: np.ndarray, p_diag: np.ndarray) -> np.ndarray:
+    """(N,) standard deviation [rad] of β = atan2(Vy, Vx) by the delta method.
+
+    Linearises β about the estimate: ∂β/∂Vx = −Vy/(Vx² + Vy²), ∂β/∂Vy = Vx/(Vx² + Vy²), so
+    var β ≈ (Vy²·var Vx + Vx²·var Vy)/(Vx² + Vy²)². Only the diagonal of P is kept by the
+    filter's output, so the Vx–Vy covariance is left out (it is small when Vx is measured).
+
+    Args:
+        x: (N, ≥2) states with Vx in column 0 and Vy in column 1 [m/s]; p_diag: (N, ≥2) their
+            variances [(m/s)²].
+    """
+    vx, vy = x[:, 0], x[:, 1]
+    s = vx**2 + vy**2
+    return np.sqrt(vy**2 * p_diag[:, 0] + vx**2 * p_diag[:, 1]) / s
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """One manoeuvre's estimates as named columns of equal length N (SI units).
+
+    Attributes:
+        columns: name → (N,) values: ``t`` [s]; each state and its standard deviation
+            ``<state>_std`` from the diagonal of P; each model output (``beta`` [rad]) and,
+            for β, ``beta_std`` (delta method, :func:`beta_std`); ``innovation_<measurement>``
+            (z − ẑ⁻); ``nis`` [-]; and ``beta_ref`` when the recording has a reference.
+        units: name → unit.
+        result: the filter's run.
+    """
+
+    columns: dict[str, np.ndarray]
+    units: dict[str, str]
+    result: RunResult
+
+
+def reference(m: Manoeuvre, channel: str = "beta_ref") -> np.ndarray | None:
+    """(N,) a reference channel of ``m``, or None when the recording has none (or it holds
+    no finite value)."""
+    try:
+        ref = m.channel(channel)
+    except (KeyError, AttributeError):
+        return None
+    if ref is None:
+        return None
+    ref = np.asarray(ref, dtype=float)
+    return ref if ref.shape == (m.n,) and np.isfinite(ref).any() else None
+
+
+def estimate(tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams) -> Estimates:
+    """Run ``tuned`` (its Q and R, not re-estimated) over ``m`` with ``vehicle``'s
+    parameters, at the manoeuvre's own sample time."""
+    fs = filter_spec(tuned.model, tuned.filter, vehicle)
+    model = fs.model
+    res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings)
+    cols: dict[str, np.ndarray] = {"t": m.t}
+    units: dict[str, str] = {"t": "s"}
+    for i, (name, unit) in enumerate(zip(model.state_names, model.state_units)):
+        cols[name] = res.x[:, i]
+        units[name] = unit
+    for i, (name, unit) in enumerate(zip(model.state_names, model.state_units)):
+        cols[f"{name}_std"] = np.sqrt(res.P_diag[:, i])
+        units[f"{name}_std"] = unit
+    if "beta" in model.outputs:
+        cols["beta"] = model_output(res, "beta")
+        units["beta"] = "rad"
+        if model.state_names[:2] == ("vx", "vy"):
+            cols["beta_std"] = beta_std(res.x, res.P_diag)
+            units["beta_std"] = "rad"
+    for name in model.outputs:
+        if name not in cols:
+            cols[name] = model_output(res, name)
+            units[name] = ""
+    for i, (name, unit) in enumerate(zip(model.measurement_names, model.measurement_units)):
+        cols[f"innovation_{name}"] = res.innovation[:, i]
+        units[f"innovation_{name}"] = unit
+    cols["nis"] = res.nis
+    units["nis"] = "-"
+    ref = reference(m)
+    if ref is not None:
+        cols["beta_ref"] = ref
+        units["beta_ref"] = "rad"
+    return Estimates(columns=cols, units=units, result=res)
