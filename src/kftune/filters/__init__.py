@@ -26,6 +26,7 @@ from kftune.filters.ukf import (
     run_ukf_batch,
     run_ukf_linear,
     run_ukf_reference,
+    run_ukf_simd,
 )
 
 __all__ = [
@@ -47,6 +48,7 @@ __all__ = [
     "run_ukf_batch",
     "run_ukf_linear",
     "run_ukf_reference",
+    "run_ukf_simd",
     "sigma_points",
     "unscented_transform",
 ]

@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 import kftune.filters._kernel as _kernel
+import kftune.filters._soa_kernel as _soa
 from kftune.filters._checks import check_covariance, check_dt, check_state
 from kftune.filters._checks import check_noise as _check_noise
 from kftune.filters._checks import check_table as _check_table
@@ -72,6 +73,7 @@ __all__ = [
     "run_ukf_batch",
     "run_ukf_linear",
     "run_ukf_reference",
+    "run_ukf_simd",
 ]
 
 #: What each ``diverged_cause`` code means (``_kernel.STOP_*``), for messages.
@@ -323,6 +325,93 @@ def run_ukf(
     )
 
 
+def _check_batch(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    x0: ArrayLike | None,
+    P0: ArrayLike | None,
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:
+    """All checks of a batch of B single-track runs: (params, u, z, dt, q (B, 3),
+    r (B, 3), x_init (B, 3), P_init (B, 3, 3)) as arrays."""
+    u_arr, z_arr, dt_f = _check_manoeuvre(u, z, dt)
+    mp = pack_params(params)
+    q_arr = _check_noise("q", q, _Q_UNITS, strictly_positive=False, batch=True)
+    n_sets = q_arr.shape[0]
+    r_in = np.asarray(r, dtype=np.float64)
+    if r_in.ndim == 1:
+        r_arr = _check_noise("r", r_in, _R_UNITS, strictly_positive=True, batch=False)
+        r_arr = np.ascontiguousarray(np.broadcast_to(r_arr, (n_sets, 3)))
+    else:
+        r_arr = _check_noise("r", r_in, _R_UNITS, strictly_positive=True, batch=True)
+        if r_arr.shape[0] != n_sets:
+            raise ValueError(
+                f"r must have shape (3,) or (B, 3) with B = {n_sets} (the rows of q), "
+                f"got shape {r_arr.shape}"
+            )
+    # the default P0 uses each run's own r, so priors are per run
+    x_init = np.empty((n_sets, 3))
+    P_init = np.empty((n_sets, 3, 3))
+    for b in range(n_sets):
+        if b == 0 or P0 is None:
+            xb, pb = _check_prior(x0, P0, z_arr, r_arr[b])
+        x_init[b], P_init[b] = xb, pb
+    return mp, u_arr, z_arr, dt_f, q_arr, r_arr, x_init, P_init
+
+
+def _run_batch(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    x0: ArrayLike | None,
+    P0: ArrayLike | None,
+    settings: UKFSettings,
+    *,
+    simd: bool,
+) -> UKFBatchResult:
+    """:func:`run_ukf_batch` (threads over B) or :func:`run_ukf_simd` (vector lanes)."""
+    mp, u_arr, z_arr, dt_f, q_arr, r_arr, x_init, P_init = _check_batch(
+        u, z, dt, params, q, r, x0, P0
+    )
+    n_sets = q_arr.shape[0]
+    wm0, wc0, wi, c = _weights(settings)
+    xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
+    div = np.empty(n_sets, dtype=np.int64)
+    rep = np.zeros(n_sets, dtype=np.int64)
+    why = np.empty(n_sets, dtype=np.int64)
+    if n_sets == 1:  # no thread start-up, no padding to 4 lanes, for a single set
+        div[0], rep[0], why[0] = _kernel.run_kernel(
+            _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
+            x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
+        )  # fmt: skip
+    elif simd:
+        _soa.ensure_compiled()
+        _soa.run_kernel_soa(
+            mp, u_arr, z_arr, dt_f, q_arr, r_arr, x_init, P_init, wm0, wc0, wi, c,
+            xs, ps, zh, inn, nis, div, rep, why,
+        )  # fmt: skip
+    else:
+        # one set per chunk, handed out dynamically: a thread whose core is busy with another
+        # process then does fewer sets instead of holding up a static half of the batch
+        previous = numba.set_parallel_chunksize(1)
+        try:
+            _kernel.run_kernel_batch(
+                _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
+                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep, why,
+            )  # fmt: skip
+        finally:
+            numba.set_parallel_chunksize(previous)
+    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why)
+
+
 def run_ukf_batch(
     u: ArrayLike,
     z: ArrayLike,
@@ -346,50 +435,31 @@ def run_ukf_batch(
     Returns:
         :class:`UKFBatchResult`; ``result[b]`` equals ``run_ukf(..., q[b], r[b])``.
     """
-    u_arr, z_arr, dt_f = _check_manoeuvre(u, z, dt)
-    mp = pack_params(params)
-    q_arr = _check_noise("q", q, _Q_UNITS, strictly_positive=False, batch=True)
-    n_sets = q_arr.shape[0]
-    r_in = np.asarray(r, dtype=np.float64)
-    if r_in.ndim == 1:
-        r_arr = _check_noise("r", r_in, _R_UNITS, strictly_positive=True, batch=False)
-        r_arr = np.ascontiguousarray(np.broadcast_to(r_arr, (n_sets, 3)))
-    else:
-        r_arr = _check_noise("r", r_in, _R_UNITS, strictly_positive=True, batch=True)
-        if r_arr.shape[0] != n_sets:
-            raise ValueError(
-                f"r must have shape (3,) or (B, 3) with B = {n_sets} (the rows of q), "
-                f"got shape {r_arr.shape}"
-            )
-    # the default P0 uses each run's own r, so priors are per run
-    x_init = np.empty((n_sets, 3))
-    P_init = np.empty((n_sets, 3, 3))
-    for b in range(n_sets):
-        if b == 0 or P0 is None:
-            xb, pb = _check_prior(x0, P0, z_arr, r_arr[b])
-        x_init[b], P_init[b] = xb, pb
-    wm0, wc0, wi, c = _weights(settings)
-    xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
-    div = np.empty(n_sets, dtype=np.int64)
-    rep = np.empty(n_sets, dtype=np.int64)
-    why = np.empty(n_sets, dtype=np.int64)
-    if n_sets == 1:  # no thread start-up for a single set
-        div[0], rep[0], why[0] = _kernel.run_kernel(
-            _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
-            x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
-        )  # fmt: skip
-    else:
-        # one set per chunk, handed out dynamically: a thread whose core is busy with another
-        # process then does fewer sets instead of holding up a static half of the batch
-        previous = numba.set_parallel_chunksize(1)
-        try:
-            _kernel.run_kernel_batch(
-                _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
-                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep, why,
-            )  # fmt: skip
-        finally:
-            numba.set_parallel_chunksize(previous)
-    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why)
+    return _run_batch(u, z, dt, params, q, r, x0, P0, settings, simd=False)
+
+
+def run_ukf_simd(
+    u: ArrayLike,
+    z: ArrayLike,
+    dt: float,
+    params: VehicleParams | ArrayLike,
+    q: ArrayLike,
+    r: ArrayLike,
+    *,
+    x0: ArrayLike | None = None,
+    P0: ArrayLike | None = None,
+    settings: UKFSettings = UKFSettings(),  # noqa: B008
+) -> UKFBatchResult:
+    """Run B noise settings over one manoeuvre on one core, the CPU's vector units across B.
+
+    The vectorised batch kernel (:mod:`kftune.filters._soa_kernel`: structure of arrays,
+    the sets along the innermost axis). Arguments and result as :func:`run_ukf_batch`;
+    ``result[b]`` equals ``run_ukf(..., q[b], r[b])`` bit for bit, a set that diverges
+    stops there (NaN rows from its ``diverged_step``) without affecting the others, and
+    the kernel never raises. Use it for candidate batches and GA generations; B = 1 runs
+    the sequential kernel of :func:`run_ukf` (the same result, without padding to 4 lanes).
+    """
+    return _run_batch(u, z, dt, params, q, r, x0, P0, settings, simd=True)
 
 
 def run_ukf_linear(

@@ -10,8 +10,18 @@ units, hands them out as :class:`Trial` objects, validates what comes back, turn
         trial = opt.ask()
         opt.tell(trial, fun(trial.x))          # or opt.tell(trial, state="failed", reason=…)
 
-Trials are handed out one at a time: ``ask`` refuses while a trial is pending (TSBO is
-sequential by construction; the population methods hand out their generation one by one).
+``ask()`` hands out one trial and refuses while one is pending (the sequential loop).
+``ask(n)`` hands out a batch of up to n trials and may be called with trials pending; every
+pending trial is known to the optimiser (``_pending``), so its next proposals neither
+repeat nor ignore them, and ``tell`` takes results by trial number in any order::
+
+    trials = opt.ask(4)                       # 4 distinct points, none asked before
+    for trial in as_completed(trials):        # any order
+        opt.tell(trial.number, fun(trial.x))
+
+Fewer than n come back only when the budget ends or the optimiser must hear back first
+(a GA or CMA-ES at the end of a generation: ``_n_proposable``). With n = 1 and tells in
+ask order every optimiser proposes exactly what ``ask()`` would.
 """
 
 from __future__ import annotations
@@ -132,7 +142,7 @@ class Optimizer(ABC):
         self.seed_sequence = np.random.SeedSequence(self.seed)
         self.rng = np.random.default_rng(self.seed_sequence.spawn(1)[0])
         self._history: list[EvalRecord] = []
-        self._pending: Trial | None = None
+        self._pending: dict[int, Trial] = {}  # asked, not told; by trial number
         self._n_asked = 0
 
     # ------------------------------------------------------------------ subclass hooks
@@ -147,6 +157,11 @@ class Optimizer(ABC):
     def _exhausted(self) -> bool:
         """True when the optimiser has nothing left to propose (budget aside)."""
         return False
+
+    def _n_proposable(self) -> int | None:
+        """How many more points :meth:`_propose` can give before it must hear back (None:
+        no limit). Only consulted by ``ask(n)``; e.g. the rest of a GA generation."""
+        return None
 
     def options(self) -> dict[str, Any]:
         """The settings that define this optimiser's behaviour (stored with a study and
@@ -176,26 +191,63 @@ class Optimizer(ABC):
 
     @property
     def pending(self) -> Trial | None:
-        """The trial handed out by :meth:`ask` and not told yet."""
-        return self._pending
+        """The oldest trial handed out by :meth:`ask` and not told yet (None: none)."""
+        return self._pending[min(self._pending)] if self._pending else None
 
-    def ask(self) -> Trial:
-        """Propose the next point.
+    @property
+    def pending_trials(self) -> tuple[Trial, ...]:
+        """Every trial asked and not told yet, by number."""
+        return tuple(self._pending[k] for k in sorted(self._pending))
+
+    def ask(self, n: int | None = None) -> Trial | list[Trial]:
+        """Propose the next point (``ask()``), or a batch of up to n points (``ask(n)``).
+
+        ``ask()`` returns one :class:`Trial` and refuses while a trial is pending.
+        ``ask(n)`` returns a list of up to n trials, distinct and none at an asked point,
+        also while trials are pending (see the module docstring); fewer than n only when
+        the budget ends or the optimiser must hear back first (``_n_proposable``).
 
         Raises:
-            RuntimeError: a trial is still pending (tell it first).
+            RuntimeError: ``ask()`` while a trial is still pending (tell it first).
             ExhaustedError: the budget is used or nothing is left to propose.
+            ValueError: n is not a positive integer.
         """
-        if self._pending is not None:
+        if n is None:
+            if self._pending:
+                raise RuntimeError(
+                    f"trial {self.pending.number} is still pending: tell its result before "  # type: ignore[union-attr]
+                    "asking for another point (or ask for a batch with ask(n))"
+                )
+            self._check_not_done()
+            return self._ask_one()
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"n must be a positive integer, got {n!r}")
+        self._check_not_done()
+        cap = self._n_proposable()
+        if cap is not None and cap < 1:
             raise RuntimeError(
-                f"trial {self._pending.number} is still pending: tell its result before "
-                "asking for another point (optimisers hand out one trial at a time)"
+                f"{self.method} must hear back first: tell the pending trials "
+                f"{[t.number for t in self.pending_trials]} before asking again"
             )
+        limit = int(n) if cap is None else min(int(n), cap)
+        trials: list[Trial] = []
+        while len(trials) < limit and not self.done:
+            trials.append(self._ask_one())
+        return trials
+
+    def _pending_u(self) -> np.ndarray:
+        """(p, d) the pending trials' points in the unit cube (p = 0 in sequential use)."""
+        return np.array([t.u for t in self.pending_trials]).reshape(-1, self.space.dim)
+
+    def _check_not_done(self) -> None:
         if self.done:
             raise ExhaustedError(
                 f"{self.method}: nothing left to propose "
                 f"({self._n_asked} of budget {self.budget} asked)"
             )
+
+    def _ask_one(self) -> Trial:
+        """Propose one point and register it as pending."""
         t0 = time.perf_counter()
         prop = self._propose()
         t_propose = time.perf_counter() - t0
@@ -221,7 +273,7 @@ class Optimizer(ABC):
             info=jsonable(dict(prop.info)),
             t_propose=t_propose,
         )
-        self._pending = trial
+        self._pending[trial.number] = trial
         self._n_asked += 1
         return trial
 
@@ -234,7 +286,7 @@ class Optimizer(ABC):
         reason: str | None = None,
         t_eval: float = 0.0,
     ) -> EvalRecord:
-        """Report the result of the pending trial.
+        """Report the result of a pending trial (pending trials may be told in any order).
 
         Args:
             trial: the :class:`Trial`, its number, or its point ``x`` in natural units.
@@ -246,9 +298,9 @@ class Optimizer(ABC):
         Returns:
             The :class:`EvalRecord` appended to :attr:`history`.
         """
-        pending = self._resolve(trial)
         if state not in (None, COMPLETE, FAILED):
             raise ValueError(f"state must be {COMPLETE!r} or {FAILED!r}, got {state!r}")
+        pending = self._resolve(trial)
         val: float | None = None
         if state == FAILED:
             reason = reason or "failed"
@@ -281,23 +333,29 @@ class Optimizer(ABC):
             info=pending.info,
         )
         self._history.append(rec)
-        self._pending = None
         return rec
 
     def _resolve(self, trial: Trial | int | Any) -> Trial:
-        p = self._pending
-        if p is None:
+        """Find the pending trial meant by ``trial`` and take it off the pending list
+        (before ``_observe``, which then sees only the trials still in flight)."""
+        if not self._pending:
             raise RuntimeError("no trial is pending: call ask() before tell()")
+        found: Trial | None = None
         if isinstance(trial, Trial):
-            ok = trial.number == p.number
+            found = self._pending.get(trial.number)
         elif isinstance(trial, (int, np.integer)) and not isinstance(trial, bool):
-            ok = int(trial) == p.number
+            found = self._pending.get(int(trial))
         else:
             xa = np.asarray(trial, dtype=float)
-            ok = xa.shape == p.x.shape and bool(np.allclose(xa, p.x, rtol=1e-12, atol=0.0))
-        if not ok:
+            for p in self.pending_trials:
+                if xa.shape == p.x.shape and bool(np.allclose(xa, p.x, rtol=1e-12, atol=0.0)):
+                    found = p
+                    break
+        if found is None:
+            numbers = [p.number for p in self.pending_trials]
             raise ValueError(
-                f"tell() got {trial!r}, which is not the pending trial {p.number} "
-                f"(x = {p.x.tolist()})"
+                f"tell() got {trial!r}, which is not the pending trial (pending: {numbers}; "
+                f"x = {self.pending_trials[0].x.tolist()})"
             )
-        return p
+        del self._pending[found.number]
+        return found

@@ -119,7 +119,8 @@ class GeneticAlgorithm(Optimizer):
         self._pop = self.rng.random((self.population_size, self.space.dim))
         self._scores = np.full(self.population_size, np.inf)
         self._origin = ["initial"] * self.population_size
-        self._next = 0  # index into _pop of the next individual to evaluate
+        self._next = 0  # index into _pop of the next individual to hand out
+        self._told = 0  # individuals of the current generation told so far
 
     def options(self) -> dict[str, Any]:
         return {
@@ -134,13 +135,21 @@ class GeneticAlgorithm(Optimizer):
 
     def _exhausted(self) -> bool:
         return self._generation > self.generations or (
-            self._generation == self.generations and self._next >= self.population_size
+            self._generation == self.generations and self._told >= self.population_size
         )
+
+    def _n_proposable(self) -> int | None:
+        """The rest of the generation; a whole one once the last is told (ask(n))."""
+        if self._next < self.population_size:
+            return self.population_size - self._next
+        return self.population_size - self.n_elite if self._told >= self.population_size else 0
 
     def _propose(self) -> Proposal:
         if self._next >= self.population_size:
             self._breed()
+            self._told = self._next  # the elites keep their scores
         i = self._next
+        self._next += 1
         return Proposal(
             u=self._pop[i].copy(),
             stage=self._generation,
@@ -149,8 +158,9 @@ class GeneticAlgorithm(Optimizer):
         )
 
     def _observe(self, trial: Trial, value: float | None) -> None:
-        self._scores[self._next] = np.inf if value is None else value
-        self._next += 1
+        # by the individual's index, so a generation's results may come in any order
+        self._scores[int(trial.info["index"])] = np.inf if value is None else value
+        self._told += 1
 
     # ------------------------------------------------------------------ MATLAB stepGA
     def _breed(self) -> None:

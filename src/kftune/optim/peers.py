@@ -63,22 +63,24 @@ class _OptunaAdapter(Optimizer):
         self._dists = {
             f"u{i}": optuna.distributions.FloatDistribution(0.0, 1.0) for i in range(self.space.dim)
         }
-        self._otrial: Any = None
+        self._otrials: dict[int, Any] = {}  # our trial number → Optuna's trial
 
     def _make_sampler(self, seed: int) -> Any:
         raise NotImplementedError
 
     def _propose(self) -> Proposal:
-        self._otrial = self._study.ask(self._dists)
-        u = np.array([self._otrial.params[f"u{i}"] for i in range(self.space.dim)])
+        # Optuna keeps asked-but-not-told trials as RUNNING, so a batch is its own
+        otrial = self._study.ask(self._dists)
+        self._otrials[self._n_asked] = otrial  # the number the base class gives this trial
+        u = np.array([otrial.params[f"u{i}"] for i in range(self.space.dim)])
         return Proposal(u=u, acquisition=self.method)
 
     def _observe(self, trial: Trial, value: float | None) -> None:
+        otrial = self._otrials.pop(trial.number)
         if value is None:
-            self._study.tell(self._otrial, state=self._optuna.trial.TrialState.FAIL)
+            self._study.tell(otrial, state=self._optuna.trial.TrialState.FAIL)
         else:
-            self._study.tell(self._otrial, value)
-        self._otrial = None
+            self._study.tell(otrial, value)
 
 
 class OptunaTPE(_OptunaAdapter):
@@ -136,8 +138,9 @@ class CMAES(Optimizer):
         ).get_state()
         self._restarts = 0
         self._es = self._new_es(np.full(self.space.dim, 0.5))
-        self._batch: list[np.ndarray] = []
-        self._values: list[float | None] = []
+        self._asked: list[np.ndarray] = []  # the current generation
+        self._batch: list[np.ndarray] = []  # its points not handed out yet
+        self._values: dict[int, float | None] = {}  # index in the generation → value
         self._worst = -np.inf
 
     def options(self) -> dict[str, Any]:
@@ -163,6 +166,12 @@ class CMAES(Optimizer):
             opts["popsize"] = int(self.popsize)
         return self._with_own_np_state(cma.CMAEvolutionStrategy, list(x0), self.sigma0, opts)
 
+    def _n_proposable(self) -> int | None:
+        """The rest of the generation; a new one only once the last is told (ask(n))."""
+        if self._batch:
+            return len(self._batch)
+        return self._es.popsize if len(self._values) == len(self._asked) else 0
+
     def _propose(self) -> Proposal:
         if not self._batch:
             if self._with_own_np_state(self._es.stop):
@@ -171,20 +180,22 @@ class CMAES(Optimizer):
             asked = self._with_own_np_state(self._es.ask)
             self._asked = [np.asarray(s, dtype=float) for s in asked]
             self._batch = list(self._asked)
-            self._values = []
+            self._values = {}
+        index = len(self._asked) - len(self._batch)
         u = self._batch.pop(0)
         return Proposal(
             u=np.clip(u, 0.0, 1.0),
             stage=self._restarts,
             acquisition="cma",
-            info={"generation": int(self._es.countiter)},
+            info={"generation": int(self._es.countiter), "index": index},
         )
 
     def _observe(self, trial: Trial, value: float | None) -> None:
         if value is not None:
             self._worst = max(self._worst, value)
-        self._values.append(value)
-        if not self._batch:
+        self._values[int(trial.info["index"])] = value  # a generation told in any order
+        if not self._batch and len(self._values) == len(self._asked):
             fallback = self._worst + 1.0 + abs(self._worst) if np.isfinite(self._worst) else 1e10
-            f = [fallback if v is None else v for v in self._values]
+            told = [self._values[i] for i in range(len(self._asked))]
+            f = [fallback if v is None else v for v in told]
             self._with_own_np_state(self._es.tell, self._asked, f)

@@ -236,14 +236,22 @@ class TrustRegionBO(Optimizer):
     # ------------------------------------------------------------------ ask
     def _propose(self) -> Proposal:
         n = len(self._y)
-        if n < len(self._design):
-            return Proposal(u=self._design[n].copy(), stage=0, acquisition="init")
+        if self._n_asked < len(self._design):  # = n in sequential use
+            return Proposal(u=self._design[self._n_asked].copy(), stage=0, acquisition="init")
         y = self._targets()
         full = n <= self.full_fit_until or self._iter % self.refit_every == 0
         self.surrogate.n_restarts = self._n_restarts if full else 0
         self.surrogate.fit(self._X, y)
+        pending = self._pending_u()
+        if len(pending):
+            # Batch mode, the Kriging believer (Ginsbourger, Le Riche & Carraro, "Kriging is
+            # well-suited to parallelize optimization", 2010): every point in flight is
+            # believed to return the model's mean there; the model is conditioned on those
+            # values with its hyperparameters kept, so the next proposal looks elsewhere.
+            y = np.concatenate([y, np.asarray(self.surrogate.predict(pending).mean, float)])
+            self.surrogate.condition(np.vstack([self._X, pending]), y)
         best_i, _ = self._incumbent()
-        centre = self._X[best_i if best_i is not None else int(np.argmin(y))]
+        centre = self._X[best_i if best_i is not None else int(np.argmin(y[:n]))]
         escaping = self._force_global > 0
         is_global = escaping or (
             self.global_every > 0 and self._iter % self.global_every == self.global_every - 1
@@ -267,9 +275,15 @@ class TrustRegionBO(Optimizer):
             info={"length": self.length, "n_candidates": len(cand), "af_value": float(scores[j])},
         )
 
+    def _n_proposable(self) -> int | None:
+        """Before any result, only the initial design (the model needs data)."""
+        return max(len(self._design) - self._n_asked, 0) if not self._y else None
+
     def _fresh(self, cand: np.ndarray) -> np.ndarray:
-        """The rows of ``cand`` (m, d) that are not an asked point (to 1e-9, max-norm)."""
-        return cand[~coincides(cand, self._X, SAME_POINT_ATOL)]
+        """The rows of ``cand`` (m, d) that are not an asked point, told or pending (to 1e-9,
+        max-norm)."""
+        asked = np.vstack([self._X, self._pending_u()])
+        return cand[~coincides(cand, asked, SAME_POINT_ATOL)]
 
     def _score(self, cand: np.ndarray, y: np.ndarray, af: str) -> np.ndarray:
         """(m,) acquisition values of the candidates (larger is better; NaN → −inf):

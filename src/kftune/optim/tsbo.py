@@ -146,6 +146,7 @@ So it is offered, opt-in; the default stays the paper's algorithm.
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 from collections.abc import Callable
@@ -499,6 +500,9 @@ class TSBO(Optimizer):
                 info={"leaf": 0},
             )
         leaves = self.tree.candidates()
+        pending = self._pending_u()
+        if len(pending) and leaves.size:  # batch mode: not a leaf already in flight
+            leaves = leaves[~coincides(self.tree.centres[leaves], pending)]
         if self.min_resolution > 0.0 and leaves.size:
             near = coincides(self.tree.centres[leaves], self._X, self.min_resolution)
             leaves = leaves[~near]
@@ -512,6 +516,16 @@ class TSBO(Optimizer):
                 self._stage2_fitted = True
         elif self.sm_freeze == "hyperparameters":
             self.surrogate.condition(X, y)
+        model = self.surrogate
+        if len(pending):
+            # Batch mode, the Kriging believer (Ginsbourger, Le Riche & Carraro, "Kriging is
+            # well-suited to parallelize optimization", 2010): the points in flight are
+            # believed to return the model's mean, on a copy of the model conditioned on
+            # them with its hyperparameters kept (the model itself stays as it was).
+            Xp = to_s(pending)
+            model = copy.deepcopy(self.surrogate).condition(
+                np.vstack([X, Xp]), np.concatenate([y, self.surrogate.predict(Xp).mean])
+            )
         af = self._current_af()
         if fallback:
             cand_u = self._fallback_candidates()
@@ -519,7 +533,7 @@ class TSBO(Optimizer):
         else:
             cand_u = self.tree.centres[leaves]
             label = af
-        pred = self.surrogate.predict(to_s(cand_u))
+        pred = model.predict(to_s(cand_u))
         incumbent = float(np.min(y[ok])) if ok.any() else float(np.min(y))
         scores = self._score(af, pred, incumbent)
         j = self._argmax(scores)
@@ -542,6 +556,10 @@ class TSBO(Optimizer):
             info=info,
         )
 
+    def _n_proposable(self) -> int | None:
+        """Before any result, only the centre (the model needs data)."""
+        return max(1 - self._n_asked, 0) if not self._y else None
+
     def _fallback_candidates(self) -> np.ndarray:
         """(m, d) uniform random points in the unit cube, farther than ``min_resolution``
         (max-norm) from every asked point; ``100·d`` are drawn, redrawn if none is left."""
@@ -549,7 +567,8 @@ class TSBO(Optimizer):
         for _ in range(_FALLBACK_TRIES):
             u = self.rng.random((100 * d, d))
             if self.min_resolution > 0.0:
-                u = u[~coincides(u, self._X, self.min_resolution)]
+                asked = np.vstack([self._X, self._pending_u()])
+                u = u[~coincides(u, asked, self.min_resolution)]
             if len(u):
                 return u
         raise ExhaustedError(

@@ -1,0 +1,816 @@
+"""Vectorised batch UKF kernel: B noise settings over one manoeuvre, SIMD across the sets.
+
+The maths is that of :func:`kftune.filters._kernel.run_kernel` (the 3×3 single-track UKF
+with closed-form Cholesky and covariance repair) with the same floating-point operations
+in the same order for every set, so each set's result equals ``run_kernel``'s bit for bit
+(the tests ask ≤ 1e-12 relative; no fast-math, so the compiler may not reorder).
+
+What differs is the arrangement (structure of arrays): the per-set state lives in one
+array ``lanes`` of shape (NROWS, BP), one row per scalar (x̄, the six entries of P and of
+its Cholesky factor L, …) and one column ("lane") per set, contiguous along the sets. Each
+time step is a few loops whose innermost index runs over the lanes, so that the compiler's
+loop vectoriser puts 4 sets into one AVX2 register:
+
+1. predict (k ≥ 1): 7 sigma points from (x⁺, L⁺), one RK4 step each, the unscented
+   transform x̄ = Σ Wᵐ χ_i, P̄ = Σ Wᶜ (χ_i − x̄)(χ_i − x̄)ᵀ + Q, and the plain Cholesky of P̄
+   (:func:`~kftune.filters._kernel.chol3`) with a per-lane success flag;
+2. the lanes whose P̄ did not factorise go through
+   :func:`~kftune.filters._kernel.chol3_repair` one by one (jitter escalation; rare);
+3. update: the sigma points redrawn from (x̄, L̄), h at each, S, P_xz, chol(S), the
+   update x⁺ = x̄ + Wᵀv, P⁺ = P̄ − WᵀW (W = L_S⁻¹P_xzᵀ, v = L_S⁻¹y; see ``_kernel``) and
+   chol(P⁺), with success flags;
+4. per lane (scalar, cheap): a lane whose S or P⁺ did not factorise redoes its update with
+   the repairing factorisation; then the divergence and runaway checks of ``run_kernel``
+   and the output rows.
+
+The vector loops contain no calls the compiler cannot inline and no loop-carried
+dependence; branches (the Dugoff saturation, the Cholesky pivots) become selects. Numba
+does not tell LLVM that the rows of ``lanes`` do not overlap, so the vectoriser versions
+each loop on run-time overlap checks; their number exceeds LLVM's default limit of 128,
+which :func:`compile_batch_kernel` raises while it compiles this module's kernel.
+
+A set that diverges is retired: its lane is swapped with the last active one (compaction),
+so the loops keep running over active sets only and a diverged set's NaN or inf can reach
+no other set (lanes never mix; the swap moves whole columns). Its output rows from the
+diverged step on are NaN, as in ``run_kernel``. The kernel never raises.
+
+Only the single-track model (``_kernel.MODEL_SINGLE_TRACK``) has this kernel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from kftune.filters._kernel import chol3, chol3_repair, hold_steps
+from kftune.models.base import STOP_NONE, STOP_NUMERICAL
+from kftune.models.sideslip import (
+    RUNAWAY_BETA,
+    RUNAWAY_VX,
+    STOP_REVERSE,
+    STOP_SIDESLIP,
+    STOP_SIDESLIP_HELD,
+    STOP_SPEED,
+)
+from kftune.vehicle.single_track import (
+    MAX_SIDESLIP,
+    measure_scalar,
+    rk4_scalar,
+    step_context_scalar,
+)
+
+#: Lanes are padded to a multiple of this (4 doubles: an AVX2 register), so that the
+#: vector loop, not its scalar remainder, runs every set.
+LANE_PAD = 4
+
+# Rows of the lane array. Posterior (after the update of step k): state, covariance, factor.
+X0, X1, X2 = 0, 1, 2
+P00, P01, P02, P11, P12, P22 = 3, 4, 5, 6, 7, 8
+L00, L10, L11, L20, L21, L22 = 9, 10, 11, 12, 13, 14
+# Predicted (after the prediction to step k): state, covariance, factor.
+XB0, XB1, XB2 = 15, 16, 17
+PB00, PB01, PB02, PB11, PB12, PB22 = 18, 19, 20, 21, 22, 23
+LB00, LB10, LB11, LB20, LB21, LB22 = 24, 25, 26, 27, 28, 29
+# Noise diagonals.
+Q0, Q1, Q2, R0, R1, R2 = 30, 31, 32, 33, 34, 35
+# Update by-products: innovation, NIS, h(x⁺, u), and the success flags (1.0 = factorised).
+Y0, Y1, Y2, NIS, H0, H1, H2, OK_P, OK_S, OK_PB = 36, 37, 38, 39, 40, 41, 42, 43, 44, 45
+NROWS = 46
+
+_TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
+_TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
+_NAN = math.nan
+
+
+@njit(cache=True, error_model="numpy")
+def _predict_lanes(
+    s: np.ndarray,
+    n: int,
+    mp: np.ndarray,
+    dt: float,
+    e0: float,
+    e1: float,
+    e2: float,
+    e3: float,
+    ax: float,
+    wm0: float,
+    wc0: float,
+    wi: float,
+    c: float,
+) -> None:
+    """Step 1 for lanes [0, n): (x⁺, L⁺) → (x̄, P̄, chol P̄, ok) (Simon 2006, Eq. 14.59–14.60).
+
+    e0..e3: (tan δ, cos δ, Fz_f, Fz_r) of u[k−1]; ax: u[k−1, 1] [m/s²].
+    """
+    for j in range(n):
+        x0 = s[X0, j]
+        x1 = s[X1, j]
+        x2 = s[X2, j]
+        a0 = c * s[L00, j]
+        a1 = c * s[L10, j]
+        a2 = c * s[L20, j]
+        b1 = c * s[L11, j]
+        b2 = c * s[L21, j]
+        d2 = c * s[L22, j]
+        # the seven propagated sigma points, in run_kernel's order
+        f00, f01, f02 = rk4_scalar(x0, x1, x2, e0, e1, ax, e2, e3, mp, dt)
+        f10, f11, f12 = rk4_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, ax, e2, e3, mp, dt)
+        f20, f21, f22 = rk4_scalar(x0, x1 + b1, x2 + b2, e0, e1, ax, e2, e3, mp, dt)
+        f30, f31, f32 = rk4_scalar(x0, x1, x2 + d2, e0, e1, ax, e2, e3, mp, dt)
+        f40, f41, f42 = rk4_scalar(x0 - a0, x1 - a1, x2 - a2, e0, e1, ax, e2, e3, mp, dt)
+        f50, f51, f52 = rk4_scalar(x0, x1 - b1, x2 - b2, e0, e1, ax, e2, e3, mp, dt)
+        f60, f61, f62 = rk4_scalar(x0, x1, x2 - d2, e0, e1, ax, e2, e3, mp, dt)
+        # x̄ = W0ᵐ χ0 + Σ_{i≥1} Wᵢ χi, summed in run_kernel's order
+        m0 = wm0 * f00
+        m1 = wm0 * f01
+        m2 = wm0 * f02
+        m0 += wi * f10
+        m1 += wi * f11
+        m2 += wi * f12
+        m0 += wi * f20
+        m1 += wi * f21
+        m2 += wi * f22
+        m0 += wi * f30
+        m1 += wi * f31
+        m2 += wi * f32
+        m0 += wi * f40
+        m1 += wi * f41
+        m2 += wi * f42
+        m0 += wi * f50
+        m1 += wi * f51
+        m2 += wi * f52
+        m0 += wi * f60
+        m1 += wi * f61
+        m2 += wi * f62
+        # P̄ = W0ᶜ d0 d0ᵀ + Σ Wᵢ dᵢ dᵢᵀ + Q
+        d0 = f00 - m0
+        d1 = f01 - m1
+        dd = f02 - m2
+        p00 = wc0 * d0 * d0
+        p01 = wc0 * d0 * d1
+        p02 = wc0 * d0 * dd
+        p11 = wc0 * d1 * d1
+        p12 = wc0 * d1 * dd
+        p22 = wc0 * dd * dd
+        p00, p01, p02, p11, p12, p22 = _acc_outer(
+            p00, p01, p02, p11, p12, p22, wi, f10 - m0, f11 - m1, f12 - m2
+        )
+        p00, p01, p02, p11, p12, p22 = _acc_outer(
+            p00, p01, p02, p11, p12, p22, wi, f20 - m0, f21 - m1, f22 - m2
+        )
+        p00, p01, p02, p11, p12, p22 = _acc_outer(
+            p00, p01, p02, p11, p12, p22, wi, f30 - m0, f31 - m1, f32 - m2
+        )
+        p00, p01, p02, p11, p12, p22 = _acc_outer(
+            p00, p01, p02, p11, p12, p22, wi, f40 - m0, f41 - m1, f42 - m2
+        )
+        p00, p01, p02, p11, p12, p22 = _acc_outer(
+            p00, p01, p02, p11, p12, p22, wi, f50 - m0, f51 - m1, f52 - m2
+        )
+        p00, p01, p02, p11, p12, p22 = _acc_outer(
+            p00, p01, p02, p11, p12, p22, wi, f60 - m0, f61 - m1, f62 - m2
+        )
+        p00 += s[Q0, j]
+        p11 += s[Q1, j]
+        p22 += s[Q2, j]
+        ok, l00, l10, l11, l20, l21, l22 = chol3(p00, p01, p02, p11, p12, p22)
+        s[XB0, j] = m0
+        s[XB1, j] = m1
+        s[XB2, j] = m2
+        s[PB00, j] = p00
+        s[PB01, j] = p01
+        s[PB02, j] = p02
+        s[PB11, j] = p11
+        s[PB12, j] = p12
+        s[PB22, j] = p22
+        s[LB00, j] = l00
+        s[LB10, j] = l10
+        s[LB11, j] = l11
+        s[LB20, j] = l20
+        s[LB21, j] = l21
+        s[LB22, j] = l22
+        s[OK_PB, j] = 1.0 if ok else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _acc_outer(
+    p00: float,
+    p01: float,
+    p02: float,
+    p11: float,
+    p12: float,
+    p22: float,
+    w: float,
+    d0: float,
+    d1: float,
+    d2: float,
+) -> tuple[float, float, float, float, float, float]:
+    """P += w·d·dᵀ on the upper triangle, as run_kernel accumulates it."""
+    return (
+        p00 + w * d0 * d0,
+        p01 + w * d0 * d1,
+        p02 + w * d0 * d2,
+        p11 + w * d1 * d1,
+        p12 + w * d1 * d2,
+        p22 + w * d2 * d2,
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def _innovation_stats(
+    s: np.ndarray,
+    j: int,
+    mp: np.ndarray,
+    e0: float,
+    e1: float,
+    e2: float,
+    e3: float,
+    wm0: float,
+    wc0: float,
+    wi: float,
+    c: float,
+) -> tuple[
+    float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float,
+]:  # fmt: skip
+    """Sigma points of (x̄, L̄) through h: (ẑ⁻, S − R, P_xz) of lane j, run_kernel's order.
+
+    Returns:
+        (z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20,
+        c21, c22) with S = Σ Wᶜ (Zᵢ − ẑ)(Zᵢ − ẑ)ᵀ (R not yet added) and
+        P_xz[i][m] = c_im = Σ Wᶜ (χᵢ − x̄)(Zᵢ − ẑ)ᵀ (Simon 2006, Eq. 14.61–14.63).
+    """
+    x0 = s[XB0, j]
+    x1 = s[XB1, j]
+    x2 = s[XB2, j]
+    a0 = c * s[LB00, j]
+    a1 = c * s[LB10, j]
+    a2 = c * s[LB20, j]
+    b1 = c * s[LB11, j]
+    b2 = c * s[LB21, j]
+    d2 = c * s[LB22, j]
+    g00, g01, g02 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
+    g10, g11, g12 = measure_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, e2, e3, mp)
+    g20, g21, g22 = measure_scalar(x0 + 0.0, x1 + b1, x2 + b2, e0, e1, e2, e3, mp)
+    g30, g31, g32 = measure_scalar(x0 + 0.0, x1 + 0.0, x2 + d2, e0, e1, e2, e3, mp)
+    g40, g41, g42 = measure_scalar(x0 + -a0, x1 + -a1, x2 + -a2, e0, e1, e2, e3, mp)
+    g50, g51, g52 = measure_scalar(x0 + -0.0, x1 + -b1, x2 + -b2, e0, e1, e2, e3, mp)
+    g60, g61, g62 = measure_scalar(x0 + -0.0, x1 + -0.0, x2 + -d2, e0, e1, e2, e3, mp)
+    z0 = wm0 * g00
+    z1 = wm0 * g01
+    z2 = wm0 * g02
+    z0 += wi * g10
+    z1 += wi * g11
+    z2 += wi * g12
+    z0 += wi * g20
+    z1 += wi * g21
+    z2 += wi * g22
+    z0 += wi * g30
+    z1 += wi * g31
+    z2 += wi * g32
+    z0 += wi * g40
+    z1 += wi * g41
+    z2 += wi * g42
+    z0 += wi * g50
+    z1 += wi * g51
+    z2 += wi * g52
+    z0 += wi * g60
+    z1 += wi * g61
+    z2 += wi * g62
+    f0 = g00 - z0
+    f1 = g01 - z1
+    f2 = g02 - z2
+    s00 = wc0 * f0 * f0
+    s01 = wc0 * f0 * f1
+    s02 = wc0 * f0 * f2
+    s11 = wc0 * f1 * f1
+    s12 = wc0 * f1 * f2
+    s22 = wc0 * f2 * f2
+    # P_xz: the deviations χᵢ − x̄ are the columns of ±c·L̄ (zero for i = 0)
+    c00 = c01 = c02 = c10 = c11 = c12 = c20 = c21 = c22 = 0.0
+    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
+        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        wi, a0, a1, a2, g10 - z0, g11 - z1, g12 - z2,
+    )  # fmt: skip
+    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
+        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        wi, 0.0, b1, b2, g20 - z0, g21 - z1, g22 - z2,
+    )  # fmt: skip
+    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
+        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        wi, 0.0, 0.0, d2, g30 - z0, g31 - z1, g32 - z2,
+    )  # fmt: skip
+    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
+        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        wi, -a0, -a1, -a2, g40 - z0, g41 - z1, g42 - z2,
+    )  # fmt: skip
+    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
+        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        wi, -0.0, -b1, -b2, g50 - z0, g51 - z1, g52 - z2,
+    )  # fmt: skip
+    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
+        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        wi, -0.0, -0.0, -d2, g60 - z0, g61 - z1, g62 - z2,
+    )  # fmt: skip
+    return z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22
+
+
+@njit(cache=True, error_model="numpy")
+def _acc_cross(
+    s00: float, s01: float, s02: float, s11: float, s12: float, s22: float,
+    c00: float, c01: float, c02: float, c10: float, c11: float, c12: float,
+    c20: float, c21: float, c22: float,
+    w: float, dx0: float, dx1: float, dx2: float, f0: float, f1: float, f2: float,
+) -> tuple[
+    float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float,
+]:  # fmt: skip
+    """S += w·f·fᵀ (upper triangle) and P_xz += (w·dx)·fᵀ, as run_kernel accumulates."""
+    g0 = w * dx0
+    g1 = w * dx1
+    g2 = w * dx2
+    return (
+        s00 + w * f0 * f0, s01 + w * f0 * f1, s02 + w * f0 * f2,
+        s11 + w * f1 * f1, s12 + w * f1 * f2, s22 + w * f2 * f2,
+        c00 + g0 * f0, c01 + g0 * f1, c02 + g0 * f2,
+        c10 + g1 * f0, c11 + g1 * f1, c12 + g1 * f2,
+        c20 + g2 * f0, c21 + g2 * f1, c22 + g2 * f2,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _apply_update(
+    s: np.ndarray,
+    j: int,
+    zk0: float,
+    zk1: float,
+    zk2: float,
+    z0: float,
+    z1: float,
+    z2: float,
+    m00: float,
+    m10: float,
+    m11: float,
+    m20: float,
+    m21: float,
+    m22: float,
+    c00: float,
+    c01: float,
+    c02: float,
+    c10: float,
+    c11: float,
+    c12: float,
+    c20: float,
+    c21: float,
+    c22: float,
+) -> tuple[float, ...]:
+    """x⁺ = x̄ + Wᵀv, P⁺ = P̄ − WᵀW with W = L_S⁻¹P_xzᵀ, v = L_S⁻¹y (``_kernel`` docstring).
+
+    Returns:
+        (x⁺0, x⁺1, x⁺2, P⁺00, P⁺01, P⁺02, P⁺11, P⁺12, P⁺22, y0, y1, y2, NIS).
+    """
+    i00 = 1.0 / m00
+    i11 = 1.0 / m11
+    i22 = 1.0 / m22
+    i10 = -m10 * i00 * i11
+    i21 = -m21 * i11 * i22
+    i20 = -(m20 * i00 + m21 * i10) * i22
+    w00 = i00 * c00
+    w01 = i00 * c10
+    w02 = i00 * c20
+    w10 = i10 * c00 + i11 * c01
+    w11 = i10 * c10 + i11 * c11
+    w12 = i10 * c20 + i11 * c21
+    w20 = i20 * c00 + i21 * c01 + i22 * c02
+    w21 = i20 * c10 + i21 * c11 + i22 * c12
+    w22 = i20 * c20 + i21 * c21 + i22 * c22
+    y0 = zk0 - z0
+    y1 = zk1 - z1
+    y2 = zk2 - z2
+    v0 = i00 * y0
+    v1 = i10 * y0 + i11 * y1
+    v2 = i20 * y0 + i21 * y1 + i22 * y2
+    x0 = s[XB0, j] + (w00 * v0 + w10 * v1 + w20 * v2)
+    x1 = s[XB1, j] + (w01 * v0 + w11 * v1 + w21 * v2)
+    x2 = s[XB2, j] + (w02 * v0 + w12 * v1 + w22 * v2)
+    p00 = s[PB00, j] - (w00 * w00 + w10 * w10 + w20 * w20)
+    p01 = s[PB01, j] - (w00 * w01 + w10 * w11 + w20 * w21)
+    p02 = s[PB02, j] - (w00 * w02 + w10 * w12 + w20 * w22)
+    p11 = s[PB11, j] - (w01 * w01 + w11 * w11 + w21 * w21)
+    p12 = s[PB12, j] - (w01 * w02 + w11 * w12 + w21 * w22)
+    p22 = s[PB22, j] - (w02 * w02 + w12 * w12 + w22 * w22)
+    return x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, v0 * v0 + v1 * v1 + v2 * v2
+
+
+@njit(cache=True, error_model="numpy")
+def _store_update(
+    s: np.ndarray,
+    j: int,
+    mp: np.ndarray,
+    e0: float,
+    e1: float,
+    e2: float,
+    e3: float,
+    x0: float,
+    x1: float,
+    x2: float,
+    p00: float,
+    p01: float,
+    p02: float,
+    p11: float,
+    p12: float,
+    p22: float,
+    y0: float,
+    y1: float,
+    y2: float,
+    nis: float,
+    ok_s: bool,
+) -> None:
+    """Store x⁺, P⁺, its plain Cholesky, y, NIS, h(x⁺, u) and the flags of lane j."""
+    ok, l00, l10, l11, l20, l21, l22 = chol3(p00, p01, p02, p11, p12, p22)
+    h0, h1, h2 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
+    s[X0, j] = x0
+    s[X1, j] = x1
+    s[X2, j] = x2
+    s[P00, j] = p00
+    s[P01, j] = p01
+    s[P02, j] = p02
+    s[P11, j] = p11
+    s[P12, j] = p12
+    s[P22, j] = p22
+    s[L00, j] = l00
+    s[L10, j] = l10
+    s[L11, j] = l11
+    s[L20, j] = l20
+    s[L21, j] = l21
+    s[L22, j] = l22
+    s[Y0, j] = y0
+    s[Y1, j] = y1
+    s[Y2, j] = y2
+    s[NIS, j] = nis
+    s[H0, j] = h0
+    s[H1, j] = h1
+    s[H2, j] = h2
+    s[OK_P, j] = 1.0 if ok else 0.0
+    s[OK_S, j] = 1.0 if ok_s else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _update_lanes(
+    s: np.ndarray,
+    n: int,
+    mp: np.ndarray,
+    zk0: float,
+    zk1: float,
+    zk2: float,
+    e0: float,
+    e1: float,
+    e2: float,
+    e3: float,
+    wm0: float,
+    wc0: float,
+    wi: float,
+    c: float,
+) -> None:
+    """Step 3 for lanes [0, n), with the plain Cholesky of S (a failure is flagged)."""
+    for j in range(n):
+        z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = (
+            _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
+        )
+        ok_s, m00, m10, m11, m20, m21, m22 = chol3(
+            s00 + s[R0, j], s01, s02, s11 + s[R1, j], s12, s22 + s[R2, j]
+        )
+        x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, nis = _apply_update(
+            s, j, zk0, zk1, zk2, z0, z1, z2, m00, m10, m11, m20, m21, m22,
+            c00, c01, c02, c10, c11, c12, c20, c21, c22,
+        )  # fmt: skip
+        _store_update(
+            s, j, mp, e0, e1, e2, e3, x0, x1, x2, p00, p01, p02, p11, p12, p22,
+            y0, y1, y2, nis, ok_s,
+        )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _update_lane_repaired(
+    s: np.ndarray,
+    j: int,
+    mp: np.ndarray,
+    zk0: float,
+    zk1: float,
+    zk2: float,
+    e0: float,
+    e1: float,
+    e2: float,
+    e3: float,
+    wm0: float,
+    wc0: float,
+    wi: float,
+    c: float,
+) -> tuple[int, int]:
+    """Step 3 for one lane with the repairing Cholesky of S.
+
+    Returns:
+        (status, repairs): status 2 when S cannot be repaired (the lane diverged), else 0;
+        repairs 1 when S needed jitter.
+    """
+    z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = (
+        _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
+    )
+    st, m00, m10, m11, m20, m21, m22, _ = chol3_repair(
+        s00 + s[R0, j], s01, s02, s11 + s[R1, j], s12, s22 + s[R2, j]
+    )
+    if st == 2:
+        return 2, 0
+    x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, nis = _apply_update(
+        s, j, zk0, zk1, zk2, z0, z1, z2, m00, m10, m11, m20, m21, m22,
+        c00, c01, c02, c10, c11, c12, c20, c21, c22,
+    )  # fmt: skip
+    _store_update(
+        s, j, mp, e0, e1, e2, e3, x0, x1, x2, p00, p01, p02, p11, p12, p22,
+        y0, y1, y2, nis, True,
+    )  # fmt: skip
+    return 0, st
+
+
+@njit(cache=True, error_model="numpy")
+def _retire(
+    s: np.ndarray,
+    ints: np.ndarray,
+    j: int,
+    n_active: int,
+    step: int,
+    cause: int,
+    out_div: np.ndarray,
+    out_rep: np.ndarray,
+    out_cause: np.ndarray,
+) -> int:
+    """Record lane j's set as diverged at ``step`` and move the last active lane into j.
+
+    ints: (4, BP) int64 rows [set id, repairs, held β, held Vx]. Returns the new count.
+    """
+    b = ints[0, j]
+    out_div[b] = step
+    out_rep[b] = ints[1, j]
+    out_cause[b] = cause
+    last = n_active - 1
+    if j != last:
+        for row in range(NROWS):
+            s[row, j] = s[row, last]
+        for row in range(4):
+            ints[row, j] = ints[row, last]
+    return last
+
+
+@njit(cache=True, error_model="numpy")
+def run_kernel_soa(
+    mp: np.ndarray,
+    u: np.ndarray,
+    z: np.ndarray,
+    dt: float,
+    q: np.ndarray,
+    r: np.ndarray,
+    x_init: np.ndarray,
+    P_init: np.ndarray,
+    wm0: float,
+    wc0: float,
+    wi: float,
+    c: float,
+    out_x: np.ndarray,
+    out_p: np.ndarray,
+    out_zhat: np.ndarray,
+    out_innov: np.ndarray,
+    out_nis: np.ndarray,
+    out_div: np.ndarray,
+    out_rep: np.ndarray,
+    out_cause: np.ndarray,
+) -> None:
+    """The single-track UKF for B noise settings over one manoeuvre, SIMD across the sets.
+
+    Arguments and outputs are those of :func:`kftune.filters._kernel.run_kernel_batch`
+    (without ``model``): q, r, x_init (B, 3); P_init (B, 3, 3); out_x, out_p, out_zhat,
+    out_innov (B, N, 3); out_nis (B, N); out_div, out_rep, out_cause (B,) int64. Set b's
+    outputs equal ``run_kernel``'s for (q[b], r[b], x_init[b], P_init[b]) bit for bit.
+    """
+    n_sets = q.shape[0]
+    n_steps = u.shape[0]
+    bp = ((n_sets + LANE_PAD - 1) // LANE_PAD) * LANE_PAD
+    s = np.zeros((NROWS, bp))
+    ints = np.zeros((4, bp), dtype=np.int64)  # set id, repairs, held β, held Vx
+    n_hold = hold_steps(dt)
+    n_active = 0
+    for b in range(n_sets):
+        out_div[b] = -1
+        out_cause[b] = STOP_NONE
+        p00 = P_init[b, 0, 0]
+        p01 = 0.5 * (P_init[b, 0, 1] + P_init[b, 1, 0])
+        p02 = 0.5 * (P_init[b, 0, 2] + P_init[b, 2, 0])
+        p11 = P_init[b, 1, 1]
+        p12 = 0.5 * (P_init[b, 1, 2] + P_init[b, 2, 1])
+        p22 = P_init[b, 2, 2]
+        st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(p00, p01, p02, p11, p12, p22)
+        if st == 2:
+            out_div[b] = 0
+            out_rep[b] = 0
+            out_cause[b] = STOP_NUMERICAL
+            continue
+        j = n_active
+        n_active += 1
+        ints[0, j] = b
+        ints[1, j] = 1 if st == 1 else 0
+        # step 0 has no prediction: the "predicted" rows hold the prior
+        s[XB0, j] = x_init[b, 0]
+        s[XB1, j] = x_init[b, 1]
+        s[XB2, j] = x_init[b, 2]
+        s[PB00, j] = p00 + jit
+        s[PB01, j] = p01
+        s[PB02, j] = p02
+        s[PB11, j] = p11 + jit
+        s[PB12, j] = p12
+        s[PB22, j] = p22 + jit
+        s[LB00, j] = l00
+        s[LB10, j] = l10
+        s[LB11, j] = l11
+        s[LB20, j] = l20
+        s[LB21, j] = l21
+        s[LB22, j] = l22
+        s[Q0, j] = q[b, 0]
+        s[Q1, j] = q[b, 1]
+        s[Q2, j] = q[b, 2]
+        s[R0, j] = r[b, 0]
+        s[R1, j] = r[b, 1]
+        s[R2, j] = r[b, 2]
+    # padding lanes: a copy of lane 0, never read back
+    for j in range(n_active, bp):
+        for row in range(NROWS):
+            s[row, j] = s[row, 0]
+
+    for k in range(n_steps):
+        if n_active == 0:
+            break
+        n_vec = ((n_active + LANE_PAD - 1) // LANE_PAD) * LANE_PAD
+        if k > 0:
+            e0, e1, e2, e3 = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
+            _predict_lanes(s, n_vec, mp, dt, e0, e1, e2, e3, u[k - 1, 1], wm0, wc0, wi, c)
+            j = 0
+            while j < n_active:
+                if s[OK_PB, j] == 0.0:
+                    st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(
+                        s[PB00, j], s[PB01, j], s[PB02, j], s[PB11, j], s[PB12, j], s[PB22, j]
+                    )
+                    if st == 2:
+                        n_active = _retire(
+                            s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
+                        )
+                        continue  # lane j now holds another set: look at it again
+                    ints[1, j] += 1
+                    s[PB00, j] += jit
+                    s[PB11, j] += jit
+                    s[PB22, j] += jit
+                    s[LB00, j] = l00
+                    s[LB10, j] = l10
+                    s[LB11, j] = l11
+                    s[LB20, j] = l20
+                    s[LB21, j] = l21
+                    s[LB22, j] = l22
+                j += 1
+            n_vec = ((n_active + LANE_PAD - 1) // LANE_PAD) * LANE_PAD
+        e0, e1, e2, e3 = step_context_scalar(u[k, 0], u[k, 1], mp)
+        zk0 = z[k, 0]
+        zk1 = z[k, 1]
+        zk2 = z[k, 2]
+        _update_lanes(s, n_vec, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c)
+        j = 0
+        while j < n_active:
+            if s[OK_S, j] == 0.0:
+                st, rep = _update_lane_repaired(
+                    s, j, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c
+                )
+                if st == 2:
+                    n_active = _retire(
+                        s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
+                    )
+                    continue
+                ints[1, j] += rep
+            # P⁺: factorised in the vector loop, or repaired here (run_kernel's order of checks)
+            st = 0
+            jit = 0.0
+            if s[OK_P, j] == 0.0:
+                st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(
+                    s[P00, j], s[P01, j], s[P02, j], s[P11, j], s[P12, j], s[P22, j]
+                )
+            x0 = s[X0, j]
+            x1 = s[X1, j]
+            x2 = s[X2, j]
+            if (
+                st == 2
+                or not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2))
+                or not (math.isfinite(s[NIS, j]) and math.isfinite(s[H1, j]))
+            ):
+                n_active = _retire(
+                    s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
+                )
+                continue
+            if not x0 > 0.0:
+                n_active = _retire(
+                    s, ints, j, n_active, k, STOP_REVERSE, out_div, out_rep, out_cause
+                )
+                continue
+            if abs(x1) > _TAN_RUNAWAY_BETA * x0:
+                n_active = _retire(
+                    s, ints, j, n_active, k, STOP_SIDESLIP, out_div, out_rep, out_cause
+                )
+                continue
+            ints[2, j] = ints[2, j] + 1 if abs(x1) > _TAN_MAX_SIDESLIP * x0 else 0
+            ints[3, j] = ints[3, j] + 1 if abs(x0 - zk0) > RUNAWAY_VX * zk0 else 0
+            if ints[2, j] >= n_hold or ints[3, j] >= n_hold:
+                why = STOP_SIDESLIP_HELD if ints[2, j] >= n_hold else STOP_SPEED
+                n_active = _retire(
+                    s, ints, j, n_active, k + 1 - n_hold, why, out_div, out_rep, out_cause
+                )
+                continue
+            if st == 1:
+                ints[1, j] += 1
+                s[P00, j] += jit
+                s[P11, j] += jit
+                s[P22, j] += jit
+                s[L00, j] = l00
+                s[L10, j] = l10
+                s[L11, j] = l11
+                s[L20, j] = l20
+                s[L21, j] = l21
+                s[L22, j] = l22
+            b = ints[0, j]
+            out_x[b, k, 0] = x0
+            out_x[b, k, 1] = x1
+            out_x[b, k, 2] = x2
+            out_p[b, k, 0] = s[P00, j]
+            out_p[b, k, 1] = s[P11, j]
+            out_p[b, k, 2] = s[P22, j]
+            out_innov[b, k, 0] = s[Y0, j]
+            out_innov[b, k, 1] = s[Y1, j]
+            out_innov[b, k, 2] = s[Y2, j]
+            out_nis[b, k] = s[NIS, j]
+            out_zhat[b, k, 0] = s[H0, j]
+            out_zhat[b, k, 1] = s[H1, j]
+            out_zhat[b, k, 2] = s[H2, j]
+            j += 1
+    for j in range(n_active):
+        out_rep[ints[0, j]] = ints[1, j]
+    # NaN rows from each diverged set's step on, as run_kernel's _fill_nan
+    for b in range(n_sets):
+        if out_div[b] >= 0:
+            for k in range(out_div[b], n_steps):
+                for col in range(3):
+                    out_x[b, k, col] = _NAN
+                    out_p[b, k, col] = _NAN
+                    out_zhat[b, k, col] = _NAN
+                    out_innov[b, k, col] = _NAN
+                out_nis[b, k] = _NAN
+
+
+# LLVM options set while this module's kernel compiles, and set back to LLVM's values at
+# numba's optimisation level 3 afterwards:
+# * the limit on the run-time overlap checks of a vectorised loop (default 128): every row
+#   of the lane array is a separate pointer to LLVM, and a step loop has about 50 of them;
+# * the inlining threshold (250 at -O3): the RK4 step and the measurement model must be
+#   inlined into the lane loops, or the loops hold calls and cannot be vectorised.
+_LLVM_OPTIONS = (
+    ("-vectorize-memory-check-threshold", 100_000, 128),
+    ("-inline-threshold", 100_000, 250),
+)
+_ready = False
+
+
+def ensure_compiled() -> None:
+    """Compile (or load from numba's cache) :func:`run_kernel_soa` with vectorisation on.
+
+    Two LLVM command-line options (global to the process: the vectoriser's limit on
+    run-time overlap checks and the inlining threshold) are raised only while this kernel
+    compiles and set back to numba's values afterwards, so that no other function is
+    compiled differently.
+    """
+    global _ready
+    if _ready:
+        return
+    import llvmlite.binding as llvm
+
+    for name, value, _ in _LLVM_OPTIONS:
+        llvm.set_option("", f"{name}={value}")
+    try:
+        mp = np.array([1500.0, 2500.0, 1.2, 1.4, 0.5, 8e4, 9e4, 1e5, 1.0])
+        q = np.full((1, 3), 1e-4)
+        x = np.array([[20.0, 0.0, 0.0]])
+        P = np.eye(3)[None]
+        u = np.zeros((2, 2))
+        z = np.tile([20.0, 0.0, 0.0], (2, 1))
+        outs = [np.empty((1, 2, 3)) for _ in range(4)]
+        ints = [np.empty(1, dtype=np.int64) for _ in range(3)]
+        run_kernel_soa(
+            mp, u, z, 0.01, q, q, x, P, 0.5, 0.5, 0.1, 1.0, *outs, np.empty((1, 2)), *ints
+        )
+    finally:
+        for name, _, default in _LLVM_OPTIONS:
+            llvm.set_option("", f"{name}={default}")
+    _ready = True
