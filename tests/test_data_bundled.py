@@ -3,13 +3,12 @@ limit. Reads the packaged files only, so it runs without the ``[simulate]`` extr
 
 from __future__ import annotations
 
-import dataclasses
 from collections import Counter
 
 import numpy as np
 
 from kftune.data import bundled_dataset_path, default_dataset
-from kftune.data.validate import REQUIRED_CHANNELS
+from kftune.data.validate import SIDESLIP_CHANNELS
 from kftune.sim.generate import TRUE_CHANNELS  # a table: imports no CommonRoad
 from test_data_helpers import MAX_SHARE_ONE_STEP, storage_step_differences
 
@@ -56,7 +55,7 @@ def test_generated_channels_are_consistent():
         assert 0.03 < np.std(d_beta) < 0.07 and abs(np.mean(d_beta)) < 0.01
         d_r = np.degrees(m.r - e["r_true"])
         assert 0.15 < np.std(d_r) < 0.25
-        assert set(m.channel_names) == set(REQUIRED_CHANNELS) | set(TRUE_CHANNELS)
+        assert set(m.channel_names) == set(SIDESLIP_CHANNELS) | set(TRUE_CHANNELS)
 
 
 def test_cross_machine_comparison_allows_one_storage_step_on_a_few_samples_only():
@@ -67,7 +66,7 @@ def test_cross_machine_comparison_allows_one_storage_step_on_a_few_samples_only(
     def ay_moved(rows: np.ndarray, by: float):
         ay = stored.ay.copy()
         ay[rows] += by
-        return dataclasses.replace(stored, ay=ay)
+        return stored.replace(ay=ay)
 
     assert storage_step_differences(stored, stored) == []
     assert storage_step_differences(ay_moved(np.array([5, 300, 700]), 0.01), stored) == []

@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from kftune.cli import main
-from kftune.data import REQUIRED_CHANNELS, Dataset, load_dataset, load_mat, save_dataset, textfile
+from kftune.data import SIDESLIP_CHANNELS, Dataset, load_dataset, load_mat, save_dataset, textfile
 from kftune.data.io import file_stem, read_csv
 from kftune.data.textfile import ReadLimits, read_values
 from kftune.errors import ConfigError, DataError
@@ -29,7 +29,7 @@ from kftune.vehicle import preset
 from test_data_helpers import synthetic_channels, synthetic_dataset, synthetic_manoeuvre
 
 SECRET = "SECRET-first-line-of-a-foreign-file"
-SI = dict.fromkeys(REQUIRED_CHANNELS, 1.0)
+SI = dict.fromkeys(SIDESLIP_CHANNELS, 1.0)
 
 
 def kftune(*args: object, cwd: Path | None = None, env: dict | None = None):
@@ -55,8 +55,8 @@ def assert_clean_failure(res: subprocess.CompletedProcess, code: int, *names: st
 
 def csv_text(n: int = 400, sep: str = ",", newline: str = "\n") -> str:
     c = synthetic_channels(n=n)
-    rows = [sep.join(REQUIRED_CHANNELS)]
-    rows += [sep.join(repr(float(c[k][i])) for k in REQUIRED_CHANNELS) for i in range(n)]
+    rows = [sep.join(SIDESLIP_CHANNELS)]
+    rows += [sep.join(repr(float(c[k][i])) for k in SIDESLIP_CHANNELS) for i in range(n)]
     return newline.join(rows) + newline
 
 
@@ -179,7 +179,7 @@ def test_hostile_manoeuvre_names_stay_inside_every_output_folder(tmp_path: Path,
 def gzip_bomb(path: Path, mib: int, line: bytes) -> None:
     block = line * (2**20 // len(line))
     with gzip.open(path, "wb", compresslevel=9) as fh:
-        fh.write(b",".join(c.encode() for c in REQUIRED_CHANNELS) + b"\n")
+        fh.write(b",".join(c.encode() for c in SIDESLIP_CHANNELS) + b"\n")
         for _ in range(mib):
             fh.write(block)
 
@@ -258,8 +258,8 @@ def test_loading_takes_memory_in_proportion_to_the_arrays_kept(tmp_path: Path):
     short = synthetic_manoeuvre("long", extra=False)
     save_dataset(Dataset("long", preset("bmw-320i"), 0.01, (short,)), folder, compress=False)
     with open(folder / "long.csv", "w") as fh:
-        fh.write(",".join(REQUIRED_CHANNELS) + "\n")
-        columns = np.column_stack([c[k] for k in REQUIRED_CHANNELS])
+        fh.write(",".join(SIDESLIP_CHANNELS) + "\n")
+        columns = np.column_stack([c[k] for k in SIDESLIP_CHANNELS])
         np.savetxt(fh, columns, fmt="%.6f", delimiter=",")
     tracemalloc.start()
     try:
@@ -406,11 +406,11 @@ def test_block_boundaries_never_move_a_row(
     if corrupt:
         with pytest.raises(DataError, match="cannot read") as info:
             read_csv(f, SI)
-        assert (info.value.row, info.value.column) == (bad_row + 2, REQUIRED_CHANNELS[bad_col])
+        assert (info.value.row, info.value.column) == (bad_row + 2, SIDESLIP_CHANNELS[bad_col])
     else:
         whole = np.loadtxt(f, delimiter=",", skiprows=1)
         got = read_csv(f, SI)
-        np.testing.assert_array_equal(np.column_stack([got[k] for k in REQUIRED_CHANNELS]), whole)
+        np.testing.assert_array_equal(np.column_stack([got[k] for k in SIDESLIP_CHANNELS]), whole)
 
 
 @settings(
@@ -433,7 +433,7 @@ def test_any_bytes_give_data_or_a_short_data_error(tmp_path, data: bytes):
 
 
 # =========================================================================== MATLAB
-MAPPING = {c: c for c in REQUIRED_CHANNELS}  # variables named as the channels, SI
+MAPPING = {c: c for c in SIDESLIP_CHANNELS}  # variables named as the channels, SI
 
 
 @pytest.mark.parametrize(

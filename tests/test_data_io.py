@@ -13,7 +13,7 @@ import pytest
 import scipy.io
 
 from kftune.data import (
-    REQUIRED_CHANNELS,
+    SIDESLIP_CHANNELS,
     Dataset,
     Source,
     load_columns,
@@ -119,10 +119,10 @@ def test_not_a_dataset(tmp_path):
 def test_csv_column_errors(tmp_path):
     m = synthetic_manoeuvre()
     lines = ["t,delta,ax,ay,r,vx,beta_ref"] + [
-        ",".join(repr(float(m.channel(c)[i])) for c in REQUIRED_CHANNELS) for i in range(m.n)
+        ",".join(repr(float(m.channel(c)[i])) for c in SIDESLIP_CHANNELS) for i in range(m.n)
     ]
     f = tmp_path / "x.csv"
-    si = dict.fromkeys(REQUIRED_CHANNELS, 1.0)
+    si = dict.fromkeys(SIDESLIP_CHANNELS, 1.0)
     f.write_text("\n".join(lines).replace("beta_ref", "beta", 1))
     with pytest.raises(DataError) as info:
         read_csv(f, si)
@@ -130,7 +130,11 @@ def test_csv_column_errors(tmp_path):
     f.write_text("\n".join(lines).replace(",beta_ref", "", 1))
     with pytest.raises(DataError) as info:
         read_csv(f, si)
-    assert info.value.row == 1  # header and rows disagree, or beta_ref is missing
+    assert info.value.row == 2 and "the header has 6" in str(info.value)  # rows disagree
+    f.write_text("\n".join(lines).replace("t,", "time,", 1))
+    with pytest.raises(DataError, match="missing the time column") as info:
+        read_csv(f, {**si, "time": 1.0})
+    assert (info.value.column, info.value.row) == ("t", 1)
     f.write_text("t,t,delta,ax,ay,r,vx,beta_ref\n")
     with pytest.raises(DataError, match="duplicated column"):
         read_csv(f, si)
@@ -247,9 +251,9 @@ def test_column_files_errors_name_the_file(tmp_path):
     with pytest.raises(DataError) as info:
         load_columns(tmp_path, bad, preset("revs-250lm"))
     assert info.value.file == str(tmp_path / "YawRate.txt") and info.value.column == "r"
-    with pytest.raises(DataError, match="gives no source"):
+    with pytest.raises(DataError, match="gives no source for the time channel"):
         load_columns(
-            tmp_path, {k: v for k, v in USER_MAPPING.items() if k != "ax"}, preset("revs-250lm")
+            tmp_path, {k: v for k, v in USER_MAPPING.items() if k != "t"}, preset("revs-250lm")
         )
     with pytest.raises(DataError, match="file not found"):
         load_columns(tmp_path, dict(USER_MAPPING, ax=("AccelX", "g")), preset("revs-250lm"))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -13,6 +12,7 @@ from kftune.data import default_dataset
 from kftune.errors import ConfigError, DataError
 from kftune.experiment import MANUAL_Q, manual_point
 from kftune.filters import UKFSettings, run_ukf
+from kftune.models import get_model
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.problem import (
     FilterDivergedError,
@@ -21,6 +21,7 @@ from kftune.tuning.problem import (
     _balanced_chunks,
     assess,
     channel_estimate,
+    default_r0,
 )
 
 
@@ -204,13 +205,17 @@ def test_prior_estimate_cannot_copy_the_measurement(ds):
     np.testing.assert_allclose(est, m.r - res.innovation[:, 2], rtol=0, atol=0)
 
 
-def test_non_positive_speed_is_refused_naming_manoeuvre_and_row(ds):
+@pytest.mark.parametrize("model", ["single-track", "single-track-ay-bias"])
+def test_non_positive_speed_is_refused_naming_manoeuvre_and_row(ds, model):
     m = ds.train[2]
     vx = m.vx.copy()
     vx[17] = 0.0
-    # Refused where the manoeuvre is built, so no tuning problem can ever hold it.
-    with pytest.raises(DataError, match=r"manoeuvre 'train-03-j-turn', column 'vx', row 17"):
-        dataclasses.replace(m, vx=vx)
+    # vx > 0 is the single-track models' assumption: the data load, the models refuse them
+    stopped = m.replace(vx=vx)
+    r0 = default_r0(get_model(model), ds)
+    where = r"manoeuvre 'train-03-j-turn', column 'vx', row 17: model '" + model
+    with pytest.raises(DataError, match=where + r"' refuses these data: .*must be > 0"):
+        TuningProblem([stopped], ds.vehicle, r0, model=model)
 
 
 def test_fingerprint_tells_objectives_apart(ds):
@@ -242,7 +247,10 @@ def test_a_problem_over_another_model_names_its_parameters_and_checks_its_channe
         problem.fingerprint()["sha256"]
         != TuningProblem(ds.train[:1], ds.vehicle, ds.r_default).fingerprint()["sha256"]
     )
-    with pytest.raises(ConfigError, match=r"unknown cost channel 'vy'"):
+    with pytest.raises(ConfigError, match=r"unknown cost channel 'vz'"):
+        TuningProblem(ds.train[:1], ds.vehicle, r0, model=bias, cost=CostSpec(weights={"vz": 1.0}))
+    # a state that is not measured is an output, scored against its reference <state>_ref
+    with pytest.raises(DataError, match=r"needs a reference channel vy_ref, which manoeuvre"):
         TuningProblem(ds.train[:1], ds.vehicle, r0, model=bias, cost=CostSpec(weights={"vy": 1.0}))
     with pytest.raises(ConfigError, match=r"for states \['vx', 'vy', 'r'\]"):
         TuningProblem(
@@ -254,5 +262,5 @@ def test_a_problem_over_another_model_names_its_parameters_and_checks_its_channe
     np.testing.assert_array_equal(default_r0(ctrv, ds.r_default, {"px": 1.0, "py": 2.0}), [1, 2])
     with pytest.raises(ConfigError, match=r"r0 names \['vz'\] are not measurements"):
         default_r0(bias, ds.r_default, {"vz": 1.0})
-    with pytest.raises(DataError, match=r"needs measurement channel\(s\) \['px', 'py'\]"):
+    with pytest.raises(DataError, match=r"model 'ctrv' needs measurement channel px, which"):
         TuningProblem(ds.train[:1], ds.vehicle, [1.0, 1.0], model=ctrv, cost=CostSpec(kind="nis"))

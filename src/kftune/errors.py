@@ -51,6 +51,24 @@ class DataError(KftuneError, ValueError):
         self.row = row
 
 
+class MissingChannelError(DataError, KeyError):
+    """A manoeuvre lacks a channel that a model, a cost, a KPI or a plot needs (e.g. the
+    reference ``beta_ref`` of the sideslip KPIs). A :class:`DataError` (the CLI's bad-input
+    exit code) and a ``KeyError`` (a lookup by name that failed).
+
+    Attributes:
+        manoeuvre: the manoeuvre's name. channel: the channel it lacks.
+    """
+
+    def __init__(self, message: str, *, manoeuvre: str, channel: str) -> None:
+        super().__init__(message)
+        self.manoeuvre = manoeuvre
+        self.channel = channel
+
+    def __str__(self) -> str:  # KeyError's own would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
 class RunFailedError(KftuneError):
     """A run produced no result although its input was valid (e.g. every evaluation of a
     tuning run failed); the CLI exits with 1, not with the bad-input code."""

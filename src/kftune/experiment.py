@@ -380,6 +380,8 @@ def run_compare(
     settings = settings or CompareSettings()
     if not dataset.train:
         raise ConfigError(f"dataset {dataset.name!r} has no training manoeuvres")
+    for m in dataset.manoeuvres:  # before anything is written or run
+        m.require(["beta_ref"], "compare (its sideslip KPIs and β figures)", "a reference channel")
     out = Path(out_dir)
     studies = out / "studies"
     existing = sorted(studies.glob("*.db"))
@@ -406,7 +408,7 @@ def run_compare(
     problem = TuningProblem(
         dataset.train,
         dataset.vehicle,
-        default_r0(fs.model, dataset.r_default, settings.r0),
+        default_r0(fs.model, dataset, settings.r0),
         cost=settings.cost,
         parameterization=par,
         workers=settings.workers,
@@ -454,7 +456,7 @@ def run_compare(
             "n_test": len(dataset.test),
             "samples_train": sum(m.n for m in dataset.train),
             "samples_test": sum(m.n for m in dataset.test),
-            "vehicle": dataset.vehicle.name,
+            "vehicle": None if dataset.vehicle is None else dataset.vehicle.name,
         },
         "manoeuvres": {m.name: {"kind": m.kind, "split": m.split} for m in dataset.manoeuvres},
         "filter": f"{problem.filter.upper()} on model {problem.model.name!r}"

@@ -333,7 +333,10 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
         "--weights",
         type=_weights_arg,
         metavar="CH=W,...",
-        help=f"NRMSE weights per channel from {list(CHANNELS)} (default beta=5,r=1,ay=1)",
+        help=f"NRMSE weights per channel (default beta=5,r=1,ay=1): a measurement of the model "
+        f"(single-track: {list(CHANNELS[1:])}), scored against its data channel, or an "
+        "output or unmeasured state (single-track: beta, vy), scored against the data's "
+        "reference channel <name>_ref",
     )
     cost.add_argument(
         "--estimate",

@@ -152,7 +152,12 @@ def _remove(files: list[Path], out: Path) -> None:
 
 # ------------------------------------------------------------------------------ info
 def dataset_info(dataset: Dataset) -> dict[str, Any]:
-    """The summary ``kftune dataset info`` prints, as plain data."""
+    """The summary ``kftune dataset info`` prints, as plain data: the sideslip statistics
+    for data with the sideslip channels, the channels and their units for any other."""
+    from kftune.data.validate import SIDESLIP_CHANNELS
+
+    if not set(SIDESLIP_CHANNELS) <= set(dataset.channel_names):
+        return _generic_info(dataset)
     rows = dataset.summary()
     splits = {}
     for split in ("train", "test"):
@@ -187,6 +192,27 @@ def dataset_info(dataset: Dataset) -> dict[str, Any]:
     }
 
 
+def _generic_info(dataset: Dataset) -> dict[str, Any]:
+    """:func:`dataset_info` of data without the sideslip channels."""
+    names = [c for c in dataset.channel_names if c != "t"]
+    return {
+        "name": dataset.name,
+        "vehicle": None if dataset.vehicle is None else dataset.vehicle.name,
+        "dt": dataset.dt,
+        "channels": names,
+        "units": {c: dataset.units.get(c, "") for c in names},
+        "splits": {
+            split: {"manoeuvres": len(ms), "samples": sum(m.n for m in ms)}
+            for split, ms in (("train", dataset.train), ("test", dataset.test))
+            if ms
+        },
+        "manoeuvres": [
+            {"name": m.name, "kind": m.kind, "split": m.split, "n": m.n, "duration": m.duration}
+            for m in dataset.manoeuvres
+        ],
+    }
+
+
 def run_info(args: argparse.Namespace) -> int:
     """Print a dataset summary."""
     from kftune.data import open_dataset
@@ -195,6 +221,16 @@ def run_info(args: argparse.Namespace) -> int:
     info = dataset_info(dataset)
     if args.json:
         print(json.dumps(info))
+        return 0
+    if "channels" in info:
+        vehicle = "no vehicle" if info["vehicle"] is None else f"vehicle {info['vehicle']!r}"
+        print(
+            f"dataset {info['name']!r}: {vehicle}, dt = {info['dt']:g} s, "
+            f"{len(dataset)} manoeuvres; channels t, "
+            + ", ".join(f"{c} [{u}]" if u else c for c, u in info["units"].items())
+        )
+        for row in info["manoeuvres"]:
+            print(f"{row['name']:34s} {row['kind']:16s} {row['split']:5s} {row['duration']:7.1f} s")
         return 0
     print(
         f"dataset {info['name']!r}: vehicle {info['vehicle']!r}, dt = {info['dt']:g} s, "
@@ -237,7 +273,22 @@ def plot_manoeuvre(m: Manoeuvre, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from kftune.data.validate import SIDESLIP_CHANNELS
+
     t = m.t - m.t[0]
+    if not all(m.has(c) for c in SIDESLIP_CHANNELS):  # not the sideslip set: every channel
+        names = [c for c in m.channel_names if c != "t"]
+        fig, axs = plt.subplots(len(names), 1, figsize=(9, 2 * len(names)), sharex=True)
+        for ax, c in zip(np.atleast_1d(axs), names):
+            ax.plot(t, m.channel(c), lw=0.7)
+            ax.set_ylabel(c)
+            ax.grid(True, lw=0.3)
+        np.atleast_1d(axs)[-1].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
+        fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
     fig, axes = plt.subplots(5, 1, figsize=(9, 10), sharex=True)
     axes[0].plot(t, np.degrees(m.delta), lw=0.8)
     axes[0].set_ylabel("δ road wheel [°]")

@@ -91,16 +91,17 @@ def read_tuned(path: Path) -> dict[str, Any]:
         if key not in doc:
             raise DataError(f"missing key {key!r}", file=str(path))
     q = doc["q"]
-    if not (isinstance(q, list) and len(q) == 3 and all(_finite(v) and v >= 0 for v in q)):
+    if not (isinstance(q, list) and q and all(_finite(v) and v >= 0 for v in q)):
         raise DataError(
-            f"'q' must be 3 numbers >= 0 (not true/false or strings), got {q!r:.80}",
+            "'q' must be a list of numbers >= 0, one per state (not true/false or strings), "
+            f"got {q!r:.80}",
             file=str(path),
         )
     from kftune.filters import UKFSettings
     from kftune.tuning.cost import CostSpec
 
     try:  # the settings must make a filter and a cost, or the file is not usable
-        UKFSettings(**doc["ukf"]).check_dim(3)
+        UKFSettings(**doc["ukf"]).check_dim(len(q))
         CostSpec(**doc.get("cost_spec", {}))
     except (TypeError, ValueError, AttributeError, OverflowError) as exc:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
@@ -162,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         TuningProblem,
         assess,
         default_r0,
+        missing_references,
         where_diverged,
     )
 
@@ -227,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     problem = TuningProblem(
         manoeuvres,
         dataset.vehicle,
-        default_r0(model, dataset.r_default, config.get("r0")),
+        default_r0(model, dataset, config.get("r0")),
         cost=spec,
         parameterization=par,
         workers=pick(args, config, "workers", 1),
@@ -241,7 +243,9 @@ def run(args: argparse.Namespace) -> int:
         except FilterDivergedError:
             cost = None
         metrics, results = assess(problem, x, manoeuvres)
-    avg = average_kpis(metrics.values())
+    missing = missing_references(problem, manoeuvres)
+    sideslip = all("rmse" in row for row in metrics.values())
+    avg = average_kpis(metrics.values()) if sideslip else _averages(metrics.values())
     where = {
         name: where_diverged(dataset[name], res) for name, res in results.items() if res.diverged
     }
@@ -258,6 +262,7 @@ def run(args: argparse.Namespace) -> int:
         "cost_estimate": spec.estimate,
         "burn_in": scored_after,
         "diverged": reason,
+        "missing_references": missing,
         "average": {k: _num(v) for k, v in avg.items()},
         "manoeuvres": {
             name: {
@@ -284,16 +289,53 @@ def _num(v: float) -> float | None:
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
+def _averages(rows: Any) -> dict[str, float]:
+    """Plain means of each ``rmse_*`` metric over the manoeuvres that have it (NaN for all
+    when the filter diverged on any, as :func:`~kftune.tuning.kpi.average_kpis`)."""
+    import numpy as np
+
+    rows = list(rows)
+    n_diverged = sum(1 for r in rows if r.get("diverged", 0))
+    keys = [k for k in dict.fromkeys(k for r in rows for k in r) if k.startswith("rmse_")]
+    out: dict[str, float] = {}
+    for k in keys:
+        values = [r[k] for r in rows if k in r and not math.isnan(r[k])]
+        out[k] = float(np.mean(values)) if values and not n_diverged else math.nan
+    out["n_diverged"] = n_diverged
+    out["n_manoeuvres"] = len(rows)
+    return out
+
+
 def _print_table(doc: dict[str, Any]) -> None:
-    cols = (*KPI_NAMES, "rmse_r", "rmse_ay")
-    heads = ("RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°", "RMSE r °/s", "RMSE ay")
-    width = max(12, *(len(n) for n in doc["manoeuvres"]))
+    rows = doc["manoeuvres"]
+    if all("rmse" in row for row in rows.values()):
+        cols: tuple[str, ...] = (*KPI_NAMES, "rmse_r", "rmse_ay")
+        heads: tuple[str, ...] = (
+            "RMSE°",
+            "MAE°",
+            "RMSE_NON°",
+            "MAE_NON°",
+            "RMSE r °/s",
+            "RMSE ay",
+        )
+        averaged: tuple[str, ...] = KPI_NAMES
+    else:  # another model: the RMSE of each measurement and referenced output
+        cols = tuple(k for k in doc["average"] if k.startswith("rmse_"))
+        heads = tuple(f"RMSE {k[5:]}" for k in cols)
+        averaged = cols
+    width = max(12, *(len(n) for n in rows))
     print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>10s}" for h in heads))
-    for name, row in doc["manoeuvres"].items():
+    for name, row in rows.items():
         cells = " ".join(_cell(row.get(c)) for c in cols)
         print(f"{name:{width}s} {cells}")
-    print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in KPI_NAMES))
-    print("MAE: maximum absolute error; _NON: samples with |ay| >= 4 m/s²")
+    print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in averaged))
+    if averaged == KPI_NAMES:
+        print("MAE: maximum absolute error; _NON: samples with |ay| >= 4 m/s²")
+    for ref, lacking in doc["missing_references"].items():
+        print(
+            f"sideslip KPIs (–): they need a reference channel {ref}, which "
+            f"{len(lacking)} of {len(rows)} manoeuvres lack (first: {lacking[0]!r})"
+        )
     if doc["cost"] is not None:
         print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
     if doc["diverged"] is not None:

@@ -2,7 +2,8 @@
 
 Lists the built-in models (and, with ``--model FILE.py``, your own): their states, inputs,
 measurements and outputs with units, which are the data channels a filter reads by name and
-the ``q_<state>`` parameters ``tune`` searches.
+the ``q_<state>`` parameters ``tune`` searches, and the channels a dataset needs for them:
+t, the inputs and measurements by name, and ``<output>_ref`` for a cost on an output.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ def register(subparsers: Any) -> None:
 
 
 def describe(model: Any) -> dict[str, Any]:
-    """A model's names and units as JSON-ready data."""
+    """A model's names and units as JSON-ready data, and the data channels it needs."""
+    from kftune.tuning.problem import output_names
 
     def pairs(names: tuple[str, ...], units: tuple[str, ...]) -> list[dict[str, str]]:
         return [{"name": n, "unit": u} for n, u in zip(names, units)]
@@ -38,8 +40,13 @@ def describe(model: Any) -> dict[str, Any]:
         "states": pairs(model.state_names, model.state_units),
         "inputs": pairs(model.input_names, model.input_units),
         "measurements": pairs(model.measurement_names, model.measurement_units),
-        "outputs": sorted(model.outputs),
+        "outputs": list(output_names(model)),
         "jacobians": "analytic" if model.F is not None and model.H is not None else "numerical",
+        "data": {
+            "channels": ["t", *model.input_names, *model.measurement_names],
+            "references": [f"{o}_ref" for o in output_names(model)],
+            "vehicle": bool(model.needs_vehicle),
+        },
     }
 
 
@@ -60,4 +67,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {key:13s} {cells}")
         print(f"  {'outputs':13s} {', '.join(d['outputs']) or 'none'}")
         print(f"  {'EKF Jacobians':13s} {d['jacobians']}")
+        data = d["data"]
+        refs = ", ".join(data["references"])
+        print(
+            f"  {'data':13s} channels {', '.join(data['channels'])}"
+            + (f"; for a cost on an output its reference ({refs})" if refs else "")
+            + ("; a vehicle" if data["vehicle"] else "")
+        )
     return EXIT_OK

@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         problem = TuningProblem(
             dataset.train,
             dataset.vehicle,
-            default_r0(fs.model, dataset.r_default, config.get("r0")),
+            default_r0(fs.model, dataset, config.get("r0")),
             cost=cost_spec(args, config),
             parameterization=parameterization(args, config, fs.model),
             workers=pick(args, config, "workers", 1),

@@ -4,8 +4,9 @@ Typical use::
 
     from kftune.data import default_dataset, estimate_measurement_noise
     ds = default_dataset()                 # the bundled 31 manoeuvres (8 train, 23 test)
-    m = ds.train[0]                        # a Manoeuvre: m.t, m.u (n, 2), m.z (n, 3), m.beta_ref
+    m = ds.train[0]                        # a Manoeuvre: m.t, m.channel("vx"), m.beta_ref, …
     R = ds.r_default                       # (3,) variances [Vx, ay, r] from sensor statistics
+    R = ds.noise_variances(["vx", "r"])    # any measured channels, by name
 
 Everything here needs only numpy and scipy. The generator of the bundled data is a package
 of its own, :mod:`kftune.sim` (it needs the ``[simulate]`` extra).
@@ -31,12 +32,18 @@ from kftune.data.io import (
 from kftune.data.manoeuvre import KINDS, SPLITS, Dataset, Manoeuvre
 from kftune.data.noise import estimate_measurement_noise
 from kftune.data.textfile import ReadLimits
-from kftune.data.validate import REQUIRED_CHANNELS, UNITS, validate_channels
+from kftune.data.validate import (
+    REQUIRED_CHANNELS,
+    SIDESLIP_CHANNELS,
+    UNITS,
+    validate_channels,
+)
 
 __all__ = [
     "KINDS",
     "REQUIRED_CHANNELS",
     "REVS_MAPPING",
+    "SIDESLIP_CHANNELS",
     "SPLITS",
     "UNITS",
     "Dataset",

@@ -57,6 +57,8 @@ from kftune.data.validate import (
     MIN_SAMPLES,
     REQUIRED_CHANNELS,
     SI_UNIT,
+    SIDESLIP_CHANNELS,
+    UNITS,
     check_channel_name,
     unit_factor,
     validate_channels,
@@ -80,8 +82,10 @@ MANIFEST_KEYS = {
     "name": "dataset name",
     "description": "free text (optional)",
     "dt": "sample time [s]",
-    "vehicle": "table of VehicleParams fields (SI) or a preset name",
-    "units": "table column → unit (optional: SI assumed for the required channels)",
+    "vehicle": "table of VehicleParams fields (SI) or a preset name (optional: data of "
+    "something other than a car have none)",
+    "units": "table column → unit (optional for the sideslip channels, SI assumed; required "
+    "for any other column)",
     "meta": "free table: provenance (optional)",
     "manoeuvres": "array of tables: name, kind, split, file, description (optional)",
 }
@@ -175,18 +179,19 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    units: dict[str, str] = {c: SI_UNIT[CHANNEL_DIMENSION[c]] for c in REQUIRED_CHANNELS}
-    extras = sorted({k for m in dataset.manoeuvres for k in m.extra})
-    for k in extras:
-        units[k] = _extra_unit(dataset, k)
+    names = dataset.manoeuvres[0].channel_names
+    units: dict[str, str] = {
+        c: SI_UNIT[CHANNEL_DIMENSION[c]] if c in CHANNEL_DIMENSION else _extra_unit(dataset, c)
+        for c in names
+    }
     entries = []
     files: dict[str, str] = {}
     for m in dataset.manoeuvres:
-        missing = [k for k in extras if k not in m.extra]
-        if missing:
+        if set(m.channel_names) != set(names):
             raise ValueError(
-                f"manoeuvre {excerpt(m.name)} lacks extra channel(s) {missing} that others have; "
-                "the format needs the same columns in every file"
+                f"manoeuvre {excerpt(m.name)} has channels {list(m.channel_names)}, manoeuvre "
+                f"{excerpt(dataset.manoeuvres[0].name)} {list(names)}; the format needs the "
+                "same columns in every file"
             )
         file = f"{file_stem(m.name)}.csv.gz" if compress else f"{file_stem(m.name)}.csv"
         if file in files:
@@ -195,7 +200,7 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
                 f"to {file}; rename one"
             )
         files[file] = m.name
-        text = _format_csv({c: m.channel(c) for c in (*REQUIRED_CHANNELS, *extras)})
+        text = _format_csv({c: m.channel(c) for c in names})
         data = text.encode("utf-8")
         if compress:
             buf = io.BytesIO()
@@ -216,7 +221,8 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
     if dataset.description:
         lines.append(f"description = {_toml_value(dataset.description, 'description')}")
     lines.append(f"dt = {_toml_value(float(dataset.dt), 'dt')}")
-    _toml_table({"vehicle": dataset.vehicle.to_dict(), "units": units}, "", lines)
+    vehicle = None if dataset.vehicle is None else dataset.vehicle.to_dict()
+    _toml_table({"vehicle": vehicle, "units": units}, "", lines)
     if dataset.meta:
         _toml_table({"meta": _plain(dataset.meta)}, "", lines)
     for entry in entries:
@@ -238,8 +244,11 @@ def _plain(value: Any) -> Any:
 
 
 def _extra_unit(dataset: Dataset, name: str) -> str:
-    """Unit of an extra channel for the manifest: from ``meta['units']`` when given,
-    otherwise guessed from the name (kftune's own true-state channels)."""
+    """Unit of a channel kftune does not know, for the manifest: the dataset's ``units``,
+    else ``meta['units']``, else guessed from the name (kftune's own true-state channels),
+    else ``"1"``."""
+    if name in dataset.units:
+        return str(dataset.units[name])
     declared = dataset.meta.get("units", {}) if isinstance(dataset.meta, Mapping) else {}
     if name in declared:
         return str(declared[name])
@@ -412,9 +421,10 @@ def load_dataset(path: str | Path | None = None, *, limits: ReadLimits | None = 
     dt = _field(data, "dt", (int, float), "", mfile)
     if not 0.0 < dt <= 1.0:
         raise DataError(f"field 'dt' must be in (0, 1] s, got {dt!r}", file=mfile)
-    vehicle = _vehicle_from(data.get("vehicle"), mfile)
+    vehicle = None if "vehicle" not in data else _vehicle_from(data["vehicle"], mfile)
     units = _field(data, "units", dict, "", mfile, required=False) or {}
     factors: dict[str, float] = {}
+    si_units: dict[str, str] = {}  # channels kftune does not know: their SI unit
     for col, unit in units.items():
         check_channel_name(col, file=mfile)
         if not isinstance(unit, str):
@@ -422,7 +432,9 @@ def load_dataset(path: str | Path | None = None, *, limits: ReadLimits | None = 
                 f"field 'units.{col}' must be a unit string, got {excerpt(unit)}", file=mfile
             )
         factors[col] = unit_factor(unit, CHANNEL_DIMENSION.get(col), file=mfile, column=col)
-    for col in REQUIRED_CHANNELS:
+        if col not in CHANNEL_DIMENSION:
+            si_units[col] = SI_UNIT[UNITS[unit.strip()][0]]
+    for col in SIDESLIP_CHANNELS:
         factors.setdefault(col, 1.0)
     meta = _field(data, "meta", dict, "", mfile, required=False) or {}
     entries = _field(data, "manoeuvres", list, "", mfile)
@@ -485,7 +497,7 @@ def load_dataset(path: str | Path | None = None, *, limits: ReadLimits | None = 
             )
         )
     try:
-        return Dataset(name, vehicle, float(dt), tuple(manoeuvres), description, meta)
+        return Dataset(name, vehicle, float(dt), tuple(manoeuvres), description, meta, si_units)
     except DataError as exc:
         raise DataError(str(exc), file=mfile) from None
 
@@ -517,11 +529,11 @@ def _manoeuvre(
 ) -> Manoeuvre:
     try:
         return Manoeuvre(
-            name=name,
-            kind=kind,
-            split=split,
-            **{c: channels[c] for c in REQUIRED_CHANNELS},
-            extra={k: v for k, v in channels.items() if k not in REQUIRED_CHANNELS},
+            name,
+            kind,
+            split,
+            channels["t"],
+            channels={k: v for k, v in channels.items() if k != "t"},
             description=description,
         )
     except DataError as exc:
@@ -534,7 +546,7 @@ def read_csv(
     """Read one manoeuvre CSV of the kftune format into SI channels.
 
     The header row names the columns; every column must be declared (``factors`` holds the
-    SI conversion factor of each declared column) and every required channel present.
+    SI conversion factor of each declared column) and ``t`` present.
     Values are plain decimal numbers, separated by commas (or by the ``;`` or tab that
     separates the header's names); the first malformed value is reported by column and row
     (the header is row 1). The file is read in blocks, within ``limits``
@@ -573,8 +585,9 @@ def _check_header(header: list[str], factors: Mapping[str, float], file: str) ->
     unknown = [h for h in header if h not in factors]
     if unknown:
         raise DataError(
-            "unknown column: not a kftune channel and not declared in the manifest's "
-            f"[units] table (required: {list(REQUIRED_CHANNELS)})",
+            "unknown column: not a sideslip channel and not declared in the manifest's "
+            f"[units] table (sideslip channels: {list(SIDESLIP_CHANNELS)}; any other column "
+            'needs its unit there, e.g. px = "m")',
             file=file,
             column=unknown[0],
             row=1,
@@ -582,7 +595,7 @@ def _check_header(header: list[str], factors: Mapping[str, float], file: str) ->
     for c in REQUIRED_CHANNELS:
         if c not in header:
             raise DataError(
-                f"missing required column; the header has {excerpt(header, 200)}",
+                f"missing the time column; the header has {excerpt(header, 200)}",
                 file=file,
                 column=c,
                 row=1,
@@ -635,12 +648,21 @@ def _normalise_mapping(mapping: ColumnMapping, file: str) -> dict[str, Source]:
     for c in REQUIRED_CHANNELS:
         if c not in out:
             raise DataError(
-                f"the column mapping gives no source for required channel {c!r} "
-                f"(required: {list(REQUIRED_CHANNELS)})",
+                f"the column mapping gives no source for the time channel {c!r} "
+                "(every recording needs one)",
                 file=file,
                 column=c,
             )
     return out
+
+
+def _mapped_units(mapping: ColumnMapping, file: str) -> dict[str, str]:
+    """SI unit of each mapped channel kftune does not know (for :attr:`Dataset.units`)."""
+    return {
+        c: SI_UNIT[UNITS[src.unit.strip()][0]]
+        for c, src in _normalise_mapping(mapping, file).items()
+        if c not in CHANNEL_DIMENSION
+    }
 
 
 def read_columns(
@@ -787,11 +809,12 @@ def recording_to_dataset(
     channels: Mapping[str, np.ndarray],
     *,
     name: str,
-    vehicle: VehicleParams,
+    vehicle: VehicleParams | None,
     segment_length: float | None = None,
     train_every: int = 3,
     description: str = "",
     meta: Mapping[str, Any] | None = None,
+    units: Mapping[str, str] | None = None,
 ) -> Dataset:
     """Turn one validated recording into a dataset, cut into segments.
 
@@ -828,22 +851,24 @@ def recording_to_dataset(
         label = name if len(bounds) == 2 else f"{name}-s{i + 1:0{width}d}"
         manoeuvres.append(
             Manoeuvre(
-                name=label,
-                kind="segment",
-                split="train" if i % train_every == 0 else "test",
-                **{c: seg[c] for c in REQUIRED_CHANNELS},
-                extra={c: v for c, v in seg.items() if c not in REQUIRED_CHANNELS},
+                label,
+                "segment",
+                "train" if i % train_every == 0 else "test",
+                seg["t"],
+                channels={c: v for c, v in seg.items() if c != "t"},
                 description=f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
             )
         )
     dt = float(np.median(np.diff(t)))
-    return Dataset(name, vehicle, dt, tuple(manoeuvres), description, dict(meta or {}))
+    return Dataset(
+        name, vehicle, dt, tuple(manoeuvres), description, dict(meta or {}), dict(units or {})
+    )
 
 
 def load_columns(
     directory: str | Path,
     mapping: ColumnMapping,
-    vehicle: VehicleParams,
+    vehicle: VehicleParams | None,
     *,
     name: str | None = None,
     segment_length: float | None = None,
@@ -862,13 +887,14 @@ def load_columns(
         segment_length=segment_length,
         train_every=train_every,
         meta={"source": directory.name},
+        units=_mapped_units(mapping, str(directory)),
     )
 
 
 def load_mat(
     path: str | Path,
     mapping: ColumnMapping,
-    vehicle: VehicleParams,
+    vehicle: VehicleParams | None,
     *,
     struct: str | None = None,
     name: str | None = None,
@@ -887,6 +913,7 @@ def load_mat(
         segment_length=segment_length,
         train_every=train_every,
         meta={"source": path.name},
+        units=_mapped_units(mapping, str(path)),
     )
 
 

@@ -3,8 +3,9 @@ from "statistical analysis of the vehicle sensor measurements", it is not optimi
 
 Method (high-pass residual statistics, as the authors of the revs-250lm recording do for
 their KF): a vehicle's motion has almost no power above a quarter of the Nyquist frequency
-(12.5 Hz at 100 Hz), sensor noise is close to white. So each measured channel z ∈ {Vx, ay,
-r} of each manoeuvre is high-pass filtered — 4th-order Butterworth at ``cutoff``·Nyquist,
+(12.5 Hz at 100 Hz), sensor noise is close to white. So each measured channel z (the single-track
+model's Vx, ay and r by default; any model's measurement channels by name) of each
+manoeuvre is high-pass filtered — 4th-order Butterworth at ``cutoff``·Nyquist,
 applied forwards and backwards (zero phase, |H|² twice) — and the variance of the output is
 divided by the filter's white-noise power gain
 
@@ -38,6 +39,10 @@ EDGE = 50
 #: Smallest variance returned per channel [Vx, ay, r] (SI²): keeps R positive definite for
 #: data that are already smooth (e.g. an INS speed), about a 1 mm/s, 1 mm/s², 0.06 °/s noise.
 VARIANCE_FLOOR = np.array([1e-6, 1e-6, 1e-6])
+#: The same floor for any channel, in its SI unit squared.
+CHANNEL_VARIANCE_FLOOR = 1e-6
+#: The channels estimated by default: the single-track model's measurements [Vx, ay, r].
+DEFAULT_CHANNELS: tuple[str, ...] = ("vx", "ay", "r")
 
 
 @lru_cache(maxsize=8)
@@ -76,36 +81,47 @@ def estimate_measurement_noise(
     source: Dataset | Sequence[Manoeuvre] | Manoeuvre,
     cutoff: float = CUTOFF,
     order: int = ORDER,
+    channels: Sequence[str] = DEFAULT_CHANNELS,
 ) -> np.ndarray:
-    """Measurement-noise variances of [Vx, ay, r] from high-pass residual statistics.
+    """Measurement-noise variances of measured channels from high-pass residual statistics.
 
     Args:
         source: a dataset (all its manoeuvres), a manoeuvre or a sequence of them.
         cutoff: high-pass corner as a fraction of Nyquist (0 < cutoff < 1).
+        channels: the channels, by name (default [Vx, ay, r], the single-track model's
+            measurements); each channel is estimated on its own, so a channel's variance
+            does not depend on which others are asked for.
 
     Returns:
-        (3,) variances [Vx [m²/s²], ay [m²/s⁴], r [rad²/s²]], each at least
-        :data:`VARIANCE_FLOOR`; R = diag of it.
+        (len(channels),) variances, each in its channel's SI unit squared (default
+        [Vx [m²/s²], ay [m²/s⁴], r [rad²/s²]]) and at least :data:`CHANNEL_VARIANCE_FLOOR`;
+        R = diag of it.
+
+    Raises:
+        MissingChannelError: a manoeuvre lacks one of the channels (named).
     """
     if not 0.0 < cutoff < 1.0:
         raise ValueError(f"cutoff must be a fraction of Nyquist in (0, 1), got {cutoff!r}")
     manoeuvres = _manoeuvres(source)
-    sums = np.zeros(3)
+    names = tuple(channels)
+    for m in manoeuvres:
+        m.require(names, "the measurement-noise estimate")
+    sums = np.zeros(len(names))
     count = 0
     for m in manoeuvres:
         n_used = 0
-        for j, z in enumerate((m.vx, m.ay, m.r)):
-            ss, n_used = highpass_noise_variance(z, cutoff, order)
+        for j, name in enumerate(names):
+            ss, n_used = highpass_noise_variance(m.channel(name), cutoff, order)
             sums[j] += ss
         count += n_used
-    return np.maximum(sums / count, VARIANCE_FLOOR)
+    return np.maximum(sums / count, CHANNEL_VARIANCE_FLOOR)
 
 
 def _manoeuvres(source: Any) -> tuple[Manoeuvre, ...]:
     """A dataset, a manoeuvre or a sequence of manoeuvres as a tuple of manoeuvres.
 
-    Recognised by their attributes (a dataset has ``manoeuvres``, a manoeuvre the measured
-    channels), not by class, so that this module does not import
+    Recognised by their attributes (a dataset has ``manoeuvres``, a manoeuvre ``channel``
+    and ``require``), not by class, so that this module does not import
     :mod:`kftune.data.manoeuvre`, whose ``Dataset.r_default`` calls it.
     """
     if _is_manoeuvre(source):
@@ -119,4 +135,4 @@ def _manoeuvres(source: Any) -> tuple[Manoeuvre, ...]:
 
 
 def _is_manoeuvre(obj: Any) -> bool:
-    return all(hasattr(obj, name) for name in ("vx", "ay", "r", "beta_ref"))
+    return all(hasattr(obj, name) for name in ("t", "channel", "require"))

@@ -14,8 +14,13 @@ vx         m/s      longitudinal speed measurement (wheel speeds, INS, …)
 beta_ref   rad      reference sideslip at the CG, atan2(vy, vx) (optical sensor / INS)
 ========== ======== ==================================================================
 
-Extra channels (true states of a simulation, other sensors) may ride along; their names
-must be identifiers.
+These are the channels kftune knows (the paper's sideslip problem): when present they are
+checked for their unit and plausibility, and the kinematic checks run when the channels
+they compare are all present. Only ``t`` is required: which further channels a manoeuvre
+needs is the business of the model that runs on it (its inputs and measurements by name,
+and ``<output>_ref`` references for costs that score an output; see
+:class:`~kftune.models.StateSpaceModel`). Any other channel (a tracking model's ``px``,
+true states of a simulation) may ride along; its name must be an identifier.
 
 Data that load can still be implausible in ways that do not make them unusable:
 :func:`plausibility_warnings` finds samples held at a lower rate and lateral accelerations
@@ -39,10 +44,15 @@ from kftune.errors import DataError, excerpt
 from kftune.vehicle.params import G
 from kftune.vehicle.single_track import MAX_SIDESLIP
 
-#: Channels every manoeuvre must have, in file order.
-REQUIRED_CHANNELS: tuple[str, ...] = ("t", "delta", "ax", "ay", "r", "vx", "beta_ref")
+#: Channels every manoeuvre must have.
+REQUIRED_CHANNELS: tuple[str, ...] = ("t",)
+#: The channels of the paper's sideslip problem, in file order: kftune knows their units and
+#: plausible ranges (all optional but ``t``).
+SIDESLIP_CHANNELS: tuple[str, ...] = ("t", "delta", "ax", "ay", "r", "vx", "beta_ref")
+#: The single-track models' measured channels [Vx, ay, r], in their order.
+SIDESLIP_MEASURED: tuple[str, ...] = ("vx", "ay", "r")
 
-#: Physical dimension of each required channel.
+#: Physical dimension of each known channel.
 CHANNEL_DIMENSION: dict[str, str] = {
     "t": "time",
     "delta": "angle",
@@ -184,14 +194,16 @@ def validate_channels(
 ) -> float:
     """Check one manoeuvre's channels (already in SI units) before anything uses them.
 
-    Checks, in this order: required channels present; channel names; 1-D and equal lengths;
-    at least ``min_samples`` samples; every value finite; time strictly increasing (no
-    duplicates); regular sample time within ``dt_tolerance``; plausible magnitudes (a yaw
-    rate that looks like deg/s, an angle that looks like degrees, km/h as m/s); the
-    kinematic consistency ay ≈ vx·r in cornering, which catches ay in g or r in the wrong
-    one of deg/s and rad/s; and the steering consistency r ≈ vx·δ/L_eff, which catches δ
-    in rad declared as deg (constants and evidence at :data:`CORNERING` and
-    :data:`STEER_L_EFF`).
+    Checks, in this order: ``t`` present; channel names; 1-D and equal lengths; at least
+    ``min_samples`` samples; every value finite; time strictly increasing (no duplicates);
+    regular sample time within ``dt_tolerance``; plausible magnitudes of the known channels
+    present (a yaw rate that looks like deg/s, an angle that looks like degrees, km/h as
+    m/s); when ay, vx and r are present, the kinematic consistency ay ≈ vx·r in cornering,
+    which catches ay in g or r in the wrong one of deg/s and rad/s; and when δ is present
+    too, the steering consistency r ≈ vx·δ/L_eff, which catches δ in rad declared as deg
+    (constants and evidence at :data:`CORNERING` and :data:`STEER_L_EFF`). Which channels a
+    model needs, and what it refuses (the single-track models: vx ≤ 0), is checked by the
+    model (:attr:`kftune.models.StateSpaceModel.validate_data`) before a filter runs.
 
     Args:
         channels: name → (n,) array. file: reported in errors. row_offset: added to 0-based
@@ -207,7 +219,7 @@ def validate_channels(
     for name in REQUIRED_CHANNELS:
         if name not in channels:
             raise DataError(
-                f"missing required channel; a manoeuvre needs {list(REQUIRED_CHANNELS)}",
+                "missing the time channel: every manoeuvre needs 't' [s]",
                 file=_file_of(name, file, files),
                 column=name,
             )
@@ -301,16 +313,9 @@ def _check_magnitudes(
     row_offset: int,
     files: Mapping[str, str] | None = None,
 ) -> None:
-    stopped = np.flatnonzero(arrays["vx"] <= 0.0)
-    if stopped.size:
-        raise DataError(
-            f"speed {arrays['vx'][stopped[0]]:g} m/s: the filter's single-track model needs "
-            "vx > 0 throughout (cut standstill and reversing out of the manoeuvre)",
-            file=_file_of("vx", file, files),
-            column="vx",
-            row=int(stopped[0]) + row_offset,
-        )
     for name, (lo, hi, hint) in _LIMITS.items():
+        if name not in arrays:
+            continue
         a = arrays[name]
         bad = np.flatnonzero((a < lo) | (a > hi))
         if bad.size:
@@ -324,6 +329,8 @@ def _check_magnitudes(
     # Kinematics: in cornering ay ≈ vx·r (steady state; v̇y is small on average). The
     # least-squares ratio near 1/g means ay in g, near 180/π or π/180 a yaw rate in the
     # wrong one of deg/s and rad/s; negative, opposite sign conventions.
+    if not all(c in arrays for c in ("ay", "vx", "r")):
+        return
     ay, vx, r = arrays["ay"], arrays["vx"], arrays["r"]
     vxr = vx * r
     cornering = (np.abs(vxr) >= CORNERING) | (np.abs(ay) >= CORNERING)
@@ -343,6 +350,8 @@ def _check_magnitudes(
                 column="ay",
                 row=k + row_offset,
             )
+    if "delta" not in arrays:
+        return
     delta = arrays["delta"]
     steady = (np.abs(vxr) >= STEER_CORNERING) & (np.abs(ay) <= STEER_AY_LINEAR)
     if np.count_nonzero(steady) >= STEER_MIN_SAMPLES:
@@ -363,12 +372,13 @@ def _check_magnitudes(
             )
 
 
-def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float) -> list[str]:
+def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float | None) -> list[str]:
     """Why channels that passed :func:`validate_channels` may not be what they claim.
 
     Args:
-        channels: name → (n,) array in SI units, with the required channels.
-        mu: the vehicle's friction coefficient [-].
+        channels: name → (n,) array in SI units; each check runs when its channels are
+            present (the held samples: ax, ay and r; the lateral limit: vx and r).
+        mu: the vehicle's friction coefficient [-]; None (no vehicle): no lateral limit.
 
     Returns:
         One message per finding (empty when none): samples held at a lower rate (the share
@@ -380,6 +390,9 @@ def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float) -> list
     t = np.asarray(channels["t"], dtype=float)
     held = np.ones(t.size - 1, dtype=bool)
     for name in HELD_CHANNELS:
+        if name not in channels:
+            held[:] = False
+            break
         held &= np.diff(np.asarray(channels[name], dtype=float)) == 0.0
     share = float(np.mean(held)) if held.size else 0.0
     if share >= HELD_SHARE:
@@ -390,6 +403,8 @@ def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float) -> list
             f"{rate:.3g} Hz? The filter takes every sample as a new measurement; resample "
             "the recording at its real rate"
         )
+    if mu is None or "vx" not in channels or "r" not in channels:
+        return messages
     lateral = np.abs(np.asarray(channels["vx"], dtype=float) * np.asarray(channels["r"]))
     limit = LATERAL_LIMIT * mu * G
     share = float(np.mean(lateral > limit))

@@ -9,6 +9,7 @@ from kftune.models.base import (
     FIRST_MODEL_STOP,
     STOP_NONE,
     STOP_NUMERICAL,
+    DataRefused,
     StateSpaceModel,
     prepare_inputs,
 )
@@ -31,6 +32,7 @@ __all__ = [
     "SINGLE_TRACK_BIASES",
     "STOP_NONE",
     "STOP_NUMERICAL",
+    "DataRefused",
     "StateSpaceModel",
     "get_model",
     "linear_model",

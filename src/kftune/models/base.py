@@ -57,6 +57,7 @@ __all__ = [
     "GENERIC_STOP_REASONS",
     "STOP_NONE",
     "STOP_NUMERICAL",
+    "DataRefused",
     "StateSpaceModel",
     "prepare_inputs",
 ]
@@ -72,6 +73,21 @@ GENERIC_STOP_REASONS: dict[int, str] = {
     STOP_NUMERICAL: "a covariance that jitter cannot repair, or an estimate that is no longer "
     "finite",
 }
+
+
+class DataRefused(ValueError):
+    """What a model's ``validate_data`` raises for data it is not meant for, saying where:
+    the array (``"u"`` or ``"z"``), the row (0-based sample) and the column (index into the
+    model's input or measurement names), so that the caller can name the manoeuvre's
+    channel and row.
+    """
+
+    def __init__(self, message: str, *, array: str, row: int, column: int) -> None:
+        super().__init__(message)
+        self.array = array
+        self.row = row
+        self.column = column
+
 
 PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -113,8 +129,11 @@ class StateSpaceModel:
             (finite differences).
         pack_params: the model's parameter object (e.g. a VehicleParams) → checked (n_p,)
             array; None: any finite (n_p,) array.
-        validate_data: ``(u (N, n_u), z (N, m)) -> None``, raises ValueError for data the
-            model is not meant for; None: no model-specific checks.
+        validate_data: ``(u (N, n_u), z (N, m)) -> None``, raises ValueError (best a
+            :class:`DataRefused`, which says where) for data the model is not meant for;
+            None: no model-specific checks.
+        needs_vehicle: the parameters p come from the dataset's vehicle (VehicleParams,
+            through ``pack_params``): a dataset without one is refused.
         description: one line for listings.
         outputs: derived quantities a cost can score against a reference channel
             ``<name>_ref`` of the data: name → ``g(x (N, n)) -> (N,)`` over the posterior
@@ -146,6 +165,7 @@ class StateSpaceModel:
     validate_data: Callable[[np.ndarray, np.ndarray], None] | None = None
     description: str = ""
     outputs: Mapping[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
+    needs_vehicle: bool = False
 
     def __post_init__(self) -> None:
         name = self.name

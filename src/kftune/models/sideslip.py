@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
-from kftune.models.base import FIRST_MODEL_STOP, PriorRule, StateSpaceModel
+from kftune.models.base import FIRST_MODEL_STOP, DataRefused, PriorRule, StateSpaceModel
 from kftune.vehicle.params import PARAM_INDEX, PRESETS
 from kftune.vehicle.single_track import (
     MAX_SIDESLIP,
@@ -233,14 +233,18 @@ def check_forward_speed(z: np.ndarray) -> None:
         z: (N, 3) measurements [Vx, ay, r]; checked: z[:, 0] > 0.
 
     Raises:
-        ValueError: naming the first row with Vx ≤ 0.
+        DataRefused: naming the first row with Vx ≤ 0.
     """
     bad = z[:, 0] <= 0
     if bad.any():
         row = int(np.argmax(bad))
-        raise ValueError(
+        raise DataRefused(
             f"z[{row}, 0] (Vx) = {float(z[row, 0])} m/s; the measured longitudinal speed "
-            "must be > 0 (the single-track slip-angle model is for forward driving)"
+            "must be > 0 (the single-track slip-angle model is for forward driving: cut "
+            "standstill and reversing out of the manoeuvre)",
+            array="z",
+            row=row,
+            column=0,
         )
 
 
@@ -287,6 +291,7 @@ def _model(
         validate_data=_validate,
         description=description,
         outputs={"beta": sideslip_angle},
+        needs_vehicle=True,
     )
 
 

@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from kftune.data.manoeuvre import Manoeuvre
+from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf, run_ukf_simd
 from kftune.filters.generic import FilterResult, ModelFilter, get_filter
-from kftune.models import StateSpaceModel
+from kftune.models import DataRefused, StateSpaceModel, model_names
 from kftune.models.user import load_model
 from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
@@ -208,17 +208,30 @@ class Evaluation:
 RunResult = UKFResult | FilterResult
 
 
+def output_names(model: StateSpaceModel) -> tuple[str, ...]:
+    """What a cost or KPI can score against a reference channel ``<name>_ref``: the model's
+    derived outputs (the single-track models' ``beta``), then its states that are not also
+    measurements (the single-track ``vy``, the CTRV model's ``v``, ``psi``, ``omega``)."""
+    states = [s for s in model.state_names if s not in model.measurement_names]
+    return (*model.outputs, *(s for s in states if s not in model.outputs))
+
+
 def model_output(res: RunResult, name: str) -> np.ndarray:
-    """(N,) a derived output of the run's model, e.g. ``"beta"`` [rad] (the sideslip
-    atan2(Vy, Vx) of the single-track models), from the posterior states."""
-    if isinstance(res, UKFResult):
-        if name != "beta":
-            raise KeyError(f"the single-track model has no output {name!r}; it has ['beta']")
+    """(N,) an output of the run's model (:func:`output_names`) from the posterior states,
+    e.g. ``"beta"`` [rad] (the sideslip atan2(Vy, Vx) of the single-track models) or a
+    state by name (in its unit)."""
+    from kftune.models import SINGLE_TRACK
+
+    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
+    if isinstance(res, UKFResult) and name == "beta":
         return res.beta
-    outputs = res.model.outputs
-    if name not in outputs:
-        raise KeyError(f"model {res.model.name!r} has no output {name!r}; it has {sorted(outputs)}")
-    return np.asarray(outputs[name](res.x), dtype=float)
+    if name in model.outputs:
+        return np.asarray(model.outputs[name](res.x), dtype=float)
+    if name in output_names(model):
+        return np.asarray(res.x[:, model.state_names.index(name)], dtype=float)
+    raise KeyError(
+        f"model {model.name!r} has no output {name!r}; it has {list(output_names(model))}"
+    )
 
 
 def channel_estimate(
@@ -229,8 +242,9 @@ def channel_estimate(
     A measurement of the model (yaw rate [rad/s], ay [m/s²], Vx [m/s] for the single-track
     model) against its measured channel, estimated by h(x⁺_k) (``"posterior"``) or by the
     one-step prediction z_k − innovation_k (``"prior"``); any other channel is a derived
-    output of the model (β [rad] from the posterior state) against the reference channel
-    ``<channel>_ref`` of the data (``beta_ref``); see :class:`~kftune.tuning.cost.CostSpec`.
+    output of the model (β [rad] from the posterior state, or a state that is not
+    measured, :func:`output_names`) against the reference channel ``<channel>_ref`` of the
+    data (``beta_ref``); see :class:`~kftune.tuning.cost.CostSpec`.
     """
     names = SIDESLIP_MEASUREMENTS if isinstance(res, UKFResult) else res.model.measurement_names
     if channel not in names:
@@ -289,13 +303,14 @@ class FilterSpec:
     def run(
         self,
         m: Manoeuvre,
-        vehicle: VehicleParams,
+        vehicle: VehicleParams | None,
         q: np.ndarray,
         r: np.ndarray,
         settings: UKFSettings,
     ) -> RunResult:
         """The filter's run over one manoeuvre."""
         if self.fast:
+            assert vehicle is not None  # filter_spec refuses the single-track model without
             return run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
         u, z = self.inputs(m)
         return self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=self.params)
@@ -312,11 +327,18 @@ def filter_spec(
     vehicle model's parameters come from ``vehicle``, another model's are its defaults.
 
     Raises:
-        ConfigError: unknown model or filter, or a model file that cannot be loaded.
+        ConfigError: unknown model or filter, a model file that cannot be loaded, or a
+            model that needs a vehicle (the single-track models) without one.
     """
     mod = load_model(model)
     if filter not in ("ukf", "ekf"):
         raise ConfigError(f"filter must be 'ukf' or 'ekf', got {filter!r}")
+    if mod.needs_vehicle and vehicle is None:
+        raise ConfigError(
+            f"model {mod.name!r} needs the vehicle's parameters, but the dataset has no vehicle "
+            "(a manifest's 'vehicle' table or preset name); for data of something else choose "
+            f"a model that fits them (--model; built-in: {', '.join(model_names())})"
+        )
     spec = model if isinstance(model, str) else mod.name
     if vehicle is not None and mod.pack_params is not None:
         try:
@@ -330,18 +352,20 @@ def filter_spec(
 
 def default_r0(
     model: StateSpaceModel,
-    r_default: Sequence[float] | np.ndarray,
+    r_default: Dataset | Mapping[str, float] | Sequence[float] | np.ndarray,
     overrides: Mapping[str, float] | None = None,
 ) -> np.ndarray:
     """(m,) the measurement-noise variances R₀ of a model's measurements: ``overrides``
-    (name → variance, e.g. from a configuration's ``r0``) first, then the dataset's
-    estimate ``r_default`` of the single-track channels [Vx, ay, r].
+    (name → variance, e.g. from a configuration's ``r0``) first, then the estimate from
+    the data: a dataset's :meth:`~kftune.data.Dataset.noise_variances` of the model's
+    measurement channels (of those not overridden), a mapping name → variance, or an
+    array of the single-track channels [Vx, ay, r] (``Dataset.r_default``).
 
     Raises:
         ConfigError: a measurement with neither, or an override that is not a measurement
             or not a positive finite number.
+        MissingChannelError: a dataset whose manoeuvres lack a measurement channel.
     """
-    known = dict(zip(SIDESLIP_MEASUREMENTS, np.asarray(r_default, dtype=float).tolist()))
     given = dict(overrides or {})
     extra = sorted(set(given) - set(model.measurement_names))
     if extra:
@@ -349,6 +373,15 @@ def default_r0(
             f"r0 names {extra} are not measurements of model {model.name!r} "
             f"{list(model.measurement_names)}"
         )
+    if isinstance(r_default, Dataset):
+        wanted = [c for c in model.measurement_names if c not in given]
+        for m in r_default.train or r_default.manoeuvres:
+            m.require(wanted, f"model {model.name!r}", "measurement channel")
+        known = dict(zip(wanted, r_default.noise_variances(wanted).tolist()))
+    elif isinstance(r_default, Mapping):
+        known = {str(k): float(v) for k, v in r_default.items()}
+    else:
+        known = dict(zip(SIDESLIP_MEASUREMENTS, np.asarray(r_default, dtype=float).tolist()))
     out = []
     for name in model.measurement_names:
         v = given.get(name, known.get(name))
@@ -365,7 +398,7 @@ def default_r0(
 
 def _score(
     m: Manoeuvre,
-    vehicle: VehicleParams,
+    vehicle: VehicleParams | None,
     fs: FilterSpec,
     q: np.ndarray,
     r: np.ndarray,
@@ -402,7 +435,7 @@ _WORKER: dict[str, Any] = {}
 
 def _init_worker(
     manoeuvres: tuple[Manoeuvre, ...],
-    vehicle: VehicleParams,
+    vehicle: VehicleParams | None,
     model: str,
     filter: str,
     parent_pid: int,
@@ -435,9 +468,11 @@ class TuningProblem:
 
     Args:
         manoeuvres: the manoeuvres the cost is pooled over (the training set).
-        vehicle: model parameters of the filter.
-        r0: (3,) measurement-noise variances [Vx, ay, r] (from sensor statistics; paper:
-            R is not optimised).
+        vehicle: model parameters of a vehicle model's filter; None for a model that is not
+            a vehicle's (the single-track models refuse to run without one).
+        r0: (m,) measurement-noise variances of the model's measurements (single-track:
+            [Vx, ay, r]; from sensor statistics, :func:`default_r0`; paper: R is not
+            optimised).
         cost: which cost (default: the paper's weighted NRMSE, W = (5, 1, 1)).
         parameterization: what is tuned (default: the three Q entries).
         workers: processes that run the manoeuvres in parallel; 1 (default) runs them in
@@ -454,8 +489,12 @@ class TuningProblem:
             longer recording, which start mid-manoeuvre with the filter's Vy = 0.
 
     Raises:
-        DataError: a manoeuvre the filter cannot run (Vx ≤ 0, fewer than 2 samples after
-            the burn-in); the message names it and the sample.
+        DataError: a manoeuvre the filter cannot run: it lacks a channel the model or the
+            cost needs (:class:`~kftune.errors.MissingChannelError`, e.g. ``beta_ref`` for
+            the paper's cost), the model refuses its data (the single-track models: Vx ≤ 0),
+            or it has fewer than 2 samples after the burn-in; the message names the
+            manoeuvre, and the channel and sample where there is one.
+        ConfigError: a model that needs a vehicle without one, an unknown cost channel.
 
     ``problem(x)`` returns J for a point of ``problem.space`` (natural units).
     """
@@ -463,7 +502,7 @@ class TuningProblem:
     def __init__(
         self,
         manoeuvres: Sequence[Manoeuvre],
-        vehicle: VehicleParams,
+        vehicle: VehicleParams | None,
         r0: Sequence[float] | np.ndarray,
         *,
         cost: CostSpec | None = None,
@@ -486,17 +525,18 @@ class TuningProblem:
         ):
             raise ConfigError(f"burn_in must be a number of seconds >= 0, got {burn_in!r}")
         self.burn_in = float(burn_in)
+        self.cost_spec = cost or CostSpec()
+        if self.cost_spec.kind == "nrmse":
+            for c in self.cost_spec.channels:
+                if c not in mod.measurement_names and c not in self._outputs():
+                    raise ConfigError(
+                        f"unknown cost channel {c!r}: neither a measurement of model "
+                        f"{mod.name!r} {list(mod.measurement_names)} nor one of its outputs "
+                        f"{list(self._outputs())} (scored against a reference channel "
+                        "<output>_ref)"
+                    )
         for m in self.manoeuvres:
             self._check_channels(m)
-            bad = np.flatnonzero(m.vx <= 0) if self._fs.fast else np.empty(0, dtype=int)
-            if bad.size:
-                raise DataError(
-                    f"measured speed vx = {m.vx[bad[0]]:g} m/s at t = {m.t[bad[0]]:.2f} s; "
-                    "the filter's model needs vx > 0 throughout (cut standstill out)",
-                    file=f"manoeuvre {m.name!r}",
-                    column="vx",
-                    row=int(bad[0]),
-                )
             if m.n - first_scored(m, self.burn_in) < 2:
                 raise ConfigError(
                     f"manoeuvre {m.name!r} ({m.duration:.2f} s) is shorter than the burn-in "
@@ -510,7 +550,6 @@ class TuningProblem:
                 f"r0 must be {k} positive finite variances {list(mod.measurement_names)}, "
                 f"got {r0!r}"
             )
-        self.cost_spec = cost or CostSpec()
         self.parameterization = parameterization or NoiseParameterization(
             states=mod.state_names, measurements=mod.measurement_names
         )
@@ -521,14 +560,6 @@ class TuningProblem:
                 f"{list(par.measurements)}, but model {mod.name!r} has "
                 f"{list(mod.state_names)} and {list(mod.measurement_names)}"
             )
-        if self.cost_spec.kind == "nrmse":
-            for c in self.cost_spec.channels:
-                if c not in mod.measurement_names and c not in self._outputs():
-                    raise ConfigError(
-                        f"unknown cost channel {c!r}: neither a measurement of model "
-                        f"{mod.name!r} {list(mod.measurement_names)} nor one of its outputs "
-                        f"{sorted(self._outputs())}"
-                    )
         if not (isinstance(workers, int) and workers >= 1):
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.workers = min(workers, len(self.manoeuvres))
@@ -555,30 +586,34 @@ class TuningProblem:
         """How the model was named (a registered name or a model file)."""
         return self._fs.spec
 
-    def _outputs(self) -> set[str]:
-        return {"beta"} if self._fs.fast else set(self._fs.model.outputs)
+    def _outputs(self) -> tuple[str, ...]:
+        return output_names(self._fs.model)
 
     def _check_channels(self, m: Manoeuvre) -> None:
-        """Refuse a manoeuvre without the model's channels, or data the model refuses."""
-        if self._fs.fast:
-            return
+        """Refuse a manoeuvre without the channels the model and the cost need, or data the
+        model refuses (naming the manoeuvre, and the channel and row where it can)."""
         mod = self._fs.model
-        have = set(m.channel_names)
-        for kind, names in (("input", mod.input_names), ("measurement", mod.measurement_names)):
-            missing = [c for c in names if c not in have]
-            if missing:
-                raise DataError(
-                    f"model {mod.name!r} needs {kind} channel(s) {missing}; the manoeuvre has "
-                    f"{sorted(have)}",
-                    file=f"manoeuvre {m.name!r}",
-                )
+        who = f"model {mod.name!r}"
+        m.require(mod.input_names, who, "input channel")
+        m.require(mod.measurement_names, who, "measurement channel")
+        if self.cost_spec.kind == "nrmse":
+            refs = [f"{c}_ref" for c in self.cost_spec.channels if c not in mod.measurement_names]
+            m.require(refs, "the nrmse cost", "a reference channel")
         if mod.validate_data is not None:
             u, z = self._fs.inputs(m)
             try:
                 mod.validate_data(np.zeros((m.n, 0)) if u is None else u, z)
+            except DataRefused as exc:
+                names = mod.input_names if exc.array == "u" else mod.measurement_names
+                raise DataError(
+                    f"{who} refuses these data: {exc}",
+                    file=f"manoeuvre {m.name!r}",
+                    column=names[exc.column],
+                    row=exc.row,
+                ) from None
             except ValueError as exc:
                 raise DataError(
-                    f"model {mod.name!r} refuses this data: {exc}", file=f"manoeuvre {m.name!r}"
+                    f"{who} refuses these data: {exc}", file=f"manoeuvre {m.name!r}"
                 ) from None
 
     def decode(self, x: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
@@ -690,11 +725,11 @@ class TuningProblem:
         h = hashlib.sha256()
         for m in self.manoeuvres:
             h.update(m.name.encode())
-            for a in (m.t, m.u, m.z, m.beta_ref):
+            for a in self._fingerprinted(m):
                 h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
         spec = self.cost_spec
         described = {
-            "vehicle": self.vehicle.to_dict(),
+            "vehicle": None if self.vehicle is None else self.vehicle.to_dict(),
             "r0": self.r0.tolist(),
             "cost": {"kind": spec.kind, "weights": dict(spec.weights), "estimate": spec.estimate},
             "parameterization": self.parameterization.to_dict(),
@@ -706,9 +741,30 @@ class TuningProblem:
         names = [m.name for m in self.manoeuvres]
         return {
             "summary": f"{len(names)} manoeuvres ({names[0]} … {names[-1]}), "
-            f"{self.vehicle.name}, cost {spec.kind}",
+            f"{self.vehicle.name if self.vehicle is not None else 'no vehicle'}, "
+            f"cost {spec.kind}",
             "sha256": h.hexdigest(),
         }
+
+    def _fingerprinted(self, m: Manoeuvre) -> list[np.ndarray]:
+        """The arrays of ``m`` a fingerprint covers: for a model over the single-track
+        channels with a reference sideslip, t, u, z and beta_ref, as studies have always
+        been fingerprinted; otherwise t, then every channel the objective reads (the
+        model's inputs and measurements, the cost's references), each after its name."""
+        mod = self._fs.model
+        if (
+            mod.input_names == ("delta", "ax")
+            and mod.measurement_names == SIDESLIP_MEASUREMENTS
+            and m.has("beta_ref")
+        ):
+            return [m.t, m.u, m.z, m.beta_ref]
+        names = [*mod.input_names, *mod.measurement_names]
+        if self.cost_spec.kind == "nrmse":
+            names += [f"{c}_ref" for c in self.cost_spec.channels if c not in names]
+        out = [m.t]
+        for c in names:
+            out += [np.frombuffer(c.encode(), dtype=np.uint8), m.channel(c)]
+        return out
 
     def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> RunResult:
         """The filter's full output on one manoeuvre for a point."""
@@ -767,32 +823,59 @@ def assess(
     (posterior or prior). A diverged manoeuvre gets NaN metrics and ``diverged = 1``.
 
     Returns:
-        (metrics, results): manoeuvre name → {``rmse, mae, rmse_non, mae_non, n_non``
-        [deg] (sideslip KPIs), ``rmse_beta`` [deg], ``rmse_r`` [deg/s], ``rmse_ay``
-        [m/s²], ``diverged`` (0/1)}; and name → the filter's :class:`UKFResult`.
+        (metrics, results): manoeuvre name → metrics, and name → the filter's result.
+        For a model with the sideslip output ``beta`` (the single-track models): ``rmse,
+        mae, rmse_non, mae_non, n_non`` [deg] (sideslip KPIs, :mod:`kftune.tuning.kpi`)
+        and ``rmse_beta`` [deg], NaN on a manoeuvre without the reference ``beta_ref``
+        (:func:`missing_references` says which); ``rmse_r`` [deg/s], ``rmse_ay``
+        [m/s²]. For any other model: ``rmse_<measurement>`` for each measurement, and
+        ``rmse_<output>`` for each output whose reference ``<output>_ref`` the manoeuvre
+        has (in the channel's unit). And ``diverged`` (0/1).
     """
     metrics: dict[str, dict[str, float]] = {}
     results: dict[str, RunResult] = {}
     estimate = problem.cost_spec.estimate
+    model = problem.model
+    sideslip = "beta" in problem._outputs() and {"r", "ay"} <= set(model.measurement_names)
     for m in manoeuvres:
         res = problem.run(x, m)
         results[m.name] = res
         k0 = first_scored(m, problem.burn_in)
-        if res.diverged:
-            metrics[m.name] = {k: math.nan for k in ("rmse", "mae", "rmse_non", "mae_non")}
-            metrics[m.name].update(rmse_beta=math.nan, rmse_r=math.nan, rmse_ay=math.nan)
-            metrics[m.name]["diverged"] = 1.0
-            continue
-        beta = model_output(res, "beta")
-        row: dict[str, float] = dict(sideslip_kpis(beta[k0:], m.beta_ref[k0:], m.ay[k0:]))
-        row["rmse_beta"] = row["rmse"]
-        est, ref = channel_estimate(m, res, "r", estimate)
-        row["rmse_r"] = float(np.degrees(np.sqrt(np.mean((est[k0:] - ref[k0:]) ** 2))))
-        est, ref = channel_estimate(m, res, "ay", estimate)
-        row["rmse_ay"] = float(np.sqrt(np.mean((est[k0:] - ref[k0:]) ** 2)))
-        row["diverged"] = 0.0
+        row: dict[str, float] = {}
+        if sideslip:
+            if m.has("beta_ref") and not res.diverged:
+                beta = model_output(res, "beta")
+                row.update(sideslip_kpis(beta[k0:], m.beta_ref[k0:], m.ay[k0:]))
+            else:
+                row.update({k: math.nan for k in ("rmse", "mae", "rmse_non", "mae_non")})
+            row["rmse_beta"] = row["rmse"]
+            scored: dict[str, Any] = {"r": np.degrees, "ay": float}  # r in deg/s
+        else:
+            scored = dict.fromkeys(model.measurement_names, float)
+            refs = [c for c in problem._outputs() if m.has(f"{c}_ref")]
+            scored.update(dict.fromkeys(refs, float))
+        for c, unit in scored.items():
+            if res.diverged:
+                row[f"rmse_{c}"] = math.nan
+                continue
+            est, ref = channel_estimate(m, res, c, estimate)
+            row[f"rmse_{c}"] = float(unit(np.sqrt(np.mean((est[k0:] - ref[k0:]) ** 2))))
+        row["diverged"] = float(res.diverged)
         metrics[m.name] = row
     return metrics, results
+
+
+def missing_references(
+    problem: TuningProblem, manoeuvres: Sequence[Manoeuvre]
+) -> dict[str, list[str]]:
+    """Reference channel → the manoeuvres that lack it, for the KPIs :func:`assess` gives
+    (the sideslip KPIs' ``beta_ref``); empty when every reference is there."""
+    out: dict[str, list[str]] = {}
+    if "beta" in problem._outputs():
+        lacking = [m.name for m in manoeuvres if not m.has("beta_ref")]
+        if lacking:
+            out["beta_ref"] = lacking
+    return out
 
 
 def _balanced_chunks(sizes: Sequence[int], k: int) -> list[list[int]]:

@@ -1,0 +1,189 @@
+"""The dataset's channel schema comes from the model: a dataset of a tracking target (no
+vehicle, no sideslip channel) is saved, loaded, tuned and evaluated through the command line,
+and a sideslip recording without a reference sensor loads and tunes on the NIS cost while
+the costs that need the reference say which channel which manoeuvre lacks."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomllib
+
+from kftune.data import Dataset, Manoeuvre, default_dataset, load_dataset, save_dataset
+from kftune.errors import ConfigError, DataError, MissingChannelError
+from kftune.tuning.cost import CostSpec
+from kftune.tuning.problem import TuningProblem, default_r0
+from test_cli import kftune
+
+if sys.version_info < (3, 11):  # pragma: no cover
+    pytest.skip("tomllib", allow_module_level=True)
+
+DT = 0.1  # [s]
+N = 300  # samples per manoeuvre (30 s)
+POS_NOISE = 0.5  # [m], σ of the position sensor
+
+
+def ctrv_manoeuvre(name: str, split: str, seed: int) -> Manoeuvre:
+    """A target simulated with the CTRV model's own exact step (speed and turn rate wander
+    slowly), its position measured with white noise, its true speed and turn rate kept as
+    references ``v_ref`` [m/s] and ``omega_ref`` [rad/s]."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(N) * DT
+    v = 10.0 + 2.0 * np.sin(2 * np.pi * t / 20.0 + seed)
+    omega = 0.2 * np.sin(2 * np.pi * t / 15.0 + 2 * seed)
+    psi = np.concatenate([[0.0], np.cumsum(omega[:-1] * DT)])
+    s = 0.5 * omega * DT
+    d = v * DT * np.sinc(s / np.pi)  # numpy's sinc is sin(πx)/(πx)
+    px = np.concatenate([[0.0], np.cumsum((d * np.cos(psi + s))[:-1])])
+    py = np.concatenate([[0.0], np.cumsum((d * np.sin(psi + s))[:-1])])
+    return Manoeuvre(
+        name,
+        "segment",
+        split,
+        t,
+        px=px + rng.normal(0.0, POS_NOISE, N),
+        py=py + rng.normal(0.0, POS_NOISE, N),
+        v_ref=v,
+        omega_ref=omega,
+    )
+
+
+@pytest.fixture(scope="module")
+def track(tmp_path_factory) -> Path:
+    """Three simulated CTRV manoeuvres (two training, one test), no vehicle."""
+    ms = [
+        ctrv_manoeuvre("run-1", "train", 1),
+        ctrv_manoeuvre("run-2", "train", 2),
+        ctrv_manoeuvre("run-3", "test", 3),
+    ]
+    ds = Dataset("track", None, DT, ms, units={"px": "m", "py": "m", "v_ref": "m/s"})
+    out = tmp_path_factory.mktemp("track")
+    save_dataset(ds, out)
+    return out
+
+
+def test_a_dataset_of_any_channels_round_trips(track):
+    manifest = tomllib.loads((track / "manifest.toml").read_text())
+    assert "vehicle" not in manifest
+    assert manifest["units"] == {
+        "t": "s",
+        "omega_ref": "1",  # no unit declared: dimensionless
+        "px": "m",
+        "py": "m",
+        "v_ref": "m/s",
+    }
+    ds = load_dataset(track)
+    assert ds.vehicle is None and ds.channel_names == ("t", "omega_ref", "px", "py", "v_ref")
+    assert ds.units["px"] == "m"
+    again = ctrv_manoeuvre("run-1", "train", 1)
+    assert ds["run-1"].equals(again)
+    # R0 per model: the position sensor's noise from the data's own statistics
+    var = ds.noise_variances(["px", "py"])
+    np.testing.assert_allclose(np.sqrt(var), POS_NOISE, rtol=0.2)
+    lacks = r"needs channel vx, which manoeuvre 'run-1' lacks"
+    with pytest.raises(MissingChannelError, match=lacks) as info:
+        ds.r_default  # noqa: B018 — the sideslip channels it lacks
+    assert (info.value.manoeuvre, info.value.channel) == ("run-1", "vx")
+    with pytest.raises(ConfigError, match=r"model 'single-track' needs the vehicle's parameters"):
+        TuningProblem(ds.train, None, [1.0, 1.0, 1.0])
+
+
+def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_cli(
+    track, tmp_path
+):
+    out = tmp_path / "tuned.json"
+    res = kftune(
+        "tune",
+        str(track),
+        "--model",
+        "ctrv",
+        "--weights",
+        "v=1,omega=1",
+        "-m",
+        "random",
+        "--budget",
+        "6",
+        "--json",
+        "-o",
+        str(out),
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["model"] == "ctrv" and doc["states"] == ["px", "py", "v", "psi", "omega"]
+    assert doc["n_evals"] == 6 and math.isfinite(doc["cost"])
+    ev = kftune("evaluate", str(track), "--params", str(out), "--split", "train", "--json")
+    assert ev.returncode == 0, ev.stderr
+    got = json.loads(ev.stdout)
+    assert got["cost"] == pytest.approx(doc["cost"], rel=1e-12)
+    assert set(got["average"]) >= {"rmse_px", "rmse_py", "rmse_v", "rmse_omega"}
+    assert got["average"]["rmse_v"] < 5.0  # [m/s]: the speed is estimated, not guessed
+    table = kftune("evaluate", str(track), "--params", str(out))
+    assert table.returncode == 0, table.stderr
+    assert "RMSE v" in table.stdout and "run-3" in table.stdout
+    # a reference the data lack, and the paper's model on data that are not a car's
+    res = kftune("tune", str(track), "--model", "ctrv", "--weights", "psi=1", "-n", "2")
+    assert res.returncode == 3 and "Traceback" not in res.stderr
+    assert "needs a reference channel psi_ref, which manoeuvre 'run-1' lacks" in res.stderr
+    res = kftune("tune", str(track), "-n", "2")
+    assert res.returncode == 3 and "Traceback" not in res.stderr
+    assert "needs the vehicle's parameters" in res.stderr
+
+
+@pytest.fixture(scope="module")
+def no_reference(tmp_path_factory) -> Path:
+    """Two training and one test manoeuvre of the bundled set without ``beta_ref``."""
+    ds = default_dataset()
+    picked = [ds.train[0].slice(0, 400), ds.train[3].slice(0, 400), ds.test[9].slice(0, 400)]
+    ms = [
+        Manoeuvre(
+            m.name,
+            m.kind,
+            m.split,
+            m.t,
+            channels={k: v for k, v in m.channels.items() if k != "beta_ref"},
+        )
+        for m in picked
+    ]
+    out = tmp_path_factory.mktemp("no-beta-ref")
+    save_dataset(Dataset("no-ref", ds.vehicle, ds.dt, ms), out)
+    return out
+
+
+def test_a_sideslip_recording_without_a_reference_loads_and_tunes_on_nis(no_reference, tmp_path):
+    ds = load_dataset(no_reference)
+    assert not any(m.has("beta_ref") for m in ds.manoeuvres)
+    np.testing.assert_array_equal(ds.r_default, ds.noise_variances(["vx", "ay", "r"]))
+    with pytest.raises(DataError, match="needs a reference channel beta_ref, which manoeuvre"):
+        TuningProblem(ds.train, ds.vehicle, default_r0_of(ds))
+    TuningProblem(ds.train, ds.vehicle, default_r0_of(ds), cost=CostSpec(kind="nis"))
+    out = tmp_path / "tuned.json"
+    res = kftune(
+        "tune", str(no_reference), "--cost", "nis", "-m", "random", "-n", "3", "-o", str(out)
+    )
+    assert res.returncode == 0, res.stderr
+    ev = kftune("evaluate", str(no_reference), "--params", str(out), "--split", "all")
+    assert ev.returncode == 0, ev.stderr
+    assert "they need a reference channel beta_ref, which 3 of 3 manoeuvres lack" in ev.stdout
+    res = kftune("tune", str(no_reference), "--cost", "nrmse", "-n", "2")
+    assert res.returncode == 3 and "Traceback" not in res.stderr
+    assert (
+        "the nrmse cost needs a reference channel beta_ref, which manoeuvre "
+        f"{ds.train[0].name!r} lacks" in res.stderr
+    )
+    res = kftune("compare", str(no_reference), "--cost", "nis", "-o", str(tmp_path / "rep"))
+    assert res.returncode == 3 and "Traceback" not in res.stderr
+    assert "β figures) needs a reference channel beta_ref, which manoeuvre" in res.stderr
+    res = kftune("dataset", "show", str(no_reference), "-o", str(tmp_path / "m.png"))
+    assert res.returncode == 0, res.stderr  # the channels it has
+
+
+def default_r0_of(ds: Dataset) -> np.ndarray:
+    from kftune.models import SINGLE_TRACK
+
+    return default_r0(SINGLE_TRACK, ds)
