@@ -126,6 +126,17 @@ def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_
     table = kftune("evaluate", str(track), "--params", str(out))
     assert table.returncode == 0, table.stderr
     assert "RMSE v" in table.stdout and "run-3" in table.stdout
+    # the tuned tracking filter runs on the recordings and exports (no vehicle anywhere)
+    est = kftune("estimate", str(track), "--params", str(out), "-o", str(tmp_path / "est"))
+    assert est.returncode == 0, est.stderr
+    rows = (tmp_path / "est" / "run-3.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    assert {"t", "px", "v_std", "innovation_py", "nis"} <= set(header)
+    assert len(rows) - 1 == load_dataset(track)["run-3"].n
+    c_file = tmp_path / "kf.h"
+    exp = kftune("export", str(out), "--format", "c", "-o", str(c_file))
+    assert exp.returncode == 0, exp.stderr
+    assert "omega" in c_file.read_text()
     # a reference the data lack, and the paper's model on data that are not a car's
     res = kftune("tune", str(track), "--model", "ctrv", "--weights", "psi=1", "-n", "2")
     assert res.returncode == 3 and "Traceback" not in res.stderr
@@ -170,6 +181,10 @@ def test_a_sideslip_recording_without_a_reference_loads_and_tunes_on_nis(no_refe
     ev = kftune("evaluate", str(no_reference), "--params", str(out), "--split", "all")
     assert ev.returncode == 0, ev.stderr
     assert "they need a reference channel beta_ref, which 3 of 3 manoeuvres lack" in ev.stdout
+    est = kftune("estimate", str(no_reference), "--params", str(out), "-o", str(tmp_path / "e"))
+    assert est.returncode == 0, est.stderr
+    header = (tmp_path / "e" / f"{ds.test[0].name}.csv").read_text().splitlines()[0].split(",")
+    assert "beta_std" in header and "beta_ref" not in header
     res = kftune("tune", str(no_reference), "--cost", "nrmse", "-n", "2")
     assert res.returncode == 3 and "Traceback" not in res.stderr
     assert (

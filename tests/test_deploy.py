@@ -79,9 +79,7 @@ def test_dataset_fingerprint_changes_with_one_sample():
 
 
 def _replace(m, **changes):
-    import dataclasses
-
-    return dataclasses.replace(m, **changes)
+    return m.replace(**changes)
 
 
 # -- estimate (library) --------------------------------------------------------------------

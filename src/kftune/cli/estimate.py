@@ -209,8 +209,12 @@ def _check(tuned: Any, dataset: Any, manoeuvres: list[Any], args: argparse.Names
     if missing:
         notes.append(
             f"{args.params} does not record {', '.join(missing)} (written before kftune "
-            "recorded deployments): the sample time and vehicle cannot be checked, the "
-            f"recording's vehicle {dataset.vehicle.name!r} is used"
+            "recorded deployments): the sample time and vehicle cannot be checked"
+            + (
+                f", the recording's vehicle {dataset.vehicle.name!r} is used"
+                if dataset.vehicle is not None
+                else ""
+            )
         )
     bad = tuned.mismatches(dataset, manoeuvres)
     if bad and not args.force:

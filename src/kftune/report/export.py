@@ -85,10 +85,11 @@ def export_document(tuned: Mapping[str, Any], source: str) -> dict[str, Any]:
         doc["model_param_names"] = [str(e["name"]) for e in mp]
         doc["model_param_units"] = [str(e["unit"]) for e in mp]
         doc["model_params"] = [float(e["value"]) for e in mp]
-        vehicle = dict(dep["vehicle"])
-        doc["vehicle_name"] = str(vehicle.pop("name", ""))
-        for key, value in vehicle.items():
-            doc[f"vehicle_{key}"] = None if value is None else float(value)
+        if dep["vehicle"] is not None:  # None: a model that is not a car's
+            vehicle = dict(dep["vehicle"])
+            doc["vehicle_name"] = str(vehicle.pop("name", ""))
+            for key, value in vehicle.items():
+                doc[f"vehicle_{key}"] = None if value is None else float(value)
         doc["initial_state"] = str(dep["initial_state"])
         ds = dep["dataset"]
         doc.update(
@@ -256,7 +257,8 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
         for key in ("alpha", "beta", "kappa"):
             out.append(f"#define {p}UKF_{key.upper()} {_float(doc[f'ukf_{key}'])}")
         out.append("")
-    out.append(f"/* vehicle: {_c_comment(doc['vehicle_name'])} */")
+    if "vehicle_name" in doc:
+        out.append(f"/* vehicle: {_c_comment(doc['vehicle_name'])} */")
     for key, value in doc.items():
         if key.startswith("vehicle_") and key != "vehicle_name" and value is not None:
             name = key.removeprefix("vehicle_")

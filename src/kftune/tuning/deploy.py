@@ -74,7 +74,7 @@ def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[
         "model": problem.model_spec,
         "filter": problem.filter,
         "dt": float(dataset.dt),
-        "vehicle": problem.vehicle.to_dict(),
+        "vehicle": None if problem.vehicle is None else problem.vehicle.to_dict(),
         "model_params": [
             {"name": n, "unit": u, "value": float(v)}
             for n, u, v in zip(model.param_names, model.param_units, fs.params.tolist())
@@ -186,7 +186,12 @@ class TunedFilter:
     def missing(self) -> list[str]:
         """What a deployment needs that this (older) file does not record."""
         dep = self.document.get("deployment") or {}
-        return [k for k in ("dt", "vehicle", "dataset") if dep.get(k) is None]
+        # (an explicit null vehicle is a model without one, not an old file)
+        return [
+            k
+            for k in ("dt", "vehicle", "dataset")
+            if k not in dep or (k != "vehicle" and dep[k] is None)
+        ]
 
     def mismatches(self, dataset: Dataset, manoeuvres: list[Manoeuvre]) -> list[str]:
         """How the recordings differ from what the filter was tuned for: a sample time off
@@ -199,7 +204,12 @@ class TunedFilter:
                         f"manoeuvre {m.name!r} is sampled every {m.dt:.6g} s, the filter was "
                         f"tuned at dt = {self.dt:.6g} s (Q is a variance per step)"
                     )
-        if self.vehicle is not None:
+        if self.vehicle is not None and dataset.vehicle is None:
+            out.append(
+                f"the filter was tuned for vehicle {self.vehicle.name!r}; the recording names "
+                "no vehicle"
+            )
+        elif self.vehicle is not None:
             differ = vehicle_differences(self.vehicle, dataset.vehicle)
             if differ:
                 out.append(
