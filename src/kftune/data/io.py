@@ -746,6 +746,33 @@ def read_mat(
     return channels
 
 
+def segment_bounds(t: np.ndarray, segment_length: float | None, name: str) -> list[int]:
+    """Sample indices that cut a recording of times ``t`` into
+    ``k = max(1, round(duration / segment_length))`` segments of (nearly) equal sample counts:
+    ``[0, …, n]`` (``segment_length=None``: ``[0, n]``, one segment).
+
+    Raises:
+        ValueError: ``segment_length`` not > 0, or segments shorter than
+            :data:`~kftune.data.validate.MIN_SAMPLES` (the message names ``name``).
+    """
+    n = t.size
+    if segment_length is None:
+        return [0, n]
+    if not segment_length > 0:
+        raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
+    k = max(1, round(float(t[-1] - t[0]) / segment_length))
+    bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
+    shortest = min(b - a for a, b in itertools.pairwise(bounds))
+    if shortest < MIN_SAMPLES:
+        dt = float(np.median(np.diff(t)))
+        raise ValueError(
+            f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
+            f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
+            f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
+        )
+    return bounds
+
+
 def recording_to_dataset(
     channels: Mapping[str, np.ndarray],
     *,
@@ -767,24 +794,9 @@ def recording_to_dataset(
     the whole recording is one training manoeuvre.
     """
     t = np.asarray(channels["t"])
-    n = t.size
     if train_every < 1:
         raise ValueError(f"train_every must be >= 1, got {train_every!r}")
-    if segment_length is None:
-        bounds = [0, n]
-    else:
-        if not segment_length > 0:
-            raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
-        k = max(1, round(float(t[-1] - t[0]) / segment_length))
-        bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
-        shortest = min(b - a for a, b in itertools.pairwise(bounds))
-        if shortest < MIN_SAMPLES:
-            dt = float(np.median(np.diff(t)))
-            raise ValueError(
-                f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
-                f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
-                f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
-            )
+    bounds = segment_bounds(t, segment_length, name)
     manoeuvres = []
     width = max(2, len(str(len(bounds) - 1)))
     for i, (a, b) in enumerate(itertools.pairwise(bounds)):

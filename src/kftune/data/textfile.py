@@ -289,7 +289,7 @@ class NumericRows:
         self.n += len(lines)
 
     def _parse(self, lines: list[str], rows: Sequence[int]) -> np.ndarray:
-        every = len(self.usecols) == len(self.names)
+        every = self.usecols == list(range(len(self.names)))
         try:
             with np.errstate(all="ignore"):
                 values = np.loadtxt(

@@ -63,18 +63,24 @@ CHANNEL_DIMENSION: dict[str, str] = {
     "beta_ref": "angle",
 }
 
+#: The unit g [m/s²]: standard gravity (ISO 80000-3), what accelerometers report in; the
+#: vehicle models' G = 9.81 is a rounded local value.
+STANDARD_GRAVITY = 9.80665
+
 #: Accepted unit names → (dimension, factor to SI).
 UNITS: dict[str, tuple[str, float]] = {
     "s": ("time", 1.0),
     "ms": ("time", 1e-3),
     "rad": ("angle", 1.0),
     "deg": ("angle", math.pi / 180.0),
+    "°": ("angle", math.pi / 180.0),
     "m/s^2": ("acceleration", 1.0),
     "m/s2": ("acceleration", 1.0),
     "m/s²": ("acceleration", 1.0),
-    "g": ("acceleration", G),
+    "g": ("acceleration", STANDARD_GRAVITY),
     "rad/s": ("angular rate", 1.0),
     "deg/s": ("angular rate", math.pi / 180.0),
+    "°/s": ("angular rate", math.pi / 180.0),
     "m/s": ("speed", 1.0),
     "km/h": ("speed", 1.0 / 3.6),
     "mph": ("speed", 0.44704),
@@ -325,21 +331,22 @@ def validate_channels(
 
 def channel_problems(
     channels: Mapping[str, np.ndarray], *, row_offset: int = 0, rows_shown: int = 3
-) -> list[str]:
+) -> dict[str, str]:
     """Every channel's own problems at once, where :func:`validate_channels` stops at the
     first: values that are not finite numbers, and values outside the plausible range of a
-    known channel (:data:`_LIMITS`). One message per bad channel, naming the column, how
-    many samples are bad and the first ``rows_shown`` rows (0-based index + ``row_offset``).
+    known channel. One message per bad channel, saying how many samples are bad and at
+    which rows (the first ``rows_shown``; 0-based index + ``row_offset``).
 
-    Channels of unequal lengths are not compared here (:func:`validate_channels` does).
+    Returns:
+        channel name → what is wrong with it (empty when nothing is).
     """
-    problems = []
+    problems = {}
     for name, values in channels.items():
         a = np.asarray(values, dtype=np.float64)
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
-            problems.append(
-                f"column {excerpt(name)}: {bad.size} value(s) not a finite number, at row(s) "
+            problems[name] = (
+                f"{bad.size} value(s) not a finite number, at row(s) "
                 f"{_rows(bad, row_offset, rows_shown)} (first: {float(a[bad[0]])})"
             )
             continue
@@ -347,10 +354,10 @@ def channel_problems(
             lo, hi, hint = _LIMITS[name]
             bad = np.flatnonzero((a < lo) | (a > hi))
             if bad.size:
-                problems.append(
-                    f"column {excerpt(name)}: {bad.size} implausible value(s) at row(s) "
-                    f"{_rows(bad, row_offset, rows_shown)} (first: {float(a[bad[0]]):g}; "
-                    f"expected within [{lo:g}, {hi:g}] in SI units): {hint}"
+                problems[name] = (
+                    f"{bad.size} implausible value(s) at row(s) "
+                    f"{_rows(bad, row_offset, rows_shown)} (first: {float(a[bad[0]]):g} in SI "
+                    f"units; expected within [{lo:g}, {hi:g}]): {hint}"
                 )
     return problems
 
