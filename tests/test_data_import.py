@@ -13,9 +13,14 @@ import numpy as np
 import pytest
 import scipy.io
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
 from kftune.cli import EXIT_BAD_INPUT, main
 from kftune.data import load_dataset
-from kftune.data.importer import import_recordings
+from kftune.data.importer import import_recordings, read_mapping
 from kftune.errors import ConfigError, DataError
 from test_data_helpers import synthetic_channels
 
@@ -312,3 +317,11 @@ def test_cli_import_then_tune(tmp_path):
     )  # fmt: skip
     assert tune.returncode == 0, tune.stderr
     assert (tmp_path / "t.json").is_file()
+
+
+def test_the_readme_mapping_example_is_valid():
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    block = readme.split("# my-car.toml\n", 1)[1].split("```", 1)[0]
+    m = read_mapping(tomllib.loads(block))
+    assert m.split == ("test", ["run3*"]) and m.min_speed == pytest.approx(3 / 3.6)
+    assert m.channels["delta"].hand_wheel and m.channels["beta_ref"].sources == ("Vy", "Vx")

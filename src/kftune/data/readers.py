@@ -229,6 +229,10 @@ MATLAB_NUMERIC = frozenset(
 )
 
 
+#: The bytes that open HDF5 data, at offset 512 of a MATLAB v7.3 file (after its header).
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
 def mat_variables(
     path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
 ) -> dict[str, np.ndarray]:
@@ -249,10 +253,18 @@ def mat_variables(
     try:
         with open(path, "rb") as fh:
             major, _ = matlab.matfile_version(fh)
+            fh.seek(512)
+            hdf5 = fh.read(8) == HDF5_SIGNATURE
     except Exception as exc:
         raise DataError(
-            f"not a MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})", file=file
+            f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+            file=file,
         ) from None
+    if major == 2 and not hdf5:
+        raise DataError(
+            "not a readable MATLAB file (its header says v7.3, but no HDF5 data follow it)",
+            file=file,
+        )
     if major == 2:
         values = _mat73_variables(path, names, struct, limits)
     else:
@@ -347,7 +359,7 @@ def _mat73_variables(
         fh = h5py.File(file, "r")
     except Exception as exc:
         raise DataError(
-            f"not a readable MATLAB v7.3 (HDF5) file ({type(exc).__name__}: "
+            f"not a readable MATLAB file (v7.3, HDF5: {type(exc).__name__}: "
             f"{excerpt(str(exc), 120)})",
             file=file,
         ) from None
