@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from kftune.data.io import file_stem, save_dataset, segment_bounds
+from kftune.data.io import _vehicle_from, file_stem, save_dataset, segment_bounds
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.readers import FORMATS, READER_OPTIONS, Table, format_of
 from kftune.data.textfile import ReadLimits
@@ -78,7 +78,7 @@ from kftune.data.validate import (
     validate_channels,
 )
 from kftune.errors import ConfigError, DataError, excerpt
-from kftune.vehicle.params import VehicleParams, preset
+from kftune.vehicle.params import VehicleParams
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -193,13 +193,7 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
     if raster is not None and not isinstance(raster, str):
         raise bad("source.raster", "expected a signal name (a step goes in sample_time)")
 
-    vehicle = None
-    if "vehicle" in data:
-        try:
-            v = data["vehicle"]
-            vehicle = preset(v) if isinstance(v, str) else VehicleParams.from_dict(v)
-        except (TypeError, ValueError, AttributeError) as exc:
-            raise bad("vehicle", str(exc)) from None
+    vehicle = _vehicle_from(data["vehicle"], file) if "vehicle" in data else None
     sample_time = quantity("sample_time", "time")
     if sample_time is not None and not 1e-4 <= sample_time <= 1.0:
         raise bad("sample_time", f"expected 1e-4 to 1 s, got {sample_time!r}")
