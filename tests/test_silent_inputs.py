@@ -205,8 +205,8 @@ def tuned_file(path: Path, **changes) -> Path:
 @pytest.mark.parametrize(
     ("change", "says"),
     [
-        ({"q": [True, 1, 1]}, "'q' must be 3 numbers >= 0 (not true/false"),
-        ({"q": ["1e-6", 1, 1]}, "'q' must be 3 numbers >= 0"),
+        ({"q": [True, 1, 1]}, "'q' must be a list of numbers >= 0, one per state (not true/false"),
+        ({"q": ["1e-6", 1, 1]}, "'q' must be a list of numbers >= 0"),
         ({"burn_in": True}, "'burn_in' must be a finite number >= 0, got True"),
         ({"params": {"r_scale": False}}, "'params.r_scale' must be a finite number > 0, got False"),
     ],
