@@ -457,9 +457,9 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
     t = channels["t"]
     if not starts:
         raise DataError(
-            f"no stretch with vx above min_speed = {m.min_speed:g} m/s lasting at least "
-            f"{max(m.min_duration, MIN_SAMPLES * (t[1] - t[0])):g} s (the top speed is "
-            f"{np.nanmax(channels['vx']):.3g} m/s)",
+            f"no stretch of at least {MIN_SAMPLES} samples and {m.min_duration:g} s with vx "
+            f"above min_speed = {m.min_speed:g} m/s ({t.size} samples, top speed "
+            f"{np.nanmax(channels['vx'], initial=-np.inf):.3g} m/s)",
             file=file,
             column="vx",
         )
