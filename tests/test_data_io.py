@@ -24,6 +24,7 @@ from kftune.data import (
     save_dataset,
 )
 from kftune.data.io import read_csv
+from kftune.data.validate import STANDARD_GRAVITY
 from kftune.errors import DataError
 from kftune.vehicle import preset
 from test_data_helpers import synthetic_channels, synthetic_dataset, synthetic_manoeuvre
@@ -155,7 +156,7 @@ def test_manifest_units_convert_to_si(tmp_path):
         "delta": 180 / math.pi,
         "r": 180 / math.pi,
         "vx": 3.6,
-        "ay": 1 / 9.81,
+        "ay": 1 / STANDARD_GRAVITY,
         "beta_ref": 180 / math.pi,
     }
     for m in ds.manoeuvres:
@@ -201,8 +202,8 @@ USER_MAPPING = {
 USER_SCALE = {
     "time_s": 1.0,
     "SteerAngle": 180 / math.pi,
-    "AccX": 1 / 9.81,
-    "AccY": 1 / 9.81,
+    "AccX": 1 / STANDARD_GRAVITY,
+    "AccY": 1 / STANDARD_GRAVITY,
     "YawRate": 180 / math.pi,
     "Speed": 3.6,
     "Beta": 180 / math.pi,

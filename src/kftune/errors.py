@@ -46,6 +46,7 @@ class DataError(KftuneError, ValueError):
         if len(message) > MAX_MESSAGE_CHARS:
             message = message[:MAX_MESSAGE_CHARS] + "… (message cut)"
         super().__init__(f"{', '.join(where)}: {message}" if where else message)
+        self.message = message  # without the location, to re-raise with another one
         self.file = file
         self.column = column
         self.row = row

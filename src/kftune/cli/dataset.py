@@ -3,6 +3,7 @@
     kftune dataset generate OUT [--seed N] [--only NAME ...]
     kftune dataset info [DATASET] [--json]
     kftune dataset show [DATASET] [--manoeuvre NAME] [--out FILE.png]
+    kftune dataset import SOURCE... --mapping MAP.toml --out DIR [--name NAME] [--force]
 
 DATASET is a kftune dataset directory (or its manifest), a directory in the revs-250lm
 layout, or omitted / ``default`` for the bundled set.
@@ -74,6 +75,27 @@ def register(subparsers: Any) -> None:
         "letters, digits, '.', '_' and '-')",
     )
     show.set_defaults(func=run_show)
+
+    imp = verbs.add_parser(
+        "import",
+        help="turn recordings (CSV/TSV, Parquet, MATLAB, MDF4) into a dataset",
+        description="Read recordings through one column mapping (a TOML file: which source "
+        "signal is which channel, its unit, a sample time, derived channels, standstill "
+        "trimming, the train/test rule, the vehicle; see the README, 'Importing your "
+        "recordings'), merge them into one dataset and write it in the kftune format. "
+        "Formats by suffix: CSV/TSV (.csv .tsv), Parquet (.parquet, extra [parquet]), "
+        "MATLAB (.mat; v7.3 needs extra [mat73]), MDF4 (.mf4 .mdf, extra [mdf]).",
+    )
+    imp.add_argument("sources", nargs="+", type=Path, metavar="SOURCE", help="recording files")
+    imp.add_argument("--mapping", required=True, type=Path, help="column mapping (TOML)")
+    imp.add_argument("--out", "-o", required=True, type=Path, help="output dataset folder")
+    imp.add_argument("--name", default=None, help="dataset name (default: the mapping's, or OUT's)")
+    imp.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the kftune dataset already in OUT (its manifest and the files it lists)",
+    )
+    imp.set_defaults(func=run_import)
 
 
 # ------------------------------------------------------------------------------ generate
@@ -148,6 +170,30 @@ def _remove(files: list[Path], out: Path) -> None:
             f.unlink(missing_ok=True)
         except OSError as exc:
             raise ConfigError(f"OUT {out}: cannot remove the old file {f}: {exc}") from None
+
+
+# ------------------------------------------------------------------------------ import
+def run_import(args: argparse.Namespace) -> int:
+    """Import recordings into a dataset folder."""
+    from kftune.cli._common import output_dir
+    from kftune.data.importer import import_recordings
+
+    output_dir(args.out, "--out")
+    old_files = _files_to_replace(args.out, args.force)  # checked before reading anything
+    dataset = import_recordings(args.sources, args.mapping, name=args.name or None)
+    _remove(old_files, args.out)  # only now that the new dataset exists
+    from kftune.data import save_dataset
+
+    manifest = save_dataset(dataset, args.out)
+    meta = dataset.meta
+    for file, kept, total in zip(meta["imported_from"], meta["kept_s"], meta["recorded_s"]):
+        print(f"{file}: kept {kept:.1f} s of {total:.1f} s")
+    print(
+        f"wrote {len(dataset)} manoeuvres ({len(dataset.train)} train, {len(dataset.test)} "
+        f"test; dt = {dataset.dt:g} s; channels {', '.join(dataset.channel_names)}) to "
+        f"{manifest.parent}"
+    )
+    return 0
 
 
 # ------------------------------------------------------------------------------ info

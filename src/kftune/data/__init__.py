@@ -14,6 +14,7 @@ of its own, :mod:`kftune.sim` (it needs the ``[simulate]`` extra).
 
 from __future__ import annotations
 
+from kftune.data.importer import import_recordings
 from kftune.data.io import (
     REVS_MAPPING,
     Source,
@@ -53,6 +54,7 @@ __all__ = [
     "bundled_dataset_path",
     "default_dataset",
     "estimate_measurement_noise",
+    "import_recordings",
     "load_columns",
     "load_dataset",
     "load_mat",

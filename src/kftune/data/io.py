@@ -44,8 +44,8 @@ from typing import Any
 import numpy as np
 
 from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
+from kftune.data.readers import mat_variables
 from kftune.data.textfile import (
-    ENV_MAX_ROWS,
     SEPARATORS,
     NumericRows,
     ReadLimits,
@@ -712,12 +712,12 @@ def read_mat(
 ) -> dict[str, np.ndarray]:
     """Read and validate a MATLAB recording into SI channels.
 
-    Only the variables the mapping names (or the struct holding them) are loaded. A
-    top-level variable with more elements than ``limits.max_rows`` is refused before it is
-    read (signals inside a struct are checked only once loaded).
+    Only the variables the mapping names (or the struct holding them) are loaded (see
+    :func:`kftune.data.readers.mat_variables`).
 
     Args:
-        path: a ``.mat`` file (v4–v7.2; v7.3/HDF5 is refused with advice).
+        path: a ``.mat`` file (v4–v7.2 through SciPy; v7.3/HDF5 through h5py, the extra
+            ``mat73``).
         mapping: kftune channel → source variable (or struct field) name and unit.
         struct: dotted path of the struct holding the signals (``None``: top level).
         limits: see :class:`~kftune.data.textfile.ReadLimits` (``None``: the defaults or the
@@ -726,83 +726,51 @@ def read_mat(
     Returns:
         channel → (n,) array in SI units, validated (rows reported 1-based, as MATLAB).
     """
-    from scipy import io as sio
-
     path = Path(path)
     file = str(path)
     if not path.is_file():
         raise DataError("file not found", file=file)
     sources = _normalise_mapping(mapping, file)
     lim = ReadLimits.from_env() if limits is None else limits
-    wanted = [struct.split(".")[0]] if struct else [s.name for s in sources.values()]
     try:
-        sizes = {name: math.prod(shape) for name, shape, _ in sio.whosmat(str(path))}
-        big = [n for n in wanted if sizes.get(n, 0) > lim.max_rows]
-        if big and not struct:
-            raise DataError(
-                f"variable {excerpt(big[0])} has {sizes[big[0]]:,} elements, more than the "
-                f"limit of {lim.max_rows:,} rows: raise it with the environment variable "
-                f"{ENV_MAX_ROWS} (or ReadLimits(max_rows=...)) if the file is genuine",
-                file=file,
-            )
-        data = sio.loadmat(str(path), simplify_cells=True, variable_names=wanted)
-    except DataError:
-        raise
-    except NotImplementedError:
-        raise DataError(
-            "MATLAB v7.3 (HDF5) files are not supported: save with save(..., '-v7')",
-            file=file,
-        ) from None
-    except Exception as exc:
-        # SciPy's reader fails on a damaged or foreign file with any of a dozen exception
-        # types (MatReadError, ValueError, zlib.error, IndexError, even UnboundLocalError,
-        # found by fuzzing): each is bad input, reported without a traceback
-        raise DataError(
-            f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
-            file=file,
-        ) from None
-    container: Any = data
-    if struct:
-        for part in struct.split("."):
-            if not isinstance(container, dict) or part not in container:
-                raise DataError(
-                    f"struct {excerpt(struct)} not found (no field {excerpt(part)})", file=file
-                )
-            container = container[part]
-        known = sorted(container) if isinstance(container, dict) else []
-    else:
-        known = sorted(sizes)
-    if not isinstance(container, dict):
-        raise DataError(f"{excerpt(struct or 'top level')} is not a struct", file=file)
-    channels: dict[str, np.ndarray] = {}
-    for channel, src in sources.items():
-        if src.name not in container:
-            raise DataError(
-                f"variable {excerpt(src.name)} not found; the file has {excerpt(known, 300)}",
-                file=file,
-                column=channel,
-            )
-        a = np.asarray(container[src.name])
-        if np.iscomplexobj(a):
-            raise DataError(
-                f"variable {excerpt(src.name)} is complex; expected real numbers",
-                file=file,
-                column=channel,
-            )
-        if a.ndim == 2 and 1 in a.shape:
-            a = a.ravel()
-        if a.ndim != 1 or not np.issubdtype(a.dtype, np.number):
-            raise DataError(
-                f"variable {excerpt(src.name)} must be a numeric vector, got shape {a.shape} "
-                f"dtype {a.dtype}",
-                file=file,
-                column=channel,
-            )
-        channels[channel] = a.astype(np.float64) * unit_factor(
-            src.unit, CHANNEL_DIMENSION.get(channel), file=file, column=channel
-        )
+        values = mat_variables(path, [s.name for s in sources.values()], struct, lim)
+    except DataError as exc:  # name the kftune channel, as the other loaders do
+        channel = next((c for c, s in sources.items() if s.name == exc.column), exc.column)
+        raise DataError(exc.message, file=exc.file, column=channel, row=exc.row) from None
+    channels = {
+        channel: values[src.name]
+        * unit_factor(src.unit, CHANNEL_DIMENSION.get(channel), file=file, column=channel)
+        for channel, src in sources.items()
+    }
     validate_channels(channels, file=file, row_offset=1)
     return channels
+
+
+def segment_bounds(t: np.ndarray, segment_length: float | None, name: str) -> list[int]:
+    """Sample indices that cut a recording of times ``t`` into
+    ``k = max(1, round(duration / segment_length))`` segments of (nearly) equal sample counts:
+    ``[0, …, n]`` (``segment_length=None``: ``[0, n]``, one segment).
+
+    Raises:
+        ValueError: ``segment_length`` not > 0, or segments shorter than
+            :data:`~kftune.data.validate.MIN_SAMPLES` (the message names ``name``).
+    """
+    n = t.size
+    if segment_length is None:
+        return [0, n]
+    if not segment_length > 0:
+        raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
+    k = max(1, round(float(t[-1] - t[0]) / segment_length))
+    bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
+    shortest = min(b - a for a, b in itertools.pairwise(bounds))
+    if shortest < MIN_SAMPLES:
+        dt = float(np.median(np.diff(t)))
+        raise ValueError(
+            f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
+            f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
+            f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
+        )
+    return bounds
 
 
 def recording_to_dataset(
@@ -826,24 +794,9 @@ def recording_to_dataset(
     the whole recording is one training manoeuvre.
     """
     t = np.asarray(channels["t"])
-    n = t.size
     if train_every < 1:
         raise ValueError(f"train_every must be >= 1, got {train_every!r}")
-    if segment_length is None:
-        bounds = [0, n]
-    else:
-        if not segment_length > 0:
-            raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
-        k = max(1, round(float(t[-1] - t[0]) / segment_length))
-        bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
-        shortest = min(b - a for a, b in itertools.pairwise(bounds))
-        if shortest < MIN_SAMPLES:
-            dt = float(np.median(np.diff(t)))
-            raise ValueError(
-                f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
-                f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
-                f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
-            )
+    bounds = segment_bounds(t, segment_length, name)
     manoeuvres = []
     width = max(2, len(str(len(bounds) - 1)))
     for i, (a, b) in enumerate(itertools.pairwise(bounds)):

@@ -246,14 +246,16 @@ class NumericRows:
         separator: str | None,
         comments: tuple[str, ...] = (),
         limits: ReadLimits | None = None,
+        usecols: Sequence[int] | None = None,
     ) -> None:
         self.file = file
         self.names = names
         self.separator = separator
         self.comments = comments
         self.limits = _limits(limits)
+        self.usecols = list(range(len(names))) if usecols is None else list(usecols)
         self.n = 0
-        self._columns = [array.array("d") for _ in names]
+        self._columns = [array.array("d") for _ in self.usecols]
         self._blank_row: int | None = None  # an empty line, an error if data follow it
 
     def add(self, first_row: int, lines: list[str]) -> None:
@@ -287,13 +289,21 @@ class NumericRows:
         self.n += len(lines)
 
     def _parse(self, lines: list[str], rows: Sequence[int]) -> np.ndarray:
-        width = len(self.names)
+        every = self.usecols == list(range(len(self.names)))
         try:
             with np.errstate(all="ignore"):
                 values = np.loadtxt(
-                    lines, delimiter=self.separator, dtype=np.float64, ndmin=2, comments=None
+                    lines,
+                    delimiter=self.separator,
+                    dtype=np.float64,
+                    ndmin=2,
+                    comments=None,
+                    usecols=None if every else self.usecols,
                 )
-            if values.shape == (len(lines), width):
+            if values.shape == (len(lines), len(self.usecols)) and (
+                every
+                or all(line.count(self.separator or "\n") == len(self.names) - 1 for line in lines)
+            ):
                 return values
         except ValueError:
             pass
@@ -303,7 +313,7 @@ class NumericRows:
         """Row by row, to name the first bad row and field (NumPy's parser stops at it
         without saying where)."""
         width = len(self.names)
-        out = np.empty((len(lines), width))
+        out = np.empty((len(lines), len(self.usecols)))
         for i, (row, line) in enumerate(zip(rows, lines)):
             fields = [line] if self.separator is None else line.split(self.separator)
             if len(fields) != width:
@@ -313,11 +323,12 @@ class NumericRows:
                     file=self.file,
                     row=row,
                 )
-            for j, text in enumerate(fields):
+            for k, j in enumerate(self.usecols):
+                text = fields[j]
                 try:
                     if not _NUMBER.fullmatch(text.strip()):
                         raise ValueError(text)
-                    out[i, j] = float(text)
+                    out[i, k] = float(text)
                 except ValueError:
                     hint = ""
                     if self.separator != "," and "," in text:

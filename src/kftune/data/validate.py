@@ -63,22 +63,45 @@ CHANNEL_DIMENSION: dict[str, str] = {
     "beta_ref": "angle",
 }
 
+#: The unit g [m/s²]: standard gravity (ISO 80000-3), what accelerometers report in; the
+#: vehicle models' G = 9.81 is a rounded local value.
+STANDARD_GRAVITY = 9.80665
+
 #: Accepted unit names → (dimension, factor to SI).
 UNITS: dict[str, tuple[str, float]] = {
     "s": ("time", 1.0),
     "ms": ("time", 1e-3),
     "rad": ("angle", 1.0),
     "deg": ("angle", math.pi / 180.0),
+    "°": ("angle", math.pi / 180.0),
     "m/s^2": ("acceleration", 1.0),
     "m/s2": ("acceleration", 1.0),
     "m/s²": ("acceleration", 1.0),
-    "g": ("acceleration", G),
+    "g": ("acceleration", STANDARD_GRAVITY),
     "rad/s": ("angular rate", 1.0),
     "deg/s": ("angular rate", math.pi / 180.0),
+    "°/s": ("angular rate", math.pi / 180.0),
     "m/s": ("speed", 1.0),
     "km/h": ("speed", 1.0 / 3.6),
+    "mph": ("speed", 0.44704),
     "m": ("length", 1.0),
+    "mm": ("length", 1e-3),
     "1": ("dimensionless", 1.0),
+    "%": ("dimensionless", 0.01),
+    "N": ("force", 1.0),
+    "kN": ("force", 1e3),
+    "Pa": ("pressure", 1.0),
+    "kPa": ("pressure", 1e3),
+    "MPa": ("pressure", 1e6),
+    "bar": ("pressure", 1e5),
+    "rad/s^2": ("angular acceleration", 1.0),
+    "rad/s2": ("angular acceleration", 1.0),
+    "rad/s²": ("angular acceleration", 1.0),
+    "deg/s^2": ("angular acceleration", math.pi / 180.0),
+    "deg/s2": ("angular acceleration", math.pi / 180.0),
+    "deg/s²": ("angular acceleration", math.pi / 180.0),
+    "N·m": ("torque", 1.0),
+    "Nm": ("torque", 1.0),
 }
 
 #: Default SI unit of each dimension (what files of the kftune format declare).
@@ -90,6 +113,10 @@ SI_UNIT: dict[str, str] = {
     "speed": "m/s",
     "length": "m",
     "dimensionless": "1",
+    "force": "N",
+    "pressure": "Pa",
+    "angular acceleration": "rad/s^2",
+    "torque": "N·m",
 }
 
 #: Fewest samples a manoeuvre may have (2 s at 100 Hz; the noise estimator of
@@ -300,6 +327,44 @@ def validate_channels(
     if check_units:
         _check_magnitudes(arrays, file=file, row_offset=row_offset, files=files)
     return dt
+
+
+def channel_problems(
+    channels: Mapping[str, np.ndarray], *, row_offset: int = 0, rows_shown: int = 3
+) -> dict[str, str]:
+    """Every channel's own problems at once, where :func:`validate_channels` stops at the
+    first: values that are not finite numbers, and values outside the plausible range of a
+    known channel. One message per bad channel, saying how many samples are bad and at
+    which rows (the first ``rows_shown``; 0-based index + ``row_offset``).
+
+    Returns:
+        channel name → what is wrong with it (empty when nothing is).
+    """
+    problems = {}
+    for name, values in channels.items():
+        a = np.asarray(values, dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:
+            problems[name] = (
+                f"{bad.size} value(s) not a finite number, at row(s) "
+                f"{_rows(bad, row_offset, rows_shown)} (first: {float(a[bad[0]])})"
+            )
+            continue
+        if name in _LIMITS:
+            lo, hi, hint = _LIMITS[name]
+            bad = np.flatnonzero((a < lo) | (a > hi))
+            if bad.size:
+                problems[name] = (
+                    f"{bad.size} implausible value(s) at row(s) "
+                    f"{_rows(bad, row_offset, rows_shown)} (first: {float(a[bad[0]]):g} in SI "
+                    f"units; expected within [{lo:g}, {hi:g}]): {hint}"
+                )
+    return problems
+
+
+def _rows(indices: np.ndarray, row_offset: int, shown: int) -> str:
+    text = ", ".join(str(int(i) + row_offset) for i in indices[:shown])
+    return text + ", …" if indices.size > shown else text
 
 
 def _file_of(column: str, file: str | None, files: Mapping[str, str] | None) -> str | None:

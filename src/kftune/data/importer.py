@@ -1,0 +1,608 @@
+"""Import recordings into a kftune dataset: ``kftune dataset import`` and
+:func:`import_recordings`.
+
+One mapping (a TOML file, or the same as a dict) says how every recording becomes channels:
+
+.. code-block:: toml
+
+    name = "my-car"                 # dataset name (default: the output folder's)
+    vehicle = "bmw-320i"            # a preset, or a [vehicle] table of VehicleParams fields
+    model = "single-track"          # checked: every channel it needs is mapped
+    sample_time = 0.005             # [s] no time column: t = k·sample_time (MDF: the raster)
+    min_speed = 1.0                 # [m/s] keep the stretches above it (standstill, reversing out)
+    min_duration = 5.0              # [s] drop kept stretches shorter than this
+    segment_length = 30.0           # [s] cut each stretch into segments of about this length
+
+    [source]                        # reader options (each format uses its own)
+    delimiter = ";"                 # CSV: default sniffed from the header row
+    units_row = true                # CSV: the row after the header holds units
+    struct = "data"                 # MATLAB: the signals are fields of this struct
+    raster = "YawRate"              # MDF: resample onto this signal's timestamps
+
+    [split]                         # one rule: test = [globs], train_every = k, test_fraction = f
+    test = ["run3*"]
+
+    [channels]                      # kftune channel = source
+    t = "time"                      # a name alone: SI units (or the unit the file declares)
+    vx = { column = "Speed", unit = "km/h" }
+    ay = { column = "AccY", unit = "g", sign = -1 }           # sign: flip a convention
+    delta = { column = "SWA", unit = "deg", hand_wheel = true }   # ÷ steering ratio
+    beta_ref = { atan2 = ["Vy", "Vx"], unit = "km/h" }        # atan2(Vy, Vx)
+    p_brake = { column = "BrakePress", unit = "bar", scale = 1.0, offset = 0.0 }
+
+A source value becomes ``sign · (scale · raw + offset) · unit factor`` (``scale`` and
+``offset`` in the source's unit). ``hand_wheel = true`` divides by ``steering_ratio`` (the
+mapping's, else the vehicle's); ``atan2 = [vy, vx]`` gives atan2(vy, vx) of two speed
+sources. Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``)
+are SI numbers or strings with a unit (``"5 km/h"``, ``"5 ms"``).
+
+Each recording is read (:mod:`kftune.data.readers`), converted, trimmed — with ``min_speed``
+only the samples with vx > min_speed are kept (a NaN speed counts as not above it), each
+contiguous stretch of at least ``min_duration`` becomes its own manoeuvre or is cut into
+segments — and only then validated: a recording's every bad channel is reported at once
+(:func:`~kftune.data.validate.channel_problems`), then the remaining checks of
+:func:`~kftune.data.validate.validate_channels` run on each stretch. The train/test rule
+then applies over all recordings in the order given: ``test = [globs]`` makes every
+segment of a recording whose file name (or stem) matches a glob test; ``train_every = k``
+makes segment ``i`` (0-based, counted over all recordings) training when ``i % k == 0``
+(the default, k = 3, as for :func:`~kftune.data.io.recording_to_dataset`);
+``test_fraction = f`` makes test the segments that start after the first ``1 − f`` of the
+total duration.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import itertools
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kftune.data.io import _vehicle_from, file_stem, save_dataset, segment_bounds
+from kftune.data.manoeuvre import Dataset, Manoeuvre
+from kftune.data.readers import FORMATS, READER_OPTIONS, Table, format_of
+from kftune.data.textfile import ReadLimits
+from kftune.data.validate import (
+    CHANNEL_DIMENSION,
+    MIN_SAMPLES,
+    SI_UNIT,
+    UNITS,
+    channel_problems,
+    check_channel_name,
+    unit_factor,
+    validate_channels,
+)
+from kftune.errors import ConfigError, DataError, excerpt
+from kftune.vehicle.params import VehicleParams
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+#: Top-level keys of a mapping, and what each holds.
+MAPPING_KEYS = {
+    "name": "dataset name",
+    "description": "free text",
+    "vehicle": "preset name or table of VehicleParams fields",
+    "model": "model name: its channels must be mapped",
+    "sample_time": "[s] when there is no time column (MDF: the raster step)",
+    "min_speed": "[m/s] keep stretches with vx above it",
+    "min_duration": "[s] drop kept stretches shorter than it",
+    "segment_length": "[s] cut stretches into segments",
+    "steering_ratio": "hand-wheel to road-wheel ratio for hand_wheel channels",
+    "source": f"reader options: {', '.join(READER_OPTIONS)}",
+    "split": "test = [globs] | train_every = k | test_fraction = f",
+    "channels": "kftune channel = source column, or a table",
+}
+#: Keys of one ``[channels]`` entry.
+CHANNEL_KEYS = ("column", "atan2", "unit", "scale", "offset", "sign", "hand_wheel")
+SPLIT_RULES = ("test", "train_every", "test_fraction")
+DEFAULT_TRAIN_EVERY = 3
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """How one kftune channel is made from the sources (see the module docstring)."""
+
+    channel: str
+    sources: tuple[str, ...]  # one column, or (vy, vx) for atan2
+    unit: str | None
+    scale: float = 1.0
+    offset: float = 0.0
+    sign: float = 1.0
+    hand_wheel: bool = False
+
+    @property
+    def label(self) -> str:
+        """``vx (source 'Speed')``, for messages."""
+        return f"{self.channel} (source {', '.join(repr(s) for s in self.sources)})"
+
+
+@dataclass(frozen=True)
+class Mapping_:
+    """A parsed mapping (see the module docstring)."""
+
+    file: str
+    channels: dict[str, ChannelSpec]
+    options: dict[str, Any]
+    name: str | None
+    description: str
+    vehicle: VehicleParams | None
+    model: str | None
+    sample_time: float | None
+    min_speed: float | None
+    min_duration: float
+    segment_length: float | None
+    steering_ratio: float | None
+    split: tuple[str, Any]
+
+
+# ------------------------------------------------------------------------------ mapping
+def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
+    """Parse and check a mapping (a TOML file or a dict); errors name the file and key."""
+    if isinstance(mapping, Mapping):
+        file, data = "<mapping>", dict(mapping)
+    else:
+        file = str(mapping)
+        try:
+            data = tomllib.loads(Path(mapping).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise DataError("mapping file not found", file=file) from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DataError(f"cannot read the mapping: {exc}", file=file) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise DataError(f"mapping is not valid TOML: {exc}", file=file) from None
+
+    def bad(key: str, what: str) -> DataError:
+        return DataError(f"key {key!r}: {what}", file=file)
+
+    unknown = sorted(set(data) - set(MAPPING_KEYS))
+    if unknown:
+        raise bad(unknown[0], f"unknown; expected some of {list(MAPPING_KEYS)}")
+
+    def quantity(key: str, dimension: str) -> float | None:
+        value = data.get(key)
+        if value is None:
+            return None
+        if isinstance(value, str):
+            number, _, unit = value.strip().partition(" ")
+            try:
+                factor = unit_factor(unit or SI_UNIT[dimension], dimension, file=file, column=key)
+                value = float(number) * factor
+            except ValueError:
+                raise bad(
+                    key, f"expected a number or '<number> <unit>', got {excerpt(value)}"
+                ) from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+            raise bad(key, f"expected a number >= 0 [{SI_UNIT[dimension]}], got {excerpt(value)}")
+        return float(value)
+
+    options = data.get("source", {})
+    if not isinstance(options, dict) or set(options) - set(READER_OPTIONS):
+        raise bad("source", f"expected a table of some of {list(READER_OPTIONS)}")
+    delimiter = options.get("delimiter")
+    if delimiter is not None and (not isinstance(delimiter, str) or len(delimiter) != 1):
+        raise bad("source.delimiter", f"expected one character, got {excerpt(delimiter)}")
+    raster = options.get("raster")
+    if raster is not None and not isinstance(raster, str):
+        raise bad("source.raster", "expected a signal name (a step goes in sample_time)")
+
+    vehicle = _vehicle_from(data["vehicle"], file) if "vehicle" in data else None
+    sample_time = quantity("sample_time", "time")
+    if sample_time is not None and not 1e-4 <= sample_time <= 1.0:
+        raise bad("sample_time", f"expected 1e-4 to 1 s, got {sample_time!r}")
+    if raster is not None and sample_time is not None:
+        raise bad("source.raster", "give the MDF raster as raster or as sample_time, not both")
+    steering_ratio = data.get("steering_ratio")
+    if steering_ratio is not None and (
+        isinstance(steering_ratio, bool)
+        or not isinstance(steering_ratio, (int, float))
+        or not steering_ratio > 0
+    ):
+        raise bad("steering_ratio", f"expected a number > 0, got {excerpt(steering_ratio)}")
+    segment_length = quantity("segment_length", "time")
+    if segment_length == 0:
+        raise bad("segment_length", "expected a length > 0 s")
+
+    channels = _channel_specs(data.get("channels"), file)
+    needs_ratio = [c for c, s in channels.items() if s.hand_wheel]
+    if needs_ratio and steering_ratio is None and vehicle is None:
+        raise bad(
+            f"channels.{needs_ratio[0]}.hand_wheel",
+            "needs steering_ratio (or a vehicle, whose steering_ratio is used)",
+        )
+    model = data.get("model")
+    if model is not None:
+        _check_model(model, channels, vehicle, file)
+    for key in ("name", "description"):
+        if key in data and not isinstance(data[key], str):
+            raise bad(key, f"expected a string, got {excerpt(data[key])}")
+    return Mapping_(
+        file=file,
+        channels=channels,
+        options=dict(options),
+        name=data.get("name"),
+        description=data.get("description", ""),
+        vehicle=vehicle,
+        model=model,
+        sample_time=sample_time,
+        min_speed=quantity("min_speed", "speed"),
+        min_duration=quantity("min_duration", "time") or 0.0,
+        segment_length=segment_length,
+        steering_ratio=None if steering_ratio is None else float(steering_ratio),
+        split=_split_rule(data.get("split"), file),
+    )
+
+
+def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
+    if not isinstance(table, dict) or not table:
+        raise DataError(
+            "key 'channels': expected a table of kftune channel = source column", file=file
+        )
+    out = {}
+    for channel, spec in table.items():
+        check_channel_name(channel, file=file)
+        key = f"channels.{channel}"
+        if isinstance(spec, str):
+            spec = {"column": spec}
+        if not isinstance(spec, dict):
+            raise DataError(f"key {key!r}: expected a column name or a table", file=file)
+        unknown = sorted(set(spec) - set(CHANNEL_KEYS))
+        if unknown:
+            raise DataError(
+                f"key '{key}.{unknown[0]}': unknown; expected some of {list(CHANNEL_KEYS)}",
+                file=file,
+            )
+        if ("column" in spec) == ("atan2" in spec):
+            raise DataError(f"key {key!r}: give either column or atan2 = [vy, vx]", file=file)
+        if "atan2" in spec:
+            sources = spec["atan2"]
+            if not (isinstance(sources, list) and len(sources) == 2):
+                raise DataError(f"key '{key}.atan2': expected [vy, vx], two names", file=file)
+        else:
+            sources = [spec["column"]]
+        if not all(isinstance(s, str) and s for s in sources):
+            raise DataError(f"key {key!r}: a source name must be a non-empty string", file=file)
+        unit = spec.get("unit")
+        dim = "speed" if "atan2" in spec else CHANNEL_DIMENSION.get(channel)
+        if unit is not None:
+            unit_factor(unit, dim, file=file, column=channel)
+        numbers = {}
+        for k, default in (("scale", 1.0), ("offset", 0.0), ("sign", 1.0)):
+            v = spec.get(k, default)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise DataError(f"key '{key}.{k}': expected a number, got {excerpt(v)}", file=file)
+            numbers[k] = float(v)
+        if numbers["sign"] not in (1.0, -1.0):
+            raise DataError(f"key '{key}.sign': expected 1 or -1", file=file)
+        if numbers["scale"] == 0.0:
+            raise DataError(f"key '{key}.scale': must not be 0", file=file)
+        hand_wheel = spec.get("hand_wheel", False)
+        if not isinstance(hand_wheel, bool):
+            raise DataError(f"key '{key}.hand_wheel': expected true or false", file=file)
+        out[channel] = ChannelSpec(channel, tuple(sources), unit, hand_wheel=hand_wheel, **numbers)
+    return out
+
+
+def _split_rule(table: Any, file: str) -> tuple[str, Any]:
+    if table is None:
+        return ("train_every", DEFAULT_TRAIN_EVERY)
+    if not isinstance(table, dict) or len(table) != 1 or next(iter(table)) not in SPLIT_RULES:
+        raise DataError(f"key 'split': expected one of {list(SPLIT_RULES)}", file=file)
+    rule, value = next(iter(table.items()))
+    ok = {
+        "test": isinstance(value, list) and all(isinstance(g, str) for g in value),
+        "train_every": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+        "test_fraction": isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and 0 < value < 1,
+    }[rule]
+    if not ok:
+        expected = {
+            "test": "a list of file-name globs",
+            "train_every": "an integer >= 1",
+            "test_fraction": "a number between 0 and 1",
+        }[rule]
+        raise DataError(f"key 'split.{rule}': expected {expected}, got {excerpt(value)}", file=file)
+    return rule, value
+
+
+def _check_model(
+    name: Any, channels: Mapping[str, ChannelSpec], vehicle: VehicleParams | None, file: str
+) -> None:
+    from kftune.models import get_model
+
+    try:
+        model = get_model(name)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise DataError(f"key 'model': {exc}", file=file) from None
+    needed = (*model.input_names, *model.measurement_names)
+    missing = [c for c in needed if c not in channels]
+    if missing:
+        raise DataError(
+            f"key 'channels': model {name!r} needs the channel(s) {missing}, which the "
+            "mapping does not give",
+            file=file,
+        )
+    if model.needs_vehicle and vehicle is None:
+        raise DataError(f"key 'vehicle': model {name!r} needs a vehicle", file=file)
+
+
+# ------------------------------------------------------------------------------ import
+@dataclass(frozen=True)
+class _Recording:
+    """One recording, converted and trimmed: its stretches of samples."""
+
+    file: Path
+    label: str
+    stretches: list[dict[str, np.ndarray]]
+    starts: list[int]  # row of each stretch's first sample in the file
+    kept_s: float
+    total_s: float
+    units: dict[str, str]  # SI unit of each channel kftune does not know
+
+
+def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The table's columns as SI channels, with time (see the module docstring), and the
+    SI unit of each channel kftune does not know."""
+    file = str(path)
+    lengths = {s: v.size for s, v in table.columns.items()}
+    if len(set(lengths.values())) > 1:
+        raise DataError(
+            f"signals of unequal lengths {excerpt(lengths, 300)}; one recording's signals "
+            "must be sampled together",
+            file=file,
+        )
+    n = next(iter(lengths.values()))
+    out: dict[str, np.ndarray] = {}
+    si_units: dict[str, str] = {}
+    for channel, spec in m.channels.items():
+        if channel == "t" and table.time is not None:
+            raise DataError(
+                "an MDF file brings its own time axis (the raster): leave t out of the mapping",
+                file=file,
+                column="t",
+            )
+        dim = "speed" if len(spec.sources) == 2 else CHANNEL_DIMENSION.get(channel)
+        values = []
+        for source in spec.sources:
+            unit = spec.unit or table.units.get(source)
+            if unit is None:
+                if dim is None:
+                    raise DataError(
+                        f"{spec.label}: no unit in the mapping and none in the file; add "
+                        f'unit = "..." to channels.{channel}',
+                        file=m.file,
+                    )
+                unit = SI_UNIT[dim]
+            try:
+                factor = unit_factor(unit, dim, file=file, column=source)
+            except DataError as exc:
+                raise DataError(
+                    f"{exc.message} (the file declares it; set unit in channels.{channel} of "
+                    "the mapping to override)",
+                    file=file,
+                    column=source,
+                ) from None
+            values.append((table.columns[source] * spec.scale + spec.offset) * factor)
+            si_units[channel] = SI_UNIT[UNITS[unit.strip()][0]]
+        if len(values) == 2:
+            value = np.arctan2(values[0], values[1])
+            si_units[channel] = "rad"
+        else:
+            value = values[0]
+        if spec.hand_wheel:
+            ratio = m.steering_ratio or m.vehicle.steering_ratio  # read_mapping checked one
+            value = value / ratio
+        out[channel] = spec.sign * value
+    if table.time is not None:
+        out["t"] = table.time
+    elif "t" in out:
+        if m.sample_time is not None:
+            raise DataError(
+                "key 'sample_time': the mapping maps t to a column too; give one", file=m.file
+            )
+    elif m.sample_time is not None:
+        out["t"] = np.arange(n) * m.sample_time
+    else:
+        raise DataError(
+            "no time: map t to the time column, or give sample_time (a constant step)",
+            file=m.file,
+            column="t",
+        )
+    extra = {c: u for c, u in si_units.items() if c not in CHANNEL_DIMENSION}
+    return {"t": out.pop("t"), **out}, extra
+
+
+def _stretches(
+    m: Mapping_, path: Path, channels: dict[str, np.ndarray]
+) -> tuple[list[int], list[int]]:
+    """Start and end indices of the stretches kept by ``min_speed`` and ``min_duration``."""
+    t = channels["t"]
+    n = t.size
+    if m.min_speed is None:
+        return [0], [n]
+    if "vx" not in channels:
+        raise DataError("key 'min_speed': trimming needs the channel vx", file=m.file)
+    keep = np.zeros(n + 2, dtype=np.int8)
+    with np.errstate(invalid="ignore"):
+        keep[1:-1] = channels["vx"] > m.min_speed
+    edges = np.diff(keep)
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    finite = t[np.isfinite(t)]
+    dt = float(np.median(np.diff(finite))) if finite.size > 1 else 0.0
+    shortest = max(m.min_duration, (MIN_SAMPLES - 1) * dt)
+    kept = [(a, b) for a, b in zip(starts, ends) if (b - a - 1) * dt >= shortest]
+    return [int(a) for a, _ in kept], [int(b) for _, b in kept]
+
+
+def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
+    fmt = format_of(path)
+    if not path.is_file():
+        raise DataError("file not found", file=str(path))
+    names = list(dict.fromkeys(s for spec in m.channels.values() for s in spec.sources))
+    options = {k: v for k, v in m.options.items() if k in fmt.options}
+    if fmt.own_time and m.sample_time is not None:
+        options["sample_time"] = m.sample_time
+    table = fmt.read(path, names, options, limits)
+    channels, units = _convert(m, path, table)
+    starts, ends = _stretches(m, path, channels)
+    file = str(path)
+    t = channels["t"]
+    if not starts:
+        raise DataError(
+            f"no stretch of at least {MIN_SAMPLES} samples and {m.min_duration:g} s with vx "
+            f"above min_speed = {m.min_speed:g} m/s ({t.size} samples, top speed "
+            f"{np.nanmax(channels['vx'], initial=-np.inf):.3g} m/s)",
+            file=file,
+            column="vx",
+        )
+    stretches = [{c: v[a:b] for c, v in channels.items()} for a, b in zip(starts, ends)]
+    problems: dict[str, str] = {}
+    for a, part in zip(starts, stretches):
+        for channel, text in channel_problems(part, row_offset=a + table.row_offset).items():
+            problems.setdefault(channel, text)
+    if problems:
+        label_of = {c: s.label for c, s in m.channels.items()}
+        label_of.setdefault("t", "t (sample_time)")
+        raise DataError(
+            f"{len(problems)} bad channel(s): "
+            + "; ".join(f"{label_of[c]}: {text}" for c, text in problems.items()),
+            file=file,
+        )
+    for a, part in zip(starts, stretches):
+        validate_channels(part, file=file, row_offset=a + table.row_offset)
+    total = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    kept = sum(float(p["t"][-1] - p["t"][0]) for p in stretches)
+    rows = [a + table.row_offset for a in starts]
+    return _Recording(path, label, stretches, rows, kept, total, units)
+
+
+def import_recordings(
+    sources: Sequence[str | Path],
+    mapping: str | Path | Mapping[str, Any],
+    out: str | Path | None = None,
+    *,
+    name: str | None = None,
+    limits: ReadLimits | None = None,
+) -> Dataset:
+    """Read recordings through one mapping and merge them into one dataset.
+
+    Args:
+        sources: recording files, in any format of :data:`kftune.data.readers.FORMATS`
+            (their suffix picks the reader).
+        mapping: a mapping TOML file, or its content as a dict (see the module docstring).
+        out: write the dataset there (:func:`~kftune.data.io.save_dataset`) when given.
+        name: dataset name (default: the mapping's ``name``, else ``out``'s folder name,
+            else ``"imported"``).
+        limits: size limits of each file (``None``: the defaults or the environment).
+
+    Returns:
+        The dataset: per recording, each kept stretch (or its segments) a manoeuvre of kind
+        ``"segment"`` named ``<file stem>`` or ``<file stem>-sNN``.
+
+    Raises:
+        DataError: naming the file (recording or mapping), the column or key, the row.
+        ConfigError: a reader's optional package is missing (names the extra).
+    """
+    if not sources:
+        raise ConfigError("no recordings to import")
+    m = read_mapping(mapping)
+    lim = ReadLimits.from_env() if limits is None else limits
+    labels = [file_stem(Path(s).name.split(".")[0]) for s in sources]
+    for a, b in itertools.combinations(range(len(labels)), 2):
+        if labels[a] == labels[b]:
+            raise ConfigError(
+                f"recordings {sources[a]} and {sources[b]} would both be named {labels[a]!r}; "
+                "rename one"
+            )
+    recordings = [_read(m, Path(s), lab, lim) for s, lab in zip(sources, labels)]
+    steps = [float(np.median(np.diff(r.stretches[0]["t"]))) for r in recordings]
+    for r, step in zip(recordings, steps):
+        if abs(step - steps[0]) > 0.01 * steps[0]:
+            raise DataError(
+                f"sample time {step:g} s, while {recordings[0].file.name} has {steps[0]:g} s: "
+                "one dataset has one sample time",
+                file=str(r.file),
+            )
+    pieces = []  # (recording, label, channels, description)
+    for r in recordings:
+        parts = []
+        for row, part in zip(r.starts, r.stretches):
+            bounds = segment_bounds(part["t"], m.segment_length, r.label)
+            parts += [
+                ({c: v[a:b] for c, v in part.items()}, row + a)
+                for a, b in itertools.pairwise(bounds)
+            ]
+        width = max(2, len(str(len(parts))))
+        for i, (seg, row) in enumerate(parts):
+            label = r.label if len(parts) == 1 else f"{r.label}-s{i + 1:0{width}d}"
+            where = f"{r.file.name}, rows {row}–{row + seg['t'].size - 1}"
+            pieces.append((r, label, seg, f"{where}, t = {seg['t'][0]:.2f} … {seg['t'][-1]:.2f} s"))
+    splits = _splits(m, pieces)
+    manoeuvres = [
+        Manoeuvre(
+            label,
+            "segment",
+            split,
+            seg["t"],
+            channels={c: v for c, v in seg.items() if c != "t"},
+            description=desc,
+        )
+        for (_, label, seg, desc), split in zip(pieces, splits)
+    ]
+    units = {c: u for r in recordings for c, u in r.units.items()}
+    dataset_name = name or m.name or (Path(out).name if out is not None else "imported")
+    meta = {
+        "imported_from": [r.file.name for r in recordings],
+        "mapping": Path(m.file).name,
+        "kept_s": [round(r.kept_s, 3) for r in recordings],
+        "recorded_s": [round(r.total_s, 3) for r in recordings],
+        "split": f"{m.split[0]} = {m.split[1]!r}",
+    }
+    if m.model is not None:
+        meta["model"] = m.model
+    if m.min_speed is not None:
+        meta["min_speed"] = m.min_speed
+    dataset = Dataset(
+        dataset_name,
+        m.vehicle,
+        float(np.median(steps)),
+        tuple(manoeuvres),
+        m.description or f"imported from {len(recordings)} recording(s)",
+        meta,
+        units,
+    )
+    if out is not None:
+        save_dataset(dataset, out)
+    return dataset
+
+
+def _splits(m: Mapping_, pieces: list[tuple[Any, str, dict[str, np.ndarray], str]]) -> list[str]:
+    rule, value = m.split
+    if rule == "test":
+        return [
+            "test"
+            if any(fnmatch.fnmatch(r.file.name, g) or fnmatch.fnmatch(r.label, g) for g in value)
+            else "train"
+            for r, _, _, _ in pieces
+        ]
+    if rule == "train_every":
+        return ["train" if i % value == 0 else "test" for i in range(len(pieces))]
+    durations = np.array([float(seg["t"][-1] - seg["t"][0]) for _, _, seg, _ in pieces])
+    before = np.concatenate([[0.0], np.cumsum(durations)[:-1]])
+    return ["test" if b >= (1 - value) * durations.sum() else "train" for b in before]
+
+
+def format_table() -> str:
+    """The formats read, one line each (for ``--help``)."""
+    return "; ".join(
+        f"{f.name} ({' '.join(f.suffixes)}{f', extra [{f.extra}]' if f.extra else ''})"
+        for f in FORMATS
+    )

@@ -1,0 +1,524 @@
+"""Readers of recordings in the formats loggers write, one registry keyed by file suffix.
+
+A reader takes a file, the names of the source signals wanted and the reader options of a
+mapping (``[source]`` in a mapping file, see :mod:`kftune.data.importer`), and returns a
+:class:`Table`: the raw values of each signal (float64, not yet converted to SI), the
+units the file itself declares, and — for a format that carries its own time axis (MDF) —
+the time of each sample.
+
+========== ======================== =========== ==================================================
+format     suffixes                 extra       notes
+========== ======================== =========== ==================================================
+CSV / TSV  .csv .tsv (.gz)          —           header row of names; separator sniffed from the
+                                                header (the most frequent of ``, ; TAB |``; TSV:
+                                                tab) or ``delimiter``; units from ``name [unit]``
+                                                headers or a units row (``units_row = true``);
+                                                rows are the file's line numbers
+Parquet    .parquet .pq             parquet     numeric columns (nulls become NaN, reported by
+                                                validation); rows 1-based
+MATLAB     .mat                     (mat73)     v4–v7.2 through ``scipy.io.loadmat``; v7.3 (HDF5)
+                                                through h5py (extra ``mat73``); one numeric
+                                                vector per signal, at the top level or in the
+                                                struct ``struct = "a.b"``; rows 1-based
+MDF4       .mf4 .mdf                mdf         through asammdf; signals resampled onto one
+                                                raster (:func:`read_mdf`); rows are raster
+                                                samples, 1-based
+========== ======================== =========== ==================================================
+
+Only the signals asked for are read. A file is untrusted input: messages quote at most a
+short excerpt of it, and the size limits of :class:`~kftune.data.textfile.ReadLimits` hold.
+A reader whose optional package is missing says which extra installs it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kftune.data.textfile import (
+    ENV_MAX_ROWS,
+    NumericRows,
+    ReadLimits,
+    line_blocks,
+)
+from kftune.errors import ConfigError, DataError, excerpt
+
+
+@dataclass
+class Table:
+    """What a reader returns.
+
+    Attributes:
+        columns: source name → (n,) float64 raw values, in the file's units.
+        units: source name → unit the file declares (only those it declares).
+        time: (n,) time [s] for a format with its own time axis (MDF), else None.
+        row_offset: the row number a user sees for sample 0 (a CSV's first data line, 1 for
+            1-based indices).
+    """
+
+    columns: dict[str, np.ndarray]
+    units: dict[str, str] = field(default_factory=dict)
+    time: np.ndarray | None = None
+    row_offset: int = 1
+
+
+Reader = Callable[[Path, Sequence[str], Mapping[str, Any], ReadLimits], Table]
+
+
+@dataclass(frozen=True)
+class Format:
+    """One file format: its readers' name, suffixes, function, extra and options."""
+
+    name: str
+    suffixes: tuple[str, ...]
+    read: Reader
+    extra: str | None
+    options: tuple[str, ...]
+    own_time: bool = False
+
+
+def require(module: str, extra: str, what: str) -> Any:
+    """Import an optional reader's package, or say which extra installs it.
+
+    Raises:
+        ConfigError: the package is missing (exit code 3 on the command line).
+    """
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise ConfigError(
+            f"reading {what} needs the optional package {module.split('.')[0]!r}, which is "
+            f"not installed: pip install 'kftune[{extra}]'"
+        ) from None
+
+
+def _not_found(what: str, name: str, known: Sequence[str], file: str) -> DataError:
+    return DataError(
+        f"{what} {excerpt(name)} not found; the file has {excerpt(sorted(known), 300)}",
+        file=file,
+        column=name,
+    )
+
+
+# ----------------------------------------------------------------------------- text
+#: Separators a CSV's header row is sniffed for.
+SNIFFED = (",", ";", "\t", "|")
+
+
+def _split_unit(name: str) -> tuple[str, str | None]:
+    """``"speed [km/h]"`` → ``("speed", "km/h")``; a name without brackets has no unit."""
+    name = name.strip().strip('"').strip()
+    if name.endswith("]") and "[" in name:
+        head, _, unit = name[:-1].rpartition("[")
+        return head.strip(), unit.strip()
+    return name, None
+
+
+def read_text_table(
+    path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
+) -> Table:
+    """A wide CSV or TSV: a header row of names, optionally a row of units, then one row of
+    numbers per sample. Only the columns named are parsed (others may hold text)."""
+    file = str(path)
+    delimiter = options.get("delimiter")
+    with contextlib.closing(line_blocks(path, limits)) as blocks:
+        first_row, lines = next(blocks, (1, []))
+        if not lines or not lines[0].strip():
+            raise DataError(
+                "empty file: expected a header row naming the columns", file=file, row=1
+            )
+        if delimiter is None:
+            if ".tsv" in path.name.lower():
+                delimiter = "\t"
+            else:
+                delimiter = max(SNIFFED, key=lambda s: (lines[0].count(s), -SNIFFED.index(s)))
+        header = [_split_unit(h) for h in lines[0].split(delimiter)]
+        heads = [h for h, _ in header]
+        units = {h: u for h, u in header if u}
+        body = 1
+        if options.get("units_row"):
+            if len(lines) < 2:
+                raise DataError("no units row after the header (units_row = true)", file=file)
+            row_units = [u.strip().strip('"').strip() for u in lines[1].split(delimiter)]
+            if len(row_units) != len(heads):
+                raise DataError(
+                    f"the units row has {len(row_units)} fields, the header {len(heads)}",
+                    file=file,
+                    row=first_row + 1,
+                )
+            units.update({h: u for h, u in zip(heads, row_units) if u})
+            body = 2
+        usecols = []
+        for name in names:
+            if name not in heads:
+                raise _not_found("column", name, heads, file)
+            if heads.count(name) > 1:
+                raise DataError("column name appears twice in the header", file=file, column=name)
+            usecols.append(heads.index(name))
+        rows = NumericRows(file, heads, delimiter, limits=limits, usecols=usecols)
+        rows.add(first_row + body, lines[body:])
+        for first, more in blocks:
+            rows.add(first, more)
+    if rows.n == 0:
+        raise DataError("no data rows after the header", file=file, row=first_row + body)
+    return Table(
+        dict(zip(names, rows.columns())),
+        {n: units[n] for n in names if n in units},
+        row_offset=first_row + body,
+    )
+
+
+# ----------------------------------------------------------------------------- Parquet
+def read_parquet(
+    path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
+) -> Table:
+    """A Parquet file (pyarrow): one numeric column per signal; a field's ``unit``
+    metadata, where present, is its declared unit."""
+    pa = require("pyarrow", "parquet", "Parquet files")
+    pq = require("pyarrow.parquet", "parquet", "Parquet files")
+    file = str(path)
+    try:
+        meta = pq.ParquetFile(file)
+        schema = meta.schema_arrow
+        n = meta.metadata.num_rows
+    except Exception as exc:  # ArrowInvalid, OSError, …: bad input, without a traceback
+        raise DataError(
+            f"not a readable Parquet file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+            file=file,
+        ) from None
+    if n > limits.max_rows:
+        raise DataError(
+            f"{n:,} rows, more than the limit of {limits.max_rows:,}: raise it with the "
+            f"environment variable {ENV_MAX_ROWS} if the file is genuine",
+            file=file,
+        )
+    units = {}
+    for name in names:
+        if name not in schema.names:
+            raise _not_found("column", name, schema.names, file)
+        kind = schema.field(name).type
+        if not (pa.types.is_integer(kind) or pa.types.is_floating(kind)):
+            raise DataError(f"column type {kind}; expected numbers", file=file, column=name)
+        unit = (schema.field(name).metadata or {}).get(b"unit")
+        if unit:
+            units[name] = unit.decode("utf-8", "replace")
+    try:
+        table = meta.read(columns=list(names))
+    except Exception as exc:
+        raise DataError(
+            f"cannot read the columns ({type(exc).__name__}: {excerpt(str(exc), 120)})", file=file
+        ) from None
+    columns = {
+        name: np.asarray(table.column(name).to_numpy(zero_copy_only=False), dtype=np.float64).copy()
+        for name in names
+    }
+    return Table(columns, units, row_offset=1)
+
+
+# ----------------------------------------------------------------------------- MATLAB
+#: MATLAB classes of numeric arrays (the ``MATLAB_class`` attribute of a v7.3 variable).
+MATLAB_NUMERIC = frozenset(
+    {"double", "single", "logical", *(f"{s}int{b}" for s in ("", "u") for b in (8, 16, 32, 64))}
+)
+
+
+#: The bytes that open HDF5 data, at offset 512 of a MATLAB v7.3 file (after its header).
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def mat_variables(
+    path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
+) -> dict[str, np.ndarray]:
+    """The named numeric vectors of a MATLAB file (v4–v7.2 through SciPy, v7.3 through
+    h5py), from its top level or from the struct at the dotted path ``struct``.
+
+    Returns:
+        name → (n,) float64.
+
+    Raises:
+        DataError: naming the file and the variable: not found (listing the ones there are),
+            not a real numeric vector, more elements than ``limits.max_rows``, an unreadable
+            file.
+    """
+    from scipy.io import matlab
+
+    file = str(path)
+    try:
+        with open(path, "rb") as fh:
+            major, _ = matlab.matfile_version(fh)
+            fh.seek(512)
+            hdf5 = fh.read(8) == HDF5_SIGNATURE
+    except Exception as exc:
+        raise DataError(
+            f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+            file=file,
+        ) from None
+    if major == 2 and not hdf5:
+        raise DataError(
+            "not a readable MATLAB file (its header says v7.3, but no HDF5 data follow it)",
+            file=file,
+        )
+    if major == 2:
+        values = _mat73_variables(path, names, struct, limits)
+    else:
+        values = _mat5_variables(path, names, struct, limits)
+    out = {}
+    for name, value in values.items():
+        a = np.asarray(value)
+        if np.iscomplexobj(a):
+            raise DataError(
+                f"variable {excerpt(name)} is complex; expected real numbers",
+                file=file,
+                column=name,
+            )
+        if a.ndim == 2 and 1 in a.shape:
+            a = a.ravel()
+        if a.ndim != 1 or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+            raise DataError(
+                f"variable {excerpt(name)} must be a numeric vector, got shape {a.shape} "
+                f"dtype {a.dtype}",
+                file=file,
+                column=name,
+            )
+        out[name] = a.astype(np.float64)
+    return out
+
+
+def _too_many(name: str, size: int, limits: ReadLimits, file: str) -> DataError:
+    return DataError(
+        f"variable {excerpt(name)} has {size:,} elements, more than the limit of "
+        f"{limits.max_rows:,} rows: raise it with the environment variable {ENV_MAX_ROWS} (or "
+        "ReadLimits(max_rows=...)) if the file is genuine",
+        file=file,
+        column=name,
+    )
+
+
+def _mat5_variables(
+    path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
+) -> dict[str, Any]:
+    from scipy import io as sio
+
+    file = str(path)
+    wanted = [struct.split(".")[0]] if struct else list(names)
+    try:
+        sizes = {name: math.prod(shape) for name, shape, _ in sio.whosmat(file)}
+        big = [n for n in wanted if sizes.get(n, 0) > limits.max_rows]
+        if big and not struct:
+            raise _too_many(big[0], sizes[big[0]], limits, file)
+        data = sio.loadmat(file, simplify_cells=True, variable_names=wanted)
+    except DataError:
+        raise
+    except Exception as exc:
+        # SciPy's reader fails on a damaged or foreign file with any of a dozen exception
+        # types (MatReadError, ValueError, zlib.error, IndexError, even UnboundLocalError,
+        # found by fuzzing): each is bad input, reported without a traceback
+        raise DataError(
+            f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+            file=file,
+        ) from None
+    container: Any = data
+    known = sorted(sizes)
+    if struct:
+        for part in struct.split("."):
+            if not isinstance(container, dict) or part not in container:
+                raise DataError(
+                    f"struct {excerpt(struct)} not found (no field {excerpt(part)})", file=file
+                )
+            container = container[part]
+        if not isinstance(container, dict):
+            raise DataError(f"{excerpt(struct)} is not a struct", file=file)
+        known = sorted(container)
+    out = {}
+    for name in names:
+        if name not in container:
+            raise _not_found("variable", name, known, file)
+        value = container[name]
+        if struct and np.size(value) > limits.max_rows:
+            raise _too_many(name, int(np.size(value)), limits, file)
+        out[name] = value
+    return out
+
+
+def _mat73_variables(
+    path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
+) -> dict[str, Any]:
+    """MATLAB v7.3: an HDF5 file (after a 512-byte header) with one dataset per variable,
+    stored transposed (a MATLAB n×1 vector is a 1×n dataset) and tagged with its class in
+    the attribute ``MATLAB_class``; a struct is a group."""
+    h5py = require("h5py", "mat73", "MATLAB v7.3 (HDF5) files")
+    file = str(path)
+    try:
+        fh = h5py.File(file, "r")
+    except Exception as exc:
+        raise DataError(
+            f"not a readable MATLAB file (v7.3, HDF5: {type(exc).__name__}: "
+            f"{excerpt(str(exc), 120)})",
+            file=file,
+        ) from None
+    with fh:
+        container = fh
+        for part in struct.split(".") if struct else ():
+            if not isinstance(container, h5py.Group) or part not in container:
+                raise DataError(
+                    f"struct {excerpt(struct)} not found (no field {excerpt(part)})", file=file
+                )
+            container = container[part]
+        if not isinstance(container, h5py.Group):
+            raise DataError(f"{excerpt(struct)} is not a struct", file=file)
+        known = [k for k in container if not k.startswith("#")]
+        out = {}
+        for name in names:
+            if name not in known:
+                raise _not_found("variable", name, known, file)
+            item = container[name]
+            cls = (
+                item.attrs.get("MATLAB_class", b"double")
+                if isinstance(item, h5py.Dataset)
+                else b"struct"
+            )
+            cls = cls.decode("ascii", "replace") if isinstance(cls, bytes) else str(cls)
+            if cls not in MATLAB_NUMERIC or item.dtype.names:  # compound: complex
+                what = "complex" if cls in MATLAB_NUMERIC else f"a MATLAB {cls}"
+                raise DataError(
+                    f"variable {excerpt(name)} is {excerpt(what)}; expected a real numeric vector",
+                    file=file,
+                    column=name,
+                )
+            if item.size > limits.max_rows:
+                raise _too_many(name, int(item.size), limits, file)
+            out[name] = item[()]
+    return out
+
+
+def read_mat(
+    path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
+) -> Table:
+    """A MATLAB file: :func:`mat_variables`."""
+    return Table(mat_variables(path, names, options.get("struct"), limits), row_offset=1)
+
+
+# ----------------------------------------------------------------------------- MDF
+def read_mdf(
+    path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
+) -> Table:
+    """An MDF file (asammdf), its signals resampled onto one raster.
+
+    The raster: ``sample_time`` (a step in seconds; the raster starts at the latest first
+    timestamp of the signals), else ``raster = "<signal>"`` (that signal's own timestamps),
+    else the timestamps of the mapped signal with the finest raster (smallest median step).
+    Only the span that every signal covers is kept: raster points before the latest first
+    sample or after the earliest last sample of any signal are dropped — nothing is
+    extrapolated or held at the ends. Signals of a floating-point type are interpolated
+    linearly between their two neighbouring samples; integer and boolean signals (states,
+    counters) hold their previous sample. A signal's declared unit (``Signal.unit``) is
+    taken when the mapping gives none.
+    """
+    asammdf = require("asammdf", "mdf", "MDF files")
+    file = str(path)
+    try:
+        mdf = asammdf.MDF(file)
+    except Exception as exc:
+        raise DataError(
+            f"not a readable MDF file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+            file=file,
+        ) from None
+    raster = options.get("raster")
+    step = options.get("sample_time")
+    wanted = list(dict.fromkeys([*names, *([raster] if isinstance(raster, str) else [])]))
+    signals: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    units: dict[str, str] = {}
+    try:
+        known = list(mdf.channels_db)
+        for name in wanted:
+            if name not in mdf.channels_db:
+                raise _not_found("signal", name, known, file)
+            try:
+                sig = mdf.get(name)
+            except Exception as exc:  # several channels of this name, a damaged block
+                raise DataError(
+                    f"cannot read the signal ({type(exc).__name__}: {excerpt(str(exc), 160)})",
+                    file=file,
+                    column=name,
+                ) from None
+            samples, stamps = np.asarray(sig.samples), np.asarray(sig.timestamps, dtype=float)
+            if samples.ndim != 1 or not (
+                np.issubdtype(samples.dtype, np.number) or samples.dtype == bool
+            ):
+                raise DataError(
+                    f"signal of shape {samples.shape} dtype {samples.dtype}; expected numbers",
+                    file=file,
+                    column=name,
+                )
+            if samples.size < 2 or samples.size > limits.max_rows:
+                raise DataError(
+                    f"signal has {samples.size:,} samples; expected 2 to {limits.max_rows:,}",
+                    file=file,
+                    column=name,
+                )
+            if not np.all(np.diff(stamps) > 0):
+                raise DataError("timestamps not strictly increasing", file=file, column=name)
+            signals[name] = (samples, stamps)
+            if getattr(sig, "unit", ""):
+                units[name] = str(sig.unit)
+    finally:
+        mdf.close()
+    start = max(s[1][0] for s in signals.values())
+    end = min(s[1][-1] for s in signals.values())
+    if not start < end:
+        raise DataError(
+            f"the signals {excerpt(list(signals), 200)} share no time span (latest start "
+            f"{start:g} s, earliest end {end:g} s)",
+            file=file,
+        )
+    if step is not None:
+        grid = start + np.arange(math.floor((end - start) / step * (1 + 1e-12)) + 1) * step
+    else:
+        if raster is None:
+            raster = min(names, key=lambda n: float(np.median(np.diff(signals[n][1]))))
+        stamps = signals[raster][1]
+        grid = stamps[(stamps >= start) & (stamps <= end)]
+    columns = {}
+    for name in names:
+        samples, stamps = signals[name]
+        if np.issubdtype(samples.dtype, np.floating):
+            columns[name] = np.interp(grid, stamps, samples)
+        else:
+            hold = np.searchsorted(stamps, grid, side="right") - 1
+            columns[name] = samples[np.clip(hold, 0, samples.size - 1)].astype(np.float64)
+    return Table(columns, {n: units[n] for n in names if n in units}, time=grid, row_offset=1)
+
+
+# ----------------------------------------------------------------------------- registry
+#: Every format read, in the order listed to users. The one place suffixes are named.
+FORMATS: tuple[Format, ...] = (
+    Format("CSV/TSV", (".csv", ".tsv", ".csv.gz", ".tsv.gz"), read_text_table, None,
+           ("delimiter", "units_row")),
+    Format("Parquet", (".parquet", ".pq"), read_parquet, "parquet", ()),
+    Format("MATLAB", (".mat",), read_mat, "mat73", ("struct",)),
+    Format("MDF4", (".mf4", ".mdf"), read_mdf, "mdf", ("raster",), own_time=True),
+)  # fmt: skip
+
+#: Reader options a mapping's ``[source]`` table may hold (each format uses its own).
+READER_OPTIONS: tuple[str, ...] = tuple(dict.fromkeys(o for f in FORMATS for o in f.options))
+
+
+def format_of(path: str | Path) -> Format:
+    """The format of a file, by its suffix (case-insensitive; the longest match wins).
+
+    Raises:
+        DataError: a suffix no reader takes (the message lists the ones read).
+    """
+    name = Path(path).name.lower()
+    matches = [(len(s), f) for f in FORMATS for s in f.suffixes if name.endswith(s)]
+    if not matches:
+        known = ", ".join(f"{f.name} ({' '.join(f.suffixes)})" for f in FORMATS)
+        raise DataError(f"unknown file type; kftune reads {known}", file=str(path))
+    return max(matches, key=lambda m: m[0])[1]

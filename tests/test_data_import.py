@@ -1,0 +1,327 @@
+"""``kftune dataset import`` and :func:`kftune.data.importer.import_recordings`: each reader
+on a tiny file written here, unit conversions against closed-form values, derived channels,
+standstill trimming, merging with a train/test rule, errors, missing extras, the CLI."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from kftune.cli import EXIT_BAD_INPUT, main
+from kftune.data import load_dataset
+from kftune.data.importer import import_recordings, read_mapping
+from kftune.errors import ConfigError, DataError
+from test_data_helpers import synthetic_channels
+
+G = 9.80665  # standard gravity: the unit g
+
+RATIO = 16.0
+KMH = 1 / 3.6
+DEG = math.pi / 180
+
+
+def _recording(n: int = 400, dt: float = 0.01, still: int = 0, seed: int = 0) -> dict:
+    """SI channels of a drive with ``still`` samples of standstill first, plus vy."""
+    c = synthetic_channels(n=n, dt=dt, seed=seed)
+    c["vy"] = c["vx"] * np.tan(c["beta_ref"])
+    if still:
+        c = {k: np.concatenate([np.zeros(still), v]) for k, v in c.items()}
+        c["t"] = np.arange(n + still) * dt
+    return c
+
+
+def _user_units(c: dict) -> dict:
+    """The signals as a logger writes them: km/h, g, deg/s, a hand-wheel angle, bar, N."""
+    return {
+        "time": c["t"],
+        "Speed": c["vx"] / KMH,
+        "AccX": c["ax"],
+        "AccY": c["ay"] / G,
+        "YawRate": c["r"] / DEG,
+        "SWA": c["delta"] * RATIO / DEG,
+        "Vx": c["vx"] / KMH,
+        "Vy": c["vy"] / KMH,
+        "BrakeP": 2.0 + c["ax"],  # bar
+        "Fz": 4000.0 + 10 * c["ay"],  # N
+    }
+
+
+CHANNELS = {
+    "vx": {"column": "Speed", "unit": "km/h"},
+    "ax": {"column": "AccX", "unit": "m/s^2"},
+    "ay": {"column": "AccY", "unit": "g"},
+    "r": {"column": "YawRate", "unit": "deg/s"},
+    "delta": {"column": "SWA", "unit": "deg", "hand_wheel": True},
+    "beta_ref": {"atan2": ["Vy", "Vx"], "unit": "km/h"},
+    "p_brake": {"column": "BrakeP", "unit": "bar"},
+    "fz": {"column": "Fz", "unit": "N"},
+}
+
+
+def _mapping(**top) -> dict:
+    return {"vehicle": "bmw-320i", "steering_ratio": RATIO, "channels": dict(CHANNELS), **top}
+
+
+def _check(m, user: dict, rows: slice = slice(None)) -> None:
+    """A manoeuvre's channels against the closed-form conversions of what was written."""
+    u = {k: np.asarray(v)[rows] for k, v in user.items()}
+    close = {"rtol": 1e-12, "atol": 1e-12}
+    np.testing.assert_allclose(m.vx, u["Speed"] / 3.6, **close)
+    np.testing.assert_allclose(m.ay, u["AccY"] * 9.80665, **close)
+    np.testing.assert_allclose(m.r, np.radians(u["YawRate"]), **close)
+    np.testing.assert_allclose(m.delta, np.radians(u["SWA"]) / RATIO, **close)
+    np.testing.assert_allclose(m.beta_ref, np.arctan2(u["Vy"], u["Vx"]), **close)
+    np.testing.assert_allclose(m.channel("p_brake"), u["BrakeP"] * 1e5, **close)
+    np.testing.assert_allclose(m.channel("fz"), u["Fz"], **close)
+
+
+def _write_csv(path: Path, user: dict, sep: str = ";", units: dict | None = None) -> Path:
+    names = list(user)
+    lines = [sep.join(names)]
+    if units is not None:
+        lines.append(sep.join(units.get(n, "") for n in names))
+    lines += [sep.join(v if isinstance(v, str) else repr(float(v)) for v in row)
+              for row in zip(*user.values())]  # fmt: skip
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+# ------------------------------------------------------------------------------ formats
+def test_csv_with_semicolons_and_a_units_row(tmp_path):
+    user = _user_units(_recording())
+    units = {"time": "s", "Speed": "km/h", "AccX": "m/s^2", "AccY": "g", "YawRate": "deg/s",
+             "SWA": "deg", "Vx": "km/h", "Vy": "km/h", "BrakeP": "bar", "Fz": "N"}  # fmt: skip
+    src = _write_csv(tmp_path / "run.csv", {"note": ["x"] * user["time"].size, **user}, units=units)
+    # units come from the file: the mapping names only the columns (and the derived ones)
+    channels = {c: {k: v for k, v in s.items() if k != "unit"} for c, s in CHANNELS.items()}
+    channels["beta_ref"]["unit"] = "km/h"
+    mapping = _mapping(channels={"t": "time", **channels}, source={"units_row": True})
+    import_recordings([src], mapping, tmp_path / "ds")
+    ds = load_dataset(tmp_path / "ds")
+    (m,) = ds.manoeuvres
+    _check(m, user)
+    np.testing.assert_array_equal(m.t, user["time"])
+    assert ds.units["p_brake"] == "Pa" and ds.units["fz"] == "N"
+
+
+def test_parquet(tmp_path):
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    user = _user_units(_recording())
+    pq.write_table(pa.table({k: pa.array(v) for k, v in user.items()}), tmp_path / "run.parquet")
+    ds = import_recordings([tmp_path / "run.parquet"], _mapping(sample_time=0.01))
+    _check(ds.manoeuvres[0], user)
+
+
+def test_mat_v5_without_time_trims_the_standstill(tmp_path):
+    c = _recording(n=400, dt=0.005, still=150)
+    user = _user_units(c)
+    del user["time"]
+    scipy.io.savemat(tmp_path / "run.mat", {"data": user})
+    ds = import_recordings(
+        [tmp_path / "run.mat"],
+        _mapping(sample_time=0.005, min_speed="5 km/h", source={"struct": "data"}),
+    )
+    (m,) = ds.manoeuvres
+    assert m.n == 400 and m.t[0] == pytest.approx(150 * 0.005)
+    _check(m, user, slice(150, None))
+
+
+def _savemat73(path: Path, variables: dict, struct: str) -> None:
+    """A file in MATLAB's v7.3 layout: a 512-byte header, then HDF5 with each variable
+    stored transposed (an n×1 MATLAB vector is a 1×n dataset) and tagged MATLAB_class."""
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(path, "w", userblock_size=512) as f:
+        group = f.create_group(struct)
+        group.attrs["MATLAB_class"] = np.bytes_("struct")
+        for name, values in variables.items():
+            ds = group.create_dataset(name, data=np.asarray(values, dtype=float)[None, :])
+            ds.attrs["MATLAB_class"] = np.bytes_("double")
+    header = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5"
+    with open(path, "r+b") as fh:
+        fh.write(header.ljust(116) + b"\0" * 8 + b"\x00\x02IM")
+
+
+def test_mat_v73(tmp_path):
+    user = _user_units(_recording())
+    _savemat73(tmp_path / "run.mat", user, "rec")
+    mapping = _mapping(channels={"t": "time", **CHANNELS}, source={"struct": "rec"})
+    _check(import_recordings([tmp_path / "run.mat"], mapping).manoeuvres[0], user)
+
+
+def test_mdf_two_rasters_resampled_onto_the_finest(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    t_fast = np.arange(0.0, 4.0, 0.01)  # 100 Hz
+    t_slow = np.arange(0.02, 4.2, 0.02)  # 50 Hz, starts later, ends later
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(72 + np.sin(t_fast), t_fast, name="Speed", unit="km/h")])
+    mdf.append([asammdf.Signal(10 * np.cos(t_slow), t_slow, name="YawRate", unit="deg/s")])
+    mdf.save(tmp_path / "run.mf4", overwrite=True)
+    mdf.close()
+    mapping = {"channels": {"vx": "Speed", "r": "YawRate"}}  # units from the file
+    (m,) = import_recordings([tmp_path / "run.mf4"], mapping).manoeuvres
+    grid = t_fast[(t_fast >= 0.02 - 1e-12) & (t_fast <= t_fast[-1])]  # the span both cover
+    np.testing.assert_allclose(m.t, grid)
+    np.testing.assert_allclose(m.vx, (72 + np.sin(grid)) / 3.6, rtol=1e-12)
+    expected = np.radians(np.interp(grid, t_slow, 10 * np.cos(t_slow)))  # linear
+    np.testing.assert_allclose(m.r, expected, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------ merging
+def _three_mat_files(tmp_path: Path) -> list[Path]:
+    paths = []
+    for i in range(3):
+        user = _user_units(_recording(n=400, dt=0.005, still=100, seed=i))
+        del user["time"]
+        paths.append(tmp_path / f"file{i + 1}.mat")
+        scipy.io.savemat(paths[-1], user)
+    return paths
+
+
+def test_three_recordings_merged_with_a_test_rule(tmp_path):
+    mapping = _mapping(sample_time=0.005, min_speed=1.0, split={"test": ["file3*"]})
+    ds = import_recordings(_three_mat_files(tmp_path), mapping, name="three")
+    assert ds.names == ("file1", "file2", "file3")
+    assert [m.split for m in ds.manoeuvres] == ["train", "train", "test"]
+    assert all(m.n == 400 for m in ds.manoeuvres)  # standstill trimmed in each
+    assert ds.dt == pytest.approx(0.005)
+    frac = import_recordings(
+        _three_mat_files(tmp_path), {**mapping, "split": {"test_fraction": 0.4}}
+    )
+    assert [m.split for m in frac.manoeuvres] == ["train", "train", "test"]
+
+
+def test_reversing_and_a_stop_cut_a_recording_into_stretches(tmp_path):
+    user = _user_units(_recording(n=1200, dt=0.01))
+    user["Speed"][500:540] = -5.0  # reversing in the middle: two stretches
+    user["Speed"][1150:] = 0.0  # a stop at the end
+    scipy.io.savemat(tmp_path / "drive.mat", user)
+    mapping = _mapping(channels={"t": "time", **CHANNELS}, min_speed=0.5, segment_length=2.5)
+    ds = import_recordings([tmp_path / "drive.mat"], mapping)
+    spans = [(m.t[0], m.t[-1]) for m in ds.manoeuvres]
+    assert spans[0][0] == 0.0 and max(e for _, e in spans) == pytest.approx(11.49)
+    assert not any(s <= 5.2 and e >= 5.0 for s, e in spans)  # the reversing is gone
+    assert len(ds) == 4 and ds.names[0] == "drive-s01"
+
+
+# ------------------------------------------------------------------------------ errors
+def test_every_bad_channel_is_reported_with_file_column_and_rows(tmp_path):
+    user = _user_units(_recording())
+    user["YawRate"][[7, 9]] = np.nan
+    user["SWA"][20:30] = 5000.0  # a hand-wheel angle of 312° after the ratio: implausible
+    src = _write_csv(tmp_path / "bad.csv", user, sep="\t")
+    with pytest.raises(DataError) as info:
+        import_recordings([src], _mapping(channels={"t": "time", **CHANNELS}))
+    text = str(info.value)
+    assert str(src) in text and "2 bad channel(s)" in text
+    assert "r (source 'YawRate')" in text and "row(s) 9, 11" in text  # file lines
+    assert "delta (source 'SWA')" in text and "row(s) 22, 23, 24, …" in text
+
+
+def test_a_missing_column_and_a_bad_value_name_file_column_and_row(tmp_path):
+    user = _user_units(_recording())
+    src = _write_csv(tmp_path / "run.csv", user, sep=",")
+    with pytest.raises(DataError, match=r"column 'Speeed'.*not found.*'Speed'"):
+        import_recordings([src], {"channels": {"t": "time", "vx": "Speeed"}})
+    src.write_text(src.read_text().replace(repr(float(user["Speed"][4])), "fast", 1))
+    with pytest.raises(DataError, match=r"run\.csv, column 'Speed', row 6: cannot read 'fast'"):
+        import_recordings([src], {"channels": {"t": "time", "vx": "Speed"}})
+
+
+def test_mapping_errors_name_the_key(tmp_path):
+    src = _write_csv(tmp_path / "run.csv", _user_units(_recording()))
+    for mapping, match in [
+        ({"channels": {"vx": "Speed"}}, "no time: map t"),
+        ({"channels": {"t": "time", "vx": {"column": "Speed", "unit": "bar"}}}, "pressure unit"),
+        ({"channels": {"t": "time"}, "split": {"test": "x"}}, "split.test"),
+        ({"channels": {"t": "time"}, "smaple_time": 1}, "'smaple_time': unknown"),
+        ({"channels": {"t": "time", "ay": "AccY"}, "model": "single-track"}, "needs the chan"),
+    ]:
+        with pytest.raises(DataError, match=match):
+            import_recordings([src], mapping)
+
+
+@pytest.mark.parametrize(
+    ("module", "suffix", "extra"),
+    [("pyarrow", ".parquet", "parquet"), ("h5py", ".mat", "mat73"), ("asammdf", ".mf4", "mdf")],
+)
+def test_a_missing_reader_names_its_extra(tmp_path, monkeypatch, module, suffix, extra):
+    src = tmp_path / f"run{suffix}"
+    if suffix == ".mat":
+        _savemat73(src, {"time": np.arange(300) * 0.01}, "rec")  # a v7.3 file needs h5py
+    else:
+        src.write_bytes(b"\0" * 64)
+    for name in (module, f"{module}.parquet"):
+        monkeypatch.setitem(sys.modules, name, None)  # import fails as if not installed
+    with pytest.raises(ConfigError, match=rf"pip install 'kftune\[{extra}\]'"):
+        import_recordings([src], {"channels": {"t": "time"}})
+
+
+def test_cli_exit_code_for_bad_input(tmp_path, capsys):
+    src = _write_csv(tmp_path / "run.csv", _user_units(_recording()))
+    (tmp_path / "map.toml").write_text('[channels]\nt = "time"\nvx = "nope"\n')
+    code = main(["dataset", "import", str(src), "--mapping", str(tmp_path / "map.toml"),
+                 "-o", str(tmp_path / "ds")])  # fmt: skip
+    assert code == EXIT_BAD_INPUT
+    assert "column 'nope'" in capsys.readouterr().err
+    assert not (tmp_path / "ds" / "manifest.toml").exists()
+
+
+MAPPING_TOML = """
+name = "cli-car"
+vehicle = "bmw-320i"
+model = "single-track"
+sample_time = 0.005
+min_speed = "3 km/h"
+steering_ratio = 16.0
+
+[split]
+test = ["file3*"]
+
+[channels]
+vx = { column = "Speed", unit = "km/h" }
+ax = { column = "AccX", unit = "m/s^2" }
+ay = { column = "AccY", unit = "g" }
+r = { column = "YawRate", unit = "deg/s" }
+delta = { column = "SWA", unit = "deg", hand_wheel = true }
+beta_ref = { atan2 = ["Vy", "Vx"], unit = "km/h" }
+"""
+
+
+@pytest.mark.slow
+def test_cli_import_then_tune(tmp_path):
+    files = _three_mat_files(tmp_path)
+    (tmp_path / "map.toml").write_text(MAPPING_TOML)
+    out = tmp_path / "ds"
+    run = [sys.executable, "-m", "kftune"]
+    imp = subprocess.run(
+        [*run, "dataset", "import", *map(str, files), "--mapping", str(tmp_path / "map.toml"),
+         "-o", str(out)], capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert imp.returncode == 0, imp.stderr
+    assert "3 manoeuvres" in imp.stdout and "1 test" in imp.stdout
+    tune = subprocess.run(
+        [*run, "tune", str(out), "-m", "random", "--budget", "3", "-o", str(tmp_path / "t.json")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert tune.returncode == 0, tune.stderr
+    assert (tmp_path / "t.json").is_file()
+
+
+def test_the_readme_mapping_example_is_valid():
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    block = readme.split("# my-car.toml\n", 1)[1].split("```", 1)[0]
+    m = read_mapping(tomllib.loads(block))
+    assert m.split == ("test", ["run3*"]) and m.min_speed == pytest.approx(3 / 3.6)
+    assert m.channels["delta"].hand_wheel and m.channels["beta_ref"].sources == ("Vy", "Vx")
