@@ -86,8 +86,10 @@ def test_results_equal_the_sequential_run_bit_for_bit(cluster, problem):
         assert one[0] == expected[0] and one[1] is None
         # a whole run: q = 2 on the cluster proposes and scores exactly what q = 2 in
         # process does, and q = 1 exactly what the sequential loop does
-        on_dask = minimize(problem, problem.space, "trbo", budget=4, batch=2, engine=engine)
-        _same(on_dask, minimize(problem, problem.space, "trbo", budget=4, batch=2))
+        on_dask = minimize(
+            problem, problem.space, "trbo", budget=4, batch=2, engine=engine, n_init=2
+        )
+        _same(on_dask, minimize(problem, problem.space, "trbo", budget=4, batch=2, n_init=2))
         one_by_one = minimize(problem, problem.space, "trbo", budget=3, batch=1, engine=engine)
         _same(one_by_one, minimize(problem, problem.space, "trbo", budget=3))
 
@@ -119,8 +121,11 @@ def test_a_worker_killed_mid_evaluation_loses_nothing(cluster):
 
 def test_a_run_killed_during_a_batch_resumes_exactly(cluster, problem, tmp_path):
     db = tmp_path / "study.db"
+    config = tmp_path / "tune.toml"  # a short initial design: the batches after it are the
+    config.write_text("[options.trbo]\nn_init = 2\n")  # model's (Kriging believer)
     cmd = [sys.executable, "-m", "kftune", "tune", "--scheduler", cluster.scheduler_address]
     cmd += ["--batch", "2", "-n", "6", "--storage", str(db), "-o", str(tmp_path / "t.json")]
+    cmd += ["--config", str(config)]
     proc = subprocess.Popen([*cmd, "-q"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     states: list[str] = []
     try:
@@ -148,9 +153,16 @@ def test_a_run_killed_during_a_batch_resumes_exactly(cluster, problem, tmp_path)
         }
     with DaskEngine(problem, scheduler=cluster.scheduler_address) as engine:
         resumed = tune(
-            problem, budget=6, storage=db, resume=True, engine=engine, batch=2, progress=False
+            problem,
+            budget=6,
+            storage=db,
+            resume=True,
+            engine=engine,
+            batch=2,
+            progress=False,
+            options={"n_init": 2},
         )
-    reference = tune(problem, budget=6, batch=2, progress=False)
+    reference = tune(problem, budget=6, batch=2, progress=False, options={"n_init": 2})
     _same(resumed, reference)
     for n, v in before.items():  # finished results were kept, not evaluated again
         assert resumed.history[n].value == v
