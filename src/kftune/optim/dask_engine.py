@@ -169,14 +169,9 @@ class DaskEngine(Engine):
             return
         # Splitting never changes a result, so it may follow the cluster's current size.
         k = self._threads() // len(points)
-        manoeuvres = getattr(self.fun, "manoeuvres", None)
-        split = k > 1 and hasattr(self.fun, "score_manoeuvres") and manoeuvres is not None
-        if split:
-            from kftune.tuning.problem import _balanced_chunks
-
-            chunks = _balanced_chunks([m.n for m in manoeuvres], min(k, len(manoeuvres)))
-        else:
-            chunks = [None]
+        split = k > 1 and hasattr(self.fun, "manoeuvre_chunks")  # a tuning problem
+        chunks: list[Any] = self.fun.manoeuvre_chunks(k) if split else [None]  # type: ignore[attr-defined]
+        split = len(chunks) > 1
         # task future -> (point, chunk, attempt)
         tasks: dict[Any, tuple[int, int, int]] = {}
         for i, x in enumerate(points):

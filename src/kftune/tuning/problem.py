@@ -627,6 +627,10 @@ class TuningProblem:
             for i in indices
         ]
 
+    def manoeuvre_chunks(self, k: int) -> list[list[int]]:
+        """The manoeuvre indices in at most k groups of similar total length."""
+        return _balanced_chunks([m.n for m in self.manoeuvres], max(1, k))
+
     def _pool_scores(self, scores: Sequence[ManoeuvreScore]) -> Evaluation:
         """The cost J (paper Eq. 14–15, or the NIS cost) from every manoeuvre's score."""
         spec = self.cost_spec
