@@ -282,16 +282,7 @@ def minimize(
                 reason=reason,
                 t_eval=t_eval,
             )
-            if study is not None:
-                try:
-                    study.write_result(rec)
-                except KeyboardInterrupt:
-                    # Ctrl-C after the commit (e.g. during the checkpoint): the record is
-                    # saved, so it belongs to the partial result, which matches the study
-                    if study.is_finished(rec.number):
-                        history.append(rec)
-                    raise
-            history.append(rec)
+            _save(study, rec, history)
             if callback is not None and callback(rec) is True:
                 status = "stopped"
                 break
@@ -305,6 +296,20 @@ def minimize(
         if study is not None:
             study.close()
     return result(status)
+
+
+def _save(study: Study | None, rec: EvalRecord, history: list[EvalRecord]) -> None:
+    """Store a finished evaluation in the study (committed on return) and the history."""
+    if study is not None:
+        try:
+            study.write_result(rec)
+        except KeyboardInterrupt:
+            # Ctrl-C after the commit (e.g. during the checkpoint): the record is saved,
+            # so it belongs to the partial result, which matches the study
+            if study.is_finished(rec.number):
+                history.append(rec)
+            raise
+    history.append(rec)
 
 
 def _run_batched(
@@ -352,15 +357,8 @@ def _run_batched(
                     reason=reason,
                     t_eval=t_eval,
                 )
-                if study is not None:
-                    try:
-                        study.write_result(rec)
-                    except KeyboardInterrupt:
-                        if study.is_finished(rec.number):
-                            history.append(rec)
-                        raise
+                _save(study, rec, history)
                 results[t.number] = rec
-                history.append(rec)
                 if callback is not None and callback(rec) is True:
                     stop = True  # the rest of the batch is still collected and stored
         for t in trials:  # tells in trial order: the next batch does not depend on timing
