@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
-EXTRAS := test,simulate,peers,dev
+EXTRAS := test,simulate,peers,dev,dask,import
 # Where `make run` writes its report.
 REPORT ?= report
 

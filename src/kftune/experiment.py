@@ -31,6 +31,7 @@ from kftune.optim import (
     minimize,
     minimize_widening,
 )
+from kftune.optim.engine import Engine
 from kftune.progress import ProgressBar
 from kftune.report.provenance import machine, package_versions
 from kftune.report.results import ExperimentResults, MethodRun
@@ -102,8 +103,13 @@ def tune(
     progress: bool | None = None,
     options: Mapping[str, Any] | None = None,
     widen_bounds: bool = False,
+    engine: Engine | None = None,
+    batch: int | None = None,
 ) -> OptimizeResult:
     """Tune the filter of ``problem`` with one method (``kftune tune``).
+
+    ``engine`` / ``batch``: evaluate q points at a time, e.g. on a Dask cluster
+    (:class:`kftune.optim.dask_engine.DaskEngine`); see :func:`kftune.minimize`.
 
     ``method="manual"`` evaluates :func:`manual_point` unless ``options`` give ``points``.
     ``progress``: None shows a bar when stderr is a terminal; True/False force it.
@@ -135,6 +141,11 @@ def tune(
         raise ConfigError(
             f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}], got {timeout!r}"
         )
+    if timeout is not None and (engine is not None or batch is not None):
+        raise ConfigError(
+            "a per-evaluation timeout runs every evaluation in one local worker process; it "
+            "cannot be combined with a batch or a Dask scheduler"
+        )
     if timeout is not None and problem.workers > 1:
         raise ConfigError(
             "a per-evaluation timeout runs every evaluation in one worker process; combine "
@@ -155,6 +166,8 @@ def tune(
                 timeout=timeout,
                 callback=bar,
                 objective=problem.fingerprint(),
+                engine=engine,
+                batch=batch,
                 **opts,
             )
 

@@ -15,7 +15,10 @@ does not use is an error, not silently ignored::
     model = "single-track"         # a built-in model, or your own: "my_model.py[:NAME]"
     filter = "ukf"                 # or "ekf"
     r0 = { b_ay = 0.01 }           # R0 of measurements the dataset has no estimate for
-    workers = 1                    # processes per cost evaluation
+    workers = 1                    # processes per cost evaluation (with scheduler = "local":
+                                   #   the local Dask cluster's worker processes)
+    scheduler = "tcp://host:8786"  # tune only: evaluate on a Dask cluster ("local": start one)
+    batch = 4                      # tune only: points per batch (default: the Dask workers)
     burn_in = 0.0                  # [s] left out of cost and KPIs at each manoeuvre's start
 
     [cost]
@@ -80,6 +83,8 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "workers": int,
     "timeout": (int, float),
     "widen_bounds": bool,
+    "scheduler": str,
+    "batch": int,
     "burn_in": (int, float),
     "cost": dict,
     "parameters": dict,
@@ -92,6 +97,8 @@ USED_ONLY_BY: dict[str, set[str]] = {
     "budget": {"tune"},
     "timeout": {"tune"},
     "widen_bounds": {"tune"},
+    "scheduler": {"tune"},
+    "batch": {"tune"},
     "methods": {"compare"},
     "budgets": {"compare"},
     "seed": {"tune", "compare"},
@@ -102,6 +109,7 @@ _LIMITS: dict[str, tuple[float, bool, float | None]] = {
     "budget": (1, False, None),
     "seed": (0, False, None),
     "workers": (1, False, None),
+    "batch": (1, False, None),
     "timeout": (0, True, MAX_TIMEOUT),
     "burn_in": (0, False, None),
 }

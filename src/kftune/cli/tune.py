@@ -15,13 +15,26 @@ optimum may lie beyond. ``--widen-bounds`` (config ``widen_bounds = true``) then
 bound out by two decades and runs the method again on the wider box with the same budget,
 at most three times; the follow-up studies lie beside ``--storage`` (``study.widen1.db`` …)
 and ``--resume`` continues them too. The best point of all runs is kept.
+
+Parallel and distributed evaluation: ``--batch Q`` asks the method for Q points at a time
+(``--workers`` keeps its meaning: processes that share the manoeuvres of one evaluation).
+``--scheduler tcp://HOST:8786`` evaluates on a running Dask cluster, ``--scheduler local``
+on a local one of ``--workers`` processes (both need the ``dask`` extra); Q then defaults to
+the cluster's number of worker threads. The dataset is sent to every worker once; a batch
+is split across its points, and across manoeuvres when it has fewer points than workers.
+Every proposal is saved before it is sent and every result as it arrives; the proposals
+depend only on the seed and Q, so ``--resume`` re-runs only what was in flight and the run
+ends as an uninterrupted one would. A worker that dies is replaced and its evaluation sent
+again (twice at most), then recorded as failed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -84,6 +97,18 @@ def register(subparsers: Any) -> None:
         "run goes on",
     )
     p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT|local",
+        help="evaluate on the Dask cluster of this scheduler, or 'local' to start one of "
+        "--workers processes (needs the 'dask' extra)",
+    )
+    p.add_argument(
+        "--batch",
+        type=POSITIVE_INT,
+        help="points evaluated at a time (default: the Dask cluster's workers; 1 without "
+        "--scheduler)",
+    )
+    p.add_argument(
         "--widen-bounds",
         action="store_true",
         default=None,
@@ -128,18 +153,20 @@ def run(args: argparse.Namespace) -> int:
         if method not in METHODS:
             raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
         fs = filter_spec_of(args, config, dataset.vehicle)
+        scheduler = pick(args, config, "scheduler", None)
+        workers = pick(args, config, "workers", 1)
         problem = TuningProblem(
             dataset.train,
             dataset.vehicle,
             default_r0(fs.model, dataset, config.get("r0")),
             cost=cost_spec(args, config),
             parameterization=parameterization(args, config, fs.model),
-            workers=pick(args, config, "workers", 1),
+            workers=1 if scheduler is not None else workers,  # the cluster's processes
             burn_in=burn_in(args, config),
             model=fs.spec,
             filter=fs.filter,
         )
-        with problem:
+        with problem, _engine(problem, scheduler, workers) as engine:
             try:
                 result = tune(
                     problem,
@@ -152,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
                     progress=False if (args.quiet or args.json) else None,
                     options=config.get("options", {}).get(method),
                     widen_bounds=widen,
+                    engine=engine,
+                    batch=pick(args, config, "batch", None),
                 )
             except OptimizationInterrupted as stop:
                 _interrupted(args, stop.result, problem, dataset)
@@ -178,6 +207,21 @@ def run(args: argparse.Namespace) -> int:
             print(line)
         print(f"tuned parameters written to {args.out}")
     return EXIT_OK
+
+
+@contextlib.contextmanager
+def _engine(problem: TuningProblem, scheduler: str | None, workers: int) -> Iterator[Any]:
+    """The Dask engine of ``--scheduler`` (None without), closed on the way out."""
+    if scheduler is None:
+        yield None
+        return
+    from kftune.optim.dask_engine import DaskEngine
+
+    engine = DaskEngine(problem, scheduler=scheduler, workers=workers)
+    try:
+        yield engine
+    finally:
+        engine.close()
 
 
 def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> list[str]:

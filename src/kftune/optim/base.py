@@ -301,6 +301,25 @@ class Optimizer(ABC):
         if state not in (None, COMPLETE, FAILED):
             raise ValueError(f"state must be {COMPLETE!r} or {FAILED!r}, got {state!r}")
         pending = self._resolve(trial)
+        rec = self.record(pending, value, state=state, reason=reason, t_eval=t_eval)
+        self._observe(pending, rec.value)
+        self._history.append(rec)
+        return rec
+
+    def record(
+        self,
+        trial: Trial,
+        value: float | None = None,
+        *,
+        state: str | None = None,
+        reason: str | None = None,
+        t_eval: float = 0.0,
+    ) -> EvalRecord:
+        """The :class:`EvalRecord` that :meth:`tell` would append for this result, without
+        telling it (a parallel loop stores a result when it arrives and tells the optimiser
+        later, in trial order). Same arguments as :meth:`tell`."""
+        if state not in (None, COMPLETE, FAILED):
+            raise ValueError(f"state must be {COMPLETE!r} or {FAILED!r}, got {state!r}")
         val: float | None = None
         if state == FAILED:
             reason = reason or "failed"
@@ -316,24 +335,21 @@ class Optimizer(ABC):
                     state, reason = COMPLETE, None
                 else:
                     state, reason, val = FAILED, f"non-finite value {val}", None
-        self._observe(pending, val)
-        rec = EvalRecord(
-            number=pending.number,
-            x=tuple(float(v) for v in pending.x),
-            u=tuple(float(v) for v in pending.u),
-            params=dict(pending.params),
+        return EvalRecord(
+            number=trial.number,
+            x=tuple(float(v) for v in trial.x),
+            u=tuple(float(v) for v in trial.u),
+            params=dict(trial.params),
             value=val,
             state=state,  # type: ignore[arg-type]
             reason=reason,
-            stage=pending.stage,
-            acquisition=pending.acquisition,
-            hyperparameters=pending.hyperparameters,
-            t_propose=float(pending.t_propose),
+            stage=trial.stage,
+            acquisition=trial.acquisition,
+            hyperparameters=trial.hyperparameters,
+            t_propose=float(trial.t_propose),
             t_eval=float(t_eval),
-            info=pending.info,
+            info=trial.info,
         )
-        self._history.append(rec)
-        return rec
 
     def _resolve(self, trial: Trial | int | Any) -> Trial:
         """Find the pending trial meant by ``trial`` and take it off the pending list

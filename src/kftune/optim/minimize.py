@@ -22,6 +22,27 @@ Studies and resume
     evaluation is repeated and the final result equals that of an uninterrupted run; the
     proposal that was in flight when the previous process stopped is evaluated again.
 
+Batches and engines
+    With ``batch=q`` (or an ``engine``, see :mod:`kftune.optim.engine`; then q defaults to
+    its number of workers) the loop asks for q points at a time (``ask(q)``), stores every
+    proposal of the batch in the study, sends them to the engine, stores each result the
+    moment it arrives (in arrival order) and, once the whole batch is back, tells the
+    optimiser the results in trial order before it asks for the next batch. The proposals
+    therefore depend only on the seed, the settings and q — never on which result came back
+    first, how many workers there are or which engine ran them: a run with q = 4 on a Dask
+    cluster proposes exactly what the same run in this process proposes, and with q = 1
+    exactly what the sequential loop proposes. The price is that a batch waits for its
+    slowest point.
+
+    Reproducible resume with pending points: a study of a batched run stores q (resuming
+    with another q is refused). On resume the batches are asked again with the same seed;
+    each proposal must equal the stored one, a finished result is taken from the study
+    (never evaluated again), and only the proposals still ``running`` when the previous
+    process stopped are evaluated again. Because tells happen at batch boundaries in trial
+    order, the replayed optimiser is in the state the uninterrupted run was in, so the
+    resumed run makes the same proposals and — the objective being deterministic — ends
+    with the same history as a run that was never interrupted.
+
 Ctrl-C
     ``KeyboardInterrupt`` stops the run after the study is saved and its lock released, and
     is re-raised as :class:`OptimizationInterrupted` (a ``KeyboardInterrupt``) carrying the
@@ -42,6 +63,7 @@ from typing import Any
 import numpy as np
 
 from kftune.optim.base import ExhaustedError, Optimizer
+from kftune.optim.engine import Engine, SerialEngine
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
 from kftune.optim.study import Study, StudyError
 from kftune.processes import watch_parent
@@ -136,6 +158,8 @@ def minimize(
     timeout: float | None = None,
     callback: Callable[[EvalRecord], bool | None] | None = None,
     objective: dict[str, Any] | None = None,
+    engine: Engine | None = None,
+    batch: int | None = None,
     **method_options: Any,
 ) -> OptimizeResult:
     """Minimise a black-box function over a box.
@@ -160,6 +184,10 @@ def minimize(
         objective: JSON-serialisable description of ``fun`` (e.g. the dataset, cost and
             model of a tuning problem) stored in the study; resuming with a different one is
             refused, so a study never mixes values of two objectives.
+        engine: who evaluates (see :mod:`kftune.optim.engine`; e.g. a
+            :class:`~kftune.optim.dask_engine.DaskEngine`); implies a batched run.
+        batch: evaluations per batch (``ask(q)``); default: the engine's number of
+            workers, or the sequential loop without an engine. See "Batches and engines".
         **method_options: passed to the optimiser (e.g. ``max_fe=10`` for TSBO,
             ``population_size=20`` for GA, ``points=[...]`` for manual).
 
@@ -182,6 +210,11 @@ def minimize(
         )
     if resume and storage is None:
         raise ValueError("resume=True needs storage= (the study file to resume)")
+    if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int) or batch < 1):
+        raise ValueError(f"batch must be a positive integer, got {batch!r}")
+    batched = engine is not None or batch is not None
+    if batched and timeout is not None:
+        raise ValueError("timeout= applies to the sequential loop; not with engine= or batch=")
     sp = Space.coerce(space)
     opt = make_optimizer(method, sp, budget=budget, seed=seed, **method_options)
     settings = {
@@ -192,7 +225,13 @@ def minimize(
         "options": opt.options(),
         "objective": objective,
     }
+    q = 1
+    if batched:
+        q = batch if batch is not None else max(1, int(engine.workers))  # type: ignore[union-attr]
+        settings["batch"] = q  # the proposals depend on q: a resume must use the same
     study = Study.open(storage, settings, resume=resume) if storage is not None else None
+    if batched and engine is None:
+        engine = SerialEngine(fun)
     evaluator = _Evaluator(fun, timeout)
     history: list[EvalRecord] = []
     status = "completed"
@@ -209,6 +248,12 @@ def minimize(
         )
 
     try:
+        if batched:
+            status = _run_batched(opt, engine, q, study, history, callback)  # type: ignore[arg-type]
+            history.sort(key=lambda r: r.number)
+            if status == "completed" and opt.n_evals < opt.budget:
+                status = "exhausted"
+            return result(status)
         in_flight: list[float] | None = None
         if study is not None:
             stored, in_flight = study.records()
@@ -237,16 +282,7 @@ def minimize(
                 reason=reason,
                 t_eval=t_eval,
             )
-            if study is not None:
-                try:
-                    study.write_result(rec)
-                except KeyboardInterrupt:
-                    # Ctrl-C after the commit (e.g. during the checkpoint): the record is
-                    # saved, so it belongs to the partial result, which matches the study
-                    if study.is_finished(rec.number):
-                        history.append(rec)
-                    raise
-            history.append(rec)
+            _save(study, rec, history)
             if callback is not None and callback(rec) is True:
                 status = "stopped"
                 break
@@ -260,6 +296,75 @@ def minimize(
         if study is not None:
             study.close()
     return result(status)
+
+
+def _save(study: Study | None, rec: EvalRecord, history: list[EvalRecord]) -> None:
+    """Store a finished evaluation in the study (committed on return) and the history."""
+    if study is not None:
+        try:
+            study.write_result(rec)
+        except KeyboardInterrupt:
+            # Ctrl-C after the commit (e.g. during the checkpoint): the record is saved,
+            # so it belongs to the partial result, which matches the study
+            if study.is_finished(rec.number):
+                history.append(rec)
+            raise
+    history.append(rec)
+
+
+def _run_batched(
+    opt: Optimizer,
+    engine: Engine,
+    q: int,
+    study: Study | None,
+    history: list[EvalRecord],
+    callback: Callable[[EvalRecord], bool | None] | None,
+) -> str:
+    """The batched loop (module docstring, "Batches and engines"); fills ``history`` in
+    arrival order and returns the status."""
+    stored, running = study.rows() if study is not None else ([], {})
+    known = {rec.number: rec for rec in stored}
+    stored_u: dict[int, Any] = {rec.number: rec.u for rec in stored}
+    stored_u.update(running)
+    stop = False
+    while not opt.done and not stop:
+        try:
+            trials = opt.ask(q)
+        except ExhaustedError:
+            break
+        if not trials:
+            break
+        for t in trials:  # every proposal is committed before any point is sent
+            if t.number in stored_u:
+                _check_replay(study, t.number, t.u, stored_u[t.number])
+            elif study is not None:
+                study.write_proposal(t.number, [float(v) for v in t.u])
+        results: dict[int, EvalRecord] = {}
+        for t in trials:
+            if t.number in known:  # finished before the previous process stopped
+                results[t.number] = known[t.number]
+                history.append(known[t.number])
+                if callback is not None:
+                    callback(known[t.number])
+        todo = [t for t in trials if t.number not in known]
+        if todo:
+            for i, (value, reason, t_eval) in engine.run([t.x for t in todo]):
+                t = todo[i]
+                rec = opt.record(
+                    t,
+                    value,
+                    state=FAILED if reason is not None else None,
+                    reason=reason,
+                    t_eval=t_eval,
+                )
+                _save(study, rec, history)
+                results[t.number] = rec
+                if callback is not None and callback(rec) is True:
+                    stop = True  # the rest of the batch is still collected and stored
+        for t in trials:  # tells in trial order: the next batch does not depend on timing
+            r = results[t.number]
+            opt.tell(t, r.value, state=r.state, reason=r.reason, t_eval=r.t_eval)
+    return "stopped" if stop else "completed"
 
 
 def _check_replay(study: Any, number: int, proposed: np.ndarray, stored: Any) -> None:

@@ -308,6 +308,22 @@ class Study:
             StudyError: rows are not numbered 0..n−1, a running row is not the last, or a
                 row is damaged (named by its trial number; its content is not quoted).
         """
+        done, running = self.rows()
+        n = len(done) + len(running)
+        for i in running:
+            if i != n - 1:
+                raise StudyError(f"study {self.path}: running trial {i} is not the last")
+        return done, running.get(n - 1)
+
+    def rows(self) -> tuple[list[EvalRecord], dict[int, list[float]]]:
+        """The stored finished records in trial order, and the unit-cube points of the
+        ``running`` proposals (in flight when the previous process stopped) by trial
+        number — anywhere in the study: a batched run has up to a batch of them.
+
+        Raises:
+            StudyError: rows are not numbered 0..n−1, or a row is damaged (named by its
+                trial number; its content is not quoted).
+        """
         try:
             rows = self._conn.execute(
                 "SELECT number, state, u, record FROM trials ORDER BY number"
@@ -315,17 +331,15 @@ class Study:
         except sqlite3.DatabaseError as exc:
             raise StudyError(f"study {self.path} cannot be read: {exc}") from None
         done: list[EvalRecord] = []
-        running: list[float] | None = None
+        running: dict[int, list[float]] = {}
         for i, (number, state, u, record) in enumerate(rows):
             if number != i:
                 raise StudyError(f"study {self.path}: trial numbers have a gap at {i}")
             if state not in (RUNNING, COMPLETE, FAILED):
                 raise StudyError(f"study {self.path}: trial {i} has an unknown state")
-            if state == RUNNING and i != len(rows) - 1:
-                raise StudyError(f"study {self.path}: running trial {i} is not the last")
             try:
                 if state == RUNNING:
-                    running = [float(v) for v in json.loads(u)]
+                    running[i] = [float(v) for v in json.loads(u)]
                 else:
                     rec = EvalRecord.from_dict(json.loads(record))
                     if rec.number != i or rec.state != state:

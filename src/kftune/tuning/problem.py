@@ -649,6 +649,23 @@ class TuningProblem:
             scores = [by_index[i] for i in range(len(self.manoeuvres))]
         return self._pool_scores(scores)
 
+    def score_manoeuvres(
+        self, x: Sequence[float] | np.ndarray, indices: Sequence[int]
+    ) -> list[ManoeuvreScore]:
+        """The scores of a point on the manoeuvres ``indices`` (a share of :meth:`evaluate`
+        for a distributed engine; pooled by :meth:`_pool_scores` in manoeuvre order, they
+        give :meth:`evaluate`'s cost bit for bit)."""
+        q, r, settings = self.decode(x)
+        fs, spec = self._fs, self.cost_spec
+        return [
+            _score(self.manoeuvres[i], self.vehicle, fs, q, r, settings, spec, self.burn_in)
+            for i in indices
+        ]
+
+    def manoeuvre_chunks(self, k: int) -> list[list[int]]:
+        """The manoeuvre indices in at most k groups of similar total length."""
+        return _balanced_chunks([m.n for m in self.manoeuvres], max(1, k))
+
     def _pool_scores(self, scores: Sequence[ManoeuvreScore]) -> Evaluation:
         """The cost J (paper Eq. 14–15, or the NIS cost) from every manoeuvre's score."""
         spec = self.cost_spec

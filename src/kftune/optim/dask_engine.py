@@ -1,0 +1,242 @@
+"""Evaluate on a Dask cluster (``dask.distributed``; the ``dask`` extra).
+
+::
+
+    with DaskEngine(problem, workers=4) as engine:            # a LocalCluster of processes
+        result = kftune.minimize(problem, problem.space, engine=engine)
+    DaskEngine(problem, scheduler="tcp://10.0.0.5:8786")      # an existing cluster
+
+What travels where
+    The objective (a :class:`~kftune.tuning.problem.TuningProblem` holds the manoeuvres) is
+    scattered to every worker once, with ``broadcast=True``, when the engine starts; a task
+    then carries only a point (d floats) and, when a batch is split across manoeuvres, a
+    list of manoeuvre indices; it returns a float, or a few numbers per manoeuvre.
+
+How work is split
+    One task per candidate point when the batch has at least as many points as the cluster
+    has worker threads; otherwise (a tuning problem only) each point's manoeuvres are split
+    into ``threads // points`` balanced chunks, one task each, and the client pools the
+    chunks' scores in manoeuvre order exactly as :meth:`TuningProblem.evaluate` does — so
+    the cost is the sequential one bit for bit, however the work was split.
+
+Workers that die
+    A task whose worker dies (killed, out of memory, a segfault in the objective) is sent
+    again, at most ``retries`` times; then the point is recorded as failed with the reason
+    and the run goes on. On a :class:`LocalCluster` this engine starts, the scheduler hands
+    such a task back at the first death (``allowed-failures = 0``) so that ``retries`` is the
+    whole bound; an external scheduler first applies its own ``allowed-failures`` (Dask's
+    default: 3 further attempts) before this engine's retries.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import numpy as np
+
+from kftune.errors import ConfigError
+from kftune.optim.engine import Engine, Outcome, describe, evaluate_point
+
+#: [s] how long connecting to a scheduler, and waiting for its first worker, may take.
+CONNECT_TIMEOUT = 10.0
+#: Re-submissions of a task whose worker died, before its point is recorded as failed.
+DEFAULT_RETRIES = 2
+MISSING_EXTRA = (
+    "running on Dask needs the 'dask' extra of kftune: pip install 'kftune[dask]' "
+    "(or pip install 'dask[distributed]')"
+)
+
+
+class DaskMissingError(ConfigError):
+    """The ``dask`` extra is not installed (a configuration problem: exit code 3)."""
+
+
+def _distributed() -> Any:
+    try:
+        import distributed
+    except ImportError:
+        raise DaskMissingError(MISSING_EXTRA) from None
+    return distributed
+
+
+def _task_point(fun: Callable[[np.ndarray], float], x: np.ndarray) -> Outcome:
+    """A worker's task: one point's outcome."""
+    return evaluate_point(fun, x)
+
+
+def _task_chunk(problem: Any, x: np.ndarray, indices: list[int]) -> tuple[Any, ...]:
+    """A worker's task: a point's scores on some manoeuvres; ``("ok", scores, t)``, or
+    ``("error", reason, t, index)`` for the first manoeuvre whose run failed."""
+    t0 = time.perf_counter()
+    scores = []
+    for i in indices:
+        try:
+            scores.extend(problem.score_manoeuvres(x, [i]))
+        except Exception as exc:
+            return "error", describe(exc), time.perf_counter() - t0, i
+    return "ok", scores, time.perf_counter() - t0
+
+
+class DaskEngine(Engine):
+    """Evaluates batches on a Dask cluster.
+
+    Args:
+        fun: the objective; a :class:`~kftune.tuning.problem.TuningProblem` can also be
+            split across manoeuvres. It must pickle (a tuning problem does).
+        scheduler: a scheduler address (``"tcp://host:8786"``), or ``None``/``"local"`` to
+            start a :class:`distributed.LocalCluster` of ``workers`` processes (one thread
+            each) for the engine's lifetime.
+        workers: processes of the local cluster (ignored with a scheduler address).
+        retries: re-submissions of a task whose worker died (see the module docstring).
+        connect_timeout: [s] to reach the scheduler and see its first worker.
+
+    Raises:
+        DaskMissingError: the ``dask`` extra is not installed.
+        ConfigError: the scheduler cannot be reached, or no worker joins it in time.
+    """
+
+    def __init__(
+        self,
+        fun: Callable[[np.ndarray], float],
+        *,
+        scheduler: str | None = None,
+        workers: int = 1,
+        retries: int = DEFAULT_RETRIES,
+        connect_timeout: float = CONNECT_TIMEOUT,
+    ) -> None:
+        distributed = _distributed()
+        import dask
+
+        if not (isinstance(workers, int) and workers >= 1):
+            raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
+        self.fun = fun
+        self.retries = int(retries)
+        self._cluster: Any = None
+        self.client: Any = None
+        if scheduler in (None, "local"):
+            with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+                self._cluster = distributed.LocalCluster(
+                    n_workers=workers,
+                    processes=True,
+                    threads_per_worker=1,
+                    dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )
+            self.client = distributed.Client(self._cluster)
+        else:
+            try:
+                self.client = distributed.Client(scheduler, timeout=connect_timeout)
+            except (OSError, TimeoutError) as exc:
+                raise ConfigError(
+                    f"cannot reach the Dask scheduler at {scheduler!r} within "
+                    f"{connect_timeout:g} s ({exc}); start one with 'dask scheduler' and "
+                    "give its tcp:// address"
+                ) from None
+            try:
+                self.client.wait_for_workers(1, timeout=connect_timeout)
+            except (OSError, TimeoutError):
+                self.close()
+                raise ConfigError(
+                    f"the Dask scheduler at {scheduler!r} has no worker (none joined within "
+                    f"{connect_timeout:g} s); start some with 'dask worker {scheduler}'"
+                ) from None
+        self.scheduler = self.client.scheduler.address
+        self.workers = self._threads()
+        self._data = self._scatter()
+
+    def _threads(self) -> int:
+        info = self.client.scheduler_info(n_workers=-1)["workers"]
+        return max(1, sum(int(w.get("nthreads", 1)) for w in info.values()))
+
+    def _scatter(self) -> Any:
+        """Ship the objective (with its dataset) to every worker, once."""
+        return self.client.scatter(self.fun, broadcast=True, hash=False)
+
+    def worker_pids(self) -> dict[str, int]:
+        """Worker address → process id (e.g. to watch or kill one)."""
+        import os
+
+        return self.client.run(os.getpid)
+
+    # ------------------------------------------------------------------ running
+    def run(self, points: Sequence[np.ndarray]) -> Iterator[tuple[int, Outcome]]:
+        distributed = _distributed()
+        points = [np.asarray(x, dtype=float) for x in points]
+        if not points:
+            return
+        # Splitting never changes a result, so it may follow the cluster's current size.
+        k = self._threads() // len(points)
+        split = k > 1 and hasattr(self.fun, "manoeuvre_chunks")  # a tuning problem
+        chunks: list[Any] = self.fun.manoeuvre_chunks(k) if split else [None]  # type: ignore[attr-defined]
+        split = len(chunks) > 1
+        # task future -> (point, chunk, attempt)
+        tasks: dict[Any, tuple[int, int, int]] = {}
+        for i, x in enumerate(points):
+            for c in range(len(chunks)):
+                tasks[self._submit(x, chunks[c])] = (i, c, 0)
+        parts: dict[int, dict[int, tuple[Any, ...]]] = {i: {} for i in range(len(points))}
+        done: set[int] = set()
+        ac = distributed.as_completed(list(tasks))
+        try:
+            for fut in ac:
+                i, c, attempt = tasks.pop(fut)
+                if i in done:
+                    continue
+                if fut.status == "finished":
+                    out = fut.result()
+                else:
+                    exc = fut.exception()
+                    if attempt < self.retries:
+                        if self._data.status != "finished":  # every copy of it was lost
+                            self._data = self._scatter()
+                        new = self._submit(points[i], chunks[c])
+                        tasks[new] = (i, c, attempt + 1)
+                        ac.add(new)
+                        continue
+                    reason = (
+                        f"evaluation lost {attempt + 1} times, the last time by "
+                        f"{describe(exc)}; given up after {self.retries} retries"
+                    )
+                    out = ("error", reason, 0.0, -1) if split else (None, reason, 0.0)
+                fut.release()
+                if not split:
+                    done.add(i)
+                    yield i, out
+                    continue
+                parts[i][c] = out
+                if len(parts[i]) == len(chunks):
+                    done.add(i)
+                    yield i, self._pool(parts[i], chunks)
+        finally:
+            for fut in tasks:  # a stopped run (Ctrl-C, an error) leaves nothing running
+                fut.cancel()
+
+    def _submit(self, x: np.ndarray, chunk: list[int] | None) -> Any:
+        if chunk is None:
+            return self.client.submit(_task_point, self._data, x, pure=False)
+        return self.client.submit(_task_chunk, self._data, x, chunk, pure=False)
+
+    def _pool(self, parts: dict[int, tuple[Any, ...]], chunks: list[Any]) -> Outcome:
+        """One point's outcome from its chunks: the cost pooled in manoeuvre order, or the
+        failure of the first manoeuvre that failed (the one :meth:`evaluate` names)."""
+        t = sum(p[2] for p in parts.values())
+        errors = [p for p in parts.values() if p[0] == "error"]
+        if errors:
+            first = min(errors, key=lambda p: (p[3] < 0, p[3]))  # a lost chunk last
+            return None, first[1], t
+        by_index = {}
+        for c, p in parts.items():
+            by_index.update(zip(chunks[c], p[1]))
+        scores = [by_index[j] for j in sorted(by_index)]
+        return float(self.fun._pool_scores(scores).cost), None, t  # type: ignore[attr-defined]
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
