@@ -2,7 +2,7 @@
 
     x (natural units) ──NoiseParameterization──▶ (Q diag, R diag, sigma-point settings)
                        ──run_ukf per manoeuvre──▶ estimates
-                       ──cost (paper Eq. 14–15 or NIS)──▶ J
+                       ──cost (paper Eq. 14–15, NIS or innovation likelihood)──▶ J
 
 The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter (also one
 that ran away to an impossible sideslip or speed, see :mod:`kftune.filters._kernel`) raises
@@ -31,7 +31,7 @@ from kftune.models import StateSpaceModel
 from kftune.models.user import load_model
 from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
-from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
+from kftune.tuning.cost import CostSpec, innovation_nll, nis_cost, nrmse, weighted_cost
 from kftune.tuning.kpi import sideslip_kpis
 from kftune.vehicle.params import VehicleParams
 
@@ -179,12 +179,14 @@ class ManoeuvreScore:
         name: manoeuvre name. n: its number of samples.
         nrmse: channel → NRMSE (paper Eq. 15) for the weighted channels.
         nis_sum: Σ_k NIS_k over the manoeuvre (for the NIS cost).
+        log_det_s_sum: Σ_k log det S_k (with ``nis_sum``, the innovation likelihood).
     """
 
     name: str
     n: int
     nrmse: dict[str, float]
     nis_sum: float
+    log_det_s_sum: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -388,7 +390,11 @@ def _score(
                 f"cannot score channel {c!r}: {exc}", file=f"manoeuvre {m.name!r}"
             ) from None
     return ManoeuvreScore(
-        name=m.name, n=m.n - k0, nrmse=scores, nis_sum=float(np.sum(res.nis[k0:]))
+        name=m.name,
+        n=m.n - k0,
+        nrmse=scores,
+        nis_sum=float(np.sum(res.nis[k0:])),
+        log_det_s_sum=float(np.sum(res.log_det_s[k0:])) if spec.kind == "pem" else 0.0,
     )
 
 
@@ -614,6 +620,13 @@ class TuningProblem:
         if spec.kind == "nis":
             cost = nis_cost([np.array([mean_nis])], n_z=self._fs.model.n_measurements)
             pooled: dict[str, float] = {}
+        elif spec.kind == "pem":
+            cost = innovation_nll(
+                [np.array([sum(s.log_det_s_sum for s in scores) / n_total])],
+                [np.array([mean_nis])],
+                n_z=self._fs.model.n_measurements,
+            )
+            pooled = {}
         else:
             cost, pooled = weighted_cost(
                 {c: [s.nrmse[c] for s in scores] for c in channels},
