@@ -11,7 +11,9 @@ scores the tuned filter on the test manoeuvres with the KPI code ``kftune compar
 * ``nrmse``: the paper's cost (needs the β reference) — the target to come near;
 * ``nis``: |log(mean NIS / 3)| (Chen et al. 2018), Q only — the old reference-free cost;
 * ``pem-q``, ``pem-rscale``, ``pem-rdiag``: the innovation negative log-likelihood
-  (``--cost pem``) with Q only, Q and one R scale, Q and R's diagonal.
+  (``--cost pem``) with Q only, Q and one R scale, Q and R's diagonal;
+* ``msp``: the multi-step (0.35 s) open-loop prediction error of r and ay (``--cost msp``),
+  Q only.
 
 Each tuned configuration runs with ``--method`` (default ``trbo``) at ``--budget``
 evaluations for every seed. Reported per configuration: the median over seeds of the test
@@ -62,8 +64,9 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "pem-q": ("pem", "none"),
     "pem-rscale": ("pem", "scale"),
     "pem-rdiag": ("pem", "diag"),
+    "msp": ("msp", "none"),
 }
-REFERENCE_FREE = ("nis", "pem-q", "pem-rscale", "pem-rdiag")
+REFERENCE_FREE = ("nis", "pem-q", "pem-rscale", "pem-rdiag", "msp")
 #: issue 13: within this factor of the NRMSE-tuned filter's test β RMSE.
 WITHIN = 1.5
 

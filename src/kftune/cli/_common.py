@@ -325,9 +325,10 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
     cost = parser.add_argument_group("cost")
     cost.add_argument(
         "--cost",
-        choices=("nrmse", "nis", "pem"),
+        choices=("nrmse", "nis", "pem", "msp"),
         help="nrmse: the paper's weighted NRMSE (default); pem: the innovation likelihood "
-        "(prediction-error method) and nis: NIS consistency, both without a reference sensor",
+        "(prediction-error method), msp: multi-step prediction error (single-track UKF) and "
+        "nis: NIS consistency, all three without a reference sensor",
     )
     cost.add_argument(
         "--weights",
@@ -399,7 +400,7 @@ def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
         "estimate": args.estimate or section.get("estimate", "posterior"),
     }
     kind = kwargs["kind"]
-    if kind != "nrmse":  # weights would be ignored: say so instead
+    if kind in ("nis", "pem"):  # weights would be ignored: say so instead
         if args.weights:
             raise UsageError(
                 f"--weights: the {kind.upper()} cost (--cost {kind}) weighs no channels; leave "

@@ -23,7 +23,11 @@ CHANNELS: tuple[str, ...] = ("beta", "r", "ay", "vx")
 
 #: The costs a tuning problem knows: the paper's weighted NRMSE (needs a β reference) and
 #: two reference-free ones, NIS consistency and the innovation likelihood (``"pem"``).
-COST_KINDS: tuple[str, ...] = ("nrmse", "nis", "pem")
+COST_KINDS: tuple[str, ...] = ("nrmse", "nis", "pem", "msp")
+
+#: The multi-step prediction cost's horizon [s] and the spacing of its start samples.
+MSP_HORIZON = 0.35
+MSP_STRIDE = 5
 
 #: Paper Table III: W1 = 5 (β), W2 = 1 (yaw rate), W3 = 1 (ay).
 PAPER_WEIGHTS: Mapping[str, float] = {"beta": 5.0, "r": 1.0, "ay": 1.0}
@@ -43,7 +47,10 @@ class CostSpec:
             which needs no reference sensor; ``"pem"`` — the filter's innovation negative
             log-likelihood per sample (:func:`innovation_nll`; the prediction-error method,
             maximum likelihood), which needs no reference sensor either and is the one to
-            use without one (README, "Tuning without a reference sensor").
+            use without one (README, "Tuning without a reference sensor"); ``"msp"`` —
+            the multi-step prediction error (:func:`multistep_cost`): the model run open
+            loop for :data:`MSP_HORIZON` from the posterior state, against the measured
+            channels among ``weights`` (default r and ay); single-track model only.
         weights: channel → weight W_j ≥ 0 (``"nrmse"`` only): a measurement of the
             filter's model or one of its outputs (the single-track model's: :data:`CHANNELS`);
             the tuning problem checks them against its model.
@@ -57,7 +64,7 @@ class CostSpec:
             scored from the posterior.
     """
 
-    kind: Literal["nrmse", "nis", "pem"] = "nrmse"
+    kind: Literal["nrmse", "nis", "pem", "msp"] = "nrmse"
     weights: Mapping[str, float] = field(default_factory=_paper_weights)
     estimate: Literal["posterior", "prior"] = "posterior"
 
@@ -206,4 +213,26 @@ def innovation_nll(log_det_s: Sequence[np.ndarray], nis: Sequence[np.ndarray], n
     if ld.shape != e.shape or ld.size == 0:
         raise ValueError(f"need equal-length non-empty inputs, got {ld.shape} and {e.shape}")
     value = 0.5 * (float(np.mean(ld + e)) + n_z * math.log(2.0 * math.pi))
+    return value if math.isfinite(value) else math.inf
+
+
+def multistep_cost(sq_err: Sequence[np.ndarray], counts: Sequence[int]) -> float:
+    """Multi-step prediction cost Σ_j log(mean squared h-step prediction error of channel j).
+
+    From every start sample k (every :data:`MSP_STRIDE`-th), the filter's posterior x⁺_k is
+    propagated open loop through the process model with the measured inputs for h steps
+    (h = :data:`MSP_HORIZON` / dt) and h(x, u) compared with z_{k+h}. A state the filter has
+    bent to copy the measurements (a large process noise on an unmeasured state) predicts
+    badly once the measurements stop; the logarithm makes channels of any unit comparable.
+
+    Args:
+        sq_err: per manoeuvre, (n_channels,) sums of squared prediction errors.
+        counts: per manoeuvre, the number of start samples.
+    """
+    total = np.sum(np.asarray(sq_err, dtype=float), axis=0)
+    n = int(np.sum(counts))
+    if n <= 0:
+        raise ValueError("no start samples for the multi-step prediction")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        value = float(np.sum(np.log(total / n)))
     return value if math.isfinite(value) else math.inf
