@@ -550,7 +550,7 @@ def test_unrepairable_prior_is_divergence_at_step_0_and_singular_is_repaired(cas
 
     def kernel(P_init):
         outs = [np.empty((steps, 5)), np.empty((steps, 5)), np.empty((steps, 2))]
-        outs += [np.empty((steps, 2)), np.empty(steps)]
+        outs += [np.empty((steps, 2)), np.empty(steps), np.empty(steps)]
         head = (
             model.f, model.h, None, case.u[:steps], case.z[:steps], case.p, case.dt,
             case.q, case.r, x0, P_init, 1, np.zeros(0, dtype=np.int64), (0.0,) * 5, (0.0,) * 2,

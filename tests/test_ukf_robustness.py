@@ -91,12 +91,13 @@ def _kernel_run(man, P_init: np.ndarray, n: int = N):
     """The compiled kernel itself, bypassing run_ukf's checks (which refuse such a P0)."""
     wm, wc = merwe_weights(3, UKFSettings())
     outs = [np.empty((n, 3)) for _ in range(4)] + [np.empty(n)]
+    ldet = np.empty(n)
     div, rep, _ = _kernel.run_kernel(
         _kernel.MODEL_SINGLE_TRACK, BMW.to_array(), man.u[:n], man.z[:n], man.dt,
         np.array(DEFAULT_Q), man.r_var, man.z[0] * [1, 0, 1], P_init,
-        wm[0], wc[0], wm[1], math.sqrt(3.0), *outs,
+        wm[0], wc[0], wm[1], math.sqrt(3.0), *outs, ldet,
     )  # fmt: skip
-    return UKFResult(*outs, diverged=div >= 0, diverged_step=div, n_repairs=rep)
+    return UKFResult(*outs, diverged=div >= 0, diverged_step=div, n_repairs=rep, log_det_s=ldet)
 
 
 def test_singular_covariance_is_repaired_and_the_run_goes_on(man):

@@ -500,6 +500,8 @@ def run_compare(
 def _describe_cost(cost: CostSpec) -> str:
     if cost.kind == "nis":
         return "NIS consistency |log(mean NIS / 3)| (Chen et al. 2018)"
+    if cost.kind == "pem":
+        return "innovation negative log-likelihood per sample (prediction-error method)"
     terms = " + ".join(f"{w:g}·E_{c}" for c, w in cost.weights.items() if w > 0)
     scored = (
         "r, ay, vx from the posterior h(x⁺)"

@@ -22,7 +22,7 @@ does not use is an error, not silently ignored::
     burn_in = 0.0                  # [s] left out of cost and KPIs at each manoeuvre's start
 
     [cost]
-    kind = "nrmse"                 # or "nis"
+    kind = "nrmse"                 # or "pem" / "nis": no reference sensor needed
     weights = { beta = 5.0, r = 1.0, ay = 1.0 }
     estimate = "posterior"         # or "prior" (see kftune.tuning.cost.CostSpec)
 
@@ -333,9 +333,10 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
     cost = parser.add_argument_group("cost")
     cost.add_argument(
         "--cost",
-        choices=("nrmse", "nis"),
-        help="nrmse: the paper's weighted NRMSE (default); nis: NIS consistency, no reference "
-        "sensor needed",
+        choices=("nrmse", "nis", "pem", "msp"),
+        help="nrmse: the paper's weighted NRMSE (default); pem: the innovation likelihood "
+        "(prediction-error method), msp: multi-step prediction error (single-track UKF) and "
+        "nis: NIS consistency, all three without a reference sensor",
     )
     cost.add_argument(
         "--weights",
@@ -409,16 +410,17 @@ def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
         "kind": args.cost or section.get("kind", "nrmse"),
         "estimate": args.estimate or section.get("estimate", "posterior"),
     }
-    if kwargs["kind"] == "nis":  # weights would be ignored: say so instead
+    kind = kwargs["kind"]
+    if kind in ("nis", "pem"):  # weights would be ignored: say so instead
         if args.weights:
             raise UsageError(
-                "--weights: the NIS cost (--cost nis) weighs no channels; leave --weights "
-                "out or use the nrmse cost"
+                f"--weights: the {kind.upper()} cost (--cost {kind}) weighs no channels; leave "
+                "--weights out or use the nrmse cost"
             )
         if "weights" in section:
             raise ConfigError(
                 f"{_where(config, 'cost')}: weights apply to the nrmse cost only, but the cost "
-                f"is nis{' (from --cost)' if args.cost else ''}; remove them or use nrmse"
+                f"is {kind}{' (from --cost)' if args.cost else ''}; remove them or use nrmse"
             )
     if args.weights:
         kwargs["weights"] = args.weights

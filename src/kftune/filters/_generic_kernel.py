@@ -466,6 +466,7 @@ def fill_nan(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
 ) -> None:
     """Rows k0… of every output are NaN."""
     for k in range(k0, out_x.shape[0]):
@@ -474,6 +475,7 @@ def fill_nan(
         out_zhat[k, :] = _NAN
         out_innov[k, :] = _NAN
         out_nis[k] = _NAN
+        out_ldet[k] = _NAN
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -486,6 +488,7 @@ def commit(
     y: np.ndarray,
     zh: np.ndarray,
     nis: float,
+    ldet: float,
     held: np.ndarray,
     count: np.ndarray,
     n_hold: int,
@@ -495,6 +498,7 @@ def commit(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
     n_token: Token,
     m_token: Token,
 ) -> tuple[int, int]:
@@ -510,7 +514,7 @@ def commit(
     for j in range(count.shape[0]):
         if count[j] >= n_hold:
             k0 = k + 1 - n_hold
-            fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis)
+            fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
             return k0, held_causes[j]
     n, m = len(n_token), len(m_token)
     if st == 1:
@@ -523,6 +527,7 @@ def commit(
         out_innov[k, j] = y[j]
         out_zhat[k, j] = zh[j]
     out_nis[k] = nis
+    out_ldet[k] = ldet
     return -1, STOP_NONE
 
 
@@ -561,6 +566,7 @@ def conclude_step(
     check: Dispatcher | None,
     st_s: int,
     nis: float,
+    Ls: np.ndarray,
     st: int,
     jit: float,
     x: np.ndarray,
@@ -579,6 +585,7 @@ def conclude_step(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
     n_token: Token,
     m_token: Token,
 ) -> tuple[int, int, int]:
@@ -592,19 +599,22 @@ def conclude_step(
         when the step is stored).
     """
     if st_s == 2:
-        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
         return k, STOP_NUMERICAL, 0
     h(x, uk, p, zh)
     if st == 2 or not all_finite(x, zh, nis, n_token, m_token):
-        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
         return k, STOP_NUMERICAL, st_s
     cause = STOP_NONE if check is None else check(x, z[k], uk, p, held)
     if cause != STOP_NONE:
-        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
         return k, cause, st_s
+    ldet = 0.0  # log det S = 2·Σ log diag(L_S), with the NIS the innovation likelihood
+    for i in range(len(m_token)):
+        ldet += 2.0 * math.log(Ls[i, i])
     stop, cause = commit(
-        k, st, jit, x, P, y, zh, nis, held, count, n_hold, held_causes,
-        out_x, out_p, out_zhat, out_innov, out_nis, n_token, m_token,
+        k, st, jit, x, P, y, zh, nis, ldet, held, count, n_hold, held_causes,
+        out_x, out_p, out_zhat, out_innov, out_nis, out_ldet, n_token, m_token,
     )  # fmt: skip
     if stop >= 0:
         return stop, cause, st_s
@@ -637,6 +647,7 @@ def ukf_run(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
 ) -> tuple[int, int, int]:
     """Run the UKF over a whole manoeuvre (inputs already validated).
 
@@ -651,7 +662,7 @@ def ukf_run(
         n_token, m_token: tuples of n and m zeros (module docstring).
         wm0, wc0, wi: sigma-point weights W_0^m, W_0^c, W_i; c: √(n + λ).
         out_x, out_p: (N, n) posterior state and diag P⁺; out_zhat, out_innov: (N, m)
-            h(x⁺_k, u_k) and z_k − ẑ_k; out_nis: (N,).
+            h(x⁺_k, u_k) and z_k − ẑ_k; out_nis, out_ldet: (N,) NIS and log det S.
 
     Returns:
         (stop_step, n_repairs, cause): stop_step = −1 and cause = STOP_NONE when the run
@@ -665,7 +676,7 @@ def ukf_run(
     # the prior at step 0 is (x_init, P_init): factorised for the first sigma points
     st = prior(x_init, P_init, x, P, L, n_token)
     if st == 2:
-        fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis)
+        fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
         return 0, 0, STOP_NUMERICAL
     n_rep = st
     for k in range(u.shape[0]):
@@ -677,7 +688,7 @@ def ukf_run(
                 f(X[i], uk, p, dt, Y[i])
             st = predicted_moments(Y, x, P, L, q, wm0, wc0, wi, n_token)
             if st == 2:
-                fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+                fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
                 return k, n_rep, STOP_NUMERICAL
             n_rep += st
         # ---- update with z[k], h(·, u[k]); sigma points redrawn from (x̄, P̄); P⁺ is
@@ -691,8 +702,8 @@ def ukf_run(
             Z, D, z[k], r, x, P, L, zb, S, Pxz, Ls, A, W, y, v, wm0, wc0, wi, n_token, m_token
         )
         stop, cause, rep = conclude_step(
-            k, h, check, st_s, nis, st, jit, x, P, y, zh, uk, z, p, held, count, n_hold,
-            held_causes, out_x, out_p, out_zhat, out_innov, out_nis, n_token, m_token,
+            k, h, check, st_s, nis, Ls, st, jit, x, P, y, zh, uk, z, p, held, count, n_hold,
+            held_causes, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet, n_token, m_token,
         )  # fmt: skip
         n_rep += rep
         if stop >= 0:
@@ -726,6 +737,7 @@ def ekf_run(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
 ) -> tuple[int, int, int]:
     """Run the EKF over a whole manoeuvre (inputs already validated).
 
@@ -741,7 +753,7 @@ def ekf_run(
 
     st = prior(x_init, P_init, x, P, L, n_token)
     if st == 2:
-        fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis)
+        fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
         return 0, 0, STOP_NUMERICAL
     n_rep = st
     for k in range(u.shape[0]):
@@ -761,8 +773,8 @@ def ekf_run(
             Hm, z[k], r, x, P, L, zb, S, Pxz, Ls, A, W, y, v, n_token, m_token
         )
         stop, cause, rep = conclude_step(
-            k, h, check, st_s, nis, st, jit, x, P, y, zh, uk, z, p, held, count, n_hold,
-            held_causes, out_x, out_p, out_zhat, out_innov, out_nis, n_token, m_token,
+            k, h, check, st_s, nis, Ls, st, jit, x, P, y, zh, uk, z, p, held, count, n_hold,
+            held_causes, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet, n_token, m_token,
         )  # fmt: skip
         n_rep += rep
         if stop >= 0:
@@ -801,6 +813,7 @@ def ukf_batch(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
     out_stop: np.ndarray,
     out_rep: np.ndarray,
     out_cause: np.ndarray,
@@ -811,7 +824,7 @@ def ukf_batch(
         out_stop[b], out_rep[b], out_cause[b] = ukf_run(
             f, h, check, u, z, p, dt, q[b], r[b], x_init[b], P_init[b], n_hold, held_causes,
             n_token, m_token, wm0, wc0, wi, c,
-            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b],
+            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b], out_ldet[b],
         )  # fmt: skip
 
 
@@ -841,6 +854,7 @@ def ekf_batch(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
     out_stop: np.ndarray,
     out_rep: np.ndarray,
     out_cause: np.ndarray,
@@ -850,7 +864,7 @@ def ekf_batch(
         out_stop[b], out_rep[b], out_cause[b] = ekf_run(
             f, h, check, u, z, p, dt, q[b], r[b], x_init[b], P_init[b], n_hold, held_causes,
             n_token, m_token, F_way, F_jac, H_way, H_jac,
-            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b],
+            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b], out_ldet[b],
         )  # fmt: skip
 
 

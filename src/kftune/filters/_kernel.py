@@ -11,6 +11,7 @@ for n = 3 with scalars so that the step loop allocates nothing:
       x⁺ = x̄ + Wᵀ·v            (= x̄ + P_xz·S⁻¹·y = x̄ + K·y)
       P⁺ = P̄ − Wᵀ·W            (= P̄ − P_xz·S⁻¹·P_xzᵀ = P̄ − K·S·Kᵀ)
       NIS = vᵀ·v               (= yᵀ·S⁻¹·y)
+      log det S = 2·Σ log diag(L_S)  (with NIS, the innovation log-likelihood)
   (the UKF measurement update of Simon, *Optimal State Estimation*, 2006, Ch. 14, and
   Särkkä, *Bayesian Filtering and Smoothing*, 2013, Ch. 5, rearranged.)
 
@@ -233,6 +234,7 @@ def _fill_nan(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
 ) -> None:
     for k in range(k0, out_x.shape[0]):
         for j in range(3):
@@ -241,6 +243,7 @@ def _fill_nan(
             out_zhat[k, j] = _NAN
             out_innov[k, j] = _NAN
         out_nis[k] = _NAN
+        out_ldet[k] = _NAN
 
 
 @njit(cache=True, error_model="numpy")
@@ -263,6 +266,7 @@ def run_kernel(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
 ) -> tuple[int, int, int]:
     """Run the UKF over a whole manoeuvre (inputs already validated).
 
@@ -278,7 +282,8 @@ def run_kernel(
         x_init: (3,) prior mean at step 0; P_init: (3, 3) prior covariance at step 0.
         wm0, wc0, wi: sigma-point weights W_0^m, W_0^c, W_i; c: √(n + λ).
         out_x, out_p, out_zhat, out_innov: (N, 3) outputs (posterior state, diag P⁺,
-            h(x⁺, u), innovation z − ẑ⁻); out_nis: (N,) output.
+            h(x⁺, u), innovation z − ẑ⁻); out_nis, out_ldet: (N,) outputs (NIS and
+            log det S of the innovation covariance, for the innovation likelihood).
 
     Returns:
         (diverged_step, n_repairs, cause): diverged_step = −1 and cause = STOP_NONE when
@@ -305,7 +310,7 @@ def run_kernel(
     # Prior at step 0 is (x_init, P_init): factorise it for the first sigma points.
     st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(p00, p01, p02, p11, p12, p22)
     if st == 2:
-        _fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis)
+        _fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
         return 0, n_rep, STOP_NUMERICAL
     if st == 1:
         n_rep += 1
@@ -371,7 +376,7 @@ def run_kernel(
             p22 += q[2]
             st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(p00, p01, p02, p11, p12, p22)
             if st == 2:
-                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
                 return k, n_rep, STOP_NUMERICAL
             if st == 1:
                 n_rep += 1
@@ -444,7 +449,7 @@ def run_kernel(
         s22 += r[2]
         st, m00, m10, m11, m20, m21, m22, jit = chol3_repair(s00, s01, s02, s11, s12, s22)
         if st == 2:
-            _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+            _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
             return k, n_rep, STOP_NUMERICAL
         if st == 1:
             n_rep += 1
@@ -490,20 +495,20 @@ def run_kernel(
             or not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2))
             or not (math.isfinite(nis) and math.isfinite(h1))
         ):
-            _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+            _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
             return k, n_rep, STOP_NUMERICAL
         if check_vx:
             if not x0 > 0.0:
-                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
                 return k, n_rep, STOP_REVERSE
             if abs(x1) > _TAN_RUNAWAY_BETA * x0:
-                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis)
+                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
                 return k, n_rep, STOP_SIDESLIP
             held_beta = held_beta + 1 if abs(x1) > _TAN_MAX_SIDESLIP * x0 else 0
             held_vx = held_vx + 1 if abs(x0 - z[k, 0]) > RUNAWAY_VX * z[k, 0] else 0
             if held_beta >= n_hold or held_vx >= n_hold:
                 k0 = k + 1 - n_hold  # the runaway started there
-                _fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis)
+                _fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
                 return k0, n_rep, STOP_SIDESLIP_HELD if held_beta >= n_hold else STOP_SPEED
         if st == 1:
             n_rep += 1
@@ -520,6 +525,7 @@ def run_kernel(
         out_innov[k, 1] = y1
         out_innov[k, 2] = y2
         out_nis[k] = nis
+        out_ldet[k] = 2.0 * (math.log(m00) + math.log(m11) + math.log(m22))
         out_zhat[k, 0] = h0
         out_zhat[k, 1] = h1
         out_zhat[k, 2] = h2
@@ -546,6 +552,7 @@ def run_kernel_batch(
     out_zhat: np.ndarray,
     out_innov: np.ndarray,
     out_nis: np.ndarray,
+    out_ldet: np.ndarray,
     out_div: np.ndarray,
     out_rep: np.ndarray,
     out_cause: np.ndarray,
@@ -558,7 +565,7 @@ def run_kernel_batch(
     for b in prange(q.shape[0]):
         d, nr, why = run_kernel(
             model, mp, u, z, dt, q[b], r[b], x_init[b], P_init[b], wm0, wc0, wi, c,
-            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b],
+            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b], out_ldet[b],
         )  # fmt: skip
         out_div[b] = d
         out_rep[b] = nr

@@ -79,6 +79,8 @@ class FilterResult:
             :meth:`~kftune.models.StateSpaceModel.stop_reason`.
         model: the model filtered.
         filter: the filter's name ("ukf", "ekf").
+        log_det_s: (N,) log det S_k of the innovation covariance (with ``nis``, the
+            Gaussian innovation log-likelihood).
     """
 
     x: np.ndarray
@@ -92,6 +94,7 @@ class FilterResult:
     diverged_cause: int
     model: StateSpaceModel = field(repr=False)
     filter: str = ""
+    log_det_s: np.ndarray | None = None
 
     @property
     def diverged_reason(self) -> str:
@@ -108,8 +111,8 @@ class FilterBatchResult:
     """B runs (one per noise setting) over the same manoeuvre.
 
     Attributes are those of :class:`FilterResult` with a leading axis B: x, P_diag (B, N, n);
-    z_hat, innovation (B, N, m); nis (B, N); diverged (B,) bool; diverged_step, n_repairs,
-    diverged_cause (B,) int.
+    z_hat, innovation (B, N, m); nis, log_det_s (B, N); diverged (B,) bool; diverged_step,
+    n_repairs, diverged_cause (B,) int.
     """
 
     x: np.ndarray
@@ -123,6 +126,7 @@ class FilterBatchResult:
     diverged_cause: np.ndarray
     model: StateSpaceModel = field(repr=False)
     filter: str = ""
+    log_det_s: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -141,6 +145,7 @@ class FilterBatchResult:
             diverged_cause=int(self.diverged_cause[b]),
             model=self.model,
             filter=self.filter,
+            log_det_s=None if self.log_det_s is None else self.log_det_s[b],
         )
 
 
@@ -180,6 +185,7 @@ class _Run:
             np.empty((b, n_steps, n)),
             np.empty((b, n_steps, m)),
             np.empty((b, n_steps, m)),
+            np.empty((b, n_steps)),
             np.empty((b, n_steps)),
         )
 
@@ -344,7 +350,9 @@ class ModelFilter(ABC):
         outs = [a[0] for a in run.outputs()]
         single, _ = self._bound(run.model)
         stop, rep, cause = single(*run.head(0), *self._options(run.model), *outs)
-        return FilterResult(*outs, stop >= 0, int(stop), int(rep), int(cause), run.model, self.name)
+        return FilterResult(
+            *outs[:5], stop >= 0, int(stop), int(rep), int(cause), run.model, self.name, outs[5]
+        )
 
     def run_batch(
         self,
@@ -387,7 +395,9 @@ class ModelFilter(ABC):
                 batch(*run.head(None), *opts, *outs, stop, rep, cause)
             finally:
                 numba.set_parallel_chunksize(previous)
-        return FilterBatchResult(*outs, stop >= 0, stop, rep, cause, run.model, self.name)
+        return FilterBatchResult(
+            *outs[:5], stop >= 0, stop, rep, cause, run.model, self.name, outs[5]
+        )
 
 
 @dataclass(frozen=True)
@@ -454,22 +464,22 @@ def _bound_ukf(model: StateSpaceModel) -> tuple[Any, Any]:
     def single(
         u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
         n_hold: int, held_causes: Arr, wm0: float, wc0: float, wi: float, c: float,
-        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr,
+        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr,
     ) -> tuple[int, int, int]:  # fmt: skip
         return gk.ukf_run(
             f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            wm0, wc0, wi, c, ox, op, oz, oi, on,
+            wm0, wc0, wi, c, ox, op, oz, oi, on, ol,
         )  # fmt: skip
 
     @numba.njit(error_model="numpy")
     def batch(
         u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
         n_hold: int, held_causes: Arr, wm0: float, wc0: float, wi: float, c: float,
-        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, stop: Arr, rep: Arr, cause: Arr,
+        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr, stop: Arr, rep: Arr, cause: Arr,
     ) -> None:  # fmt: skip
         gk.ukf_batch(
             f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            wm0, wc0, wi, c, ox, op, oz, oi, on, stop, rep, cause,
+            wm0, wc0, wi, c, ox, op, oz, oi, on, ol, stop, rep, cause,
         )  # fmt: skip
 
     return single, batch
@@ -489,22 +499,22 @@ def _bound_ekf(model: StateSpaceModel, numerical: bool) -> tuple[Any, Any]:
     @numba.njit(error_model="numpy")
     def single(
         u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
-        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr,
+        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr,
     ) -> tuple[int, int, int]:  # fmt: skip
         return gk.ekf_run(
             f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on,
+            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on, ol,
         )  # fmt: skip
 
     @numba.njit(error_model="numpy")
     def batch(
         u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
-        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr,
+        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr,
         stop: Arr, rep: Arr, cause: Arr,
     ) -> None:  # fmt: skip
         gk.ekf_batch(
             f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on, stop, rep, cause,
+            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on, ol, stop, rep, cause,
         )  # fmt: skip
 
     return single, batch

@@ -106,6 +106,8 @@ class UKFResult:
             For a runaway held over a time, the step it started.
         n_repairs: number of covariance factorisations that needed jitter.
         diverged_cause: why it diverged, a key of :data:`DIVERGED_CAUSES` (0: it did not).
+        log_det_s: (N,) log det S_k of the innovation covariance [log of z's units²]
+            (with ``nis``, the Gaussian innovation log-likelihood); None where not computed.
     """
 
     x: np.ndarray
@@ -117,6 +119,7 @@ class UKFResult:
     diverged_step: int
     n_repairs: int = 0
     diverged_cause: int = 0
+    log_det_s: np.ndarray | None = None
 
     @property
     def beta(self) -> np.ndarray:
@@ -134,8 +137,8 @@ class UKFBatchResult:
     """B UKF runs (one per noise setting) over the same manoeuvre.
 
     Attributes are those of :class:`UKFResult` with a leading axis B: x, P_diag, z_hat,
-    innovation (B, N, 3); nis (B, N); diverged (B,) bool; diverged_step (B,) int (−1 if
-    none); n_repairs (B,) int; diverged_cause (B,) int.
+    innovation (B, N, 3); nis, log_det_s (B, N); diverged (B,) bool; diverged_step (B,) int
+    (−1 if none); n_repairs (B,) int; diverged_cause (B,) int.
     """
 
     x: np.ndarray
@@ -147,6 +150,7 @@ class UKFBatchResult:
     diverged_step: np.ndarray
     n_repairs: np.ndarray
     diverged_cause: np.ndarray
+    log_det_s: np.ndarray | None = None
 
     @property
     def beta(self) -> np.ndarray:
@@ -168,6 +172,7 @@ class UKFBatchResult:
             diverged_step=int(self.diverged_step[b]),
             n_repairs=int(self.n_repairs[b]),
             diverged_cause=int(self.diverged_cause[b]),
+            log_det_s=None if self.log_det_s is None else self.log_det_s[b],
         )
 
 
@@ -279,9 +284,13 @@ def _run_single(
 ) -> UKFResult:
     wm0, wc0, wi, c = _weights(settings)
     out = _alloc((u.shape[0],))
-    div, rep, why = _kernel.run_kernel(model, mp, u, z, dt, q, r, x0, P0, wm0, wc0, wi, c, *out)
+    ldet = np.empty(u.shape[0])
+    div, rep, why = _kernel.run_kernel(
+        model, mp, u, z, dt, q, r, x0, P0, wm0, wc0, wi, c, *out, ldet
+    )
     return UKFResult(
         *out,
+        log_det_s=ldet,
         diverged=div >= 0,
         diverged_step=int(div),
         n_repairs=int(rep),
@@ -384,15 +393,19 @@ def _run_batch(
     n_sets = q_arr.shape[0]
     wm0, wc0, wi, c = _weights(settings)
     xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
+    ldet: np.ndarray | None = np.empty((n_sets, u_arr.shape[0]))
     div = np.empty(n_sets, dtype=np.int64)
     rep = np.zeros(n_sets, dtype=np.int64)
     why = np.empty(n_sets, dtype=np.int64)
     if n_sets == 1:  # no thread start-up, no padding to 4 lanes, for a single set
+        assert ldet is not None
         div[0], rep[0], why[0] = _kernel.run_kernel(
             _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
             x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
+            ldet[0],
         )  # fmt: skip
-    elif simd:
+    elif simd:  # the vector kernel does not compute log det S (log_det_s is None)
+        ldet = None
         _soa.ensure_compiled()
         _soa.run_kernel_soa(
             mp, u_arr, z_arr, dt_f, q_arr, r_arr, x_init, P_init, wm0, wc0, wi, c,
@@ -405,11 +418,11 @@ def _run_batch(
         try:
             _kernel.run_kernel_batch(
                 _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr, r_arr,
-                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, div, rep, why,
+                x_init, P_init, wm0, wc0, wi, c, xs, ps, zh, inn, nis, ldet, div, rep, why,
             )  # fmt: skip
         finally:
             numba.set_parallel_chunksize(previous)
-    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why)
+    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why, ldet)
 
 
 def run_ukf_batch(
@@ -573,6 +586,7 @@ class UnscentedKalmanFilter:
         self.y = np.zeros(self.R.shape[0])  # innovation of the last update
         self.S = self.R.copy()  # innovation covariance of the last update
         self.nis = math.nan
+        self.log_det_s = math.nan
 
     def _points(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         L, P_used, repaired = _cholesky_repaired(P)
@@ -599,6 +613,7 @@ class UnscentedKalmanFilter:
         self.y = z - z_pred
         self.S = S
         self.nis = float(self.y @ S_inv @ self.y)
+        self.log_det_s = 2.0 * float(np.sum(np.log(np.diag(Ls))))
         self.x = self.x + K @ self.y
         self.P = self.P - K @ S @ K.T
         _, self.P, repaired = _cholesky_repaired(self.P)
@@ -631,13 +646,14 @@ def run_ukf_reference(
     n = u_arr.shape[0]
     out = [np.full((n, 3), np.nan) for _ in range(4)]
     nis = np.full(n, np.nan)
+    ldet = np.full(n, np.nan)
     n_hold = _kernel.hold_steps(dt_f)
     held_beta = held_vx = 0  # consecutive steps beyond the held-runaway bounds
 
     def stopped(k: int, cause: int) -> UKFResult:
-        for a in (*out, nis):
+        for a in (*out, nis, ldet):
             a[k:] = np.nan
-        return UKFResult(*out, nis, True, k, ukf.n_repairs, cause)
+        return UKFResult(*out, nis, True, k, ukf.n_repairs, cause, log_det_s=ldet)
 
     for k in range(n):
         try:
@@ -667,4 +683,7 @@ def run_ukf_reference(
         out[2][k] = z_hat
         out[3][k] = ukf.y
         nis[k] = ukf.nis
-    return UKFResult(*out, nis, diverged=False, diverged_step=-1, n_repairs=ukf.n_repairs)
+        ldet[k] = ukf.log_det_s
+    return UKFResult(
+        *out, nis, diverged=False, diverged_step=-1, n_repairs=ukf.n_repairs, log_det_s=ldet
+    )

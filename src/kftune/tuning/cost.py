@@ -1,4 +1,5 @@
-"""Tuning costs: the paper's weighted NRMSE (Eq. 14–15) and a NIS consistency cost.
+"""Tuning costs: the paper's weighted NRMSE (Eq. 14–15), a NIS consistency cost, and the
+innovation negative log-likelihood (the prediction-error method).
 
 The functions here are pure and work on plain arrays, so they can be checked by hand. The
 tuning problem (:mod:`kftune.tuning.problem`) extracts the channels from filter runs and
@@ -20,6 +21,14 @@ from kftune.errors import ConfigError
 #: acceleration and longitudinal speed (against their measurements).
 CHANNELS: tuple[str, ...] = ("beta", "r", "ay", "vx")
 
+#: The costs a tuning problem knows: the paper's weighted NRMSE (needs a β reference) and
+#: two reference-free ones, NIS consistency and the innovation likelihood (``"pem"``).
+COST_KINDS: tuple[str, ...] = ("nrmse", "nis", "pem", "msp")
+
+#: The multi-step prediction cost's horizon [s] and the spacing of its start samples.
+MSP_HORIZON = 0.35
+MSP_STRIDE = 5
+
 #: Paper Table III: W1 = 5 (β), W2 = 1 (yaw rate), W3 = 1 (ay).
 PAPER_WEIGHTS: Mapping[str, float] = {"beta": 5.0, "r": 1.0, "ay": 1.0}
 
@@ -35,7 +44,13 @@ class CostSpec:
     Attributes:
         kind: ``"nrmse"`` — the paper's J = Σ_j W_j·E_j (Eq. 14) over the weighted channels;
             ``"nis"`` — the consistency cost |log(mean NIS / n_z)| of Chen et al. (2018),
-            which needs no reference sensor.
+            which needs no reference sensor; ``"pem"`` — the filter's innovation negative
+            log-likelihood per sample (:func:`innovation_nll`; the prediction-error method,
+            maximum likelihood), which needs no reference sensor either and is the one to
+            use without one (README, "Tuning without a reference sensor"); ``"msp"`` —
+            the multi-step prediction error (:func:`multistep_cost`): the model run open
+            loop for :data:`MSP_HORIZON` from the posterior state, against the measured
+            channels among ``weights`` (default r and ay); single-track model only.
         weights: channel → weight W_j ≥ 0 (``"nrmse"`` only): a measurement of the
             filter's model or one of its outputs (the single-track model's: :data:`CHANNELS`);
             the tuning problem checks them against its model.
@@ -49,13 +64,15 @@ class CostSpec:
             scored from the posterior.
     """
 
-    kind: Literal["nrmse", "nis"] = "nrmse"
+    kind: Literal["nrmse", "nis", "pem", "msp"] = "nrmse"
     weights: Mapping[str, float] = field(default_factory=_paper_weights)
     estimate: Literal["posterior", "prior"] = "posterior"
 
     def __post_init__(self) -> None:
-        if self.kind not in ("nrmse", "nis"):
-            raise ConfigError(f"cost kind must be 'nrmse' or 'nis', got {self.kind!r}")
+        if self.kind not in COST_KINDS:
+            raise ConfigError(
+                f"cost kind must be one of {', '.join(map(repr, COST_KINDS))}, got {self.kind!r}"
+            )
         bad = sorted(c for c in self.weights if not (isinstance(c, str) and c.isidentifier()))
         if bad:
             raise ConfigError(f"cost channel names must be identifiers, got {bad}")
@@ -170,3 +187,52 @@ def nis_cost(nis: Sequence[np.ndarray], n_z: int) -> float:
     if not (math.isfinite(mean) and mean > 0):
         return math.inf
     return abs(math.log(mean / n_z))
+
+
+def innovation_nll(log_det_s: Sequence[np.ndarray], nis: Sequence[np.ndarray], n_z: int) -> float:
+    """Innovation negative log-likelihood per sample (the prediction-error method).
+
+    With innovations ν_k ~ N(0, S_k) (the filter's own claim), the negative log-likelihood
+    of the measurements is Σ_k ½·[log det S_k + ν_kᵀ S_k⁻¹ ν_k + n_z·log 2π] (Åström 1980;
+    Särkkä, *Bayesian Filtering and Smoothing*, 2013, §12.3, the energy function). Here it is
+    divided by the number of samples, pooled over all manoeuvres, so the value does not grow
+    with the data. Minimising it over Q (and R) is maximum-likelihood tuning: unlike the NIS
+    cost, it cannot be satisfied by inflating S (log det S grows) nor by shrinking it (NIS
+    grows).
+
+    Args:
+        log_det_s: per manoeuvre, (N_i,) log det S_k.
+        nis: per manoeuvre, (N_i,) NIS_k = ν_kᵀ S_k⁻¹ ν_k.
+        n_z: measurement dimension.
+
+    Returns:
+        The mean NLL per sample, or inf when a term is not finite.
+    """
+    ld = np.concatenate([np.asarray(v, dtype=float).ravel() for v in log_det_s])
+    e = np.concatenate([np.asarray(v, dtype=float).ravel() for v in nis])
+    if ld.shape != e.shape or ld.size == 0:
+        raise ValueError(f"need equal-length non-empty inputs, got {ld.shape} and {e.shape}")
+    value = 0.5 * (float(np.mean(ld + e)) + n_z * math.log(2.0 * math.pi))
+    return value if math.isfinite(value) else math.inf
+
+
+def multistep_cost(sq_err: Sequence[np.ndarray], counts: Sequence[int]) -> float:
+    """Multi-step prediction cost Σ_j log(mean squared h-step prediction error of channel j).
+
+    From every start sample k (every :data:`MSP_STRIDE`-th), the filter's posterior x⁺_k is
+    propagated open loop through the process model with the measured inputs for h steps
+    (h = :data:`MSP_HORIZON` / dt) and h(x, u) compared with z_{k+h}. A state the filter has
+    bent to copy the measurements (a large process noise on an unmeasured state) predicts
+    badly once the measurements stop; the logarithm makes channels of any unit comparable.
+
+    Args:
+        sq_err: per manoeuvre, (n_channels,) sums of squared prediction errors.
+        counts: per manoeuvre, the number of start samples.
+    """
+    total = np.sum(np.asarray(sq_err, dtype=float), axis=0)
+    n = int(np.sum(counts))
+    if n <= 0:
+        raise ValueError("no start samples for the multi-step prediction")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        value = float(np.sum(np.log(total / n)))
+    return value if math.isfinite(value) else math.inf

@@ -2,7 +2,7 @@
 
     x (natural units) ──NoiseParameterization──▶ (Q diag, R diag, sigma-point settings)
                        ──run_ukf per manoeuvre──▶ estimates
-                       ──cost (paper Eq. 14–15 or NIS)──▶ J
+                       ──cost (paper Eq. 14–15, NIS or innovation likelihood)──▶ J
 
 The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter (also one
 that ran away to an impossible sideslip or speed, see :mod:`kftune.filters._kernel`) raises
@@ -31,9 +31,19 @@ from kftune.models import DataRefused, StateSpaceModel, model_names
 from kftune.models.user import load_model
 from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
-from kftune.tuning.cost import CostSpec, nis_cost, nrmse, weighted_cost
+from kftune.tuning.cost import (
+    MSP_HORIZON,
+    MSP_STRIDE,
+    CostSpec,
+    innovation_nll,
+    multistep_cost,
+    nis_cost,
+    nrmse,
+    weighted_cost,
+)
 from kftune.tuning.kpi import sideslip_kpis
 from kftune.vehicle.params import VehicleParams
+from kftune.vehicle.single_track import measure, step_rk4
 
 #: Paper Sec. VI: every process-noise parameter searched in [1e-10, 1] (log10 scale here).
 Q_BOUNDS = (1e-10, 1.0)
@@ -179,12 +189,18 @@ class ManoeuvreScore:
         name: manoeuvre name. n: its number of samples.
         nrmse: channel → NRMSE (paper Eq. 15) for the weighted channels.
         nis_sum: Σ_k NIS_k over the manoeuvre (for the NIS cost).
+        log_det_s_sum: Σ_k log det S_k (with ``nis_sum``, the innovation likelihood).
+        msp_sq, msp_n: per cost channel the sum of squared multi-step prediction errors,
+            and the number of start samples (the ``msp`` cost).
     """
 
     name: str
     n: int
     nrmse: dict[str, float]
     nis_sum: float
+    log_det_s_sum: float = 0.0
+    msp_sq: tuple[float, ...] = ()
+    msp_n: int = 0
 
 
 @dataclass(frozen=True)
@@ -424,9 +440,42 @@ def _score_result(m: Manoeuvre, res: RunResult, spec: CostSpec, burn_in: float) 
             raise DataError(
                 f"cannot score channel {c!r}: {exc}", file=f"manoeuvre {m.name!r}"
             ) from None
+    msp_sq: tuple[float, ...] = ()
+    msp_n = 0
+    if spec.kind == "msp":
+        msp_sq, msp_n = _multistep_errors(m, res, vehicle, spec, k0)
     return ManoeuvreScore(
-        name=m.name, n=m.n - k0, nrmse=scores, nis_sum=float(np.sum(res.nis[k0:]))
+        name=m.name,
+        n=m.n - k0,
+        nrmse=scores,
+        nis_sum=float(np.sum(res.nis[k0:])),
+        log_det_s_sum=float(np.sum(res.log_det_s[k0:])) if spec.kind == "pem" else 0.0,
+        msp_sq=msp_sq,
+        msp_n=msp_n,
     )
+
+
+def _msp_channels(spec: CostSpec) -> list[int]:
+    """Indices into the single-track measurements of the multi-step cost's channels."""
+    return [SIDESLIP_MEASUREMENTS.index(c) for c in spec.channels if c in SIDESLIP_MEASUREMENTS]
+
+
+def _multistep_errors(
+    m: Manoeuvre, res: RunResult, vehicle: VehicleParams, spec: CostSpec, k0: int
+) -> tuple[tuple[float, ...], int]:
+    """Sums of squared h-step open-loop prediction errors from x⁺_k (single-track model)."""
+    h = max(1, round(MSP_HORIZON / m.dt))
+    ks = np.arange(k0, m.n - h, MSP_STRIDE)
+    chans = _msp_channels(spec)
+    if ks.size == 0:
+        return tuple(0.0 for _ in chans), 0
+    x = res.x[ks]
+    with np.errstate(all="ignore"):
+        for j in range(h):
+            x = step_rk4(x, m.u[ks + j], vehicle, m.dt)
+        err = measure(x, m.u[ks + h], vehicle)[:, chans] - m.z[ks + h][:, chans]
+        sq = np.sum(err * err, axis=0)
+    return tuple(float(v) for v in sq), int(ks.size)
 
 
 # Worker-process state: the manoeuvres are sent once, when the pool starts.
@@ -535,6 +584,11 @@ class TuningProblem:
                         f"{list(self._outputs())} (scored against a reference channel "
                         "<output>_ref)"
                     )
+        if self.cost_spec.kind == "msp" and not (self._fs.fast and _msp_channels(self.cost_spec)):
+            raise ConfigError(
+                "the multi-step prediction cost (msp) runs the single-track UKF only, and "
+                "needs a positive weight on a measured channel (vx, ay, r)"
+            )
         for m in self.manoeuvres:
             self._check_channels(m)
             if m.n - first_scored(m, self.burn_in) < 2:
@@ -675,6 +729,16 @@ class TuningProblem:
         if spec.kind == "nis":
             cost = nis_cost([np.array([mean_nis])], n_z=self._fs.model.n_measurements)
             pooled: dict[str, float] = {}
+        elif spec.kind == "msp":
+            cost = multistep_cost([s.msp_sq for s in scores], [s.msp_n for s in scores])
+            pooled = {}
+        elif spec.kind == "pem":
+            cost = innovation_nll(
+                [np.array([sum(s.log_det_s_sum for s in scores) / n_total])],
+                [np.array([mean_nis])],
+                n_z=self._fs.model.n_measurements,
+            )
+            pooled = {}
         else:
             cost, pooled = weighted_cost(
                 {c: [s.nrmse[c] for s in scores] for c in channels},
@@ -705,7 +769,9 @@ class TuningProblem:
             DataError: a channel that cannot be scored (as :meth:`evaluate`).
         """
         points = [np.asarray(x, dtype=float) for x in X]
-        if not (self._fs.fast and self.workers == 1 and len(points) > 1):
+        # the vector kernel computes neither log det S (pem) nor predictions (msp)
+        vector = self.cost_spec.kind in ("nrmse", "nis")
+        if not (vector and self._fs.fast and self.workers == 1 and len(points) > 1):
             out: list[Evaluation | FilterDivergedError] = []
             for x in points:
                 try:

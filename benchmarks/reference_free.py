@@ -1,0 +1,195 @@
+"""Reference-free tuning benchmark (issue 13, item 5): does a cost that needs no sideslip
+sensor tune a filter whose test β RMSE beats the manual rule of thumb and comes within 1.5×
+of the NRMSE-tuned filter's?
+
+Per dataset (the bundled one, ``../shared/data/revs-250lm``, or any dataset directory
+``kftune`` opens) it tunes the UKF on the training manoeuvres with each configuration and
+scores the tuned filter on the test manoeuvres with the KPI code ``kftune compare`` uses
+(:func:`kftune.tuning.problem.assess`, :func:`kftune.tuning.kpi.average_kpis`):
+
+* ``manual``: the rule of thumb Q = diag(1e-6, 1e-4, 1e-6) (no tuning);
+* ``nrmse``: the paper's cost (needs the β reference) — the target to come near;
+* ``nis``: |log(mean NIS / 3)| (Chen et al. 2018), Q only — the old reference-free cost;
+* ``pem-q``, ``pem-rscale``, ``pem-rdiag``: the innovation negative log-likelihood
+  (``--cost pem``) with Q only, Q and one R scale, Q and R's diagonal;
+* ``msp``: the multi-step (0.35 s) open-loop prediction error of r and ay (``--cost msp``),
+  Q only.
+
+Each tuned configuration runs with ``--method`` (default ``trbo``) at ``--budget``
+evaluations for every seed. Reported per configuration: the median over seeds of the test
+β RMSE [deg] (and its range), and the filter's sideslip calibration on the test set — the
+mean β NEES (error² / σ², 1 for a calibrated filter) and the share of samples with the
+error inside ±2σ (95 % for a calibrated Gaussian filter), with σ² of β = atan2(Vy, Vx)
+linearised from P's diagonal (the Vx–Vy covariance, which the filter does not output, is
+left out; at |β| of a few degrees Vy's variance dominates).
+
+Then the checks of issue 13: for each reference-free configuration, median test β RMSE
+below the manual one, and at most 1.5× the NRMSE-tuned one.
+
+Usage::
+
+    .venv/bin/python benchmarks/reference_free.py
+    .venv/bin/python benchmarks/reference_free.py --dataset ../shared/data/revs-250lm
+    .venv/bin/python benchmarks/reference_free.py --seeds 3 --budget 40 --configs manual pem-q
+
+Prints a table and, as its last line, one JSON object with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import platform
+import statistics
+import time
+from typing import Any
+
+import numpy as np
+
+import kftune
+from kftune.data import open_dataset
+from kftune.experiment import manual_point
+from kftune.optim import minimize
+from kftune.tuning.cost import CostSpec
+from kftune.tuning.kpi import average_kpis
+from kftune.tuning.problem import NoiseParameterization, TuningProblem, assess
+
+#: configuration → (cost kind, R tuning).
+CONFIGS: dict[str, tuple[str, str]] = {
+    "manual": ("nrmse", "none"),
+    "nrmse": ("nrmse", "none"),
+    "nis": ("nis", "none"),
+    "pem-q": ("pem", "none"),
+    "pem-rscale": ("pem", "scale"),
+    "pem-rdiag": ("pem", "diag"),
+    "msp": ("msp", "none"),
+}
+REFERENCE_FREE = ("nis", "pem-q", "pem-rscale", "pem-rdiag", "msp")
+#: issue 13: within this factor of the NRMSE-tuned filter's test β RMSE.
+WITHIN = 1.5
+
+
+def beta_calibration(problem: TuningProblem, x: np.ndarray, manoeuvres: Any) -> dict[str, float]:
+    """Mean β NEES and ±2σ coverage of the filter at x over the manoeuvres (see above)."""
+    nees, inside, n = 0.0, 0, 0
+    for m in manoeuvres:
+        res = problem.run(x, m)
+        if res.diverged:
+            return {"nees": math.nan, "coverage_2sigma": math.nan}
+        vx, vy = res.x[:, 0], res.x[:, 1]
+        d = vx * vx + vy * vy
+        var = (vx * vx * res.P_diag[:, 1] + vy * vy * res.P_diag[:, 0]) / (d * d)
+        err = np.arctan2(vy, vx) - m.beta_ref
+        nees += float(np.sum(err * err / var))
+        inside += int(np.sum(np.abs(err) <= 2.0 * np.sqrt(var)))
+        n += m.n
+    return {"nees": nees / n, "coverage_2sigma": inside / n}
+
+
+def run_config(ds: Any, name: str, method: str, budget: int, seed: int) -> dict[str, Any]:
+    kind, tune_r = CONFIGS[name]
+    par = NoiseParameterization(tune_r=tune_r)
+    problem = TuningProblem(
+        ds.train, ds.vehicle, ds.r_default, cost=CostSpec(kind=kind), parameterization=par
+    )
+    t0 = time.perf_counter()
+    if name == "manual":
+        x, fun, n_eval = manual_point(par), math.nan, 1
+    else:
+        res = minimize(problem, problem.space, method, budget=budget, seed=seed)
+        x, fun, n_eval = np.asarray(res.x, dtype=float), float(res.fun), len(res.history)
+    wall = time.perf_counter() - t0
+    per_manoeuvre, _ = assess(problem, x, ds.test)
+    kpis = average_kpis(per_manoeuvre.values())
+    return {
+        "config": name,
+        "seed": seed,
+        "params": dict(zip(problem.space.names, x.tolist())),
+        "cost": fun,
+        "evaluations": n_eval,
+        "wall_s": wall,
+        "beta_rmse_deg": kpis["rmse"],
+        "beta_mae_deg": kpis["mae"],
+        **beta_calibration(problem, x, ds.test),
+    }
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", default=None, help="dataset directory (default: bundled)")
+    ap.add_argument("--method", default="trbo")
+    ap.add_argument("--budget", type=int, default=40)
+    ap.add_argument("--seeds", type=int, default=3, help="seeds 0 … N−1")
+    ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    args = ap.parse_args(argv)
+
+    ds = open_dataset(args.dataset)
+    runs: list[dict[str, Any]] = []
+    for name in args.configs:
+        for seed in range(1 if name == "manual" else args.seeds):
+            r = run_config(ds, name, args.method, args.budget, seed)
+            runs.append(r)
+            print(
+                f"{name:<11} seed {seed}: test β RMSE {r['beta_rmse_deg']:.3f}°  "
+                f"NEES {r['nees']:.3g}  ±2σ {100 * r['coverage_2sigma']:.1f} %  "
+                f"J {r['cost']:.4g}  {r['wall_s']:.1f} s  "
+                + " ".join(f"{k}={v:.3g}" for k, v in r["params"].items()),
+                flush=True,
+            )
+    summary: dict[str, dict[str, float]] = {}
+    for name in args.configs:
+        rs = [r for r in runs if r["config"] == name]
+        rmse = [r["beta_rmse_deg"] for r in rs]
+        summary[name] = {
+            "median_beta_rmse_deg": statistics.median(rmse),
+            "min_beta_rmse_deg": min(rmse),
+            "max_beta_rmse_deg": max(rmse),
+            "median_nees": statistics.median(r["nees"] for r in rs),
+            "median_coverage_2sigma": statistics.median(r["coverage_2sigma"] for r in rs),
+        }
+    print()
+    print("| Config | median test β RMSE [°] | range [°] | β NEES | ±2σ coverage |")
+    print("| --- | --- | --- | --- | --- |")
+    for name, s in summary.items():
+        print(
+            f"| {name} | {s['median_beta_rmse_deg']:.3f} | {s['min_beta_rmse_deg']:.3f}–"
+            f"{s['max_beta_rmse_deg']:.3f} | {s['median_nees']:.3g} | "
+            f"{100 * s['median_coverage_2sigma']:.1f} % |"
+        )
+    checks: dict[str, dict[str, bool | None]] = {}
+    man = summary.get("manual", {}).get("median_beta_rmse_deg")
+    ref = summary.get("nrmse", {}).get("median_beta_rmse_deg")
+    for name in REFERENCE_FREE:
+        if name not in summary:
+            continue
+        v = summary[name]["median_beta_rmse_deg"]
+        checks[name] = {
+            "beats_manual": None if man is None else v < man,
+            "within_1.5x_nrmse": None if ref is None else v <= WITHIN * ref,
+        }
+        verdict = ", ".join(
+            f"{k}: {'n/a' if ok is None else 'PASS' if ok else 'FAIL'}"
+            for k, ok in checks[name].items()
+        )
+        print(f"{name}: {verdict}")
+    out = {
+        "benchmark": "reference_free",
+        "date": dt.date.today().isoformat(),
+        "kftune_version": kftune.__version__,
+        "machine": f"{platform.machine()}, Python {platform.python_version()}",
+        "dataset": args.dataset or "bundled",
+        "method": args.method,
+        "budget": args.budget,
+        "seeds": args.seeds,
+        "summary": summary,
+        "checks": checks,
+        "runs": runs,
+    }
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
