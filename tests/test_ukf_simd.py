@@ -140,7 +140,7 @@ def _raw(man, P_init: np.ndarray, n: int = 200):
         one = [np.empty((n, 3)) for _ in range(4)] + [np.empty(n)]
         div, rep, why = _kernel.run_kernel(
             _kernel.MODEL_SINGLE_TRACK, man.params.to_array(), man.u[:n], man.z[:n], man.dt,
-            q[b], r[b], x[b], P_init[b], *w, *one,
+            q[b], r[b], x[b], P_init[b], *w, *one, np.empty(n),  # (log det S: not compared)
         )  # fmt: skip
         got = UKFResult(*(o[b] for o in outs), ints[0][b] >= 0, ints[0][b], ints[1][b], ints[2][b])
         assert_same(got, UKFResult(*one, div >= 0, div, rep, why))

@@ -422,11 +422,18 @@ def _score(
     spec: CostSpec,
     burn_in: float,
 ) -> ManoeuvreScore:
-    return _score_result(m, fs.run(m, vehicle, q, r, settings), spec, burn_in)
+    return _score_result(m, fs.run(m, vehicle, q, r, settings), spec, burn_in, vehicle)
 
 
-def _score_result(m: Manoeuvre, res: RunResult, spec: CostSpec, burn_in: float) -> ManoeuvreScore:
-    """One manoeuvre's contribution from the filter's run over it."""
+def _score_result(
+    m: Manoeuvre,
+    res: RunResult,
+    spec: CostSpec,
+    burn_in: float,
+    vehicle: VehicleParams | None,
+) -> ManoeuvreScore:
+    """One manoeuvre's contribution from the filter's run over it (``vehicle``: for the
+    multi-step predictions of the msp cost)."""
     if res.diverged:
         raise FilterDivergedError(f"filter diverged on {where_diverged(m, res)}")
     k0 = first_scored(m, burn_in)
@@ -792,7 +799,9 @@ class TuningProblem:
                 batch = run_ukf_simd(m.u, m.z, m.dt, self.vehicle, q, r, settings=settings)
                 for b, i in enumerate(idx):
                     try:
-                        results[i].append(_score_result(m, batch[b], self.cost_spec, self.burn_in))
+                        results[i].append(
+                            _score_result(m, batch[b], self.cost_spec, self.burn_in, self.vehicle)
+                        )
                     except FilterDivergedError as exc:
                         results[i].append(exc)
         out = []
