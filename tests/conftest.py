@@ -7,8 +7,11 @@ The real recording lives outside the repository, in ``../shared/data`` next to t
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import signal
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -60,3 +63,38 @@ def default_sigint() -> None:
     the suite in the background without job control makes it ignore SIGINT, and children
     inherit that (Python then installs no KeyboardInterrupt handler); restore the default."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@dataclass(frozen=True)
+class Ran:
+    """What a command returned: as :class:`subprocess.CompletedProcess`'s fields."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> Ran:
+    """``kftune ARGS`` in this process (``kftune.cli.main``), capturing its output.
+
+    A subprocess would re-import kftune and reload every compiled kernel for each command
+    (seconds each); tests of process behaviour (signals, closed streams, SIGKILL and
+    resume) start real processes instead.
+    """
+    from kftune.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    here = os.getcwd()
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main([str(a) for a in args])
+            except SystemExit as exc:  # argparse: --help (0) and usage errors (2)
+                code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    finally:
+        os.chdir(here)
+        signal.signal(signal.SIGINT, handler)
+    return Ran(int(code), out.getvalue(), err.getvalue())

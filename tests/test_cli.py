@@ -1,5 +1,7 @@
-"""The kftune command through a subprocess: help, errors and exit codes, --json, an
-end-to-end compare on a small subset, report rebuilding, and --resume after a SIGKILL."""
+"""The kftune command: help, errors and exit codes, --json, an end-to-end compare on a small
+subset, report rebuilding, and --resume after a SIGKILL. Commands run in this process
+(``run_cli``) unless the test is about the process itself (the entry point, signals, a
+closed pipe, SIGKILL), which runs ``python -m kftune``."""
 
 from __future__ import annotations
 
@@ -15,12 +17,14 @@ from pathlib import Path
 
 import pytest
 
-from conftest import SMALL_TRAIN, default_sigint
+from conftest import SMALL_TRAIN, default_sigint, run_cli
 from kftune.cli import SUBCOMMANDS, main
 from kftune.data import default_dataset, save_dataset
 
+kftune = run_cli
 
-def kftune(
+
+def kftune_process(
     *args: str, cwd: Path | None = None, timeout: float = 300
 ) -> subprocess.CompletedProcess:
     return subprocess.run(
@@ -33,7 +37,7 @@ def kftune(
 
 
 def test_help_of_every_command():
-    top = kftune("--help")
+    top = kftune_process("--help")  # the entry point, as a user runs it
     assert top.returncode == 0
     for name in SUBCOMMANDS:
         assert name in top.stdout

@@ -3,22 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 
-CLI = "import sys; from kftune.cli import main; sys.exit(main(sys.argv[1:]))"
+from conftest import run_cli
 
-
-def kftune(*args: str, cwd=None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-c", CLI, *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=300,
-    )
+kftune = run_cli
 
 
 def test_info_json_summarises_the_bundled_dataset():

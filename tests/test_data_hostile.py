@@ -19,6 +19,7 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import run_cli
 from kftune.cli import main
 from kftune.data import SIDESLIP_CHANNELS, Dataset, load_dataset, load_mat, save_dataset, textfile
 from kftune.data.io import file_stem, read_csv
@@ -33,6 +34,9 @@ SI = dict.fromkeys(SIDESLIP_CHANNELS, 1.0)
 
 
 def kftune(*args: object, cwd: Path | None = None, env: dict | None = None):
+    """``kftune ARGS``: in this process, or a real one when ``env`` sets its environment."""
+    if env is None:
+        return run_cli(*map(str, args), cwd=cwd)
     return subprocess.run(
         [sys.executable, "-m", "kftune", *map(str, args)],
         capture_output=True,

@@ -5,7 +5,6 @@ standstill trimming, merging with a train/test rule, errors, missing extras, the
 from __future__ import annotations
 
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,6 +17,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+from conftest import run_cli
 from kftune.cli import EXIT_BAD_INPUT, main
 from kftune.data import load_dataset
 from kftune.data.importer import import_recordings, read_mapping
@@ -304,17 +304,15 @@ def test_cli_import_then_tune(tmp_path):
     files = _three_mat_files(tmp_path)
     (tmp_path / "map.toml").write_text(MAPPING_TOML)
     out = tmp_path / "ds"
-    run = [sys.executable, "-m", "kftune"]
-    imp = subprocess.run(
-        [*run, "dataset", "import", *map(str, files), "--mapping", str(tmp_path / "map.toml"),
-         "-o", str(out)], capture_output=True, text=True, timeout=120,
+    imp = run_cli(
+        "dataset", "import", *map(str, files), "--mapping", str(tmp_path / "map.toml"),
+        "-o", str(out),
     )  # fmt: skip
     assert imp.returncode == 0, imp.stderr
     assert "3 manoeuvres" in imp.stdout and "1 test" in imp.stdout
-    tune = subprocess.run(
-        [*run, "tune", str(out), "-m", "random", "--budget", "3", "-o", str(tmp_path / "t.json")],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+    tune = run_cli(
+        "tune", str(out), "-m", "random", "--budget", "3", "-o", str(tmp_path / "t.json")
+    )
     assert tune.returncode == 0, tune.stderr
     assert (tmp_path / "t.json").is_file()
 

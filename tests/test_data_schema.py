@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import tomllib
 
+from conftest import run_cli as kftune
 from kftune.data import Dataset, Manoeuvre, default_dataset, load_dataset, save_dataset
 from kftune.errors import ConfigError, DataError, MissingChannelError
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.problem import TuningProblem, default_r0
-from test_cli import kftune
 
 if sys.version_info < (3, 11):  # pragma: no cover
     pytest.skip("tomllib", allow_module_level=True)
@@ -111,7 +111,6 @@ def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_
         "--json",
         "-o",
         str(out),
-        timeout=600,
     )
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from test_cli import kftune
+from conftest import run_cli as kftune
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "linear_bicycle.py"
 
@@ -18,27 +18,14 @@ def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     model = tmp_path / "my_model.py"
     shutil.copyfile(EXAMPLE, model)
     out = tmp_path / "tuned.json"
-    res = kftune(
-        "tune",
-        str(small),
-        "--model",
-        str(model),
-        "-n",
-        "6",
-        "--json",
-        "-o",
-        str(out),
-        timeout=600,
-    )
+    res = kftune("tune", str(small), "--model", str(model), "-n", "6", "--json", "-o", str(out))
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     assert doc["model"] == str(model) and doc["filter"] == "ukf"
     assert doc["states"] == ["vx", "vy", "r"] and set(doc["params"]) == {"q_vx", "q_vy", "q_r"}
     assert doc["n_evals"] == 6 and doc["cost"] > 0
     # evaluate takes the model from the tuned file and scores the same cost
-    ev = kftune(
-        "evaluate", str(small), "--params", str(out), "--split", "train", "--json", timeout=600
-    )
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
     assert ev.returncode == 0, ev.stderr
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
 
