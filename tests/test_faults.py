@@ -29,7 +29,7 @@ from conftest import default_sigint
 from kftune.cli import main
 from kftune.errors import DataError, RunFailedError
 from kftune.optim import StudyError, StudyInUseError, minimize
-from test_cli import _completed, kftune
+from test_cli import _completed, kftune, kftune_process
 from test_optim_study import (
     WORKER,
     _alive,
@@ -207,7 +207,7 @@ def test_an_output_that_is_a_pipe_or_a_dangling_link_is_refused_at_once(tmp_path
     dangling = tmp_path / "link.json"
     dangling.symlink_to(tmp_path / "gone" / "t.json")
     for out, expected in [(fifo, "not a regular file"), (dangling, "does not exist")]:
-        res = kftune("tune", "-q", "-n", "1000", "-o", str(out), timeout=120)
+        res = kftune_process("tune", "-q", "-n", "1000", "-o", str(out), timeout=120)
         assert res.returncode == 3, res.stderr
         assert "--out" in res.stderr and expected in res.stderr and "Traceback" not in res.stderr
 

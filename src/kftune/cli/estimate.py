@@ -5,7 +5,7 @@ and R as tuned, not re-estimated from the recordings — and runs it on every ma
 DATASET (a kftune dataset directory or manifest, a revs-250lm directory, or 'default';
 ``--manoeuvre`` picks some). For each manoeuvre it writes, into ``--out`` (default
 ./estimates), one table (CSV, or Parquet with ``--format parquet``, which needs pyarrow:
-pip install pyarrow) and one figure (``--no-plot`` leaves them out):
+pip install 'kftune[parquet]') and one figure (``--no-plot`` leaves them out):
 
   NAME.csv   t [s]; the model's states (single-track: vx, vy [m/s], r [rad/s]) and their
              standard deviations <state>_std from the diagonal of the covariance P; beta
@@ -93,7 +93,7 @@ def _parquet_writer() -> Any:
     except ImportError:
         raise UsageError(
             "--format parquet needs the package pyarrow, which is not installed "
-            "(pip install pyarrow); or use --format csv"
+            "(pip install 'kftune[parquet]'); or use --format csv"
         ) from None
     return pyarrow, pyarrow.parquet
 
