@@ -254,3 +254,25 @@ def default_r0_of(ds: Dataset) -> np.ndarray:
     from kftune.models import SINGLE_TRACK
 
     return default_r0(SINGLE_TRACK, ds)
+
+
+def test_the_sideslip_report_needs_beta_ref_on_every_manoeuvre_or_none():
+    from kftune.experiment import sideslip_report
+    from kftune.models import CTRV, SINGLE_TRACK
+
+    ds = default_dataset()
+    a, b = ds.train[0].slice(0, 400), ds.test[0].slice(0, 400)
+    bare = Manoeuvre(
+        b.name,
+        b.kind,
+        b.split,
+        b.t,
+        channels={k: v for k, v in b.channels.items() if k != "beta_ref"},
+    )
+    assert sideslip_report(SINGLE_TRACK, Dataset("full", ds.vehicle, ds.dt, [a, b]))
+    assert not sideslip_report(CTRV, Dataset("full", ds.vehicle, ds.dt, [a, b]))
+    mixed = Dataset("mixed", ds.vehicle, ds.dt, [a, bare])
+    with pytest.raises(MissingChannelError, match="needs a reference channel beta_ref"):
+        sideslip_report(SINGLE_TRACK, mixed)
+    none = Dataset("none", ds.vehicle, ds.dt, [bare])
+    assert not sideslip_report(SINGLE_TRACK, none)  # scored by its measurements instead
