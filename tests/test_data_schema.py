@@ -145,6 +145,53 @@ def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_
     assert "needs the vehicle's parameters" in res.stderr
 
 
+def test_compare_and_report_a_tracking_model_by_its_channel_rmses(track, tmp_path):
+    """``compare`` on a model without the sideslip output: the KPIs are the RMSE of each
+    cost channel against its reference, named with units; ``report`` rebuilds it."""
+    out = tmp_path / "rep"
+    res = kftune(
+        "compare", str(track), "--model", "ctrv", "--weights", "v=1,omega=1",
+        "--methods", "manual", "random", "trbo", "--budget", "random=3", "--budget", "trbo=3",
+        "--json", "-o", str(out), timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["meta"]["scored_channels"] == {"omega": "rad/s", "v": "m/s"}
+    assert "Eq. 14–15" in doc["meta"]["cost"] and "px, py from the posterior" in doc["meta"]["cost"]
+    ds = load_dataset(track)
+    for run in doc["methods"]:
+        for split, names in (("train", ["run-1", "run-2"]), ("test", ["run-3"])):
+            assert set(run["metrics"][split]) == set(names)
+            assert set(run["averages"][split]) == {
+                "rmse_omega", "rmse_v", "n_diverged", "n_manoeuvres"
+            }  # fmt: skip
+            assert all(math.isfinite(run["averages"][split][k]) for k in ("rmse_omega", "rmse_v"))
+    # the test KPI is the RMSE of the stored estimate against the reference (no burn-in)
+    traces = np.load(out / "traces.npz")
+    v = traces["run-3::v_trbo"]
+    np.testing.assert_array_equal(traces["run-3::v_ref"], ds["run-3"].channel("v_ref"))
+    rmse = float(np.sqrt(np.mean((v - ds["run-3"].channel("v_ref")) ** 2)))
+    trbo = next(r for r in doc["methods"] if r["key"] == "trbo")
+    assert trbo["metrics"]["test"]["run-3"]["rmse_v"] == pytest.approx(rmse, rel=1e-12)
+    tables = json.loads(res.stdout)["tables"]
+    assert [row["KPI"] for row in tables["kpi_test"]] == ["RMSE omega [rad/s]", "RMSE v [m/s]"]
+    md = (out / "report.md").read_text()
+    assert "## Average RMSE of the scored channels on the test set" in md
+    assert "| RMSE v [m/s] |" in md and "| RMSE omega [rad/s] |" in md
+    assert "sideslip" not in md.lower() and "β" not in md
+    figures = {p.name for p in (out / "figures").glob("*.png")}
+    assert figures == {"convergence.png", "cost_slice.png", "channels_run-3.png"}
+    assert "(figures/channels_run-3.png)" in md
+    header = (out / "tables" / "per_manoeuvre.csv").read_text().splitlines()[0]
+    assert header == "method,split,manoeuvre,rmse_omega,rmse_v,diverged"
+    again = kftune("report", str(out), "--out", str(tmp_path / "again"))
+    assert again.returncode == 0, again.stderr
+    assert (tmp_path / "again" / "report.md").read_text() == md
+    for csv in (out / "tables").glob("*.csv"):
+        assert (tmp_path / "again" / "tables" / csv.name).read_text() == csv.read_text()
+    assert {p.name for p in (tmp_path / "again" / "figures").glob("*.png")} == figures
+
+
 @pytest.fixture(scope="module")
 def no_reference(tmp_path_factory) -> Path:
     """Two training and one test manoeuvre of the bundled set without ``beta_ref``."""
@@ -190,9 +237,14 @@ def test_a_sideslip_recording_without_a_reference_loads_and_tunes_on_nis(no_refe
         "the nrmse cost needs a reference channel beta_ref, which manoeuvre "
         f"{ds.train[0].name!r} lacks" in res.stderr
     )
-    res = kftune("compare", str(no_reference), "--cost", "nis", "-o", str(tmp_path / "rep"))
-    assert res.returncode == 3 and "Traceback" not in res.stderr
-    assert "β figures) needs a reference channel beta_ref, which manoeuvre" in res.stderr
+    # without beta_ref, compare reports the RMSE of every measurement (a reference-free cost)
+    rep = tmp_path / "rep"
+    res = kftune("compare", str(no_reference), "--cost", "nis", "--methods", "manual", "random",
+                 "--budget", "random=2", "-q", "-o", str(rep))  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    meta = json.loads((rep / "results.json").read_text())["meta"]
+    assert meta["scored_channels"] == {"vx": "m/s", "ay": "m/s^2", "r": "rad/s"}
+    assert "| RMSE r [rad/s] |" in (rep / "report.md").read_text()
     res = kftune("dataset", "show", str(no_reference), "-o", str(tmp_path / "m.png"))
     assert res.returncode == 0, res.stderr  # the channels it has
 
@@ -201,3 +253,25 @@ def default_r0_of(ds: Dataset) -> np.ndarray:
     from kftune.models import SINGLE_TRACK
 
     return default_r0(SINGLE_TRACK, ds)
+
+
+def test_the_sideslip_report_needs_beta_ref_on_every_manoeuvre_or_none():
+    from kftune.experiment import sideslip_report
+    from kftune.models import CTRV, SINGLE_TRACK
+
+    ds = default_dataset()
+    a, b = ds.train[0].slice(0, 400), ds.test[0].slice(0, 400)
+    bare = Manoeuvre(
+        b.name,
+        b.kind,
+        b.split,
+        b.t,
+        channels={k: v for k, v in b.channels.items() if k != "beta_ref"},
+    )
+    assert sideslip_report(SINGLE_TRACK, Dataset("full", ds.vehicle, ds.dt, [a, b]))
+    assert not sideslip_report(CTRV, Dataset("full", ds.vehicle, ds.dt, [a, b]))
+    mixed = Dataset("mixed", ds.vehicle, ds.dt, [a, bare])
+    with pytest.raises(MissingChannelError, match="needs a reference channel beta_ref"):
+        sideslip_report(SINGLE_TRACK, mixed)
+    none = Dataset("none", ds.vehicle, ds.dt, [bare])
+    assert not sideslip_report(SINGLE_TRACK, none)  # scored by its measurements instead

@@ -1,6 +1,10 @@
 """The paper's experiment (Sec. VI): tune on the training set with several methods, evaluate
 every tuned filter on the training and test sets, and store what the report needs.
 
+For a model with the sideslip output ``beta`` on data with the reference ``beta_ref`` it is
+the paper's experiment (sideslip KPIs, β figures); for any other model or data the KPIs are
+the RMSE of each scored channel against its reference (:func:`scored_channels`).
+
 This module only wires the layers together — data → tuning problem → optimiser → results —
 the CLI's ``tune`` and ``compare`` call it.
 """
@@ -22,6 +26,7 @@ from kftune.bo import make_surrogate
 from kftune.data.io import file_stem
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
+from kftune.models import StateSpaceModel
 from kftune.optim import (
     DEFAULT_METHOD,
     MAX_TIMEOUT,
@@ -45,6 +50,7 @@ from kftune.tuning.problem import (
     NoiseParameterization,
     TuningProblem,
     assess,
+    channel_estimate,
     default_r0,
     filter_spec,
     model_output,
@@ -204,11 +210,13 @@ class CompareSettings:
         workers: processes per cost evaluation (1: serial).
         burn_in: [s] start of each manoeuvre left out of cost and KPIs (see
             :class:`~kftune.tuning.problem.TuningProblem`); 0 = the paper.
-        slice_parameter: the parameter of the Fig. 2 cost slice (paper: the Vy noise).
+        slice_parameter: the parameter of the Fig. 2 cost slice (paper: the Vy noise);
+            None: ``q_vy`` where the model has it, else the first tuned parameter.
         figure_kinds: manoeuvre kinds whose first test manoeuvre gets a β figure (Figs. 8–10).
         method_options: method → extra optimiser options.
-        model, filter: the filter's model (a built-in name or a model file; it must have
-            the output ``beta``, which the report plots) and ``"ukf"`` / ``"ekf"``.
+        model, filter: the filter's model (a built-in name or a model file) and ``"ukf"`` /
+            ``"ekf"``. A model without the sideslip output ``beta`` (or data without
+            ``beta_ref``) is reported by its channel RMSEs (:func:`scored_channels`).
         r0: measurement-noise variances of measurements the dataset has no estimate for.
     """
 
@@ -219,7 +227,7 @@ class CompareSettings:
     parameterization: NoiseParameterization = field(default_factory=NoiseParameterization)
     workers: int = 1
     burn_in: float = 0.0
-    slice_parameter: str = "q_vy"
+    slice_parameter: str | None = None
     figure_kinds: tuple[str, ...] = ("skidpad", "slalom", "j-turn")
     method_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     model: str = "single-track"
@@ -239,12 +247,16 @@ class CompareSettings:
                 raise ConfigError(f"budget for {m!r} must be an integer >= 1, got {b!r}")
 
 
-def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str]) -> list[str]:
+def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str], sideslip: bool = True) -> list[str]:
     """Test manoeuvres shown in the β figures: per kind, the test manoeuvre with the largest
     reference sideslip (where tuning matters most, cf. paper Figs. 8–10); for a dataset
     without those kinds (e.g. segments of a recording), the test manoeuvre with the largest
-    reference sideslip."""
+    reference sideslip. ``sideslip=False`` (another model's channel figures): per kind the
+    first test manoeuvre, else the first test manoeuvre."""
     test = dataset.test or dataset.manoeuvres
+    if not sideslip:
+        firsts = [next((m.name for m in test if m.kind == k), None) for k in kinds]
+        return [n for n in firsts if n is not None] or [test[0].name]
 
     def peak(m: Manoeuvre) -> float:
         return float(np.max(np.abs(m.beta_ref)))
@@ -266,16 +278,58 @@ def require_success(result: OptimizeResult, method: str) -> None:
         )
 
 
+def sideslip_report(model: StateSpaceModel, dataset: Dataset) -> bool:
+    """Whether ``compare`` reports the paper's sideslip KPIs and β figures: the model has
+    the output ``beta`` and the measurements ``r`` and ``ay``, and the data have the
+    reference ``beta_ref``.
+
+    Raises:
+        MissingChannelError: some manoeuvres have ``beta_ref`` and others do not.
+    """
+    if "beta" not in model.outputs or not {"r", "ay"} <= set(model.measurement_names):
+        return False
+    if not any(m.has("beta_ref") for m in dataset.manoeuvres):
+        return False
+    for m in dataset.manoeuvres:  # before anything is written or run
+        m.require(["beta_ref"], "compare (its sideslip KPIs and β figures)", "a reference channel")
+    return True
+
+
+def scored_channels(model: StateSpaceModel, dataset: Dataset, cost: CostSpec) -> dict[str, str]:
+    """The channels ``compare`` scores a model without the sideslip report by, with their
+    units: the cost's channels (a measurement against the measured channel, any other
+    channel against ``<channel>_ref``), or every measurement for a cost without a
+    reference (nis, pem, msp). A unit is the model's for a measurement or state, else the
+    unit the dataset declares for ``<channel>_ref`` ("" if none)."""
+    names = cost.channels if cost.kind == "nrmse" else model.measurement_names
+    units = {
+        **dict(zip(model.state_names, model.state_units)),
+        **dict(zip(model.measurement_names, model.measurement_units)),
+    }
+    return {c: units.get(c) or dataset.units.get(f"{c}_ref", "") for c in names}
+
+
+def reference(model: StateSpaceModel, m: Manoeuvre, channel: str) -> np.ndarray:
+    """(N,) what ``channel`` is scored against: the measured channel for a measurement of
+    ``model``, else the reference ``<channel>_ref``."""
+    return m.channel(channel if channel in model.measurement_names else f"{channel}_ref")
+
+
 def method_run(
     key: str,
     result: OptimizeResult,
     problem: TuningProblem,
     splits: Mapping[str, Sequence[Manoeuvre]],
+    channels: Sequence[str] | None = None,
 ) -> tuple[MethodRun, dict[str, dict[str, np.ndarray]]]:
     """Evaluate a tuning run's best point on each split.
 
+    ``channels``: score these channels (:func:`~kftune.tuning.problem.assess`) instead of
+    the sideslip KPIs.
+
     Returns:
-        (the :class:`MethodRun`, manoeuvre → β estimate [rad] for every manoeuvre).
+        (the :class:`MethodRun`, manoeuvre → β estimate [rad] ``beta_<key>`` for every
+        manoeuvre; with ``channels``, their estimates ``<channel>_<key>`` instead).
     """
     require_success(result, key)
     # time = what the optimiser and the evaluations took (stored in the study, so a resumed
@@ -288,11 +342,21 @@ def method_run(
     for split, manoeuvres in splits.items():
         if not manoeuvres:
             continue
-        per, runs = assess(problem, result.x, manoeuvres)
+        per, runs = assess(problem, result.x, manoeuvres, channels)
         metrics[split] = per
-        averages[split] = average_kpis(per.values())
+        if channels is None:
+            averages[split] = average_kpis(per.values())
+        else:
+            averages[split] = average_kpis(per.values(), [f"rmse_{c}" for c in channels])
+        by_name = {m.name: m for m in manoeuvres}
         for name, res in runs.items():
-            betas[name] = {f"beta_{key}": model_output(res, "beta")}
+            if channels is None:
+                betas[name] = {f"beta_{key}": model_output(res, "beta")}
+                continue
+            estimate = problem.cost_spec.estimate
+            betas[name] = {
+                f"{c}_{key}": channel_estimate(by_name[name], res, c, estimate)[0] for c in channels
+            }
     q, r_diag, ukf = problem.decode(result.x)
     run = MethodRun(
         key=key,
@@ -393,8 +457,8 @@ def run_compare(
     settings = settings or CompareSettings()
     if not dataset.train:
         raise ConfigError(f"dataset {dataset.name!r} has no training manoeuvres")
-    for m in dataset.manoeuvres:  # before anything is written or run
-        m.require(["beta_ref"], "compare (its sideslip KPIs and β figures)", "a reference channel")
+    fs = filter_spec(settings.model, settings.filter, dataset.vehicle)
+    sideslip = sideslip_report(fs.model, dataset)  # before anything is written or run
     out = Path(out_dir)
     studies = out / "studies"
     existing = sorted(studies.glob("*.db"))
@@ -409,12 +473,6 @@ def run_compare(
             if p.suffix in (".db", ".lock") or p.name.endswith(("-wal", "-shm")):
                 p.unlink()
     studies.mkdir(parents=True, exist_ok=True)
-    fs = filter_spec(settings.model, settings.filter, dataset.vehicle)
-    if "beta" not in fs.model.outputs:
-        raise ConfigError(
-            f"compare reports the sideslip angle; model {fs.model.name!r} has no output "
-            "'beta' (tune and evaluate it instead)"
-        )
     par = settings.parameterization
     if par.states != fs.model.state_names:
         par = replace(par, states=fs.model.state_names, measurements=fs.model.measurement_names)
@@ -429,11 +487,17 @@ def run_compare(
         model=fs.spec,
         filter=fs.filter,
     )
+    channels = None if sideslip else scored_channels(fs.model, dataset, settings.cost)
     splits = {"train": dataset.train, "test": dataset.test}
-    shown = figure_manoeuvres(dataset, settings.figure_kinds)
+    shown = figure_manoeuvres(dataset, settings.figure_kinds, sideslip)
     runs: list[MethodRun] = []
+    refs = {"beta": "beta_ref"} if channels is None else {c: f"{c}_ref" for c in channels}
     traces: dict[str, dict[str, np.ndarray]] = {
-        name: {"t": dataset[name].t, "beta_ref": dataset[name].beta_ref} for name in shown
+        name: {
+            "t": dataset[name].t,
+            **{r: reference(fs.model, dataset[name], c) for c, r in refs.items()},
+        }
+        for name in shown
     }
     with problem:
         # one untimed evaluation first, so no method's timing includes loading the compiled
@@ -452,7 +516,9 @@ def run_compare(
                 progress=progress,
                 options=settings.method_options.get(method),
             )
-            run, betas = method_run(method, result, problem, splits)
+            run, betas = method_run(
+                method, result, problem, splits, None if channels is None else list(channels)
+            )
             runs.append(run)
             for name in shown:
                 traces[name].update(betas[name])
@@ -461,7 +527,11 @@ def run_compare(
         )
         best = next(r for r in runs if r.key == best_key)
         x_best = np.array([best.params[n] for n in problem.space.names])
-        sl = cost_slice(problem, x_best, settings.slice_parameter, seed=settings.seed)
+        sliced = settings.slice_parameter
+        if sliced is None:
+            names = problem.space.names
+            sliced = "q_vy" if "q_vy" in names else names[0]
+        sl = cost_slice(problem, x_best, sliced, seed=settings.seed)
     meta = {
         "dataset": {
             "name": dataset.name,
@@ -474,7 +544,7 @@ def run_compare(
         "manoeuvres": {m.name: {"kind": m.kind, "split": m.split} for m in dataset.manoeuvres},
         "filter": f"{problem.filter.upper()} on model {problem.model.name!r}"
         + (f" ({problem.model_spec})" if problem.model_spec != problem.model.name else ""),
-        "cost": _describe_cost(settings.cost),
+        "cost": _describe_cost(settings.cost, None if sideslip else problem.model),
         "parameters": ", ".join(
             f"{p.name} ∈ [{p.low:g}, {p.high:g}] ({p.scale})" for p in problem.space.params
         ),
@@ -492,20 +562,28 @@ def run_compare(
         "packages": package_versions(),
         "machine": machine(),
     }
+    if channels is not None:  # absent: the sideslip report (results as before)
+        meta["scored_channels"] = channels
     results = ExperimentResults(meta=meta, methods=runs, cost_slice=sl, traces=traces)
     results.save(out)
     return results
 
 
-def _describe_cost(cost: CostSpec) -> str:
+def _describe_cost(cost: CostSpec, model: StateSpaceModel | None = None) -> str:
+    """The cost in words; ``model``: another model than the sideslip report's (its
+    measurements named instead of r, ay, vx)."""
+    m = 3 if model is None else len(model.measurement_names)
     if cost.kind == "nis":
-        return "NIS consistency |log(mean NIS / 3)| (Chen et al. 2018)"
+        return f"NIS consistency |log(mean NIS / {m})| (Chen et al. 2018)"
     if cost.kind == "pem":
         return "innovation negative log-likelihood per sample (prediction-error method)"
+    if cost.kind == "msp" and model is not None:
+        return "multi-step prediction error of the measured channels"
     terms = " + ".join(f"{w:g}·E_{c}" for c, w in cost.weights.items() if w > 0)
+    measured = "r, ay, vx" if model is None else ", ".join(model.measurement_names)
     scored = (
-        "r, ay, vx from the posterior h(x⁺)"
+        f"{measured} from the posterior h(x⁺)"
         if cost.estimate == "posterior"
-        else "r, ay, vx from the one-step prediction"
+        else f"{measured} from the one-step prediction"
     )
     return f"J = {terms} (paper Eq. 14–15, pooled NRMSE; {scored})"

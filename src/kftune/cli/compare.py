@@ -7,7 +7,11 @@ filter on the training and test manoeuvres, and writes a report directory: ``rep
 ``studies/`` (``--resume`` continues them after an interruption).
 
 The KPIs are the paper's, in degrees: RMSE, MAE — the maximum absolute error, not the
-mean — and both over the samples with |ay| ≥ 4 m/s² (_NON). results.json and report.md
+mean — and both over the samples with |ay| ≥ 4 m/s² (_NON). For a model without the
+sideslip output beta (--model ctrv, a model file) or data without beta_ref, they are the
+RMSE of each scored channel against its reference <channel>_ref (the cost's channels; every
+measurement, against the measured channel, for the nis, pem and msp costs), in the
+channel's unit, and the figures show those channels over time. results.json and report.md
 record the command line, every option of every method (defaults included), the package
 versions, the dataset's SHA-256 fingerprint and the machine.
 """

@@ -31,12 +31,18 @@ def run(args: argparse.Namespace) -> int:
     """Run ``kftune report``."""
     from kftune.report import ExperimentResults, all_tables, write_report
     from kftune.report.results import TRACES_FILE
+    from kftune.report.tables import scored_channels
 
     results = ExperimentResults.load(args.results)
     if not results.traces:
+        which = (
+            "β figures (paper Figs. 8–10)"
+            if scored_channels(results) is None
+            else "figures of the estimated channels"
+        )
         print(
             f"kftune: warning: no {TRACES_FILE} beside results.json in {args.results}: the "
-            "β figures (paper Figs. 8–10) are left out",
+            f"{which} are left out",
             file=sys.stderr,
         )
     out = output_dir(args.out or args.results, "--out")

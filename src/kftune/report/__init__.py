@@ -2,6 +2,9 @@
 
 ``write_report(results, directory)`` writes ``report.md``, ``figures/*.png`` and
 ``tables/*.csv``; it reads nothing but the results, so a report can always be rebuilt.
+Results of the paper's sideslip problem get the paper's KPIs and β figures; results of any
+other model (``meta["scored_channels"]``) the RMSE of each scored channel, with its unit,
+and figures of those channels against their references.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from kftune.report.tables import (
     kpi_table,
     per_manoeuvre_table,
     relative_improvement,
+    scored_channels,
 )
 
 __all__ = ["ExperimentResults", "MethodRun", "Table", "all_tables", "write_report"]
@@ -58,6 +62,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
         table.write_csv(out / "tables" / f"{stem}.csv")
 
     keys = {m.key for m in results.methods}
+    channels = scored_channels(results)  # None: the paper's sideslip report
+    named = "β, yaw rate and ay" if channels is None else ", ".join(channels)
     figures: list[tuple[str, str, str]] = []  # (file, heading, caption)
     plots.save(plots.convergence(results), out / "figures" / "convergence.png")
     figures.append(
@@ -74,18 +80,33 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
                 "improvement_test.png",
                 "TSBO-tSP against GA per manoeuvre (cf. paper Fig. 7)",
                 "Relative RMSE improvement of the TSBO-tSP-tuned UKF over the GA-tuned one "
-                "on every test manoeuvre, for β, yaw rate and ay.",
+                f"on every test manoeuvre, for {named}.",
             )
         )
     stems: set[str] = set()
     for name in results.traces:
-        stem = f"beta_{file_stem(name)}.png"  # names come from a manifest: never a path
+        prefix = "beta" if channels is None else "channels"
+        stem = f"{prefix}_{file_stem(name)}.png"  # names come from a manifest: never a path
         while stem in stems:  # two names reduced to the same stem
             stem = stem.removesuffix(".png") + "_.png"
         stems.add(stem)
         shown = tuple(k for k in ("ga", "tsbo-tsp", "trbo") if k in keys)
-        plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
         kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
+        if channels is not None:
+            shown = shown or tuple(m.key for m in results.methods)
+            plots.save(plots.channel_traces(results, name, shown), out / "figures" / stem)
+            labels = ", ".join(results.method(k).label for k in shown)
+            figures.append(
+                (
+                    stem,
+                    f"Estimated channels, {name}" + (f" ({kind})" if kind else ""),
+                    f"{named} estimated by the filters tuned by {labels} against the "
+                    "reference `<channel>_ref` (for a measurement, the measured channel), "
+                    "and their errors.",
+                )
+            )
+            continue
+        plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
         figures.append(
             (
                 stem,
@@ -115,14 +136,17 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
         if stem in tables:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
             if stem.startswith("kpi_"):
-                md += [MAE_NOTE, ""]
+                md += [MAE_NOTE if channels is None else RMSE_NOTE, ""]
     md += _bound_lines(results)
     md += _option_lines(results)
     for file, heading, caption in figures:
         md += [f"## {heading}", "", caption, "", f"![{heading}](figures/{file})", ""]
-    if not results.traces:
+    if not results.traces and channels is None:
         md += ["β figures (cf. paper Figs. 8–10): not available, the stored results have no "
                "β traces (`traces.npz`).", ""]  # fmt: skip
+    elif not results.traces:
+        md += ["Channel figures: not available, the stored results have no traces "
+               "(`traces.npz`).", ""]  # fmt: skip
     md += [
         "Per-manoeuvre metrics of every method: `tables/per_manoeuvre.csv`; "
         "all numbers: `results.json`.",
@@ -163,6 +187,14 @@ MAE_NOTE = (
 )
 
 
+#: What the KPIs of a model without the sideslip report mean, under every KPI table.
+RMSE_NOTE = (
+    "RMSE: root-mean-square error of each scored channel (the cost's channels, or every "
+    "measurement for a cost without a reference) against its reference `<channel>_ref`, "
+    "or against the measured channel for a measurement, averaged over the manoeuvres."
+)
+
+
 def _option_lines(results: ExperimentResults) -> list[str]:
     """Every method's options, defaults included (``extra["options"]``; results written
     before they were recorded have none)."""
@@ -188,7 +220,7 @@ def _meta_lines(meta: dict) -> list[str]:
         lines.append(
             f"- Dataset: **{ds.get('name', '?')}** — {ds.get('n_train', '?')} training and "
             f"{ds.get('n_test', '?')} test manoeuvres"
-            + (f", vehicle: {ds['vehicle']}" if "vehicle" in ds else "")
+            + (f", vehicle: {ds['vehicle']}" if ds.get("vehicle") is not None else "")
         )
     for key, label in (
         ("filter", "Filter"),

@@ -1,4 +1,5 @@
-"""Paper-style figures (Figs. 2, 6, 7, 8–10), drawn with matplotlib's Agg backend.
+"""Paper-style figures (Figs. 2, 6, 7, 8–10), drawn with matplotlib's Agg backend; for a
+model reported by its channel RMSEs, :func:`channel_traces` stands in for Figs. 8–10.
 
 Every function takes stored :class:`~kftune.report.results.ExperimentResults` and returns a
 matplotlib ``Figure``; :func:`save` writes it as PNG and closes it.
@@ -17,7 +18,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from kftune.report.results import ExperimentResults
-from kftune.report.tables import CHANNEL_METRICS, relative_improvement
+from kftune.report.tables import channel_metrics, relative_improvement, scored_channels
 
 #: The one registry of colours: every method keeps its colour in every figure (and no
 #: figure uses a method's colour for anything else). Distinct hues, at least ΔE 20 apart
@@ -85,17 +86,19 @@ def improvement(
     split: str = "test",
     manoeuvres: list[str] | None = None,
 ) -> Figure:
-    """Fig. 7: per-manoeuvre relative RMSE improvement of ``method`` over ``baseline``."""
+    """Fig. 7: per-manoeuvre relative RMSE improvement of ``method`` over ``baseline`` (for
+    β, yaw rate and ay; for another model, for each scored channel)."""
     rel = relative_improvement(results, baseline, method, split)
     names = [n for n in (manoeuvres or list(rel)) if n in rel]
     x = np.arange(len(names))
-    width = 0.8 / len(CHANNEL_METRICS)
+    metrics = channel_metrics(results)
+    width = 0.8 / len(metrics)
     fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(names) + 2), 3.8))
-    for i, (metric, label) in enumerate(CHANNEL_METRICS.items()):
+    for i, (metric, label) in enumerate(metrics.items()):
         values = [rel[n][metric] for n in names]
         colour, hatch = CHANNEL_STYLES[i % len(CHANNEL_STYLES)]
         ax.bar(
-            x + (i - 1) * width,
+            x + (i - (len(metrics) - 1) / 2) * width,
             values,
             width,
             color=colour,
@@ -143,6 +146,48 @@ def beta_trace(
     ax_e.set_xlabel("time [s]")
     for a in (ax, ax_e):
         a.grid(True, alpha=0.3)
+    return fig
+
+
+def channel_traces(
+    results: ExperimentResults,
+    manoeuvre: str,
+    methods: tuple[str, ...] = ("ga", "tsbo-tsp", "trbo"),
+) -> Figure:
+    """For a model reported by its channel RMSEs (the counterpart of Figs. 8–10): each
+    scored channel estimated by ``methods`` against its reference in one manoeuvre (left)
+    and the error (right), one row per channel, in the channel's unit."""
+    channels = scored_channels(results) or {}
+    tr = results.traces[manoeuvre]
+    t = tr["t"]
+    rows = max(1, len(channels))
+    fig, axes = plt.subplots(rows, 2, figsize=(11, 0.4 + 2.3 * rows), sharex=True, squeeze=False)
+    for (ax, ax_e), (c, unit) in zip(axes, channels.items()):
+        unit = f" [{unit}]" if unit else ""
+        if f"{c}_ref" not in tr:
+            continue
+        ref = np.asarray(tr[f"{c}_ref"], dtype=float)
+        ax.plot(t, ref, color=COLOURS["reference"], lw=1.4, label="reference")
+        for key in methods:
+            if f"{c}_{key}" not in tr:
+                continue
+            est = np.asarray(tr[f"{c}_{key}"], dtype=float)
+            label = results.method(key).label
+            ax.plot(t, est, color=_colour(key), lw=1.0, label=label)
+            ax_e.plot(t, est - ref, color=_colour(key), lw=0.9, label=label)
+        ax.set_ylabel(f"{c}{unit}")
+        ax_e.axhline(0.0, color="black", lw=0.6)
+        ax_e.set_ylabel(f"error {c}{unit}")
+        for a in (ax, ax_e):
+            a.grid(True, alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    axes[0, 0].set_title("estimate and reference")
+    axes[0, 1].set_title("estimate − reference")
+    for a in axes[-1]:
+        a.set_xlabel("time [s]")
+    kind = results.meta.get("manoeuvres", {}).get(manoeuvre, {}).get("kind", "")
+    fig.suptitle(f"Scored channels, {manoeuvre}" + (f" ({kind})" if kind else ""))
+    fig.tight_layout()
     return fig
 
 

@@ -40,7 +40,9 @@ class MethodRun:
         history_time_s: (n_evals,) that time accumulated up to each evaluation [s].
         metrics: split → manoeuvre name → metric → value. Metrics: the β KPIs
             ``rmse, mae, rmse_non, mae_non`` [deg] and channel RMSEs ``rmse_beta`` [deg],
-            ``rmse_r`` [deg/s], ``rmse_ay`` [m/s²].
+            ``rmse_r`` [deg/s], ``rmse_ay`` [m/s²]; for a model reported by its channels
+            (``meta["scored_channels"]``, channel → unit), ``rmse_<channel>`` of each in its
+            unit. And ``diverged`` (0/1).
         averages: split → KPI → value averaged over the split's manoeuvres.
         extra: free-form, JSON-serialisable (stage per evaluation, failures, ...).
     """
@@ -71,13 +73,17 @@ class ExperimentResults:
     """Everything a report needs.
 
     Attributes:
-        meta: dataset, vehicle, configuration, versions, date.
+        meta: dataset, vehicle, configuration, versions, date; ``scored_channels``
+            (channel → unit) for a model reported by its channel RMSEs instead of the
+            sideslip KPIs (absent for the paper's sideslip report).
         methods: the runs, in report order (manual first, the proposed method last).
         cost_slice: optional one-dimensional slice of the cost with surrogate fits (Fig. 2):
             keys ``parameter``, ``grid`` (natural units), ``cost``, ``sample_index`` and per
             surrogate ``{"mean": [...], "std": [...]}`` under ``fits``.
         traces: manoeuvre name → signal name → (N,) array; signals ``t`` [s],
-            ``beta_ref`` [rad] and ``beta_<method key>`` [rad].
+            ``beta_ref`` [rad] and ``beta_<method key>`` [rad]; with ``scored_channels``,
+            ``<channel>_ref`` (the reference, or the measured channel for a measurement)
+            and ``<channel>_<method key>`` for each scored channel, in its unit.
     """
 
     meta: dict[str, Any]

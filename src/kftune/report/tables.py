@@ -26,6 +26,29 @@ KPI_LABELS = {
 CHANNEL_METRICS = {"rmse_beta": "β", "rmse_r": "yaw rate", "rmse_ay": "ay"}
 
 
+def scored_channels(results: ExperimentResults) -> dict[str, str] | None:
+    """Channel → unit of the channels the results score, for a model reported by its
+    channel RMSEs (``meta["scored_channels"]``, :func:`kftune.experiment.scored_channels`);
+    None for the paper's sideslip report."""
+    channels = results.meta.get("scored_channels")
+    return dict(channels) if isinstance(channels, dict) else None
+
+
+def channel_label(channel: str, unit: str) -> str:
+    """``"RMSE v [m/s]"`` (``"RMSE v [-]"`` without a unit)."""
+    return f"RMSE {channel} [{unit or '-'}]"
+
+
+def channel_metrics(results: ExperimentResults) -> dict[str, str]:
+    """The channel RMSE metrics of Fig. 7 and the per-manoeuvre table, with their labels:
+    :data:`CHANNEL_METRICS` for the sideslip report, else ``rmse_<channel>`` of every
+    scored channel."""
+    channels = scored_channels(results)
+    if channels is None:
+        return CHANNEL_METRICS
+    return {f"rmse_{c}": c for c in channels}
+
+
 @dataclass(frozen=True)
 class Table:
     """A titled table. ``groups`` are the sets of (row, column) cells that compete (lower
@@ -123,21 +146,33 @@ def cost_table(results: ExperimentResults) -> Table:
 
 
 def kpi_table(results: ExperimentResults, split: str) -> Table:
-    """Paper Tables VI (``split="train"``) and VII (``"test"``): average β KPIs."""
+    """Paper Tables VI (``split="train"``) and VII (``"test"``): average β KPIs; for
+    another model, the average RMSE of each scored channel in its unit."""
+    channels = scored_channels(results)
+    labels = (
+        KPI_LABELS
+        if channels is None
+        else {f"rmse_{c}": channel_label(c, u) for c, u in channels.items()}
+    )
     rows = tuple(
         (
-            KPI_LABELS[k],
+            label,
             *(float(m.averages.get(split, {}).get(k, math.nan)) for m in results.methods),
         )
-        for k in KPI_NAMES
+        for k, label in labels.items()
     )
     diverged = [int(m.averages.get(split, {}).get("n_diverged", 0)) for m in results.methods]
     if any(diverged):  # the averages are NaN then; say why
         rows = (*rows, ("Diverged manoeuvres", *diverged))
     which = "training" if split == "train" else "test"
     number = "VI" if split == "train" else "VII"
+    title = (
+        f"Average sideslip KPIs on the {which} set (cf. paper Table {number})"
+        if channels is None
+        else f"Average RMSE of the scored channels on the {which} set"
+    )
     return Table(
-        title=f"Average sideslip KPIs on the {which} set (cf. paper Table {number})",
+        title=title,
         header=("KPI", *(m.label for m in results.methods)),
         rows=rows,
         groups=_row_groups(rows, first_col=1),
@@ -147,7 +182,8 @@ def kpi_table(results: ExperimentResults, split: str) -> Table:
 def per_manoeuvre_table(results: ExperimentResults) -> Table:
     """Every metric of every method on every manoeuvre (long format, for CSV); ``diverged``
     is 1 where the filter diverged or ran away there (its metrics are then NaN)."""
-    metrics = (*KPI_NAMES, *CHANNEL_METRICS, "diverged")
+    sideslip = scored_channels(results) is None
+    metrics = (*(KPI_NAMES if sideslip else ()), *channel_metrics(results), "diverged")
     rows = []
     for m in results.methods:
         for split, per in m.metrics.items():
@@ -168,7 +204,8 @@ def relative_improvement(
     """Per-manoeuvre relative improvement of ``method`` over ``baseline`` (paper Fig. 7).
 
     improvement = 100·(RMSE_baseline − RMSE_method)/RMSE_baseline [%] for the channels of
-    :data:`CHANNEL_METRICS`; positive means ``method`` is better.
+    :func:`channel_metrics` (for the sideslip report :data:`CHANNEL_METRICS`); positive
+    means ``method`` is better.
 
     Returns:
         manoeuvre → channel metric → improvement [%].
@@ -180,7 +217,7 @@ def relative_improvement(
         if name not in new:
             continue
         out[name] = {}
-        for metric in CHANNEL_METRICS:
+        for metric in channel_metrics(results):
             b, n = base[name].get(metric, math.nan), new[name].get(metric, math.nan)
             out[name][metric] = 100.0 * (b - n) / b if b > 0 else math.nan
     return out

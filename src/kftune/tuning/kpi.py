@@ -8,7 +8,7 @@ mean. The "NON" variants keep only samples where the vehicle is in its nonlinear
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -60,11 +60,15 @@ def sideslip_kpis(
     }
 
 
-def average_kpis(per_manoeuvre: Iterable[Mapping[str, float]]) -> dict[str, float]:
+def average_kpis(
+    per_manoeuvre: Iterable[Mapping[str, float]], names: Sequence[str] = KPI_NAMES
+) -> dict[str, float]:
     """Average KPIs over manoeuvres, as the paper's Tables VI–VII do (plain mean).
 
-    A NON KPI is averaged only over the manoeuvres that have nonlinear samples; it is NaN
-    when none has. If the filter diverged on any manoeuvre (a row with ``diverged`` true),
+    ``names``: the KPIs averaged (default the sideslip KPIs; e.g. ``rmse_<channel>`` for
+    the channel RMSEs of another model). A KPI is averaged only over the manoeuvres where
+    it is not NaN (a NON KPI over those that have nonlinear samples); it is NaN when none
+    has it. If the filter diverged on any manoeuvre (a row with ``diverged`` true),
     every average is NaN — an average over the survivors would flatter the filter — and
     ``n_diverged`` says on how many.
 
@@ -76,8 +80,8 @@ def average_kpis(per_manoeuvre: Iterable[Mapping[str, float]]) -> dict[str, floa
         raise ValueError("no manoeuvres to average")
     n_diverged = sum(1 for r in rows if r.get("diverged", 0))
     out: dict[str, float] = {}
-    for name in KPI_NAMES:
-        values = [r[name] for r in rows if not math.isnan(r[name])]
+    for name in names:
+        values = [r[name] for r in rows if not math.isnan(r.get(name, math.nan))]
         out[name] = float(np.mean(values)) if values and not n_diverged else math.nan
     out["n_diverged"] = n_diverged
     out["n_manoeuvres"] = len(rows)

@@ -907,7 +907,10 @@ class TuningProblem:
 
 
 def assess(
-    problem: TuningProblem, x: Sequence[float] | np.ndarray, manoeuvres: Sequence[Manoeuvre]
+    problem: TuningProblem,
+    x: Sequence[float] | np.ndarray,
+    manoeuvres: Sequence[Manoeuvre],
+    channels: Sequence[str] | None = None,
 ) -> tuple[dict[str, dict[str, float]], dict[str, RunResult]]:
     """KPIs and channel errors of a tuned filter on manoeuvres (for tables and figures).
 
@@ -922,13 +925,20 @@ def assess(
         (:func:`missing_references` says which); ``rmse_r`` [deg/s], ``rmse_ay``
         [m/s²]. For any other model: ``rmse_<measurement>`` for each measurement, and
         ``rmse_<output>`` for each output whose reference ``<output>_ref`` the manoeuvre
-        has (in the channel's unit). And ``diverged`` (0/1).
+        has (in the channel's unit). With ``channels`` (measurements or outputs of the
+        model), for any model: only ``rmse_<channel>`` for each of them, in the channel's
+        unit (:func:`channel_estimate`; a missing reference is an error). And
+        ``diverged`` (0/1).
     """
     metrics: dict[str, dict[str, float]] = {}
     results: dict[str, RunResult] = {}
     estimate = problem.cost_spec.estimate
     model = problem.model
-    sideslip = "beta" in problem._outputs() and {"r", "ay"} <= set(model.measurement_names)
+    sideslip = (
+        channels is None
+        and "beta" in problem._outputs()
+        and {"r", "ay"} <= set(model.measurement_names)
+    )
     for m in manoeuvres:
         res = problem.run(x, m)
         results[m.name] = res
@@ -942,6 +952,8 @@ def assess(
                 row.update({k: math.nan for k in ("rmse", "mae", "rmse_non", "mae_non")})
             row["rmse_beta"] = row["rmse"]
             scored: dict[str, Any] = {"r": np.degrees, "ay": float}  # r in deg/s
+        elif channels is not None:
+            scored = dict.fromkeys(channels, float)
         else:
             scored = dict.fromkeys(model.measurement_names, float)
             refs = [c for c in problem._outputs() if m.has(f"{c}_ref")]
