@@ -26,6 +26,11 @@ stage, and a global one — but lets them alternate for the whole budget:
 * **Global steps**: every ``global_every``-th model-based step maximises EI over the whole
   box instead — exploration where the model is unsure, which is how the search leaves a
   basin.
+* **Batches** (``ask(q)``): pending points are fantasised at the model's mean (Kriging
+  believer, one hyperparameter fit per batch); the trust region is updated once per round
+  (TuRBO's batch rule, see :meth:`TrustRegionBO._observe`); the cadence of global steps
+  counts proposals; the initial design goes out on its own. With q = 1 every rule is the
+  sequential one and the proposals are the sequential loop's.
 * **Candidates**: EI is maximised over random candidates (uniform in the region, Gaussian
   around the incumbent) plus copies of some of them with coordinates moved onto the faces
   that the region touches (so optima on faces and corners are reached exactly, not only
