@@ -81,3 +81,32 @@ def test_trust_region_grows_shrinks_and_restarts():
     assert (np.diff(lengths) > 0).any() and (np.diff(lengths) < 0).any()
     assert lengths.min() >= opt.length_min / 2
     assert restarts[-1] >= 1  # the region collapsed at the optimum and started again
+
+
+def test_batches_of_one_propose_what_the_sequential_loop_proposes():
+    # ask(1) with tells in order is the sequential loop, the trust-region restarts (and the
+    # escape steps after them) included: the batch bookkeeping changes nothing at q = 1.
+    runs = []
+    for batched in (False, True):
+        opt = make_optimizer("trbo", CUBE3, budget=90, seed=0)
+        while not opt.done:
+            t = opt.ask(1)[0] if batched else opt.ask()
+            opt.tell(t.number, decoy(t.x))
+        runs.append((np.array([r.u for r in opt.history]), opt.tr_restarts))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    assert runs[0][1] == runs[1][1] >= 1
+
+
+def test_a_batch_updates_the_trust_region_once():
+    # TuRBO's batch rule: a round of q local points whose first improves and whose others do
+    # not is one success (told point by point, the failures halved the region).
+    opt = make_optimizer("trbo", CUBE3, budget=40, seed=0, failure_tol=3)
+    while len(opt.history) < opt.n_init:
+        for t in opt.ask(4):
+            opt.tell(t, decoy(t.x))
+    for _ in range(3):
+        trials, best = opt.ask(4), opt.best.value
+        length = opt.length
+        for i, t in enumerate(trials):
+            opt.tell(t, best - 1.0 if i == 0 and t.stage == 1 else best + 1.0)
+        assert opt.length >= length or trials[0].stage != 1

@@ -26,6 +26,11 @@ stage, and a global one — but lets them alternate for the whole budget:
 * **Global steps**: every ``global_every``-th model-based step maximises EI over the whole
   box instead — exploration where the model is unsure, which is how the search leaves a
   basin.
+* **Batches** (``ask(q)``): pending points are fantasised at the model's mean (Kriging
+  believer, one hyperparameter fit per batch); the trust region is updated once per round
+  (TuRBO's batch rule, see :meth:`TrustRegionBO._observe`); the cadence of global steps
+  counts proposals; the initial design goes out on its own. With q = 1 every rule is the
+  sequential one and the proposals are the sequential loop's.
 * **Candidates**: EI is maximised over random candidates (uniform in the region, Gaussian
   around the incumbent) plus copies of some of them with coordinates moved onto the faces
   that the region touches (so optima on faces and corners are reached exactly, not only
@@ -170,8 +175,14 @@ class TrustRegionBO(Optimizer):
         self.length = self.length_init
         self.n_success = self.n_failure = 0
         self.tr_restarts = 0
-        self._iter = 0  # model-based proposals so far
-        self._force_global = 0
+        self._iter = 0  # model-based results told so far
+        self._n_model = 0  # model-based proposals asked so far (told or pending)
+        self._force_global = 0  # escape steps still to hand out
+        self._fit_n = -1  # told results at the last hyperparameter fit
+        # Batch bookkeeping (TuRBO's batch rule): the trials of one ask() / ask(n) call form
+        # a round; the trust region is updated once, when its last trial is told.
+        self._round: dict[str, Any] | None = None
+        self._round_of: dict[int, dict[str, Any]] = {}
 
     def _initial_design(self, rng: np.random.Generator) -> np.ndarray:
         """(n_init, d): the centre, the face centres (``"axial"``), then Sobol points."""
@@ -239,9 +250,15 @@ class TrustRegionBO(Optimizer):
         if self._n_asked < len(self._design):  # = n in sequential use
             return Proposal(u=self._design[self._n_asked].copy(), stage=0, acquisition="init")
         y = self._targets()
-        full = n <= self.full_fit_until or self._iter % self.refit_every == 0
-        self.surrogate.n_restarts = self._n_restarts if full else 0
-        self.surrogate.fit(self._X, y)
+        if self._fit_n == n:
+            # Later points of a batch: no new result since the last fit, so keep its
+            # hyperparameters (one model per batch, as the Kriging believer assumes).
+            self.surrogate.condition(self._X, y)
+        else:
+            full = n <= self.full_fit_until or self._iter % self.refit_every == 0
+            self.surrogate.n_restarts = self._n_restarts if full else 0
+            self.surrogate.fit(self._X, y)
+            self._fit_n = n
         pending = self._pending_u()
         if len(pending):
             # Batch mode, the Kriging believer (Ginsbourger, Le Riche & Carraro, "Kriging is
@@ -252,10 +269,17 @@ class TrustRegionBO(Optimizer):
             self.surrogate.condition(np.vstack([self._X, pending]), y)
         best_i, _ = self._incumbent()
         centre = self._X[best_i if best_i is not None else int(np.argmin(y[:n]))]
+        # The cadence counts proposals asked, not results told, so that in a batch every
+        # global_every-th point is global (counting tells, a batch of q saw one value of
+        # the counter: with q = 4 and global_every = 4 no step was ever global). In
+        # sequential use the two counts are equal.
         escaping = self._force_global > 0
+        self._force_global = max(0, self._force_global - 1)
         is_global = escaping or (
-            self.global_every > 0 and self._iter % self.global_every == self.global_every - 1
+            self.global_every > 0 and self._n_model % self.global_every == self.global_every - 1
         )
+        self._n_model += 1
+        self._join_round()
         af = "std" if escaping else "EI"
         cand = self._global_candidates() if is_global else self._local_candidates(centre)
         cand = self._fresh(cand)
@@ -275,9 +299,33 @@ class TrustRegionBO(Optimizer):
             info={"length": self.length, "n_candidates": len(cand), "af_value": float(scores[j])},
         )
 
+    def ask(self, n: int | None = None) -> Any:
+        """As :meth:`Optimizer.ask`; the trials asked in one call form a round for the
+        trust-region update (see :meth:`_observe`)."""
+        _, best = self._incumbent()
+        self._round = {"best": best, "left": 0, "local": 0, "local_ok": False, "global_ok": False}
+        try:
+            return super().ask(n)
+        finally:
+            self._round = None
+
+    def _join_round(self) -> None:
+        """Register the model-based trial being proposed (number ``_n_asked``) with the
+        current round."""
+        if self._round is not None:
+            self._round["left"] += 1
+            self._round_of[self._n_asked] = self._round
+
     def _n_proposable(self) -> int | None:
-        """Before any result, only the initial design (the model needs data)."""
-        return max(len(self._design) - self._n_asked, 0) if not self._y else None
+        """The initial design is handed out on its own, and the model's first proposal waits
+        until all of it is told: a batch that mixed the design's last points with model
+        points fantasised the design's values at a mean fitted on the first few, and its
+        model points went where the rest of the design then showed nothing was (with q = 4
+        on the bundled UKF set, the first model point came from 4 results and 3 guesses)."""
+        k = len(self._design)
+        if self._n_asked < k:
+            return k - self._n_asked
+        return 0 if any(t.number < k for t in self.pending_trials) else None
 
     def _fresh(self, cand: np.ndarray) -> np.ndarray:
         """The rows of ``cand`` (m, d) that are not an asked point, told or pending (to 1e-9,
@@ -353,27 +401,48 @@ class TrustRegionBO(Optimizer):
 
     # ------------------------------------------------------------------ tell
     def _observe(self, trial: Trial, value: float | None) -> None:
-        _, best_before = self._incumbent()
+        """Store the result; when it completes its round, update the trust region once for
+        the round (TuRBO's batch rule, Eriksson et al. 2019): a round succeeds when any of
+        its points beats the incumbent it was asked against (by 1e-3 of its value), and
+        fails otherwise; failures count local evaluations, so a failed round of m local
+        points counts m towards ``failure_tol`` (TuRBO's ⌈max(4, d)/q⌉ rounds). Counting
+        per told point instead halved the region in a batch of 4 whose first point
+        improved and whose other three did not. With one point per round this is the
+        sequential rule exactly."""
         self._X = np.vstack([self._X, trial.u[None, :]])
         self._y.append(value)
         if trial.acquisition == "init":
             return
         self._iter += 1
+        rnd = self._round_of.pop(trial.number)
+        best_before = rnd["best"]
         improved = (
             value is not None
             and best_before is not None
             and value < best_before - IMPROVEMENT_RTOL * abs(best_before)
         )
-        if trial.stage == 2:  # a global step: a success re-centres the region afresh
-            self._force_global = 0 if improved else max(0, self._force_global - 1)
-            if improved:
-                self.length = self.length_init
-                self.n_success = self.n_failure = 0
+        if trial.stage == 2:
+            rnd["global_ok"] = rnd["global_ok"] or improved
+        else:
+            rnd["local"] += 1
+            rnd["local_ok"] = rnd["local_ok"] or improved
+        rnd["left"] -= 1
+        if rnd["left"] == 0:
+            self._update_region(rnd)
+
+    def _update_region(self, rnd: dict[str, Any]) -> None:
+        """The trust-region update for a completed round (see :meth:`_observe`)."""
+        if rnd["global_ok"]:  # a global step improved: re-centre the region afresh
+            self._force_global = 0
+            self.length = self.length_init
+            self.n_success = self.n_failure = 0
             return
-        if improved:
+        if not rnd["local"]:
+            return
+        if rnd["local_ok"]:
             self.n_success, self.n_failure = self.n_success + 1, 0
         else:
-            self.n_success, self.n_failure = 0, self.n_failure + 1
+            self.n_success, self.n_failure = 0, self.n_failure + rnd["local"]
         if self.n_success >= self.success_tol:
             self.length = min(2.0 * self.length, self.length_max)
             self.n_success = 0
