@@ -152,7 +152,7 @@ def test_compare_and_report_a_tracking_model_by_its_channel_rmses(track, tmp_pat
     res = kftune(
         "compare", str(track), "--model", "ctrv", "--weights", "v=1,omega=1",
         "--methods", "manual", "random", "trbo", "--budget", "random=3", "--budget", "trbo=3",
-        "--json", "-o", str(out), timeout=600,
+        "--json", "-o", str(out),
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
     doc = json.loads((out / "results.json").read_text())
