@@ -121,14 +121,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--dataset", default=None, help="dataset directory (default: bundled)")
     ap.add_argument("--method", default="trbo")
     ap.add_argument("--budget", type=int, default=40)
-    ap.add_argument("--seeds", type=int, default=3, help="seeds 0 … N−1")
+    ap.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3)")
+    ap.add_argument(
+        "--seed-offset", type=int, default=0, help="first seed (default 0; fresh seeds: 3)"
+    )
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
     args = ap.parse_args(argv)
 
     ds = open_dataset(args.dataset)
     runs: list[dict[str, Any]] = []
     for name in args.configs:
-        for seed in range(1 if name == "manual" else args.seeds):
+        seeds = range(args.seed_offset, args.seed_offset + (1 if name == "manual" else args.seeds))
+        for seed in seeds:
             r = run_config(ds, name, args.method, args.budget, seed)
             runs.append(r)
             print(
@@ -182,7 +186,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "dataset": args.dataset or "bundled",
         "method": args.method,
         "budget": args.budget,
-        "seeds": args.seeds,
+        "seeds": list(range(args.seed_offset, args.seed_offset + args.seeds)),
         "summary": summary,
         "checks": checks,
         "runs": runs,
