@@ -13,7 +13,9 @@ with variants of its *global* steps, to tell which part of the pipeline is at fa
   (every step global: plain GP-EI) or ``'{"init_design": "sobol", "n_init": 10}'``.
 
 Regret after b evaluations = f(x̂_b) − f* with x̂_b the best observed point (noise-free
-problems: the best observed value).
+problems: the best observed value). With ``--dataset`` (``bundled`` or a dataset directory)
+and ``--jstar`` the objective is instead the paper's UKF cost on that dataset's training
+manoeuvres, and the "regret" is the gap to J* in percent.
 
 Usage::
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -106,12 +109,31 @@ class ProbeTRBO(TrustRegionBO):
         return replace(prop, u=u) if res.fun < neg(x0) and fresh else prop
 
 
+def _ukf_problem(spec: str) -> Any:
+    from kftune.data import open_dataset
+    from kftune.tuning.problem import TuningProblem
+
+    ds = open_dataset(None if spec == "bundled" else spec)
+    return TuningProblem(ds.train, ds.vehicle, ds.r_default)
+
+
 def run(function: str, seed: int, budget: int, args: argparse.Namespace) -> list[float]:
-    """(budget,) regret after each evaluation."""
-    prob = suite.make_problem(function)
-    f = suite.observed(prob, seed)
+    """(budget,) regret after each evaluation (gap to J* [%] with ``--dataset``)."""
+    if args.dataset:
+        ukf = args.ukf_problem
+
+        def f(x: np.ndarray) -> float:
+            try:
+                return float(ukf(x))
+            except Exception:  # a diverged filter: a failed evaluation
+                return math.nan
+
+        space, truth, f_star = ukf.space, f, args.jstar
+    else:
+        prob = suite.make_problem(function)
+        f, space, truth, f_star = suite.observed(prob, seed), prob.space, prob.f, prob.f_star
     opt = ProbeTRBO(
-        Space.coerce(prob.space),
+        Space.coerce(space),
         budget=budget,
         seed=seed,
         global_warp=args.global_warp,
@@ -122,10 +144,10 @@ def run(function: str, seed: int, budget: int, args: argparse.Namespace) -> list
     for _ in range(budget):
         trial = opt.ask()
         v = f(np.array(trial.x))
-        opt.tell(trial, v)
+        opt.tell(trial, None if math.isnan(v) else v)
         if v < best:
-            best, regret = v, prob.f(np.array(trial.x)) - prob.f_star
-        curve.append(regret)
+            best, regret = v, truth(np.array(trial.x)) - f_star
+        curve.append(100.0 * regret / f_star if args.dataset else regret)
     return curve
 
 
@@ -137,7 +159,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--global-warp", default="same", choices=GLOBAL_WARPS)
     ap.add_argument("--polish", action="store_true")
     ap.add_argument("--options", default="{}", help="TR-BO options as a JSON object")
+    ap.add_argument("--dataset", help="tune the UKF on this dataset instead ('bundled' or a path)")
+    ap.add_argument("--jstar", type=float, help="the best known cost J* (with --dataset)")
     args = ap.parse_args(argv)
+    if args.dataset:
+        if args.jstar is None:
+            ap.error("--dataset needs --jstar (the best known cost, e.g. from ukf_tuning.py)")
+        args.ukf_problem = _ukf_problem(args.dataset)
     at = sorted({min(40, args.budget), args.budget})
     rows = []
     for seed in range(args.seeds):
@@ -147,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     a = np.array(rows)
     out = {
         "benchmark": "trbo_probe",
-        "function": args.function,
+        "function": args.dataset or args.function,
         "global_warp": args.global_warp,
         "polish": args.polish,
         "options": json.loads(args.options),
