@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 
 import numpy as np
@@ -27,19 +26,9 @@ from kftune.data import default_dataset
 from kftune.filters import _soa_kernel as soa
 from kftune.filters import run_ukf, run_ukf_simd
 from kftune.filters.ukf import UKFSettings, _check_batch, _weights
+from kftune.report.provenance import machine
 
 SIZES = (1, 2, 4, 8, 16)
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def main() -> None:
@@ -112,8 +101,7 @@ def main() -> None:
         "steps": m.n,
         "repeats": args.repeats,
         "numba_num_threads": os.environ.get("NUMBA_NUM_THREADS"),
-        "cpu": _cpu_model(),
-        "nproc": os.cpu_count(),
+        "machine": machine(),
         "rows": rows,
         "simd_b1_raw_s": raw_s,
         "speedup_at_8": next(r["speedup"] for r in rows if r["B"] == 8),
