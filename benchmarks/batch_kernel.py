@@ -8,7 +8,7 @@ Q, all stable) over one bundled manoeuvre, side by side in one run: B sequential
 vector lanes, one core). Interleaved repeats, medians. Throughput = filter steps per second
 per parameter set; speed-up = single time / batch time for the same B sets. B = 1 in
 ``run_ukf_simd`` dispatches to the single kernel, so its row measures only the wrapper;
-the raw SIMD kernel at B = 1 (padded to 4 lanes) is printed as ``simd_b1_raw``. Prints
+the raw SIMD kernel at B = 1 (padded to 8 lanes) is printed as ``simd_b1_raw``. Prints
 figures and, as the last line, one JSON object.
 """
 
@@ -92,7 +92,7 @@ def main() -> None:
         raw_b1()
         raw.append(time.perf_counter() - t)
     raw_s = float(np.median(raw))
-    print(f"raw SIMD kernel at B = 1 (4 lanes, 3 idle): {raw_s * 1e3:.2f} ms "
+    print(f"raw SIMD kernel at B = 1 (8 lanes, 7 idle): {raw_s * 1e3:.2f} ms "
           f"({rows[0]['single_s'] / raw_s:.2f}x the single run)")  # fmt: skip
     print(f"first use: kernel compiled or loaded from cache in {compile_s:.1f} s")
     out = {

@@ -102,6 +102,19 @@ def test_all_sets_diverging_and_a_lone_survivor(man):
     check_against_run_ukf(man, q[:6], man.r_var)
 
 
+def test_sets_retired_across_blocks_of_lanes(man):
+    # 21 sets fill three blocks of soa.LANES; retiring a set moves the last active one,
+    # from another block, into its lane, so the compaction must move whole rows between blocks
+    assert soa.LANES < 21 <= 3 * soa.LANES
+    rng = np.random.default_rng(5)
+    q = np.array(DEFAULT_Q) * 10.0 ** rng.uniform(-1, 1, size=(21, 3))
+    for b, bad in ((0, 1e9), (3, 1e4), (9, 1e3), (10, 1e9), (16, 1e4), (20, 1e9)):
+        q[b] = [1e-4, bad, 1e-5]
+    batch = check_against_run_ukf(man, q, man.r_var)
+    assert set(np.flatnonzero(batch.diverged)) == {0, 3, 9, 10, 16, 20}
+    assert len(set(batch.diverged_step[batch.diverged].tolist())) >= 3
+
+
 def test_single_set_and_sigma_point_settings(man):
     check_against_run_ukf(man, np.array([DEFAULT_Q]), man.r_var)
     st_ = UKFSettings(alpha=0.5, beta=2.0, kappa=1.0)

@@ -5,11 +5,12 @@ with closed-form Cholesky and covariance repair) with the same floating-point op
 in the same order for every set, so each set's result equals ``run_kernel``'s bit for bit
 (the tests ask ≤ 1e-12 relative; no fast-math, so the compiler may not reorder).
 
-What differs is the arrangement (structure of arrays): the per-set state lives in one
-array ``lanes`` of shape (NROWS, BP), one row per scalar (x̄, the six entries of P and of
-its Cholesky factor L, …) and one column ("lane") per set, contiguous along the sets. Each
-time step is a few loops whose innermost index runs over the lanes, so that the compiler's
-loop vectoriser puts 4 sets into one AVX2 register:
+What differs is the arrangement (structure of arrays): the per-set state lives in one flat
+array of blocks of ``LANES`` = 8 sets; a block holds one row per scalar (x̄, the six
+entries of P and of its Cholesky factor L, …), and a row holds the 8 sets ("lanes")
+contiguously. Each time step is a few loops over the blocks whose innermost loop runs over
+the 8 lanes of a block, so that the compiler's loop vectoriser puts 4 sets into one AVX2
+register (8 into one AVX-512 register):
 
 1. predict (k ≥ 1): 7 sigma points from (x⁺, L⁺), one RK4 step each, the unscented
    transform x̄ = Σ Wᵐ χ_i, P̄ = Σ Wᶜ (χ_i − x̄)(χ_i − x̄)ᵀ + Q, and the plain Cholesky of P̄
@@ -24,10 +25,11 @@ loop vectoriser puts 4 sets into one AVX2 register:
    and the output rows.
 
 The vector loops contain no calls the compiler cannot inline and no loop-carried
-dependence; branches (the Dugoff saturation, the Cholesky pivots) become selects. Numba
-does not tell LLVM that the rows of ``lanes`` do not overlap, so the vectoriser versions
-each loop on run-time overlap checks; their number exceeds LLVM's default limit of 128,
-which :func:`compile_batch_kernel` raises while it compiles this module's kernel.
+dependence; branches (the Dugoff saturation, the Cholesky pivots) become selects. The
+inner trip count is the compile-time constant ``LANES`` and rows are ``LANES`` elements
+apart, so LLVM proves that the rows of a block do not overlap and needs neither run-time
+overlap checks nor a scalar remainder loop (with rows of a run-time stride it guarded
+every loop with checks of its ~50 rows and gained only ~1.4–2× at B = 8).
 
 A set that diverges is retired: its lane is swapped with the last active one (compaction),
 so the loops keep running over active sets only and a diverged set's NaN or inf can reach
@@ -61,23 +63,32 @@ from kftune.vehicle.single_track import (
     step_context_scalar,
 )
 
-#: Lanes are padded to a multiple of this (4 doubles: an AVX2 register), so that the
-#: vector loop, not its scalar remainder, runs every set.
-LANE_PAD = 4
+#: Lanes per block: the vector loops run over blocks of this many sets, a compile-time
+#: trip count (8 doubles: two AVX2 registers or one AVX-512 register), so the compiler
+#: needs no run-time overlap checks and no scalar remainder.
+LANES = 8
 
-# Rows of the lane array. Posterior (after the update of step k): state, covariance, factor.
-X0, X1, X2 = 0, 1, 2
-P00, P01, P02, P11, P12, P22 = 3, 4, 5, 6, 7, 8
-L00, L10, L11, L20, L21, L22 = 9, 10, 11, 12, 13, 14
+
+def _rows(first: int, count: int) -> tuple[int, ...]:
+    """Offsets of ``count`` consecutive rows from row ``first`` within a block."""
+    return tuple((first + i) * LANES for i in range(count))
+
+
+# Rows of a block: row r of lane l of block b is s[b·BLOCK + r·LANES + l]; the names below
+# are the offsets r·LANES. Posterior (after the update of step k): state, covariance, factor.
+X0, X1, X2 = _rows(0, 3)
+P00, P01, P02, P11, P12, P22 = _rows(3, 6)
+L00, L10, L11, L20, L21, L22 = _rows(9, 6)
 # Predicted (after the prediction to step k): state, covariance, factor.
-XB0, XB1, XB2 = 15, 16, 17
-PB00, PB01, PB02, PB11, PB12, PB22 = 18, 19, 20, 21, 22, 23
-LB00, LB10, LB11, LB20, LB21, LB22 = 24, 25, 26, 27, 28, 29
+XB0, XB1, XB2 = _rows(15, 3)
+PB00, PB01, PB02, PB11, PB12, PB22 = _rows(18, 6)
+LB00, LB10, LB11, LB20, LB21, LB22 = _rows(24, 6)
 # Noise diagonals.
-Q0, Q1, Q2, R0, R1, R2 = 30, 31, 32, 33, 34, 35
+Q0, Q1, Q2, R0, R1, R2 = _rows(30, 6)
 # Update by-products: innovation, NIS, h(x⁺, u), and the success flags (1.0 = factorised).
-Y0, Y1, Y2, NIS, H0, H1, H2, OK_P, OK_S, OK_PB = 36, 37, 38, 39, 40, 41, 42, 43, 44, 45
+Y0, Y1, Y2, NIS, H0, H1, H2, OK_P, OK_S, OK_PB = _rows(36, 10)
 NROWS = 46
+BLOCK = NROWS * LANES
 
 _TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
 _TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
@@ -86,8 +97,8 @@ _NAN = math.nan
 
 @njit(cache=True, error_model="numpy")
 def _predict_lanes(
-    s: np.ndarray,
-    n: int,
+    lanes: np.ndarray,
+    n_blocks: int,
     mp: np.ndarray,
     dt: float,
     e0: float,
@@ -100,98 +111,102 @@ def _predict_lanes(
     wi: float,
     c: float,
 ) -> None:
-    """Step 1 for lanes [0, n): (x⁺, L⁺) → (x̄, P̄, chol P̄, ok) (Simon 2006, Eq. 14.59–14.60).
+    """Step 1 for the lanes of blocks [0, n_blocks): (x⁺, L⁺) → (x̄, P̄, chol P̄, ok).
+
+    Simon 2006, Eq. 14.59–14.60. ``lanes``: the flat lane array (see the module docstring).
 
     e0..e3: (tan δ, cos δ, Fz_f, Fz_r) of u[k−1]; ax: u[k−1, 1] [m/s²].
     """
-    for j in range(n):
-        x0 = s[X0, j]
-        x1 = s[X1, j]
-        x2 = s[X2, j]
-        a0 = c * s[L00, j]
-        a1 = c * s[L10, j]
-        a2 = c * s[L20, j]
-        b1 = c * s[L11, j]
-        b2 = c * s[L21, j]
-        d2 = c * s[L22, j]
-        # the seven propagated sigma points, in run_kernel's order
-        f00, f01, f02 = rk4_scalar(x0, x1, x2, e0, e1, ax, e2, e3, mp, dt)
-        f10, f11, f12 = rk4_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, ax, e2, e3, mp, dt)
-        f20, f21, f22 = rk4_scalar(x0, x1 + b1, x2 + b2, e0, e1, ax, e2, e3, mp, dt)
-        f30, f31, f32 = rk4_scalar(x0, x1, x2 + d2, e0, e1, ax, e2, e3, mp, dt)
-        f40, f41, f42 = rk4_scalar(x0 - a0, x1 - a1, x2 - a2, e0, e1, ax, e2, e3, mp, dt)
-        f50, f51, f52 = rk4_scalar(x0, x1 - b1, x2 - b2, e0, e1, ax, e2, e3, mp, dt)
-        f60, f61, f62 = rk4_scalar(x0, x1, x2 - d2, e0, e1, ax, e2, e3, mp, dt)
-        # x̄ = W0ᵐ χ0 + Σ_{i≥1} Wᵢ χi, summed in run_kernel's order
-        m0 = wm0 * f00
-        m1 = wm0 * f01
-        m2 = wm0 * f02
-        m0 += wi * f10
-        m1 += wi * f11
-        m2 += wi * f12
-        m0 += wi * f20
-        m1 += wi * f21
-        m2 += wi * f22
-        m0 += wi * f30
-        m1 += wi * f31
-        m2 += wi * f32
-        m0 += wi * f40
-        m1 += wi * f41
-        m2 += wi * f42
-        m0 += wi * f50
-        m1 += wi * f51
-        m2 += wi * f52
-        m0 += wi * f60
-        m1 += wi * f61
-        m2 += wi * f62
-        # P̄ = W0ᶜ d0 d0ᵀ + Σ Wᵢ dᵢ dᵢᵀ + Q
-        d0 = f00 - m0
-        d1 = f01 - m1
-        dd = f02 - m2
-        p00 = wc0 * d0 * d0
-        p01 = wc0 * d0 * d1
-        p02 = wc0 * d0 * dd
-        p11 = wc0 * d1 * d1
-        p12 = wc0 * d1 * dd
-        p22 = wc0 * dd * dd
-        p00, p01, p02, p11, p12, p22 = _acc_outer(
-            p00, p01, p02, p11, p12, p22, wi, f10 - m0, f11 - m1, f12 - m2
-        )
-        p00, p01, p02, p11, p12, p22 = _acc_outer(
-            p00, p01, p02, p11, p12, p22, wi, f20 - m0, f21 - m1, f22 - m2
-        )
-        p00, p01, p02, p11, p12, p22 = _acc_outer(
-            p00, p01, p02, p11, p12, p22, wi, f30 - m0, f31 - m1, f32 - m2
-        )
-        p00, p01, p02, p11, p12, p22 = _acc_outer(
-            p00, p01, p02, p11, p12, p22, wi, f40 - m0, f41 - m1, f42 - m2
-        )
-        p00, p01, p02, p11, p12, p22 = _acc_outer(
-            p00, p01, p02, p11, p12, p22, wi, f50 - m0, f51 - m1, f52 - m2
-        )
-        p00, p01, p02, p11, p12, p22 = _acc_outer(
-            p00, p01, p02, p11, p12, p22, wi, f60 - m0, f61 - m1, f62 - m2
-        )
-        p00 += s[Q0, j]
-        p11 += s[Q1, j]
-        p22 += s[Q2, j]
-        ok, l00, l10, l11, l20, l21, l22 = chol3(p00, p01, p02, p11, p12, p22)
-        s[XB0, j] = m0
-        s[XB1, j] = m1
-        s[XB2, j] = m2
-        s[PB00, j] = p00
-        s[PB01, j] = p01
-        s[PB02, j] = p02
-        s[PB11, j] = p11
-        s[PB12, j] = p12
-        s[PB22, j] = p22
-        s[LB00, j] = l00
-        s[LB10, j] = l10
-        s[LB11, j] = l11
-        s[LB20, j] = l20
-        s[LB21, j] = l21
-        s[LB22, j] = l22
-        s[OK_PB, j] = 1.0 if ok else 0.0
+    for blk in range(n_blocks):
+        s = lanes[blk * BLOCK : (blk + 1) * BLOCK]
+        for j in range(s.size // NROWS):  # LANES, but unknown to LLVM: it must not unroll
+            x0 = s[X0 + j]
+            x1 = s[X1 + j]
+            x2 = s[X2 + j]
+            a0 = c * s[L00 + j]
+            a1 = c * s[L10 + j]
+            a2 = c * s[L20 + j]
+            b1 = c * s[L11 + j]
+            b2 = c * s[L21 + j]
+            d2 = c * s[L22 + j]
+            # the seven propagated sigma points, in run_kernel's order
+            f00, f01, f02 = rk4_scalar(x0, x1, x2, e0, e1, ax, e2, e3, mp, dt)
+            f10, f11, f12 = rk4_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, ax, e2, e3, mp, dt)
+            f20, f21, f22 = rk4_scalar(x0, x1 + b1, x2 + b2, e0, e1, ax, e2, e3, mp, dt)
+            f30, f31, f32 = rk4_scalar(x0, x1, x2 + d2, e0, e1, ax, e2, e3, mp, dt)
+            f40, f41, f42 = rk4_scalar(x0 - a0, x1 - a1, x2 - a2, e0, e1, ax, e2, e3, mp, dt)
+            f50, f51, f52 = rk4_scalar(x0, x1 - b1, x2 - b2, e0, e1, ax, e2, e3, mp, dt)
+            f60, f61, f62 = rk4_scalar(x0, x1, x2 - d2, e0, e1, ax, e2, e3, mp, dt)
+            # x̄ = W0ᵐ χ0 + Σ_{i≥1} Wᵢ χi, summed in run_kernel's order
+            m0 = wm0 * f00
+            m1 = wm0 * f01
+            m2 = wm0 * f02
+            m0 += wi * f10
+            m1 += wi * f11
+            m2 += wi * f12
+            m0 += wi * f20
+            m1 += wi * f21
+            m2 += wi * f22
+            m0 += wi * f30
+            m1 += wi * f31
+            m2 += wi * f32
+            m0 += wi * f40
+            m1 += wi * f41
+            m2 += wi * f42
+            m0 += wi * f50
+            m1 += wi * f51
+            m2 += wi * f52
+            m0 += wi * f60
+            m1 += wi * f61
+            m2 += wi * f62
+            # P̄ = W0ᶜ d0 d0ᵀ + Σ Wᵢ dᵢ dᵢᵀ + Q
+            d0 = f00 - m0
+            d1 = f01 - m1
+            dd = f02 - m2
+            p00 = wc0 * d0 * d0
+            p01 = wc0 * d0 * d1
+            p02 = wc0 * d0 * dd
+            p11 = wc0 * d1 * d1
+            p12 = wc0 * d1 * dd
+            p22 = wc0 * dd * dd
+            p00, p01, p02, p11, p12, p22 = _acc_outer(
+                p00, p01, p02, p11, p12, p22, wi, f10 - m0, f11 - m1, f12 - m2
+            )
+            p00, p01, p02, p11, p12, p22 = _acc_outer(
+                p00, p01, p02, p11, p12, p22, wi, f20 - m0, f21 - m1, f22 - m2
+            )
+            p00, p01, p02, p11, p12, p22 = _acc_outer(
+                p00, p01, p02, p11, p12, p22, wi, f30 - m0, f31 - m1, f32 - m2
+            )
+            p00, p01, p02, p11, p12, p22 = _acc_outer(
+                p00, p01, p02, p11, p12, p22, wi, f40 - m0, f41 - m1, f42 - m2
+            )
+            p00, p01, p02, p11, p12, p22 = _acc_outer(
+                p00, p01, p02, p11, p12, p22, wi, f50 - m0, f51 - m1, f52 - m2
+            )
+            p00, p01, p02, p11, p12, p22 = _acc_outer(
+                p00, p01, p02, p11, p12, p22, wi, f60 - m0, f61 - m1, f62 - m2
+            )
+            p00 += s[Q0 + j]
+            p11 += s[Q1 + j]
+            p22 += s[Q2 + j]
+            ok, l00, l10, l11, l20, l21, l22 = chol3(p00, p01, p02, p11, p12, p22)
+            s[XB0 + j] = m0
+            s[XB1 + j] = m1
+            s[XB2 + j] = m2
+            s[PB00 + j] = p00
+            s[PB01 + j] = p01
+            s[PB02 + j] = p02
+            s[PB11 + j] = p11
+            s[PB12 + j] = p12
+            s[PB22 + j] = p22
+            s[LB00 + j] = l00
+            s[LB10 + j] = l10
+            s[LB11 + j] = l11
+            s[LB20 + j] = l20
+            s[LB21 + j] = l21
+            s[LB22 + j] = l22
+            s[OK_PB + j] = 1.0 if ok else 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -242,15 +257,15 @@ def _innovation_stats(
         c21, c22) with S = Σ Wᶜ (Zᵢ − ẑ)(Zᵢ − ẑ)ᵀ (R not yet added) and
         P_xz[i][m] = c_im = Σ Wᶜ (χᵢ − x̄)(Zᵢ − ẑ)ᵀ (Simon 2006, Eq. 14.61–14.63).
     """
-    x0 = s[XB0, j]
-    x1 = s[XB1, j]
-    x2 = s[XB2, j]
-    a0 = c * s[LB00, j]
-    a1 = c * s[LB10, j]
-    a2 = c * s[LB20, j]
-    b1 = c * s[LB11, j]
-    b2 = c * s[LB21, j]
-    d2 = c * s[LB22, j]
+    x0 = s[XB0 + j]
+    x1 = s[XB1 + j]
+    x2 = s[XB2 + j]
+    a0 = c * s[LB00 + j]
+    a1 = c * s[LB10 + j]
+    a2 = c * s[LB20 + j]
+    b1 = c * s[LB11 + j]
+    b2 = c * s[LB21 + j]
+    d2 = c * s[LB22 + j]
     g00, g01, g02 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
     g10, g11, g12 = measure_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, e2, e3, mp)
     g20, g21, g22 = measure_scalar(x0 + 0.0, x1 + b1, x2 + b2, e0, e1, e2, e3, mp)
@@ -392,15 +407,15 @@ def _apply_update(
     v0 = i00 * y0
     v1 = i10 * y0 + i11 * y1
     v2 = i20 * y0 + i21 * y1 + i22 * y2
-    x0 = s[XB0, j] + (w00 * v0 + w10 * v1 + w20 * v2)
-    x1 = s[XB1, j] + (w01 * v0 + w11 * v1 + w21 * v2)
-    x2 = s[XB2, j] + (w02 * v0 + w12 * v1 + w22 * v2)
-    p00 = s[PB00, j] - (w00 * w00 + w10 * w10 + w20 * w20)
-    p01 = s[PB01, j] - (w00 * w01 + w10 * w11 + w20 * w21)
-    p02 = s[PB02, j] - (w00 * w02 + w10 * w12 + w20 * w22)
-    p11 = s[PB11, j] - (w01 * w01 + w11 * w11 + w21 * w21)
-    p12 = s[PB12, j] - (w01 * w02 + w11 * w12 + w21 * w22)
-    p22 = s[PB22, j] - (w02 * w02 + w12 * w12 + w22 * w22)
+    x0 = s[XB0 + j] + (w00 * v0 + w10 * v1 + w20 * v2)
+    x1 = s[XB1 + j] + (w01 * v0 + w11 * v1 + w21 * v2)
+    x2 = s[XB2 + j] + (w02 * v0 + w12 * v1 + w22 * v2)
+    p00 = s[PB00 + j] - (w00 * w00 + w10 * w10 + w20 * w20)
+    p01 = s[PB01 + j] - (w00 * w01 + w10 * w11 + w20 * w21)
+    p02 = s[PB02 + j] - (w00 * w02 + w10 * w12 + w20 * w22)
+    p11 = s[PB11 + j] - (w01 * w01 + w11 * w11 + w21 * w21)
+    p12 = s[PB12 + j] - (w01 * w02 + w11 * w12 + w21 * w22)
+    p22 = s[PB22 + j] - (w02 * w02 + w12 * w12 + w22 * w22)
     return x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, v0 * v0 + v1 * v1 + v2 * v2
 
 
@@ -431,36 +446,36 @@ def _store_update(
     """Store x⁺, P⁺, its plain Cholesky, y, NIS, h(x⁺, u) and the flags of lane j."""
     ok, l00, l10, l11, l20, l21, l22 = chol3(p00, p01, p02, p11, p12, p22)
     h0, h1, h2 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
-    s[X0, j] = x0
-    s[X1, j] = x1
-    s[X2, j] = x2
-    s[P00, j] = p00
-    s[P01, j] = p01
-    s[P02, j] = p02
-    s[P11, j] = p11
-    s[P12, j] = p12
-    s[P22, j] = p22
-    s[L00, j] = l00
-    s[L10, j] = l10
-    s[L11, j] = l11
-    s[L20, j] = l20
-    s[L21, j] = l21
-    s[L22, j] = l22
-    s[Y0, j] = y0
-    s[Y1, j] = y1
-    s[Y2, j] = y2
-    s[NIS, j] = nis
-    s[H0, j] = h0
-    s[H1, j] = h1
-    s[H2, j] = h2
-    s[OK_P, j] = 1.0 if ok else 0.0
-    s[OK_S, j] = 1.0 if ok_s else 0.0
+    s[X0 + j] = x0
+    s[X1 + j] = x1
+    s[X2 + j] = x2
+    s[P00 + j] = p00
+    s[P01 + j] = p01
+    s[P02 + j] = p02
+    s[P11 + j] = p11
+    s[P12 + j] = p12
+    s[P22 + j] = p22
+    s[L00 + j] = l00
+    s[L10 + j] = l10
+    s[L11 + j] = l11
+    s[L20 + j] = l20
+    s[L21 + j] = l21
+    s[L22 + j] = l22
+    s[Y0 + j] = y0
+    s[Y1 + j] = y1
+    s[Y2 + j] = y2
+    s[NIS + j] = nis
+    s[H0 + j] = h0
+    s[H1 + j] = h1
+    s[H2 + j] = h2
+    s[OK_P + j] = 1.0 if ok else 0.0
+    s[OK_S + j] = 1.0 if ok_s else 0.0
 
 
 @njit(cache=True, error_model="numpy")
 def _update_lanes(
-    s: np.ndarray,
-    n: int,
+    lanes: np.ndarray,
+    n_blocks: int,
     mp: np.ndarray,
     zk0: float,
     zk1: float,
@@ -474,22 +489,25 @@ def _update_lanes(
     wi: float,
     c: float,
 ) -> None:
-    """Step 3 for lanes [0, n), with the plain Cholesky of S (a failure is flagged)."""
-    for j in range(n):
-        z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = (
-            _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
-        )
-        ok_s, m00, m10, m11, m20, m21, m22 = chol3(
-            s00 + s[R0, j], s01, s02, s11 + s[R1, j], s12, s22 + s[R2, j]
-        )
-        x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, nis = _apply_update(
-            s, j, zk0, zk1, zk2, z0, z1, z2, m00, m10, m11, m20, m21, m22,
-            c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        )  # fmt: skip
-        _store_update(
-            s, j, mp, e0, e1, e2, e3, x0, x1, x2, p00, p01, p02, p11, p12, p22,
-            y0, y1, y2, nis, ok_s,
-        )  # fmt: skip
+    """Step 3 for the lanes of blocks [0, n_blocks), with the plain Cholesky of S (a failure
+    is flagged)."""
+    for blk in range(n_blocks):
+        s = lanes[blk * BLOCK : (blk + 1) * BLOCK]
+        for j in range(s.size // NROWS):  # LANES, but unknown to LLVM: it must not unroll
+            stats = _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
+            z0, z1, z2, s00, s01, s02, s11, s12, s22 = stats[:9]
+            c00, c01, c02, c10, c11, c12, c20, c21, c22 = stats[9:]
+            ok_s, m00, m10, m11, m20, m21, m22 = chol3(
+                s00 + s[R0 + j], s01, s02, s11 + s[R1 + j], s12, s22 + s[R2 + j]
+            )
+            x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, nis = _apply_update(
+                s, j, zk0, zk1, zk2, z0, z1, z2, m00, m10, m11, m20, m21, m22,
+                c00, c01, c02, c10, c11, c12, c20, c21, c22,
+            )  # fmt: skip
+            _store_update(
+                s, j, mp, e0, e1, e2, e3, x0, x1, x2, p00, p01, p02, p11, p12, p22,
+                y0, y1, y2, nis, ok_s,
+            )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
@@ -519,7 +537,7 @@ def _update_lane_repaired(
         _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
     )
     st, m00, m10, m11, m20, m21, m22, _ = chol3_repair(
-        s00 + s[R0, j], s01, s02, s11 + s[R1, j], s12, s22 + s[R2, j]
+        s00 + s[R0 + j], s01, s02, s11 + s[R1 + j], s12, s22 + s[R2 + j]
     )
     if st == 2:
         return 2, 0
@@ -532,6 +550,12 @@ def _update_lane_repaired(
         y0, y1, y2, nis, True,
     )  # fmt: skip
     return 0, st
+
+
+@njit(cache=True, error_model="numpy")
+def _flat(j: int) -> int:
+    """Index of lane j's first row in the flat lane array."""
+    return (j // LANES) * BLOCK + j % LANES
 
 
 @njit(cache=True, error_model="numpy")
@@ -556,8 +580,10 @@ def _retire(
     out_cause[b] = cause
     last = n_active - 1
     if j != last:
-        for row in range(NROWS):
-            s[row, j] = s[row, last]
+        fj = _flat(j)
+        fl = _flat(last)
+        for row in range(0, BLOCK, LANES):
+            s[row + fj] = s[row + fl]
         for row in range(4):
             ints[row, j] = ints[row, last]
     return last
@@ -595,8 +621,9 @@ def run_kernel_soa(
     """
     n_sets = q.shape[0]
     n_steps = u.shape[0]
-    bp = ((n_sets + LANE_PAD - 1) // LANE_PAD) * LANE_PAD
-    s = np.zeros((NROWS, bp))
+    n_blocks = (n_sets + LANES - 1) // LANES
+    bp = n_blocks * LANES
+    s = np.zeros(n_blocks * BLOCK)
     ints = np.zeros((4, bp), dtype=np.int64)  # set id, repairs, held β, held Vx
     n_hold = hold_steps(dt)
     n_active = 0
@@ -616,48 +643,51 @@ def run_kernel_soa(
             out_cause[b] = STOP_NUMERICAL
             continue
         j = n_active
+        f = _flat(j)
         n_active += 1
         ints[0, j] = b
         ints[1, j] = 1 if st == 1 else 0
         # step 0 has no prediction: the "predicted" rows hold the prior
-        s[XB0, j] = x_init[b, 0]
-        s[XB1, j] = x_init[b, 1]
-        s[XB2, j] = x_init[b, 2]
-        s[PB00, j] = p00 + jit
-        s[PB01, j] = p01
-        s[PB02, j] = p02
-        s[PB11, j] = p11 + jit
-        s[PB12, j] = p12
-        s[PB22, j] = p22 + jit
-        s[LB00, j] = l00
-        s[LB10, j] = l10
-        s[LB11, j] = l11
-        s[LB20, j] = l20
-        s[LB21, j] = l21
-        s[LB22, j] = l22
-        s[Q0, j] = q[b, 0]
-        s[Q1, j] = q[b, 1]
-        s[Q2, j] = q[b, 2]
-        s[R0, j] = r[b, 0]
-        s[R1, j] = r[b, 1]
-        s[R2, j] = r[b, 2]
+        s[XB0 + f] = x_init[b, 0]
+        s[XB1 + f] = x_init[b, 1]
+        s[XB2 + f] = x_init[b, 2]
+        s[PB00 + f] = p00 + jit
+        s[PB01 + f] = p01
+        s[PB02 + f] = p02
+        s[PB11 + f] = p11 + jit
+        s[PB12 + f] = p12
+        s[PB22 + f] = p22 + jit
+        s[LB00 + f] = l00
+        s[LB10 + f] = l10
+        s[LB11 + f] = l11
+        s[LB20 + f] = l20
+        s[LB21 + f] = l21
+        s[LB22 + f] = l22
+        s[Q0 + f] = q[b, 0]
+        s[Q1 + f] = q[b, 1]
+        s[Q2 + f] = q[b, 2]
+        s[R0 + f] = r[b, 0]
+        s[R1 + f] = r[b, 1]
+        s[R2 + f] = r[b, 2]
     # padding lanes: a copy of lane 0, never read back
     for j in range(n_active, bp):
-        for row in range(NROWS):
-            s[row, j] = s[row, 0]
+        f = _flat(j)
+        for row in range(0, BLOCK, LANES):
+            s[row + f] = s[row]
 
     for k in range(n_steps):
         if n_active == 0:
             break
-        n_vec = ((n_active + LANE_PAD - 1) // LANE_PAD) * LANE_PAD
+        n_vec_blocks = (n_active + LANES - 1) // LANES
         if k > 0:
             e0, e1, e2, e3 = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
-            _predict_lanes(s, n_vec, mp, dt, e0, e1, e2, e3, u[k - 1, 1], wm0, wc0, wi, c)
+            _predict_lanes(s, n_vec_blocks, mp, dt, e0, e1, e2, e3, u[k - 1, 1], wm0, wc0, wi, c)
             j = 0
             while j < n_active:
-                if s[OK_PB, j] == 0.0:
+                f = _flat(j)
+                if s[OK_PB + f] == 0.0:
                     st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(
-                        s[PB00, j], s[PB01, j], s[PB02, j], s[PB11, j], s[PB12, j], s[PB22, j]
+                        s[PB00 + f], s[PB01 + f], s[PB02 + f], s[PB11 + f], s[PB12 + f], s[PB22 + f]
                     )
                     if st == 2:
                         n_active = _retire(
@@ -665,27 +695,28 @@ def run_kernel_soa(
                         )
                         continue  # lane j now holds another set: look at it again
                     ints[1, j] += 1
-                    s[PB00, j] += jit
-                    s[PB11, j] += jit
-                    s[PB22, j] += jit
-                    s[LB00, j] = l00
-                    s[LB10, j] = l10
-                    s[LB11, j] = l11
-                    s[LB20, j] = l20
-                    s[LB21, j] = l21
-                    s[LB22, j] = l22
+                    s[PB00 + f] += jit
+                    s[PB11 + f] += jit
+                    s[PB22 + f] += jit
+                    s[LB00 + f] = l00
+                    s[LB10 + f] = l10
+                    s[LB11 + f] = l11
+                    s[LB20 + f] = l20
+                    s[LB21 + f] = l21
+                    s[LB22 + f] = l22
                 j += 1
-            n_vec = ((n_active + LANE_PAD - 1) // LANE_PAD) * LANE_PAD
+            n_vec_blocks = (n_active + LANES - 1) // LANES
         e0, e1, e2, e3 = step_context_scalar(u[k, 0], u[k, 1], mp)
         zk0 = z[k, 0]
         zk1 = z[k, 1]
         zk2 = z[k, 2]
-        _update_lanes(s, n_vec, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c)
+        _update_lanes(s, n_vec_blocks, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c)
         j = 0
         while j < n_active:
-            if s[OK_S, j] == 0.0:
+            f = _flat(j)
+            if s[OK_S + f] == 0.0:
                 st, rep = _update_lane_repaired(
-                    s, j, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c
+                    s, f, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c
                 )
                 if st == 2:
                     n_active = _retire(
@@ -696,17 +727,17 @@ def run_kernel_soa(
             # P⁺: factorised in the vector loop, or repaired here (run_kernel's order of checks)
             st = 0
             jit = 0.0
-            if s[OK_P, j] == 0.0:
+            if s[OK_P + f] == 0.0:
                 st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(
-                    s[P00, j], s[P01, j], s[P02, j], s[P11, j], s[P12, j], s[P22, j]
+                    s[P00 + f], s[P01 + f], s[P02 + f], s[P11 + f], s[P12 + f], s[P22 + f]
                 )
-            x0 = s[X0, j]
-            x1 = s[X1, j]
-            x2 = s[X2, j]
+            x0 = s[X0 + f]
+            x1 = s[X1 + f]
+            x2 = s[X2 + f]
             if (
                 st == 2
                 or not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2))
-                or not (math.isfinite(s[NIS, j]) and math.isfinite(s[H1, j]))
+                or not (math.isfinite(s[NIS + f]) and math.isfinite(s[H1 + f]))
             ):
                 n_active = _retire(
                     s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
@@ -732,29 +763,29 @@ def run_kernel_soa(
                 continue
             if st == 1:
                 ints[1, j] += 1
-                s[P00, j] += jit
-                s[P11, j] += jit
-                s[P22, j] += jit
-                s[L00, j] = l00
-                s[L10, j] = l10
-                s[L11, j] = l11
-                s[L20, j] = l20
-                s[L21, j] = l21
-                s[L22, j] = l22
+                s[P00 + f] += jit
+                s[P11 + f] += jit
+                s[P22 + f] += jit
+                s[L00 + f] = l00
+                s[L10 + f] = l10
+                s[L11 + f] = l11
+                s[L20 + f] = l20
+                s[L21 + f] = l21
+                s[L22 + f] = l22
             b = ints[0, j]
             out_x[b, k, 0] = x0
             out_x[b, k, 1] = x1
             out_x[b, k, 2] = x2
-            out_p[b, k, 0] = s[P00, j]
-            out_p[b, k, 1] = s[P11, j]
-            out_p[b, k, 2] = s[P22, j]
-            out_innov[b, k, 0] = s[Y0, j]
-            out_innov[b, k, 1] = s[Y1, j]
-            out_innov[b, k, 2] = s[Y2, j]
-            out_nis[b, k] = s[NIS, j]
-            out_zhat[b, k, 0] = s[H0, j]
-            out_zhat[b, k, 1] = s[H1, j]
-            out_zhat[b, k, 2] = s[H2, j]
+            out_p[b, k, 0] = s[P00 + f]
+            out_p[b, k, 1] = s[P11 + f]
+            out_p[b, k, 2] = s[P22 + f]
+            out_innov[b, k, 0] = s[Y0 + f]
+            out_innov[b, k, 1] = s[Y1 + f]
+            out_innov[b, k, 2] = s[Y2 + f]
+            out_nis[b, k] = s[NIS + f]
+            out_zhat[b, k, 0] = s[H0 + f]
+            out_zhat[b, k, 1] = s[H1 + f]
+            out_zhat[b, k, 2] = s[H2 + f]
             j += 1
     for j in range(n_active):
         out_rep[ints[0, j]] = ints[1, j]
@@ -770,25 +801,19 @@ def run_kernel_soa(
                 out_nis[b, k] = _NAN
 
 
-# LLVM options set while this module's kernel compiles, and set back to LLVM's values at
-# numba's optimisation level 3 afterwards:
-# * the limit on the run-time overlap checks of a vectorised loop (default 128): every row
-#   of the lane array is a separate pointer to LLVM, and a step loop has about 50 of them;
-# * the inlining threshold (250 at -O3): the RK4 step and the measurement model must be
-#   inlined into the lane loops, or the loops hold calls and cannot be vectorised.
-_LLVM_OPTIONS = (
-    ("-vectorize-memory-check-threshold", 100_000, 128),
-    ("-inline-threshold", 100_000, 250),
-)
+# LLVM option set while this module's kernel compiles, and set back to LLVM's value at
+# numba's optimisation level 3 afterwards: the inlining threshold (250 at -O3); the RK4
+# step and the measurement model must be inlined into the lane loops, or the loops hold
+# calls and cannot be vectorised.
+_LLVM_OPTIONS = (("-inline-threshold", 100_000, 250),)
 _ready = False
 
 
 def ensure_compiled() -> None:
     """Compile (or load from numba's cache) :func:`run_kernel_soa` with vectorisation on.
 
-    Two LLVM command-line options (global to the process: the vectoriser's limit on
-    run-time overlap checks and the inlining threshold) are raised only while this kernel
-    compiles and set back to numba's values afterwards, so that no other function is
+    LLVM's inlining threshold (an option global to the process) is raised only while this
+    kernel compiles and set back to numba's value afterwards, so that no other function is
     compiled differently.
     """
     global _ready

@@ -397,7 +397,7 @@ def _run_batch(
     div = np.empty(n_sets, dtype=np.int64)
     rep = np.zeros(n_sets, dtype=np.int64)
     why = np.empty(n_sets, dtype=np.int64)
-    if n_sets == 1:  # no thread start-up, no padding to 4 lanes, for a single set
+    if n_sets == 1:  # no thread start-up, no padding to 8 lanes, for a single set
         assert ldet is not None
         div[0], rep[0], why[0] = _kernel.run_kernel(
             _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
@@ -470,7 +470,7 @@ def run_ukf_simd(
     ``result[b]`` equals ``run_ukf(..., q[b], r[b])`` bit for bit, a set that diverges
     stops there (NaN rows from its ``diverged_step``) without affecting the others, and
     the kernel never raises. Use it for candidate batches and GA generations; B = 1 runs
-    the sequential kernel of :func:`run_ukf` (the same result, without padding to 4 lanes).
+    the sequential kernel of :func:`run_ukf` (the same result, without padding to 8 lanes).
     """
     return _run_batch(u, z, dt, params, q, r, x0, P0, settings, simd=True)
 
