@@ -48,13 +48,30 @@ def test_corner_minimum_found_exactly_in_40(seed):
 
 def test_decoy_basin_is_left_on_most_seeds():
     """Measured: the global minimum is reached (value < 0.01; the decoy's floor is 0.3) within
-    100 evaluations on 15 of seeds 0-19 (8 of 0-9, 7 of 10-19); the others stay in the
-    decoy. Asserted: at least 12 of 20, so that another CPU's rounding, which can change a
-    run's path, does not turn the measured rate into a failure (P(< 12) ≈ 0.04 for a rate
-    of 0.75 on fresh draws). The decoy is left after its trust region collapses, by the
-    escape steps."""
+    100 evaluations on 18 of seeds 0-19 (10 of 0-9, 8 of 10-19; 15 of 20 with the earlier
+    warp δ = 1 %); the others stay in the decoy. Asserted: at least 14 of 20, so that
+    another CPU's rounding, which can change a run's path, does not turn the measured rate
+    into a failure (P(< 14) ≈ 0.01 for a rate of 0.9 on fresh draws). The decoy is left
+    after its trust region collapses, by the escape steps."""
     solved = [minimize(decoy, CUBE3, "trbo", budget=100, seed=s).fun < 0.01 for s in range(20)]
-    assert sum(solved) >= 12, solved
+    assert sum(solved) >= 14, solved
+
+
+def test_log_min_warp_is_log_of_the_shifted_values():
+    opt = make_optimizer("trbo", CUBE3, seed=0)
+    y = [3.0, 1.0, 7.0, 2.0, 11.0]
+    opt._y = list(y)
+    delta = 0.1 * (np.median(y) - 1.0)  # warp_delta = 0.1 of (median − min)
+    np.testing.assert_allclose(opt._targets(), np.log(np.array(y) - 1.0 + delta), rtol=1e-14)
+    opt._y = [3.0, None, 7.0]  # a failure is imputed with the worst value
+    delta = 0.1 * (np.median([3.0, 7.0, 7.0]) - 3.0)
+    np.testing.assert_allclose(opt._targets(), np.log(np.array([0, 4, 4]) + delta), rtol=1e-14)
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("inf"), float("nan"), "0.1"])
+def test_warp_delta_must_be_positive_and_finite(bad):
+    with pytest.raises(ValueError, match="warp_delta"):
+        make_optimizer("trbo", CUBE3, seed=0, warp_delta=bad)
 
 
 @pytest.mark.parametrize(("fun", "space"), [(decoy, CUBE3), (branin_log, BRANIN_SPACE)])

@@ -10,8 +10,12 @@ stage, and a global one — but lets them alternate for the whole budget:
   once from the start; on the UKF costs the best point lies on or next to a bound.
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
-  δ = 1 % of (median − min) (``warp="log-min"``). Cliffs and plateaus that span decades
-  become comparable, and differences near the best stay resolved (output warping, cf. HEBO).
+  δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
+  that span decades become comparable, and differences near the best stay resolved (output
+  warping, cf. HEBO). δ = 1 %, the first choice, magnified the incumbent into a spike: on
+  revs-250lm 12 of 40 seeds ended above 3 % of J* at 40 evaluations, against 3 of 40 with
+  10 %, and Branin and Hartmann-3 were two orders of magnitude further from their optima;
+  the bundled set pays at 40 (median gap 0.28–0.61 % → 0.77–1.06 %) and gains at 100.
   Length scales are bounded below by 0.05 of the unit cube: without the bound the warped
   costs were fitted with length scales down to 0.005, and EI then crept along slopes in
   steps of 0.02.
@@ -79,6 +83,7 @@ class TrustRegionBO(Optimizer):
         init_design: ``"axial"`` (centre, face centres, then Sobol points) or ``"sobol"``
             (centre, then scrambled Sobol points).
         warp: output warping, ``"log-min"``, ``"log"`` (log y when y > 0) or ``"none"``.
+        warp_delta: δ of ``"log-min"`` as a share of (median − min) of the values.
         length_init, length_min, length_max: trust-region side in the unit cube.
         success_tol, failure_tol: consecutive successes that double / failures that halve
             the side (``failure_tol`` default max(3, d)).
@@ -105,6 +110,7 @@ class TrustRegionBO(Optimizer):
         n_init: int | None = None,
         init_design: str = "axial",
         warp: str = "log-min",
+        warp_delta: float = 0.1,
         length_init: float = 0.4,
         length_min: float = 2.0**-7,
         length_max: float = 1.0,
@@ -121,6 +127,8 @@ class TrustRegionBO(Optimizer):
         d = self.space.dim
         if warp not in WARPS:
             raise ValueError(f"warp must be one of {WARPS}, got {warp!r}")
+        if not (isinstance(warp_delta, (int, float)) and 0.0 < warp_delta < math.inf):
+            raise ValueError(f"warp_delta must be a positive number, got {warp_delta!r}")
         if init_design not in INIT_DESIGNS:
             raise ValueError(f"init_design must be one of {INIT_DESIGNS}, got {init_design!r}")
         if not 0.0 < length_min <= length_init <= length_max:
@@ -152,6 +160,7 @@ class TrustRegionBO(Optimizer):
         self.n_candidates, self.refit_every = int(n_candidates), int(refit_every)
         self.full_fit_until = int(full_fit_until)
         self.init_design, self.warp, self.faces = init_design, warp, bool(faces)
+        self.warp_delta = float(warp_delta)
         self.length_init, self.length_min, self.length_max = (
             float(length_init),
             float(length_min),
@@ -206,6 +215,7 @@ class TrustRegionBO(Optimizer):
             "n_init": self.n_init,
             "init_design": self.init_design,
             "warp": self.warp,
+            "warp_delta": self.warp_delta,
             "length_init": self.length_init,
             "length_min": self.length_min,
             "length_max": self.length_max,
@@ -240,7 +250,7 @@ class TrustRegionBO(Optimizer):
             return np.log(y)
         if self.warp == "log-min":
             lo = float(y.min())
-            delta = max(0.01 * (float(np.median(y)) - lo), 1e-12 * max(1.0, abs(lo)))
+            delta = max(self.warp_delta * (float(np.median(y)) - lo), 1e-12 * max(1.0, abs(lo)))
             return np.log(y - lo + delta)
         return y
 
