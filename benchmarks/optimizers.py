@@ -181,8 +181,11 @@ RES_UNIT: dict[str, Any] = {"min_resolution": 1e-3, "tr_fe_units": "unit-cube"}
 #: otherwise one run at the method's own largest budget, read as prefixes.
 METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     "trbo": ("trbo", {}, False),
+    # TR-BO design variants (BENCHMARKS.md, "TR-BO"): the earlier warp δ, trust-region sizes
     "trbo-delta0.01": ("trbo", {"warp_delta": 0.01}, False),
-    "trbo-delta0.1": ("trbo", {"warp_delta": 0.1}, False),
+    "trbo-length0.2": ("trbo", {"length_init": 0.2}, False),
+    "trbo-length0.3": ("trbo", {"length_init": 0.3}, False),
+    "trbo-length0.4": ("trbo", {"length_init": 0.4}, False),
     "tsbo-tsp": ("tsbo-tsp", {}, True),
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
@@ -221,7 +224,9 @@ GA_BUDGET = 225
 PAIRS: list[tuple[str, str]] = [
     ("trbo", "tsbo-tsp-improved"),
     ("trbo", "optuna-gp"),
-    ("trbo-delta0.1", "trbo-delta0.01"),
+    ("trbo-length0.4", "trbo-delta0.01"),
+    ("trbo-length0.2", "trbo-length0.4"),
+    ("trbo-length0.3", "trbo-length0.4"),
     ("tsbo-tsp-improved", "tsbo-tsp"),
     ("tsbo-gp-improved", "tsbo-gp"),
     ("tsbo-tsp-improved-prev", "tsbo-tsp"),
