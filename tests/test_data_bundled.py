@@ -10,7 +10,7 @@ import numpy as np
 from kftune.data import bundled_dataset_path, default_dataset
 from kftune.data.validate import SIDESLIP_CHANNELS
 from kftune.sim.generate import TRUE_CHANNELS  # a table: imports no CommonRoad
-from test_data_helpers import MAX_SHARE_ONE_STEP, storage_step_differences
+from test_data_helpers import MAX_SHARE_ONE_STEP, comparison_steps, storage_step_differences
 
 
 def test_bundled_dataset_follows_the_paper_and_reaches_the_nonlinear_range():
@@ -58,10 +58,25 @@ def test_generated_channels_are_consistent():
         assert set(m.channel_names) == set(SIDESLIP_CHANNELS) | set(TRUE_CHANNELS)
 
 
-def test_cross_machine_comparison_allows_one_storage_step_on_a_few_samples_only():
+def test_cross_machine_comparison_allows_one_step_on_a_few_samples_only():
     """The comparison that replaces bit-for-bit identity across CPUs (see
     test_sim_generate) still fails on a real difference, and says where and how large."""
     stored = default_dataset()["train-04-j-turn"]
+    # a true channel may drift by its step (3e-4 of its range), not by ten
+    vy = stored.extra["vy_true"]
+    step = comparison_steps(stored)["vy_true"]
+    assert 0 < step < 1e-3 * np.ptp(vy)
+    drifted = stored.replace(vy_true=vy + 0.9 * step)
+    assert len(storage_step_differences(drifted, stored)) == 1  # every sample off by 0.9 step
+    (problem,) = storage_step_differences(stored.replace(vy_true=vy + 10 * step), stored)
+    assert "channel vy_true" in problem and "at most one step" in problem
+    # a measured channel may round to the neighbouring sensor step (0.1° / 15 for δ)
+    d = stored.delta.copy()
+    d[[10, 500]] += np.radians(0.1) / 15
+    assert storage_step_differences(stored.replace(delta=d), stored) == []
+    d[600] += 3 * np.radians(0.1) / 15
+    (problem,) = storage_step_differences(stored.replace(delta=d), stored)
+    assert "channel delta" in problem
 
     def ay_moved(rows: np.ndarray, by: float):
         ay = stored.ay.copy()
@@ -71,7 +86,7 @@ def test_cross_machine_comparison_allows_one_storage_step_on_a_few_samples_only(
     assert storage_step_differences(stored, stored) == []
     assert storage_step_differences(ay_moved(np.array([5, 300, 700]), 0.01), stored) == []
     (problem,) = storage_step_differences(ay_moved(np.array([300]), 0.02), stored)
-    assert "channel ay: 1 of 1031 samples differ, by up to 2.00 storage steps" in problem
+    assert "channel ay: 1 of 1031 samples differ, by up to 2.00 steps of 0.01" in problem
     many = np.arange(0, stored.n, 5)  # 20 % of the samples, one step each
     assert many.size > MAX_SHARE_ONE_STEP * stored.n
     (problem,) = storage_step_differences(ay_moved(many, -0.01), stored)

@@ -54,22 +54,49 @@ def synthetic_dataset(n_train: int = 2, n_test: int = 2) -> Dataset:
     )
 
 
-#: Largest share of a channel's samples that may differ by one storage step between a
-#: regenerated manoeuvre and the bundled one. On another CPU the BLAS kernels that SciPy's
-#: LSODA calls round differently in the last bit; the closed loop carries that into a
-#: different rounding of a few stored values (measured on an AVX-512 Xeon with OpenBLAS:
-#: up to 6 % of a channel's samples, one step each).
+#: Largest share of a channel's samples that may differ by one step (see
+#: :func:`comparison_steps`) between a regenerated manoeuvre and the bundled one. On another
+#: CPU the BLAS kernels that SciPy's LSODA calls round differently in the last bit; the
+#: closed loop carries that into the plant's trajectory, and a measured channel then rounds
+#: to the neighbouring sensor step on a few samples (measured on an AVX-512 Xeon with
+#: OpenBLAS: up to 6.1 % of a channel's samples, r of train-07-lane-change).
 MAX_SHARE_ONE_STEP = 0.10
+#: Step of a true (unquantised) channel as a share of its range over the manoeuvre. The same
+#: Xeon's true channels differ from the bundle's by up to 7.3e-5 of their range.
+TRUE_STEP_OF_RANGE = 3e-4
+
+
+def comparison_steps(stored: Manoeuvre) -> dict[str, float]:
+    """The unit of difference per channel of ``stored`` for :func:`storage_step_differences`:
+    the storage step (``10**-decimals``) or, where larger, one sensor step as it reaches the
+    channel (:class:`kftune.sim.sensors.SensorModel`: Vx averages two quantised wheel speeds
+    over cos δ, δ is the hand-wheel step over the steering ratio) or, for true channels,
+    :data:`TRUE_STEP_OF_RANGE` of the channel's range."""
+    from kftune.sim.generate import STORAGE_DECIMALS
+    from kftune.sim.sensors import SensorModel
+
+    s = SensorModel()
+    quanta = {
+        "ax": s.accel_resolution,
+        "ay": s.accel_resolution,
+        "r": s.gyro_resolution,
+        "vx": 1.1 * s.wheel_speed_resolution,
+        "delta": s.handwheel_resolution / s.steering_ratio,
+        "beta_ref": s.beta_resolution,
+    }
+    steps = {}
+    for c in stored.channel_names:
+        q = quanta.get(c, TRUE_STEP_OF_RANGE * float(np.ptp(stored.channel(c))))
+        steps[c] = max(10.0 ** -STORAGE_DECIMALS[c], q)
+    return steps
 
 
 def storage_step_differences(generated: Manoeuvre, stored: Manoeuvre) -> list[str]:
-    """How ``generated`` differs from ``stored`` beyond what floating point allows: any
-    difference in metadata or length, a value off by more than one storage step
-    (``10**-decimals`` of :data:`kftune.sim.generate.STORAGE_DECIMALS`), or more than
-    :data:`MAX_SHARE_ONE_STEP` of a channel's samples off by one step. Each problem names
-    the channel, how many samples differ and by how much; an empty list means none."""
-    from kftune.sim.generate import STORAGE_DECIMALS
-
+    """How ``generated`` differs from ``stored`` beyond what floating point allows across
+    CPUs: any difference in metadata or length, a value off by more than one step of its
+    channel (:func:`comparison_steps`), or more than :data:`MAX_SHARE_ONE_STEP` of a
+    channel's samples off by one step. Each problem names the channel, how many samples
+    differ and by how much; an empty list means none."""
     head = (generated.name, generated.kind, generated.split, generated.description)
     if head != (stored.name, stored.kind, stored.split, stored.description):
         return [f"metadata differ: {head} against {stored.name, stored.kind, stored.split}"]
@@ -77,8 +104,7 @@ def storage_step_differences(generated: Manoeuvre, stored: Manoeuvre) -> list[st
         return [f"channels or lengths differ: {generated.channel_names} n={generated.n} "
                 f"against {stored.channel_names} n={stored.n}"]  # fmt: skip
     problems = []
-    for c in generated.channel_names:
-        step = 10.0 ** -STORAGE_DECIMALS[c]
+    for c, step in comparison_steps(stored).items():
         steps = np.abs(generated.channel(c) - stored.channel(c)) / step
         differ = int(np.count_nonzero(steps > 0.5))
         if not differ:
@@ -86,7 +112,7 @@ def storage_step_differences(generated: Manoeuvre, stored: Manoeuvre) -> list[st
         worst = float(steps.max())
         what = (
             f"{stored.name}: channel {c}: {differ} of {stored.n} samples differ, by up to "
-            f"{worst:.2f} storage steps ({worst * step:.3g})"
+            f"{worst:.2f} steps of {step:.3g} ({worst * step:.3g})"
         )
         if worst > 1.5:
             problems.append(f"{what}; at most one step is allowed")
