@@ -46,11 +46,12 @@ class CostSpec:
             ``"nis"`` — the consistency cost |log(mean NIS / n_z)| of Chen et al. (2018),
             which needs no reference sensor; ``"pem"`` — the filter's innovation negative
             log-likelihood per sample (:func:`innovation_nll`; the prediction-error method,
-            maximum likelihood), which needs no reference sensor either and is the one to
-            use without one (README, "Tuning without a reference sensor"); ``"msp"`` —
-            the multi-step prediction error (:func:`multistep_cost`): the model run open
-            loop for :data:`MSP_HORIZON` from the posterior state, against the measured
-            channels among ``weights`` (default r and ay); single-track model only.
+            maximum likelihood), which needs no reference sensor either; ``"msp"`` — the
+            multi-step prediction error (:func:`multistep_cost`): the model run open loop
+            for :data:`MSP_HORIZON` from the posterior state, against the measured channels
+            among ``weights`` (default r and ay); single-track model only. No
+            reference-free cost is reliable yet (README, "Tuning without a reference
+            sensor": on revs-250lm msp's optimum is a worse filter than manual tuning).
         weights: channel → weight W_j ≥ 0 (``"nrmse"`` only): a measurement of the
             filter's model or one of its outputs (the single-track model's: :data:`CHANNELS`);
             the tuning problem checks them against its model.
