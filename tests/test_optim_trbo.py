@@ -68,7 +68,7 @@ def test_log_min_warp_is_log_of_the_shifted_values():
     np.testing.assert_allclose(opt._targets(), np.log(np.array([0, 4, 4]) + delta), rtol=1e-14)
 
 
-@pytest.mark.parametrize("bad", [0.0, -0.1, float("inf"), float("nan"), "0.1"])
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("inf"), float("nan"), "0.1", True])
 def test_warp_delta_must_be_positive_and_finite(bad):
     with pytest.raises(ValueError, match="warp_delta"):
         make_optimizer("trbo", CUBE3, seed=0, warp_delta=bad)

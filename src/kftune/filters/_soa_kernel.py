@@ -26,10 +26,12 @@ register (8 into one AVX-512 register):
 
 The vector loops contain no calls the compiler cannot inline and no loop-carried
 dependence; branches (the Dugoff saturation, the Cholesky pivots) become selects. The
-inner trip count is the compile-time constant ``LANES`` and rows are ``LANES`` elements
-apart, so LLVM proves that the rows of a block do not overlap and needs neither run-time
-overlap checks nor a scalar remainder loop (with rows of a run-time stride it guarded
-every loop with checks of its ~50 rows and gained only ~1.4–2× at B = 8).
+rows of a block are the compile-time constant ``LANES`` elements apart, so LLVM proves
+that they do not overlap and needs no run-time overlap checks (with rows of a run-time
+stride it guarded every loop with checks of its ~50 rows and gained only ~1.4–2× at
+B = 8). The inner loop's trip count is the block view's length over ``NROWS`` — equal to
+``LANES`` but not known to LLVM at compile time: with a constant trip count LLVM unrolls
+the 8 iterations fully, and numba leaves the SLP vectoriser off, so nothing is vectorised.
 
 A set that diverges is retired: its lane is swapped with the last active one (compaction),
 so the loops keep running over active sets only and a diverged set's NaN or inf can reach
@@ -63,9 +65,9 @@ from kftune.vehicle.single_track import (
     step_context_scalar,
 )
 
-#: Lanes per block: the vector loops run over blocks of this many sets, a compile-time
-#: trip count (8 doubles: two AVX2 registers or one AVX-512 register), so the compiler
-#: needs no run-time overlap checks and no scalar remainder.
+#: Lanes per block: the vector loops run over blocks of this many sets (8 doubles: two
+#: AVX2 registers or one AVX-512 register); rows a constant LANES apart need no run-time
+#: overlap checks, and a multiple of the vector width leaves no scalar remainder.
 LANES = 8
 
 
@@ -138,37 +140,15 @@ def _predict_lanes(
             f50, f51, f52 = rk4_scalar(x0, x1 - b1, x2 - b2, e0, e1, ax, e2, e3, mp, dt)
             f60, f61, f62 = rk4_scalar(x0, x1, x2 - d2, e0, e1, ax, e2, e3, mp, dt)
             # x̄ = W0ᵐ χ0 + Σ_{i≥1} Wᵢ χi, summed in run_kernel's order
-            m0 = wm0 * f00
-            m1 = wm0 * f01
-            m2 = wm0 * f02
-            m0 += wi * f10
-            m1 += wi * f11
-            m2 += wi * f12
-            m0 += wi * f20
-            m1 += wi * f21
-            m2 += wi * f22
-            m0 += wi * f30
-            m1 += wi * f31
-            m2 += wi * f32
-            m0 += wi * f40
-            m1 += wi * f41
-            m2 += wi * f42
-            m0 += wi * f50
-            m1 += wi * f51
-            m2 += wi * f52
-            m0 += wi * f60
-            m1 += wi * f61
-            m2 += wi * f62
+            m0, m1, m2 = _mean7(
+                wm0, wi, f00, f01, f02, f10, f11, f12, f20, f21, f22, f30, f31, f32,
+                f40, f41, f42, f50, f51, f52, f60, f61, f62,
+            )  # fmt: skip
             # P̄ = W0ᶜ d0 d0ᵀ + Σ Wᵢ dᵢ dᵢᵀ + Q
             d0 = f00 - m0
             d1 = f01 - m1
             dd = f02 - m2
-            p00 = wc0 * d0 * d0
-            p01 = wc0 * d0 * d1
-            p02 = wc0 * d0 * dd
-            p11 = wc0 * d1 * d1
-            p12 = wc0 * d1 * dd
-            p22 = wc0 * dd * dd
+            p00, p01, p02, p11, p12, p22 = _outer(wc0, d0, d1, dd)
             p00, p01, p02, p11, p12, p22 = _acc_outer(
                 p00, p01, p02, p11, p12, p22, wi, f10 - m0, f11 - m1, f12 - m2
             )
@@ -207,6 +187,53 @@ def _predict_lanes(
             s[LB21 + j] = l21
             s[LB22 + j] = l22
             s[OK_PB + j] = 1.0 if ok else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _mean7(
+    wm0: float,
+    wi: float,
+    a0: float,
+    a1: float,
+    a2: float,
+    b0: float,
+    b1: float,
+    b2: float,
+    c0: float,
+    c1: float,
+    c2: float,
+    d0: float,
+    d1: float,
+    d2: float,
+    e0: float,
+    e1: float,
+    e2: float,
+    f0: float,
+    f1: float,
+    f2: float,
+    g0: float,
+    g1: float,
+    g2: float,
+) -> tuple[float, float, float]:
+    """W0ᵐ·a + Wᵢ·(b + c + … + g) of seven 3-vectors, summed in run_kernel's order (the
+    unscented mean of the sigma points a, …, g; Simon 2006, Eq. 14.59 and 14.61)."""
+    m0 = wm0 * a0
+    m1 = wm0 * a1
+    m2 = wm0 * a2
+    for v0, v1, v2 in ((b0, b1, b2), (c0, c1, c2), (d0, d1, d2), (e0, e1, e2),
+                       (f0, f1, f2), (g0, g1, g2)):  # fmt: skip
+        m0 += wi * v0
+        m1 += wi * v1
+        m2 += wi * v2
+    return m0, m1, m2
+
+
+@njit(cache=True, error_model="numpy")
+def _outer(
+    w: float, d0: float, d1: float, d2: float
+) -> tuple[float, float, float, float, float, float]:
+    """The upper triangle of w·d·dᵀ, as run_kernel starts its covariance sums."""
+    return w * d0 * d0, w * d0 * d1, w * d0 * d2, w * d1 * d1, w * d1 * d2, w * d2 * d2
 
 
 @njit(cache=True, error_model="numpy")
@@ -273,36 +300,14 @@ def _innovation_stats(
     g40, g41, g42 = measure_scalar(x0 + -a0, x1 + -a1, x2 + -a2, e0, e1, e2, e3, mp)
     g50, g51, g52 = measure_scalar(x0 + -0.0, x1 + -b1, x2 + -b2, e0, e1, e2, e3, mp)
     g60, g61, g62 = measure_scalar(x0 + -0.0, x1 + -0.0, x2 + -d2, e0, e1, e2, e3, mp)
-    z0 = wm0 * g00
-    z1 = wm0 * g01
-    z2 = wm0 * g02
-    z0 += wi * g10
-    z1 += wi * g11
-    z2 += wi * g12
-    z0 += wi * g20
-    z1 += wi * g21
-    z2 += wi * g22
-    z0 += wi * g30
-    z1 += wi * g31
-    z2 += wi * g32
-    z0 += wi * g40
-    z1 += wi * g41
-    z2 += wi * g42
-    z0 += wi * g50
-    z1 += wi * g51
-    z2 += wi * g52
-    z0 += wi * g60
-    z1 += wi * g61
-    z2 += wi * g62
+    z0, z1, z2 = _mean7(
+        wm0, wi, g00, g01, g02, g10, g11, g12, g20, g21, g22, g30, g31, g32,
+        g40, g41, g42, g50, g51, g52, g60, g61, g62,
+    )  # fmt: skip
     f0 = g00 - z0
     f1 = g01 - z1
     f2 = g02 - z2
-    s00 = wc0 * f0 * f0
-    s01 = wc0 * f0 * f1
-    s02 = wc0 * f0 * f2
-    s11 = wc0 * f1 * f1
-    s12 = wc0 * f1 * f2
-    s22 = wc0 * f2 * f2
+    s00, s01, s02, s11, s12, s22 = _outer(wc0, f0, f1, f2)
     # P_xz: the deviations χᵢ − x̄ are the columns of ±c·L̄ (zero for i = 0)
     c00 = c01 = c02 = c10 = c11 = c12 = c20 = c21 = c22 = 0.0
     s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(

@@ -131,7 +131,9 @@ class TrustRegionBO(Optimizer):
         d = self.space.dim
         if warp not in WARPS:
             raise ValueError(f"warp must be one of {WARPS}, got {warp!r}")
-        if not (isinstance(warp_delta, (int, float)) and 0.0 < warp_delta < math.inf):
+        if isinstance(warp_delta, bool) or not (
+            isinstance(warp_delta, (int, float)) and 0.0 < warp_delta < math.inf
+        ):
             raise ValueError(f"warp_delta must be a positive number, got {warp_delta!r}")
         if init_design not in INIT_DESIGNS:
             raise ValueError(f"init_design must be one of {INIT_DESIGNS}, got {init_design!r}")
