@@ -98,6 +98,27 @@ _NAN = math.nan
 
 
 @njit(cache=True, error_model="numpy")
+def _centre_and_spread(
+    s: np.ndarray, j: int, x_row: int, l_row: int, c: float
+) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """Lane j's state x (rows from ``x_row``: X0 or XB0) and the columns of c·L (rows from
+    ``l_row``: L00 or LB00, in the order L00, L10, L11, L20, L21, L22): the sigma points
+    are x and x ± those columns. Returns (x0, x1, x2, c·L00, c·L10, c·L20, c·L11, c·L21,
+    c·L22)."""
+    return (
+        s[x_row + j],
+        s[x_row + LANES + j],
+        s[x_row + 2 * LANES + j],
+        c * s[l_row + j],
+        c * s[l_row + LANES + j],
+        c * s[l_row + 3 * LANES + j],
+        c * s[l_row + 2 * LANES + j],
+        c * s[l_row + 4 * LANES + j],
+        c * s[l_row + 5 * LANES + j],
+    )
+
+
+@njit(cache=True, error_model="numpy")
 def _predict_lanes(
     lanes: np.ndarray,
     n_blocks: int,
@@ -122,15 +143,7 @@ def _predict_lanes(
     for blk in range(n_blocks):
         s = lanes[blk * BLOCK : (blk + 1) * BLOCK]
         for j in range(s.size // NROWS):  # LANES, but unknown to LLVM: it must not unroll
-            x0 = s[X0 + j]
-            x1 = s[X1 + j]
-            x2 = s[X2 + j]
-            a0 = c * s[L00 + j]
-            a1 = c * s[L10 + j]
-            a2 = c * s[L20 + j]
-            b1 = c * s[L11 + j]
-            b2 = c * s[L21 + j]
-            d2 = c * s[L22 + j]
+            x0, x1, x2, a0, a1, a2, b1, b2, d2 = _centre_and_spread(s, j, X0, L00, c)
             # the seven propagated sigma points, in run_kernel's order
             f00, f01, f02 = rk4_scalar(x0, x1, x2, e0, e1, ax, e2, e3, mp, dt)
             f10, f11, f12 = rk4_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, ax, e2, e3, mp, dt)
@@ -284,15 +297,7 @@ def _innovation_stats(
         c21, c22) with S = Σ Wᶜ (Zᵢ − ẑ)(Zᵢ − ẑ)ᵀ (R not yet added) and
         P_xz[i][m] = c_im = Σ Wᶜ (χᵢ − x̄)(Zᵢ − ẑ)ᵀ (Simon 2006, Eq. 14.61–14.63).
     """
-    x0 = s[XB0 + j]
-    x1 = s[XB1 + j]
-    x2 = s[XB2 + j]
-    a0 = c * s[LB00 + j]
-    a1 = c * s[LB10 + j]
-    a2 = c * s[LB20 + j]
-    b1 = c * s[LB11 + j]
-    b2 = c * s[LB21 + j]
-    d2 = c * s[LB22 + j]
+    x0, x1, x2, a0, a1, a2, b1, b2, d2 = _centre_and_spread(s, j, XB0, LB00, c)
     g00, g01, g02 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
     g10, g11, g12 = measure_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, e2, e3, mp)
     g20, g21, g22 = measure_scalar(x0 + 0.0, x1 + b1, x2 + b2, e0, e1, e2, e3, mp)
