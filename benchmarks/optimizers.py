@@ -186,6 +186,8 @@ METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     "trbo-length0.2": ("trbo", {"length_init": 0.2}, False),
     "trbo-length0.3": ("trbo", {"length_init": 0.3}, False),
     "trbo-length0.4": ("trbo", {"length_init": 0.4}, False),
+    # without the axis probes (the default before they were added)
+    "trbo-no-probe": ("trbo", {"probe_after": 0}, False),
     "tsbo-tsp": ("tsbo-tsp", {}, True),
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
@@ -227,6 +229,7 @@ PAIRS: list[tuple[str, str]] = [
     ("trbo-length0.4", "trbo-delta0.01"),
     ("trbo-length0.2", "trbo-length0.4"),
     ("trbo-length0.3", "trbo-length0.4"),
+    ("trbo", "trbo-no-probe"),
     ("tsbo-tsp-improved", "tsbo-tsp"),
     ("tsbo-gp-improved", "tsbo-gp"),
     ("tsbo-tsp-improved-prev", "tsbo-tsp"),

@@ -4,7 +4,8 @@ contract (tests/test_optim_contract.py covers bounds, budget, failures, timeouts
 * optima on the faces and corners of the box are reached exactly;
 * a decoy basin where the search starts (the centre) does not trap it;
 * anytime: its proposals do not depend on the budget, so more budget never ends worse;
-* the trust region grows on success, shrinks on failure and restarts when it collapses.
+* the trust region grows on success, shrinks on failure and restarts when it collapses;
+* after a stall, axis probes test a coordinate the GP finds irrelevant (plateaus).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from kftune.optim import make_optimizer, minimize
+from kftune.optim.trbo import AXIS_SLAB
 
 CUBE3 = {"a": (0.0, 1.0), "b": (0.0, 1.0), "c": (0.0, 1.0)}
 
@@ -127,3 +129,74 @@ def test_a_batch_updates_the_trust_region_once():
         for i, t in enumerate(trials):
             opt.tell(t, best - 1.0 if i == 0 and t.stage == 1 else best + 1.0)
         assert opt.length >= length or trials[0].stage != 1
+
+
+def flat_in_a(x: np.ndarray) -> float:
+    """A bowl in (b, c) that ignores a: the GP finds a irrelevant (longest length scale)."""
+    return 1.0 + float((x[1] - 0.3) ** 2 + (x[2] - 0.6) ** 2)
+
+
+def test_axis_probes_bisect_the_widest_gap_of_the_irrelevant_coordinate():
+    opt = make_optimizer("trbo", CUBE3, budget=80, seed=0)
+    probes, stall, wait, best = 0, 0, opt.probe_after, np.inf
+    while not opt.done:
+        t = opt.ask()
+        # A probe comes once `wait` model-based results in a row improved nothing (by 1e-3
+        # of the best); each probe that improves nothing doubles the wait, any improvement
+        # resets it to probe_after.
+        assert (t.acquisition == "axis-probe") == (stall >= wait) or t.acquisition == "init"
+        if t.acquisition == "axis-probe":
+            probes += 1
+            stall = 0
+            inc = opt.best.u
+            ls = np.asarray(t.hyperparameters["length_scales"])
+            k = int(np.argmax(ls))
+            assert k == 0 and ls[0] >= opt.probe_length_scale  # a, the coordinate ignored
+            # Only that coordinate moved, into the middle of the widest gap between the
+            # values of a asked on the incumbent's line (and the bounds 0 and 1).
+            np.testing.assert_array_equal(np.delete(t.u, k), np.delete(inc, k))
+            asked = np.array([r.u for r in opt.history])
+            line = np.max(np.abs(asked[:, 1:] - inc[1:]), axis=1) <= AXIS_SLAB
+            vals = np.unique(np.r_[0.0, 1.0, asked[line, 0]])
+            j = int(np.argmax(np.diff(vals)))
+            assert t.u[0] == pytest.approx(0.5 * (vals[j] + vals[j + 1]), abs=1e-12)
+        v = flat_in_a(t.x)
+        opt.tell(t, v)
+        improved = v < best - 1e-3 * abs(best)
+        if t.acquisition != "init":
+            stall = 0 if improved else stall + 1
+            if improved:
+                wait = opt.probe_after
+            elif t.acquisition == "axis-probe":
+                wait *= 2
+        best = min(best, v)
+    # Polishing the bowl stalls (gains under 1e-3 of the value): probes follow.
+    assert probes >= 2
+
+
+@pytest.mark.parametrize("options", [{"probe_after": 0}, {"probe_length_scale": 100.0}])
+def test_no_axis_probes_when_switched_off_or_no_coordinate_qualifies(options):
+    res = minimize(flat_in_a, CUBE3, "trbo", budget=60, seed=0, **options)
+    assert not [r for r in res.history if r.acquisition == "axis-probe"]
+
+
+@pytest.mark.parametrize(
+    ("name", "bad"),
+    [("probe_after", -1), ("probe_after", 1.5), ("probe_length_scale", -0.1)]
+    + [("probe_length_scale", v) for v in (float("inf"), float("nan"), True)],
+)
+def test_probe_options_are_checked(name, bad):
+    with pytest.raises(ValueError, match=name):
+        make_optimizer("trbo", CUBE3, seed=0, **{name: bad})
+
+
+def test_axis_probes_in_batches_propose_no_point_twice():
+    opt = make_optimizer("trbo", CUBE3, budget=80, seed=1)
+    while not opt.done:
+        trials = opt.ask(4)
+        for t in reversed(trials):  # told out of order
+            opt.tell(t, flat_in_a(t.x))
+    u = np.array([r.u for r in opt.history])
+    assert [r for r in opt.history if r.acquisition == "axis-probe"]
+    gaps = np.max(np.abs(u[:, None, :] - u[None, :, :]), axis=2) + np.eye(len(u))
+    assert gaps.min() > 1e-9

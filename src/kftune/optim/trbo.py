@@ -31,6 +31,22 @@ stage, and a global one — but lets them alternate for the whole budget:
   restarts at ``length_init`` and the next ``escape`` steps go where the model is least
   sure (largest predictive standard deviation over the whole box): EI alone stays in a
   basin that the model believes it knows.
+* **Axis probes** (plateaus): after ``probe_after`` (5) model-based results in a row
+  without an improvement, the next step moves the incumbent along the coordinate the GP finds
+  least relevant — the longest length scale, if it is at least ``probe_length_scale`` of
+  the box — into the middle of the widest unsampled gap of that coordinate on the
+  incumbent's line (asked points whose other coordinates are within
+  :data:`AXIS_SLAB`). A process-noise variance too small to matter leaves the cost flat
+  over its whole lower range; there the GP rightly finds the coordinate irrelevant and EI
+  never samples the dip beyond the plateau. The probe tests that belief, a bisection at a
+  time. A probe that improves nothing doubles the wait for the next one; any improvement
+  resets it. A probe takes the place of the step it replaces (a scheduled global step or an
+  escape step counts as made) and is a global step for the trust region: one that improves
+  re-centres the region afresh. On revs-250lm 4 of 40 seeds ended above 3 % of J* after 40
+  evaluations without probes (two at +11 %, on such a plateau), none with them (worst
+  +1.4 %); where the optimum lies on a
+  plateau (the bundled set) the probes cost a little at 40 evaluations (median gap 0.39 →
+  0.49 %, 40 seeds) and nothing at 100.
 * **Global steps**: every ``global_every``-th model-based step maximises EI over the whole
   box instead — exploration where the model is unsure, which is how the search leaves a
   basin.
@@ -67,6 +83,11 @@ from kftune.optim.base import SAME_POINT_ATOL, Optimizer, Proposal, Trial, coinc
 
 WARPS = ("none", "log", "log-min")
 INIT_DESIGNS = ("axial", "sobol")
+#: Axis probes: sampled points count as on the incumbent's line when their other
+#: coordinates are within this distance (max-norm, unit cube) of the incumbent's.
+AXIS_SLAB = 0.1
+#: Axis probes: a coordinate whose widest unsampled gap is narrower than this is skipped.
+AXIS_MIN_GAP = 0.02
 #: The GP's default length-scale bounds here (unit cube): see the module docstring.
 LENGTH_SCALE_BOUNDS = (0.05, 20.0)
 #: An improvement must beat the incumbent by this share of its magnitude (TuRBO's 1e-3).
@@ -93,6 +114,10 @@ class TrustRegionBO(Optimizer):
             the side (``failure_tol`` default max(3, d)).
         global_every: every this-many model-based steps is global (0: never).
         escape: global steps after the trust region collapsed.
+        probe_after: an axis probe after this many model-based results in a row without
+            an improvement (0: never); doubled after each probe that improves nothing.
+        probe_length_scale: only coordinates whose GP length scale is at least this (unit
+            cube) are probed.
         n_candidates: random candidates per step (more cost time, not evaluations).
         faces: add candidates moved onto the faces that the region touches.
         refit_every, full_fit_until: hyperparameter fits with restarts (see module
@@ -126,6 +151,8 @@ class TrustRegionBO(Optimizer):
         faces: bool = True,
         refit_every: int = 5,
         full_fit_until: int = 20,
+        probe_after: int = 5,
+        probe_length_scale: float = 0.5,
     ) -> None:
         super().__init__(space, budget=budget, seed=seed)
         d = self.space.dim
@@ -135,6 +162,12 @@ class TrustRegionBO(Optimizer):
             isinstance(warp_delta, (int, float)) and 0.0 < warp_delta < math.inf
         ):
             raise ValueError(f"warp_delta must be a positive number, got {warp_delta!r}")
+        if isinstance(probe_length_scale, bool) or not (
+            isinstance(probe_length_scale, (int, float)) and 0.0 <= probe_length_scale < math.inf
+        ):
+            raise ValueError(
+                f"probe_length_scale must be a number >= 0, got {probe_length_scale!r}"
+            )
         if init_design not in INIT_DESIGNS:
             raise ValueError(f"init_design must be one of {INIT_DESIGNS}, got {init_design!r}")
         if not 0.0 < length_min <= length_init <= length_max:
@@ -148,6 +181,7 @@ class TrustRegionBO(Optimizer):
             "failure_tol": failure_tol if failure_tol is not None else max(3, d),
             "global_every": global_every,
             "escape": escape,
+            "probe_after": probe_after,
             "n_candidates": n_candidates,
             "refit_every": refit_every,
             "full_fit_until": full_fit_until,
@@ -163,6 +197,7 @@ class TrustRegionBO(Optimizer):
             int(ints["failure_tol"]),
         )
         self.global_every, self.escape = int(global_every), int(escape)
+        self.probe_after, self.probe_length_scale = int(probe_after), float(probe_length_scale)
         self.n_candidates, self.refit_every = int(n_candidates), int(refit_every)
         self.full_fit_until = int(full_fit_until)
         self.init_design, self.warp, self.faces = init_design, warp, bool(faces)
@@ -190,6 +225,8 @@ class TrustRegionBO(Optimizer):
         self.length = self.length_init
         self.n_success = self.n_failure = 0
         self.tr_restarts = 0
+        self._stall = 0  # model-based results told since the last improvement
+        self._probe_wait = int(probe_after)  # stall length that triggers the next probe
         self._iter = 0  # model-based results told so far
         self._n_model = 0  # model-based proposals asked so far (told or pending)
         self._force_global = 0  # escape steps still to hand out
@@ -229,6 +266,8 @@ class TrustRegionBO(Optimizer):
             "failure_tol": self.failure_tol,
             "global_every": self.global_every,
             "escape": self.escape,
+            "probe_after": self.probe_after,
+            "probe_length_scale": self.probe_length_scale,
             "n_candidates": self.n_candidates,
             "faces": self.faces,
             "refit_every": self.refit_every,
@@ -297,6 +336,16 @@ class TrustRegionBO(Optimizer):
         self._n_model += 1
         self._join_round()
         af = "std" if escaping else "EI"
+        probe = self._axis_probe(centre) if 0 < self._probe_wait <= self._stall else None
+        if probe is not None:
+            self._stall = 0
+            return Proposal(
+                u=probe,
+                stage=2,
+                acquisition="axis-probe",
+                hyperparameters=dict(self.surrogate.hyperparameters),
+                info={"length": self.length},
+            )
         cand = self._global_candidates() if is_global else self._local_candidates(centre)
         cand = self._fresh(cand)
         scores = self._score(cand, y, af)
@@ -363,6 +412,32 @@ class TrustRegionBO(Optimizer):
         else:
             s = np.asarray(log_expected_improvement(pred, float(np.min(y))), dtype=float)
         return np.where(np.isnan(s), -np.inf, s)
+
+    def _axis_probe(self, centre: np.ndarray) -> np.ndarray | None:
+        """(d,) ``centre`` moved along the coordinate the GP finds least relevant (longest
+        length scale, at least ``probe_length_scale``) to the middle of the widest unsampled
+        gap of that coordinate among the asked points (told or pending) on the incumbent's
+        line (the others within :data:`AXIS_SLAB`); the next such coordinate when that gap
+        is under :data:`AXIS_MIN_GAP`; ``None`` when no coordinate qualifies. The midpoint
+        of a gap is no asked point, so nothing is proposed twice."""
+        d = self.space.dim
+        ls = np.asarray(self.surrogate.hyperparameters.get("length_scales", []), dtype=float)
+        if ls.size != d:  # a surrogate without ARD length scales: no probes
+            return None
+        asked = np.vstack([self._X, self._pending_u()])
+        for k in np.argsort(-ls, kind="stable"):
+            if ls[k] < self.probe_length_scale:
+                return None
+            others = np.arange(d) != k
+            dist = np.max(np.abs(asked[:, others] - centre[others]), axis=1, initial=0.0)
+            vals = np.unique(np.concatenate([[0.0, 1.0], asked[dist <= AXIS_SLAB, k]]))
+            gaps = np.diff(vals)
+            j = int(np.argmax(gaps))
+            if gaps[j] >= AXIS_MIN_GAP:
+                u = centre.copy()
+                u[k] = 0.5 * (vals[j] + vals[j + 1])
+                return u
+        return None
 
     def _weights(self) -> np.ndarray:
         """(d,) TuRBO's trust-region shape: length scales over their geometric mean."""
@@ -437,6 +512,11 @@ class TrustRegionBO(Optimizer):
             and best_before is not None
             and value < best_before - IMPROVEMENT_RTOL * abs(best_before)
         )
+        self._stall = 0 if improved else self._stall + 1
+        if improved:  # axis probes: see the module docstring
+            self._probe_wait = self.probe_after
+        elif trial.acquisition == "axis-probe":
+            self._probe_wait *= 2
         if trial.stage == 2:
             rnd["global_ok"] = rnd["global_ok"] or improved
         else:
