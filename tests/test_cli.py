@@ -191,6 +191,12 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
         assert [(h["parameter"], h["side"]) for h in run["extra"]["on_bounds"]] == expected
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert "convergence.png" in figures and "cost_slice.png" in figures
+    # the cost slice goes through the default tuner's optimum, and the caption says so
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["cost_slice"]["through"] == "TR-BO (kftune)"
+    report = (out / "report.md").read_text()
+    assert "through the TR-BO (kftune) optimum" in report
+    assert "β estimated by the filters tuned by GA, TSBO - tSP, TR-BO (kftune) against" in report
     assert "improvement_test.png" in figures and "beta_test-05-j-turn.png" in figures
     # the studies are not thrown away by accident; resuming finished studies evaluates
     # nothing new and reproduces the tables

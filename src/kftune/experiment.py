@@ -395,8 +395,10 @@ def cost_slice(
     n_grid: int = 41,
     n_samples: int = 9,
     seed: int = 0,
+    through: str = "best",
 ) -> dict[str, Any]:
     """Paper Fig. 2: the cost along one parameter through ``x_best``, with GP and tSP fits.
+    ``through`` names the method whose optimum ``x_best`` is (for the captions).
 
     The cost is evaluated densely on ``n_grid`` points; both surrogates are fitted on
     ``n_samples`` evenly spaced ones and predicted on the whole grid (the parameter's unit
@@ -428,6 +430,7 @@ def cost_slice(
         fits[name] = {"mean": pred.mean.tolist(), "std": pred.std.tolist()}
     return {
         "parameter": parameter,
+        "through": through,
         "log_scale": space.params[j].log,
         "grid": grid,
         "cost": cost_arr.tolist(),
@@ -531,7 +534,7 @@ def run_compare(
         if sliced is None:
             names = problem.space.names
             sliced = "q_vy" if "q_vy" in names else names[0]
-        sl = cost_slice(problem, x_best, sliced, seed=settings.seed)
+        sl = cost_slice(problem, x_best, sliced, seed=settings.seed, through=best.label)
     meta = {
         "dataset": {
             "name": dataset.name,

@@ -79,7 +79,7 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             (
                 "improvement_test.png",
                 "TSBO-tSP against GA per manoeuvre (cf. paper Fig. 7)",
-                "Relative RMSE improvement of the TSBO-tSP-tuned UKF over the GA-tuned one "
+                "Relative RMSE improvement of the TSBO-tSP-tuned filter over the GA-tuned one "
                 f"on every test manoeuvre, for {named}.",
             )
         )
@@ -107,13 +107,14 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             )
             continue
         plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
+        labels = ", ".join(results.method(k).label for k in shown)
         figures.append(
             (
                 stem,
                 f"Sideslip estimate, {name}"
                 + (f" ({kind})" if kind else "")
                 + " (cf. paper Figs. 8–10)",
-                "β estimated by the GA- and TSBO-tSP-tuned filters against the reference.",
+                f"β estimated by the filters tuned by {labels} against the reference.",
             )
         )
     if results.cost_slice:
@@ -122,7 +123,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             (
                 "cost_slice.png",
                 "Surrogate fits of the cost (cf. paper Fig. 2)",
-                "A one-dimensional slice of the training cost through the TSBO-tSP optimum, "
+                "A one-dimensional slice of the training cost through the "
+                f"{results.cost_slice.get('through', 'best')} optimum, "
                 "with GP and Student-t process fits to a few of its points. Where the two "
                 "curves coincide they do so by construction: for equal hyperparameters the "
                 "tSP's posterior mean is the GP's and only its variance is rescaled "

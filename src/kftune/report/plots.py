@@ -249,7 +249,8 @@ def cost_slice(results: ExperimentResults) -> Figure:
     if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
         pad = 0.25 * (hi - lo)
         ax.set_ylim(lo - pad, hi + pad)
-    ax.set_xlabel(f"{sl['parameter']} (other parameters at the TSBO-tSP optimum)")
+    through = sl.get("through", "best")
+    ax.set_xlabel(f"{sl['parameter']} (other parameters at the {through} optimum)")
     ax.set_ylabel("cost J [-]")
     ax.set_title("GP and Student-t process fits of a slice of the cost")
     ax.legend(fontsize=8)
