@@ -32,10 +32,10 @@ stage, and a global one — but lets them alternate for the whole budget:
   sure (largest predictive standard deviation over the whole box): EI alone stays in a
   basin that the model believes it knows.
 * **Axis probes** (plateaus): after ``probe_after`` (5) model-based results in a row
-  without an improvement, the next step moves the incumbent along the coordinate the GP finds
-  least relevant — the longest length scale, if it is at least ``probe_length_scale`` of
-  the box — into the middle of the widest unsampled gap of that coordinate on the
-  incumbent's line (asked points whose other coordinates are within
+  without an improvement, the next step moves the incumbent along the coordinate the GP
+  finds least relevant — the longest length scale, if it is at least
+  ``probe_length_scale`` of the box — into the middle of the widest unsampled gap of that
+  coordinate on the incumbent's line (asked points whose other coordinates are within
   :data:`AXIS_SLAB`). A process-noise variance too small to matter leaves the cost flat
   over its whole lower range; there the GP rightly finds the coordinate irrelevant and EI
   never samples the dip beyond the plateau. The probe tests that belief, a bisection at a
@@ -44,9 +44,8 @@ stage, and a global one — but lets them alternate for the whole budget:
   escape step counts as made) and is a global step for the trust region: one that improves
   re-centres the region afresh. On revs-250lm 4 of 40 seeds ended above 3 % of J* after 40
   evaluations without probes (two at +11 %, on such a plateau), none with them (worst
-  +1.4 %); where the optimum lies on a
-  plateau (the bundled set) the probes cost a little at 40 evaluations (median gap 0.39 →
-  0.49 %, 40 seeds) and nothing at 100.
+  +1.4 %); where the optimum lies on a plateau (the bundled set) the probes cost a little
+  at 40 evaluations (median gap 0.39 → 0.49 %, 40 seeds) and nothing at 100.
 * **Global steps**: every ``global_every``-th model-based step maximises EI over the whole
   box instead — exploration where the model is unsure, which is how the search leaves a
   basin.
