@@ -412,6 +412,12 @@ class TrustRegionBO(Optimizer):
             s = np.asarray(log_expected_improvement(pred, float(np.min(y))), dtype=float)
         return np.where(np.isnan(s), -np.inf, s)
 
+    def _length_scales(self) -> np.ndarray | None:
+        """(d,) the fitted GP's ARD length scales (unit cube), or ``None`` when the
+        surrogate has none."""
+        ls = np.asarray(self.surrogate.hyperparameters.get("length_scales", []), dtype=float)
+        return ls if ls.size == self.space.dim else None
+
     def _axis_probe(self, centre: np.ndarray) -> np.ndarray | None:
         """(d,) ``centre`` moved along the coordinate the GP finds least relevant (longest
         length scale, at least ``probe_length_scale``) to the middle of the widest unsampled
@@ -420,8 +426,8 @@ class TrustRegionBO(Optimizer):
         is under :data:`AXIS_MIN_GAP`; ``None`` when no coordinate qualifies. The midpoint
         of a gap is no asked point, so nothing is proposed twice."""
         d = self.space.dim
-        ls = np.asarray(self.surrogate.hyperparameters.get("length_scales", []), dtype=float)
-        if ls.size != d:  # a surrogate without ARD length scales: no probes
+        ls = self._length_scales()
+        if ls is None:  # a surrogate without ARD length scales: no probes
             return None
         asked = np.vstack([self._X, self._pending_u()])
         for k in np.argsort(-ls, kind="stable"):
@@ -440,8 +446,8 @@ class TrustRegionBO(Optimizer):
 
     def _weights(self) -> np.ndarray:
         """(d,) TuRBO's trust-region shape: length scales over their geometric mean."""
-        ls = np.asarray(self.surrogate.hyperparameters.get("length_scales", []), dtype=float)
-        if ls.size != self.space.dim or not np.all(ls > 0):
+        ls = self._length_scales()
+        if ls is None or not np.all(ls > 0):
             return np.ones(self.space.dim)
         return np.clip(ls / math.exp(float(np.mean(np.log(ls)))), 0.25, 4.0)
 

@@ -94,8 +94,9 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
         kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
         if channels is not None:
             shown = shown or tuple(m.key for m in results.methods)
+        labels = ", ".join(results.method(k).label for k in shown)
+        if channels is not None:
             plots.save(plots.channel_traces(results, name, shown), out / "figures" / stem)
-            labels = ", ".join(results.method(k).label for k in shown)
             figures.append(
                 (
                     stem,
@@ -107,7 +108,6 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             )
             continue
         plots.save(plots.beta_trace(results, name, shown), out / "figures" / stem)
-        labels = ", ".join(results.method(k).label for k in shown)
         figures.append(
             (
                 stem,
