@@ -188,6 +188,9 @@ METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     "trbo-length0.4": ("trbo", {"length_init": 0.4}, False),
     # without the axis probes (the default before they were added)
     "trbo-no-probe": ("trbo", {"probe_after": 0}, False),
+    # every collapse restarts at the incumbent (the default before "alternate"), or leaves it
+    "trbo-restart-incumbent": ("trbo", {"restart": "incumbent"}, False),
+    "trbo-restart-fresh": ("trbo", {"restart": "fresh"}, False),
     "tsbo-tsp": ("tsbo-tsp", {}, True),
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
@@ -230,6 +233,7 @@ PAIRS: list[tuple[str, str]] = [
     ("trbo-length0.2", "trbo-length0.4"),
     ("trbo-length0.3", "trbo-length0.4"),
     ("trbo", "trbo-no-probe"),
+    ("trbo", "trbo-restart-incumbent"),
     ("tsbo-tsp-improved", "tsbo-tsp"),
     ("tsbo-gp-improved", "tsbo-gp"),
     ("tsbo-tsp-improved-prev", "tsbo-tsp"),

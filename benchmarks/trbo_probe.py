@@ -79,8 +79,8 @@ class ProbeTRBO(TrustRegionBO):
             return np.log(raw - lo + max(float(np.median(raw)) - lo, 1e-12))
         return norm.ppf((rankdata(raw) - 0.5) / len(raw))  # "rank"
 
-    def _score(self, cand: np.ndarray, y: np.ndarray, af: str) -> np.ndarray:
-        s = self._score_warped(cand, y, af)
+    def _score(self, cand: np.ndarray, ref: float, af: str) -> np.ndarray:
+        s = self._score_warped(cand, ref, af)
         if self._in_global and self.global_outside and len(cand):
             best_i, _ = self._incumbent()
             centre = self._X[best_i if best_i is not None else 0]
@@ -89,9 +89,9 @@ class ProbeTRBO(TrustRegionBO):
             s = np.where(inside, -np.inf, s)
         return s
 
-    def _score_warped(self, cand: np.ndarray, y: np.ndarray, af: str) -> np.ndarray:
+    def _score_warped(self, cand: np.ndarray, ref: float, af: str) -> np.ndarray:
         if not (self._in_global and self.global_warp != "same" and af == "EI" and len(cand)):
-            return super()._score(cand, y, af)
+            return super()._score(cand, ref, af)
         t = self._global_targets()
         if self._global_fit_n != len(t):
             self._global_gp = make_surrogate("gp", seed=1, **self.surrogate_options)
@@ -115,7 +115,7 @@ class ProbeTRBO(TrustRegionBO):
         y = self._targets()
 
         def neg(u: np.ndarray) -> float:
-            s = self._score(np.clip(u, 0.0, 1.0)[None, :], y, "EI")[0]
+            s = self._score(np.clip(u, 0.0, 1.0)[None, :], float(np.min(y)), "EI")[0]
             return -float(s) if np.isfinite(s) else 1e300
 
         x0 = np.asarray(prop.u, dtype=float)

@@ -41,6 +41,31 @@ def branin_log(x: np.ndarray) -> float:
 BRANIN_SPACE = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10")}
 
 
+@pytest.mark.parametrize(
+    ("design", "at"), [("axial", (0.0, 1.0)), ("direct", (1.0 / 6.0, 5.0 / 6.0))]
+)
+def test_initial_design_is_the_centre_then_two_points_on_each_axis(design, at):
+    """The first 2d + 1 proposals: the centre, then the centre moved to ``at`` along each
+    coordinate in turn (face centres for ``"axial"``, DIRECT's first trisection for
+    ``"direct"``); a larger ``n_init`` continues with distinct points in the box."""
+    d = len(CUBE3)
+    opt = make_optimizer("trbo", CUBE3, seed=3, init_design=design, n_init=2 * d + 4)
+    trials = []
+    for _ in range(2 * d + 4):
+        trials.append(opt.ask())
+        opt.tell(trials[-1], 1.0)
+    u = np.array([t.u for t in trials])
+    want = np.full((2 * d, d), 0.5)
+    for k in range(d):
+        want[2 * k, k], want[2 * k + 1, k] = at
+    np.testing.assert_allclose(u[0], 0.5)
+    np.testing.assert_allclose(u[1 : 2 * d + 1], want)
+    assert {t.acquisition for t in trials} == {"init"}
+    extra = u[2 * d + 1 :]
+    assert np.all((extra >= 0.0) & (extra <= 1.0))
+    assert len(np.unique(np.round(u, 12), axis=0)) == len(u)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_corner_minimum_found_exactly_in_40(seed):
     res = minimize(corner, CUBE3, "trbo", budget=40, seed=seed)
@@ -137,7 +162,8 @@ def flat_in_a(x: np.ndarray) -> float:
 
 
 def test_axis_probes_bisect_the_widest_gap_of_the_irrelevant_coordinate():
-    opt = make_optimizer("trbo", CUBE3, budget=80, seed=0)
+    # The mechanism around the incumbent (with "alternate" a restart can move the centre)
+    opt = make_optimizer("trbo", CUBE3, budget=80, seed=0, restart="incumbent")
     probes, stall, wait, best = 0, 0, opt.probe_after, np.inf
     while not opt.done:
         t = opt.ask()
@@ -172,6 +198,31 @@ def test_axis_probes_bisect_the_widest_gap_of_the_irrelevant_coordinate():
         best = min(best, v)
     # Polishing the bowl stalls (gains under 1e-3 of the value): probes follow.
     assert probes >= 2
+
+
+@pytest.mark.parametrize("restart", ["alternate", "fresh", "incumbent"])
+def test_a_collapse_restarts_at_the_incumbent_or_at_the_escape_steps_best(restart):
+    """After the k-th collapse the escape steps (``std-global``) run, then the region's
+    centre (the proposals' ``info["centre"]``) is the incumbent (``"incumbent"``; odd k with
+    ``"alternate"``) or the best escape step (``"fresh"``; even k with ``"alternate"``)."""
+    opt = make_optimizer("trbo", CUBE3, budget=150, seed=0, restart=restart, length_min=0.02)
+    k, escapes, checked = 0, [], 0
+    while not opt.done:
+        t = opt.ask()
+        if t.acquisition == "std-global":
+            if not escapes:
+                k += 1
+            escapes.append(t.number)
+        elif escapes and t.acquisition == "EI-local":
+            values = [r.value for r in opt.history]
+            best_escape = min(escapes, key=lambda i: values[i])
+            fresh = restart == "fresh" or (restart == "alternate" and k % 2 == 0)
+            incumbent = int(np.argmin(values))
+            assert t.info["centre"] == (best_escape if fresh else incumbent), (k, restart)
+            checked += 1
+            escapes = []
+        opt.tell(t, flat_in_a(t.x))
+    assert checked >= 2  # at least two collapses were seen
 
 
 @pytest.mark.parametrize("options", [{"probe_after": 0}, {"probe_length_scale": 100.0}])

@@ -92,7 +92,7 @@ def corrupt(good: Path, tmp_path: Path, manifest=None, csv=None) -> Path:
     ("unit", "column", "says"),
     [  # rad/s declared deg/s: r 57× too small; rad declared deg: δ 57× too small
         ('r = "deg/s"', "ay", r"ay/\(vx·r\) = 5\d\.\d in cornering"),
-        ('delta = "deg"', "delta", r"effective wheelbase vx·δ/r is 0\.0\d+ m \(median\)"),
+        ('delta = "deg"', "delta", r"effective wheelbase vx·δ/r is 0\.0\d+ m \(least squares\)"),
     ],
 )
 def test_a_unit_declared_wrong_is_refused_naming_file_column_and_row(
@@ -130,6 +130,25 @@ def test_steering_in_rad_declared_deg_is_caught_for_any_plausible_car(seed, spee
         validate_channels(c, file="rec.csv")
     assert info.value.column == "delta" and info.value.row is not None
     assert STEER_L_EFF[0] > wheelbase * DEG * 1.5  # the bound is not met by a hair
+
+
+def test_a_steering_release_with_the_yaw_rate_still_decaying_is_accepted():
+    """A J-turn: the driver lets the wheel go back to zero while the yaw rate decays.
+    Those samples (δ ≈ 0, |vx·r| ≥ 1 m/s²) have vx·δ/r ≈ 0; with 60 % of the cornering
+    samples in such a release the median of vx·δ/r is ~0 (and was refused), the
+    least-squares effective wheelbase stays the car's."""
+    c = synthetic_channels(n=1000)
+    n = c["t"].size
+    wheelbase = 3.0
+    c["delta"] = c["r"] * wheelbase / c["vx"]
+    tail = np.arange(n) >= 400  # released: no steering, the yaw rate decays slowly
+    c["delta"][tail] = 1e-5
+    c["r"][tail] = 0.2 * np.exp(-(c["t"][tail] - c["t"][400]) / 20.0)
+    c["ay"][tail] = c["vx"][tail] * c["r"][tail]
+    steady = np.abs(c["vx"] * c["r"]) >= 1.0
+    ratio = c["vx"][steady] * c["delta"][steady] / c["r"][steady]
+    assert np.median(ratio) < STEER_L_EFF[0]  # the median would have refused it
+    validate_channels(c, file="rec.csv")
 
 
 def test_steering_of_the_opposite_sign_convention_is_refused():
