@@ -256,8 +256,8 @@ class TrustRegionBO(Optimizer):
         self._iter = 0  # model-based results told so far
         self._n_model = 0  # model-based proposals asked so far (told or pending)
         self._force_global = 0  # escape steps still to hand out
-        # Index of the trust region's centre in _X: the incumbent until the first collapse;
-        # with restart="fresh", None after a collapse until an escape step is told.
+        # Index of the trust region's centre in _X (None: the incumbent). After a collapse
+        # that leaves the basin it is None until the first escape step is told.
         self._centre_i: int | None = None
         self._fit_n = -1  # told results at the last hyperparameter fit
         # Batch bookkeeping (TuRBO's batch rule): the trials of one ask() / ask(n) call form
@@ -308,8 +308,8 @@ class TrustRegionBO(Optimizer):
 
     # ------------------------------------------------------------------ data
     def _centre_index(self) -> int | None:
-        """Index of the trust region's centre: the incumbent, or with ``restart="fresh"``
-        after a collapse the best point of the new region (see :meth:`_observe`)."""
+        """Index of the trust region's centre: the incumbent, or after a collapse that left
+        its basin the best point of the fresh region (see :meth:`_move_centre`)."""
         if self.restart != "incumbent" and self._centre_i is not None:
             return self._centre_i
         return self._incumbent()[0]
@@ -597,10 +597,10 @@ class TrustRegionBO(Optimizer):
             self._update_region(rnd)
 
     def _move_centre(self, i: int, value: float | None, global_ei: bool) -> None:
-        """``restart="fresh"``: make result ``i`` the region's centre when it beats the
-        centre — or, for a global EI step, the incumbent (a global step that finds only a
-        basin already left does not pull the region back there). Until the first collapse
-        the centre is the incumbent, as with ``restart="incumbent"``."""
+        """Make result ``i`` the region's centre when it beats the centre — or, for a global
+        EI step, the incumbent (a global step that finds only a basin already left does not
+        pull the region back there). Until the first collapse the centre is the incumbent,
+        as always with ``restart="incumbent"``."""
         if self.restart == "incumbent" or value is None:
             return
         if global_ei:
