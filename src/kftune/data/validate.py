@@ -158,10 +158,9 @@ KINEMATIC_RATIO = (0.5, 2.0)
 #: *Fundamentals of Vehicle Dynamics*, Eq. 6-15). Its least-squares fit over at least
 #: STEER_MIN_SAMPLES samples, L_eff = Σ(vx·δ)² / Σ(vx·δ·r), must lie in STEER_L_EFF [m]
 #: (2.9–11 m on the bundled manoeuvres, 3.4–6.4 m on revs-250lm); δ in rad declared as deg
-#: gives 1/57 of it. The fit, not the median
-#: of vx·δ/r: in a J-turn the steering returns to zero while the yaw rate decays, and
-#: those samples (ratio ≈ 0) pulled the median of a generated J-turn to 0.14 m with one
-#: sensor-noise seed; they carry no weight in the fit.
+#: gives 1/57 of it. The fit, not the median of vx·δ/r: in a J-turn the steering returns
+#: to zero while the yaw rate decays, and those samples (ratio ≈ 0) pulled the median of a
+#: generated J-turn to 0.14 m with one sensor-noise seed; they carry no weight in the fit.
 STEER_AY_LINEAR = 4.0
 STEER_CORNERING = 1.0
 STEER_MIN_SAMPLES = 10
