@@ -61,6 +61,19 @@ def test_bad_options_exit_2(args):
     assert "usage:" in res.stderr
 
 
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [
+        (("--cost", "pem", "--normalise", "dataset"), "--normalise"),
+        (("--cost", "nis", "--weights", "beta=1"), "--weights"),
+    ],
+)
+def test_an_option_the_chosen_cost_does_not_use_is_refused(tmp_path, args, option):
+    res = kftune("tune", *args, "--quiet", "-o", str(tmp_path / "t.json"))
+    assert res.returncode == 2 and option in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "t.json").exists()
+
+
 def test_bad_files_exit_3_and_name_the_file(tmp_path):
     missing = tmp_path / "no-such-dataset"
     res = kftune("tune", str(missing), "--quiet", cwd=tmp_path)
@@ -93,6 +106,7 @@ def test_bad_files_exit_3_and_name_the_file(tmp_path):
         ("tune", "--budget", "0"),
         ("tune", "--workers", "0"),
         ("tune", "--burn-in", "-1"),
+        ("tune", "--normalise", "channel"),
         ("evaluate", "--q", "-1", "1", "1"),
         ("evaluate", "--q", "nan", "1", "1"),
         ("compare", "--resume", "--force"),
@@ -122,6 +136,8 @@ def test_bad_option_values_exit_2_and_name_the_option(args):
         ("tune", "[parameters]\nq_bounds = [1, 1e-3]", "below"),
         ("tune", "[cost]\nkind = 'mse'", "cost kind must be"),
         ("tune", "[cost]\nweights = { beta = -1.0 }", "beta"),
+        ("tune", "[cost]\nnormalise = 'run'", "cost normalise must be one of"),
+        ("tune", "[cost]\nkind = 'pem'\nnormalise = 'dataset'", "nrmse cost only"),
         ("compare", "[options.tsbo-gp]\nmode = 'fast'", "mode"),
         ("compare", "[ukf]\nalpha = -1.0", "alpha"),
     ],
@@ -168,6 +184,32 @@ def test_tune_then_evaluate_json(small, tmp_path):
     assert {"rmse", "mae", "rmse_non", "mae_non"} <= set(evd["average"])
     manual = kftune("evaluate", str(small), "--manual", "--json")
     assert manual.returncode == 0 and json.loads(manual.stdout)["q"] == [1e-6, 1e-4, 1e-6]
+
+
+def test_a_dataset_normalised_cost_is_recorded_and_evaluated_the_same_way(small, tmp_path):
+    out = tmp_path / "tuned.json"
+    res = kftune("tune", str(small), "-n", "4", "--normalise", "dataset", "--json", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert json.loads(out.read_text())["cost_spec"]["normalise"] == "dataset"
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
+    evd = json.loads(ev.stdout)
+    assert evd["cost_normalise"] == "dataset"
+    assert evd["cost"] == pytest.approx(doc["cost"], rel=1e-12)
+    # the same point under the paper's Eq. 15 is another number
+    paper = kftune(
+        "evaluate",
+        str(small),
+        "--params",
+        str(out),
+        "--split",
+        "train",
+        "--json",
+        "--normalise",
+        "manoeuvre",
+    )
+    assert json.loads(paper.stdout)["cost_normalise"] == "manoeuvre"
+    assert json.loads(paper.stdout)["cost"] != pytest.approx(doc["cost"], rel=1e-3)
 
 
 def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):

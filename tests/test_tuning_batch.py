@@ -59,3 +59,14 @@ def test_fallback_loop_for_the_nis_cost_and_a_single_point(ds):
     problem = TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, cost=CostSpec(kind="nis"))
     assert_batch_equals_sequential(problem, [[1e-4, 1e-6, 1e-3], [1e-5, 1e-5, 1e-5]])
     assert_batch_equals_sequential(problem, [[1e-4, 1e-6, 1e-3]])
+
+
+def test_the_dataset_normalised_cost_through_the_batch_kernel(ds):
+    from kftune.tuning.cost import CostSpec
+
+    spec = CostSpec(normalise="dataset")
+    problem = TuningProblem(ds.train[:3], ds.vehicle, ds.r_default, cost=spec)
+    X = list(10.0 ** np.random.default_rng(2).uniform(-8, -1, (3, 3)))
+    batch = assert_batch_equals_sequential(problem, X)
+    paper = TuningProblem(ds.train[:3], ds.vehicle, ds.r_default)  # Eq. 15: other numbers
+    assert all(b.cost != pytest.approx(paper.evaluate(x).cost, rel=1e-3) for b, x in zip(batch, X))

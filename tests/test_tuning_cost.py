@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from kftune.errors import ConfigError
-from kftune.tuning.cost import CostSpec, nis_cost, nrmse, pooled_error, weighted_cost
+from kftune.tuning.cost import (
+    CostSpec,
+    dataset_error,
+    nis_cost,
+    nrmse,
+    pooled_error,
+    weighted_cost,
+)
 from kftune.tuning.kpi import average_kpis, sideslip_kpis
 
 
@@ -49,10 +56,30 @@ def test_weighted_cost_ignores_zero_weights_and_needs_weighted_channels():
         weighted_cost({"beta": [0.2]}, [10], {"beta": 1.0, "ay": 1.0})
 
 
+def test_dataset_error_is_the_rmse_over_all_samples_over_the_largest_reference():
+    rng = np.random.default_rng(3)
+    refs = [rng.normal(0, 0.02, 50), rng.normal(0, 0.08, 200), rng.normal(0, 0.01, 30)]
+    ests = [r + rng.normal(0, 0.004, r.size) for r in refs]
+    # reference: every sample of every manoeuvre at once, written out with numpy
+    err = np.concatenate([e - r for e, r in zip(ests, refs)])
+    expected = np.sqrt(np.mean(err**2)) / np.max(np.abs(np.concatenate(refs)))
+    per = [nrmse(e, r) for e, r in zip(ests, refs)]
+    scales = [np.max(np.abs(r)) for r in refs]
+    n = [r.size for r in refs]
+    assert dataset_error(per, scales, n) == pytest.approx(expected, rel=1e-13)
+    # the paper's pooling weighs the quiet manoeuvres up: here it is the larger number
+    assert pooled_error(per, n) > 1.5 * expected
+    j, pooled = weighted_cost({"beta": per}, n, {"beta": 5.0}, {"beta": scales})
+    assert pooled["beta"] == pytest.approx(expected, rel=1e-13) and j == pytest.approx(5 * expected)
+    with pytest.raises(ValueError, match="positive scale"):
+        dataset_error(per, [1.0, 0.0, 1.0], n)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
         ({"kind": "mse"}, "cost kind"),
+        ({"normalise": "channel"}, "cost normalise"),
         ({"weights": {"yaw rate": 1.0}}, "must be identifiers"),
         ({"weights": {"beta": -1.0}}, "'beta'"),
         ({"weights": {"beta": math.nan}}, "'beta'"),
@@ -122,3 +149,10 @@ def test_averages_are_nan_when_any_manoeuvre_diverged():
 def test_cost_spec_estimate_must_be_known():
     with pytest.raises(ConfigError, match="estimate"):
         CostSpec(estimate="smoothed")
+
+
+def test_the_report_says_how_the_cost_is_normalised():
+    from kftune.experiment import _describe_cost
+
+    assert "paper Eq. 14–15" in _describe_cost(CostSpec())
+    assert "over all manoeuvres / the largest |X|" in _describe_cost(CostSpec(normalise="dataset"))

@@ -90,6 +90,7 @@ def test_cost_matches_paper_formula_computed_directly(ds):
     q = np.array([1e-4, 1e-6, 1e-3])
     problem = TuningProblem(train, ds.vehicle, ds.r_default)
     nr = {"beta": [], "r": [], "ay": []}
+    err = {c: [] for c in nr}  # (error, reference) per manoeuvre
     n = []
     for m in train:
         res = run_ukf(m.u, m.z, m.dt, ds.vehicle, q, ds.r_default)
@@ -101,6 +102,7 @@ def test_cost_matches_paper_formula_computed_directly(ds):
         ref = {"beta": m.beta_ref, "r": m.r, "ay": m.ay}
         for c in nr:
             nr[c].append(np.sqrt(np.mean((est[c] - ref[c]) ** 2)) / np.max(np.abs(ref[c])))
+            err[c].append((est[c] - ref[c], ref[c]))
         n.append(m.n)
     n = np.array(n)
     e = {c: np.sqrt(np.sum(np.array(v) ** 2 * n) / n.sum()) for c, v in nr.items()}
@@ -108,6 +110,16 @@ def test_cost_matches_paper_formula_computed_directly(ds):
     ev = problem.evaluate(q)
     assert ev.cost == pytest.approx(expected, rel=1e-12)
     assert ev.pooled == pytest.approx(e, rel=1e-12)
+    # normalised over the whole set: the RMSE over every sample over the largest |X|
+    e_ds = {
+        c: np.sqrt(np.mean(np.concatenate([a for a, _ in v]) ** 2))
+        / np.max(np.abs(np.concatenate([b for _, b in v])))
+        for c, v in err.items()
+    }
+    by_set = TuningProblem(train, ds.vehicle, ds.r_default, cost=CostSpec(normalise="dataset"))
+    ev_ds = by_set.evaluate(q)
+    assert ev_ds.pooled == pytest.approx(e_ds, rel=1e-12)
+    assert ev_ds.cost == pytest.approx(5 * e_ds["beta"] + e_ds["r"] + e_ds["ay"], rel=1e-12)
     nis = np.concatenate([run_ukf(m.u, m.z, m.dt, ds.vehicle, q, ds.r_default).nis for m in train])
     assert ev.mean_nis == pytest.approx(nis.mean(), rel=1e-12)
     nis_problem = TuningProblem(train, ds.vehicle, ds.r_default, cost=CostSpec(kind="nis"))
@@ -227,8 +239,9 @@ def test_fingerprint_tells_objectives_apart(ds):
         TuningProblem(ds.train[:2], ds.vehicle, ds.r_default * 2),
         TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, cost=CostSpec(kind="nis")),
         TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, burn_in=0.5),
+        TuningProblem(ds.train[:2], ds.vehicle, ds.r_default, cost=CostSpec(normalise="dataset")),
     ]
-    assert len({a["sha256"], *(p.fingerprint()["sha256"] for p in others)}) == 6
+    assert len({a["sha256"], *(p.fingerprint()["sha256"] for p in others)}) == 7
 
 
 def test_a_problem_over_another_model_names_its_parameters_and_checks_its_channels(ds):

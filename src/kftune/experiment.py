@@ -589,4 +589,6 @@ def _describe_cost(cost: CostSpec, model: StateSpaceModel | None = None) -> str:
         if cost.estimate == "posterior"
         else f"{measured} from the one-step prediction"
     )
+    if cost.normalise == "dataset":
+        return f"J = {terms} (Eq. 14, RMSE over all manoeuvres / the largest |X|; {scored})"
     return f"J = {terms} (paper Eq. 14–15, pooled NRMSE; {scored})"

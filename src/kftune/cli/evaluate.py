@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
     model = fs.model
     if tuned is not None:
         # unless told otherwise, score the way the parameters were tuned
-        told = args.cost or args.weights or args.estimate or "cost" in config
+        told = args.cost or args.weights or args.estimate or args.normalise or "cost" in config
         if not told:
             spec = CostSpec(**tuned.get("cost_spec", {}))
         if args.burn_in is None and "burn_in" not in config:
@@ -260,6 +260,7 @@ def run(args: argparse.Namespace) -> int:
         "cost": cost,
         "cost_kind": spec.kind,
         "cost_estimate": spec.estimate,
+        "cost_normalise": spec.normalise,
         "burn_in": scored_after,
         "diverged": reason,
         "missing_references": missing,

@@ -299,6 +299,7 @@ def tuned_document(
             "kind": problem.cost_spec.kind,
             "weights": dict(problem.cost_spec.weights),
             "estimate": problem.cost_spec.estimate,
+            "normalise": problem.cost_spec.normalise,
         },
         "burn_in": problem.burn_in,
         "model": problem.model_spec,

@@ -188,6 +188,8 @@ class ManoeuvreScore:
     Attributes:
         name: manoeuvre name. n: its number of samples.
         nrmse: channel → NRMSE (paper Eq. 15) for the weighted channels.
+        scale: channel → the max|X| that NRMSE was normalised by (the channel's unit; for
+            the cost normalised over the whole set, ``CostSpec.normalise="dataset"``).
         nis_sum: Σ_k NIS_k over the manoeuvre (for the NIS cost).
         log_det_s_sum: Σ_k log det S_k (with ``nis_sum``, the innovation likelihood).
         msp_sq, msp_n: per cost channel the sum of squared multi-step prediction errors,
@@ -198,6 +200,7 @@ class ManoeuvreScore:
     n: int
     nrmse: dict[str, float]
     nis_sum: float
+    scale: dict[str, float] = field(default_factory=dict)
     log_det_s_sum: float = 0.0
     msp_sq: tuple[float, ...] = ()
     msp_n: int = 0
@@ -438,7 +441,7 @@ def _score_result(
         raise FilterDivergedError(f"filter diverged on {where_diverged(m, res)}")
     k0 = first_scored(m, burn_in)
     channels = spec.channels if spec.kind == "nrmse" else ()
-    scores = {}
+    scores, scales = {}, {}
     for c in channels:
         est, ref = channel_estimate(m, res, c, spec.estimate)
         try:
@@ -447,6 +450,7 @@ def _score_result(
             raise DataError(
                 f"cannot score channel {c!r}: {exc}", file=f"manoeuvre {m.name!r}"
             ) from None
+        scales[c] = float(np.max(np.abs(ref[k0:])))
     msp_sq: tuple[float, ...] = ()
     msp_n = 0
     if spec.kind == "msp":
@@ -455,6 +459,7 @@ def _score_result(
         name=m.name,
         n=m.n - k0,
         nrmse=scores,
+        scale=scales,
         nis_sum=float(np.sum(res.nis[k0:])),
         log_det_s_sum=float(np.sum(res.log_det_s[k0:])) if spec.kind == "pem" else 0.0,
         msp_sq=msp_sq,
@@ -751,6 +756,9 @@ class TuningProblem:
                 {c: [s.nrmse[c] for s in scores] for c in channels},
                 [s.n for s in scores],
                 spec.weights,
+                {c: [s.scale[c] for s in scores] for c in channels}
+                if spec.normalise == "dataset"
+                else None,
             )
         return Evaluation(cost=cost, pooled=pooled, mean_nis=mean_nis, scores=tuple(scores))
 
@@ -827,6 +835,8 @@ class TuningProblem:
             "parameterization": self.parameterization.to_dict(),
             "burn_in": self.burn_in,
         }
+        if spec.normalise != "manoeuvre":  # the paper's Eq. 15 keeps earlier fingerprints
+            described["cost"]["normalise"] = spec.normalise
         if not self._fs.fast:  # the paper's pair keeps the fingerprints of earlier studies
             described["model"] = {"name": self._fs.model.name, "filter": self._fs.filter}
         h.update(json.dumps(described, sort_keys=True).encode())
@@ -834,7 +844,8 @@ class TuningProblem:
         return {
             "summary": f"{len(names)} manoeuvres ({names[0]} … {names[-1]}), "
             f"{self.vehicle.name if self.vehicle is not None else 'no vehicle'}, "
-            f"cost {spec.kind}",
+            f"cost {spec.kind}"
+            + (f" ({spec.normalise}-normalised)" if spec.normalise != "manoeuvre" else ""),
             "sha256": h.hexdigest(),
         }
 
