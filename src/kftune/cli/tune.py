@@ -84,7 +84,8 @@ def register(subparsers: Any) -> None:
         "--budget",
         "-n",
         type=POSITIVE_INT,
-        help="cost evaluations (default: the method's own — TSBO 40, GA 225, others 40)",
+        help="cost evaluations (default: the method's own — TR-BO 100, TSBO 40, GA 225, others "
+        "40; anytime methods such as TR-BO only get better with more)",
     )
     p.add_argument("--storage", type=Path, help="SQLite study file saving every evaluation")
     p.add_argument(

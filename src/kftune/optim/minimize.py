@@ -171,8 +171,8 @@ def minimize(
         method: one of :data:`METHODS` (default :data:`DEFAULT_METHOD`, ``"trbo"``;
             the paper's ``"tsbo-tsp"``, ``"tsbo-gp"``, ``"tsbo-robust"``, ``"ga"``,
             ``"random"``, ``"manual"``, ``"optuna-tpe"``, ``"optuna-gp"``, ``"cma"``).
-        budget: evaluations (failed ones count); ``None`` → the method's default (TSBO 40 =
-            MAX_PE, GA 225, manual: its number of points, others 40).
+        budget: evaluations (failed ones count); ``None`` → the method's default (TR-BO
+            100, TSBO 40 = MAX_PE, GA 225, manual: its number of points, others 40).
         seed: drives all randomness; same seed, same run.
         storage: path of a SQLite study file, or ``None`` for no persistence.
         resume: continue the study in ``storage`` (see the module docstring).

@@ -147,7 +147,10 @@ class TrustRegionBO(Optimizer):
     """
 
     method: ClassVar[str] = "trbo"
-    default_budget: ClassVar[int] = 40
+    #: 100, not the paper's 40: at 40 evaluations there is time to polish one basin, and
+    #: the design picks which (module docstring, "Restarts"); by 100 the restarts have
+    #: reached the second one on most seeds of every dataset measured (BENCHMARKS.md).
+    default_budget: ClassVar[int] = 100
     budget_independent: ClassVar[bool] = True
 
     def __init__(
