@@ -3,7 +3,9 @@
 or any dataset directory ``kftune`` opens.
 
 Problem: the paper's cost (Eq. 14–15, W = (5, 1, 1), posterior estimate) of the UKF over the
-dataset's training manoeuvres, three process-noise parameters on log10 scales in [1e-10, 1].
+dataset's training manoeuvres, three process-noise parameters on log10 scales in [1e-10, 1];
+``--normalise dataset`` normalises each channel's RMSE over all manoeuvres instead
+(``kftune tune --normalise``; J* is then that cost's own).
 
 Methods: by default every method of the optimiser registry (``kftune.optim.METHODS``), so a
 newly registered method is included without touching this script; ``--methods`` also takes
@@ -83,6 +85,7 @@ import kftune
 from kftune.data import open_dataset
 from kftune.errors import ConfigError, KftuneError
 from kftune.optim import METHODS, PeerUnavailableError, make_optimizer, minimize
+from kftune.tuning.cost import NORMALISATIONS, CostSpec
 from kftune.tuning.kpi import average_kpis
 from kftune.tuning.problem import TuningProblem, assess
 from optimizers import METHODS as VARIANTS  # benchmarks/ is the script's path
@@ -105,14 +108,19 @@ JSTAR_SEED0 = 1000
 _CONTEXT: dict[str, Any] = {}
 
 
-def _init(dataset_spec: str | None) -> None:
+#: A problem: (dataset directory or None for the bundled set, the NRMSE's normalisation).
+ProblemSpec = tuple[str | None, str]
+
+
+def _init(spec: ProblemSpec) -> None:
     """Load the dataset and build the tuning problem (once per process)."""
-    if _CONTEXT.get("spec", "") != dataset_spec:
-        ds = open_dataset(dataset_spec)
+    if _CONTEXT.get("spec") != spec:
+        ds = open_dataset(spec[0])
+        cost = CostSpec(normalise=spec[1])  # type: ignore[arg-type]
         _CONTEXT.update(
-            spec=dataset_spec,
+            spec=spec,
             dataset=ds,
-            problem=TuningProblem(ds.train, ds.vehicle, ds.r_default),
+            problem=TuningProblem(ds.train, ds.vehicle, ds.r_default, cost=cost),
         )
 
 
@@ -183,7 +191,7 @@ def test_beta_rmse(x: Sequence[float]) -> float:
     return float(average_kpis(per.values())["rmse"])
 
 
-def run_unit(dataset_spec: str | None, label: str, seed: int, budgets: list[int]) -> dict:
+def run_unit(dataset_spec: ProblemSpec, label: str, seed: int, budgets: list[int]) -> dict:
     """Every budget of one (method, seed): one run read as prefixes when the method is
     budget-independent, else one run per budget."""
     _init(dataset_spec)
@@ -236,7 +244,7 @@ def default_jstar_cache() -> Path:
     return Path(base) / "kftune" / "ukf_tuning_jstar.json"
 
 
-def _jstar_run(dataset_spec: str | None, seed: int, evals: int) -> dict[str, Any]:
+def _jstar_run(dataset_spec: ProblemSpec, seed: int, evals: int) -> dict[str, Any]:
     _init(dataset_spec)
     run = tuning_run("cma", seed, evals)
     i = int(np.argmin(run["values"]))
@@ -244,7 +252,7 @@ def _jstar_run(dataset_spec: str | None, seed: int, evals: int) -> dict[str, Any
 
 
 def long_run_jstar(
-    dataset_spec: str | None,
+    dataset_spec: ProblemSpec,
     key: str,
     cache_path: Path,
     runs: int,
@@ -268,6 +276,7 @@ def long_run_jstar(
         "method": "cma",
         "evals_per_run": evals,
         "dataset": str(_CONTEXT["dataset"].name),
+        "normalise": _CONTEXT["spec"][1],
         "kftune_version": kftune.__version__,
         "created": _now(),
         "compute_s": round(time.perf_counter() - t0, 1),
@@ -538,6 +547,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar="METHOD",
         help=f"default: every registered method ({' '.join(METHODS)})",
     )
+    ap.add_argument(
+        "--normalise",
+        choices=NORMALISATIONS,
+        default="manoeuvre",
+        help="the NRMSE's normalisation (default manoeuvre: the paper's Eq. 15)",
+    )
     ap.add_argument("--budgets", type=int, nargs="+", default=[40, 100, 225])
     ap.add_argument("--seeds", type=int, default=10, help="number of seeds (default 10)")
     ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
@@ -566,7 +581,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    spec = None if args.dataset in (None, "default") else str(args.dataset)
+    spec = (None if args.dataset in (None, "default") else str(args.dataset), args.normalise)
     cache_path = args.jstar_cache or default_jstar_cache()
     try:
         for path, option in ((cache_path, "--jstar-cache"), (args.json_out, "--json-out")):
@@ -724,6 +739,7 @@ def main(argv: list[str] | None = None) -> int:
             "n_test": len(ds.test),
             "train_samples": n_train,
             "fingerprint": fingerprint,
+            "normalise": args.normalise,
         },
         "seeds": seeds,
         "budgets": budgets,

@@ -101,6 +101,21 @@ def test_warp_delta_must_be_positive_and_finite(bad):
         make_optimizer("trbo", CUBE3, seed=0, warp_delta=bad)
 
 
+@pytest.mark.parametrize("bad", [-1e-3, 1.0, float("nan"), "0.01", True])
+def test_improvement_rtol_must_be_a_share(bad):
+    with pytest.raises(ValueError, match="improvement_rtol"):
+        make_optimizer("trbo", CUBE3, seed=0, improvement_rtol=bad)
+
+
+@pytest.mark.parametrize(("rtol", "success"), [(1e-3, True), (5e-3, False)])
+def test_an_improvement_smaller_than_improvement_rtol_is_a_failure(rtol, success):
+    opt = make_optimizer("trbo", CUBE3, seed=0, improvement_rtol=rtol)
+    for i in range(opt.n_init):  # the design; its best value is 1.0
+        opt.tell(opt.ask(), 1.0 + i)
+    opt.tell(opt.ask(), 1.0 * (1 - 3e-3))  # 0.3 % better than the incumbent
+    assert (opt.n_success, opt.n_failure) == ((1, 0) if success else (0, 1))
+
+
 @pytest.mark.parametrize(("fun", "space"), [(decoy, CUBE3), (branin_log, BRANIN_SPACE)])
 def test_anytime_more_budget_never_ends_worse(fun, space):
     for seed in range(2):

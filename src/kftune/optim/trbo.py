@@ -140,6 +140,9 @@ class TrustRegionBO(Optimizer):
         restart: after a collapse, ``"alternate"`` (re-centre on the incumbent, then on
             the escape steps' best the next time, and so on), ``"fresh"`` (always the
             escape steps' best) or ``"incumbent"`` (always the incumbent).
+        improvement_rtol: a result improves (a success for the trust region, a reset of
+            the stall count) when it beats the centre (local) or the incumbent (global) by
+            this share of its magnitude.
         n_candidates: random candidates per step (more cost time, not evaluations).
         faces: add candidates moved onto the faces that the region touches.
         refit_every, full_fit_until: hyperparameter fits with restarts (see module
@@ -179,6 +182,7 @@ class TrustRegionBO(Optimizer):
         probe_after: int = 5,
         probe_length_scale: float = 0.5,
         restart: str = "alternate",
+        improvement_rtol: float = IMPROVEMENT_RTOL,
     ) -> None:
         super().__init__(space, budget=budget, seed=seed)
         d = self.space.dim
@@ -193,6 +197,12 @@ class TrustRegionBO(Optimizer):
         ):
             raise ValueError(
                 f"probe_length_scale must be a number >= 0, got {probe_length_scale!r}"
+            )
+        if isinstance(improvement_rtol, bool) or not (
+            isinstance(improvement_rtol, (int, float)) and 0.0 <= improvement_rtol < 1.0
+        ):
+            raise ValueError(
+                f"improvement_rtol must be a number in [0, 1), got {improvement_rtol!r}"
             )
         if restart not in RESTARTS:
             raise ValueError(f"restart must be one of {RESTARTS}, got {restart!r}")
@@ -230,6 +240,7 @@ class TrustRegionBO(Optimizer):
         self.full_fit_until = int(full_fit_until)
         self.init_design, self.warp, self.faces = init_design, warp, bool(faces)
         self.restart = restart
+        self.improvement_rtol = float(improvement_rtol)
         self.warp_delta = float(warp_delta)
         self.length_init, self.length_min, self.length_max = (
             float(length_init),
@@ -303,6 +314,7 @@ class TrustRegionBO(Optimizer):
             "probe_after": self.probe_after,
             "probe_length_scale": self.probe_length_scale,
             "restart": self.restart,
+            "improvement_rtol": self.improvement_rtol,
             "n_candidates": self.n_candidates,
             "faces": self.faces,
             "refit_every": self.refit_every,
@@ -583,7 +595,7 @@ class TrustRegionBO(Optimizer):
         improved = (
             value is not None
             and before is not None
-            and value < before - IMPROVEMENT_RTOL * abs(before)
+            and value < before - self.improvement_rtol * abs(before)
         )
         self._stall = 0 if improved else self._stall + 1
         if improved:  # axis probes: see the module docstring
