@@ -212,6 +212,19 @@ def test_a_dataset_normalised_cost_is_recorded_and_evaluated_the_same_way(small,
     assert json.loads(paper.stdout)["cost"] != pytest.approx(doc["cost"], rel=1e-3)
 
 
+def test_tune_gives_trbo_100_evaluations_and_compare_the_papers_40(small, tmp_path):
+    res = kftune("tune", str(small), "--json", "--quiet", "-o", str(tmp_path / "t.json"))
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["n_evals"] == 100
+    rep = kftune(
+        "compare", str(small), "--methods", "manual", "trbo", "--json", "--quiet",
+        "--out", str(tmp_path / "rep"),
+    )  # fmt: skip
+    assert rep.returncode == 0, rep.stderr
+    cost = {row["Method"]: row for row in json.loads(rep.stdout)["tables"]["cost"]}
+    assert cost["TR-BO (kftune)"]["Evaluations"] == 40 and cost["Manual"]["Evaluations"] == 1
+
+
 def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     out = tmp_path / "rep"
     res = kftune(
