@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import SMALL_TRAIN, default_sigint, run_cli
+from conftest import SMALL_TEST, SMALL_TRAIN, default_sigint, run_cli
 from kftune.cli import SUBCOMMANDS, main
 from kftune.data import default_dataset, save_dataset
 
@@ -184,6 +184,25 @@ def test_tune_then_evaluate_json(small, tmp_path):
     assert {"rmse", "mae", "rmse_non", "mae_non"} <= set(evd["average"])
     manual = kftune("evaluate", str(small), "--manual", "--json")
     assert manual.returncode == 0 and json.loads(manual.stdout)["q"] == [1e-6, 1e-4, 1e-6]
+    # tune's held-out evidence is what evaluate finds on the test split, tuned and manual
+    held = doc["held_out"]
+    assert held["n_manoeuvres"] == len(SMALL_TEST)
+    for args, key in (
+        (("--params", str(out)), "beta_rmse_deg"),
+        (("--manual",), "manual_beta_rmse_deg"),
+    ):
+        test = kftune("evaluate", str(small), *args, "--split", "test", "--json")
+        assert json.loads(test.stdout)["average"]["rmse"] == pytest.approx(held[key], rel=1e-12)
+    text = kftune("tune", str(small), "-n", "6", "-o", str(tmp_path / "again.json"))
+    assert f"on the {len(SMALL_TEST)} held-out test manoeuvres: β RMSE" in text.stdout
+
+
+def test_no_held_out_evidence_without_test_manoeuvres(tmp_path):
+    only_train = tmp_path / "train-only"
+    save_dataset(default_dataset().subset(SMALL_TRAIN), only_train)
+    res = kftune("tune", str(only_train), "-n", "3", "--json", "-o", str(tmp_path / "t.json"))
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["held_out"] is None
 
 
 def test_a_dataset_normalised_cost_is_recorded_and_evaluated_the_same_way(small, tmp_path):
@@ -509,3 +528,14 @@ def test_tune_widen_bounds_runs_on_a_wider_box_and_resumes(small, tmp_path, caps
         doc["params"],
         doc["n_evals"],
     )
+
+
+def test_the_held_out_line_says_when_the_tuned_filter_is_the_worse_one():
+    from kftune.cli.tune import held_out_line
+
+    better = {"n_manoeuvres": 3, "beta_rmse_deg": 0.15, "manual_beta_rmse_deg": 0.47}
+    assert "worse" not in held_out_line(better) and "β RMSE 0.150°" in held_out_line(better)
+    for tuned in (0.5, None):  # worse than the rule of thumb, or diverged
+        line = held_out_line({**better, "beta_rmse_deg": tuned})
+        assert "the tuned filter is the worse one there" in line
+    assert "diverged" in held_out_line({**better, "beta_rmse_deg": None})

@@ -9,6 +9,10 @@ Writes the tuned parameters to a JSON file (``--out``, default ``tuned.json``) t
 it happens; ``--resume`` continues a study that was interrupted or killed, without
 re-evaluating anything finished.
 
+The cost is a proxy: at the end ``tune`` runs the tuned filter and the manual rule of thumb
+on the dataset's test manoeuvres, which the tuning never saw, and prints and records
+(``held_out``) their mean β RMSE.
+
 When the best point lies on a bound of the search box (within 1 % of a parameter's range),
 tune says which parameter and which bound, and the file records it (``on_bounds``): the
 optimum may lie beyond. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
@@ -33,6 +37,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -191,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     require_success(result, method)
     doc = tuned_document(result, problem, dataset)
+    doc["held_out"] = held_out(problem, result.x, dataset)
     write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
     if args.json:
         emit_json({**doc, "file": str(args.out)})
@@ -206,6 +212,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {name:10s} = {value:.4e}")
         for line in bound_lines(doc, problem, widen):
             print(line)
+        if doc["held_out"] is not None:
+            print(held_out_line(doc["held_out"]))
         print(f"tuned parameters written to {args.out}")
     return EXIT_OK
 
@@ -244,6 +252,53 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
             + ("" if widened else " (widen the box with --widen-bounds)")
         )
     return lines
+
+
+def held_out(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[str, Any] | None:
+    """The evidence that the lower training cost is the better filter: the tuned filter and
+    the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
+    manoeuvres, which the tuning never saw — mean β RMSE [deg] over them (NaN where a
+    filter diverged). None without test manoeuvres, or when the model has no sideslip
+    output or a test manoeuvre has no β reference (``kftune evaluate --split test`` then
+    scores the measured channels)."""
+    from kftune.experiment import manual_point
+    from kftune.tuning.kpi import average_kpis
+    from kftune.tuning.problem import assess, missing_references, output_names
+
+    test = list(dataset.test)
+    if not test or "beta" not in output_names(problem.model) or missing_references(problem, test):
+        return None
+    rmse = {}
+    for key, point in (("tuned", x), ("manual", manual_point(problem.parameterization))):
+        metrics, _ = assess(problem, point, test)
+        avg = average_kpis(metrics.values())
+        rmse[key] = None if math.isnan(avg["rmse"]) else avg["rmse"]
+    return {
+        "split": "test",
+        "n_manoeuvres": len(test),
+        "beta_rmse_deg": rmse["tuned"],
+        "manual_beta_rmse_deg": rmse["manual"],
+    }
+
+
+def held_out_line(h: dict[str, Any]) -> str:
+    """What ``tune`` says about the held-out test manoeuvres."""
+
+    def deg(v: float | None) -> str:
+        return "diverged" if v is None else f"{v:.3f}°"
+
+    tuned, manual = h["beta_rmse_deg"], h["manual_beta_rmse_deg"]
+    worse = tuned is None or (manual is not None and tuned > manual)
+    return (
+        f"on the {h['n_manoeuvres']} held-out test manoeuvres: β RMSE {deg(tuned)} (manual "
+        f"rule of thumb {deg(manual)})"
+        + (
+            "; the tuned filter is the worse one there: more evaluations, or another cost"
+            if worse
+            else ""
+        )
+        + "; more with kftune evaluate --split test"
+    )
 
 
 def _interrupted(
