@@ -539,3 +539,47 @@ def test_the_held_out_line_says_when_the_tuned_filter_is_the_worse_one():
         line = held_out_line({**better, "beta_rmse_deg": tuned})
         assert "the tuned filter is the worse one there" in line
     assert "diverged" in held_out_line({**better, "beta_rmse_deg": None})
+    both = held_out_line({**better, "beta_rmse_deg": None, "manual_beta_rmse_deg": None})
+    assert "worse" not in both
+
+
+@pytest.mark.parametrize(
+    ("error", "said"),
+    [
+        (ValueError("cannot compute KPIs of an empty manoeuvre"), "the test manoeuvres could not"),
+        (KeyboardInterrupt(), "skipped (interrupted); the tuned parameters are saved"),
+    ],
+)
+def test_the_tuned_file_is_kept_when_the_held_out_evidence_fails(
+    small, tmp_path, monkeypatch, error, said
+):
+    import kftune.tuning.problem as problem_module
+
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(problem_module, "assess", fail)
+    out = tmp_path / "t.json"
+    res = kftune("tune", str(small), "-n", "3", "--quiet", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    assert f"no held-out evidence: {said}" in res.stdout
+    doc = json.loads(out.read_text())
+    assert doc["held_out"] is None and len(doc["q"]) == 3
+
+
+def test_evaluate_changes_only_the_part_of_the_tuned_cost_it_is_told(small, tmp_path):
+    out = tmp_path / "beta-only.json"
+    res = kftune("tune", str(small), "-n", "3", "--weights", "beta=1,r=0,ay=0", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+
+    def cost(*extra: str) -> float:
+        ev = kftune(
+            "evaluate", str(small), "--params", str(out), "--split", "train", "--json", *extra
+        )
+        assert ev.returncode == 0, ev.stderr
+        return json.loads(ev.stdout)["cost"]
+
+    carried = cost("--normalise", "dataset")  # the tuned file's weights stay
+    assert carried == cost("--normalise", "dataset", "--weights", "beta=1,r=0,ay=0")
+    assert carried != pytest.approx(cost("--normalise", "dataset", "--weights", "beta=5,r=1,ay=1"))
+    assert carried != pytest.approx(cost())  # the file's own normalisation: Eq. 15

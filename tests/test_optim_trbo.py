@@ -107,6 +107,14 @@ def test_improvement_rtol_must_be_a_share(bad):
         make_optimizer("trbo", CUBE3, seed=0, improvement_rtol=bad)
 
 
+def test_studies_from_before_improvement_rtol_resume():
+    # options() is what a study stores and checks on resume: the option appears only when
+    # it differs from its default, so studies created before it existed still resume
+    assert "improvement_rtol" not in make_optimizer("trbo", CUBE3, seed=0).options()
+    opt = make_optimizer("trbo", CUBE3, seed=0, improvement_rtol=5e-3)
+    assert opt.options()["improvement_rtol"] == 5e-3
+
+
 @pytest.mark.parametrize(("rtol", "success"), [(1e-3, True), (5e-3, False)])
 def test_an_improvement_smaller_than_improvement_rtol_is_a_failure(rtol, success):
     opt = make_optimizer("trbo", CUBE3, seed=0, improvement_rtol=rtol)

@@ -80,6 +80,7 @@ def test_dataset_error_is_the_rmse_over_all_samples_over_the_largest_reference()
     [
         ({"kind": "mse"}, "cost kind"),
         ({"normalise": "channel"}, "cost normalise"),
+        ({"kind": "pem", "normalise": "dataset"}, "nrmse cost only"),
         ({"weights": {"yaw rate": 1.0}}, "must be identifiers"),
         ({"weights": {"beta": -1.0}}, "'beta'"),
         ({"weights": {"beta": math.nan}}, "'beta'"),

@@ -410,21 +410,30 @@ def _weights_arg(text: str) -> dict[str, float]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
-    """The cost from the command line and configuration."""
+def cost_spec(
+    args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None = None
+) -> CostSpec:
+    """The cost from the command line and configuration; ``tuned``: a tuned file's cost,
+    whose settings stand where neither gives one (and none of which carries over to
+    another kind of cost)."""
     from kftune.tuning.cost import CostSpec
 
     section = config.get("cost", {})
+    base = dict(tuned or {})
+    kind = args.cost or section.get("kind", base.get("kind", "nrmse"))
+    if kind != base.get("kind", "nrmse"):
+        base = {}
     kwargs: dict[str, Any] = {
-        "kind": args.cost or section.get("kind", "nrmse"),
-        "estimate": args.estimate or section.get("estimate", "posterior"),
-        "normalise": args.normalise or section.get("normalise", "manoeuvre"),
+        "kind": kind,
+        "estimate": args.estimate or section.get("estimate", base.get("estimate", "posterior")),
+        "normalise": args.normalise or section.get("normalise", base.get("normalise", "manoeuvre")),
     }
     kind = kwargs["kind"]
+    source = f"--cost {kind}" if args.cost else f"kind = {kind!r} in {_where(config, 'cost')}"
     if kind in ("nis", "pem"):  # weights would be ignored: say so instead
         if args.weights:
             raise UsageError(
-                f"--weights: the {kind.upper()} cost (--cost {kind}) weighs no channels; leave "
+                f"--weights: the {kind.upper()} cost ({source}) weighs no channels; leave "
                 "--weights out or use the nrmse cost"
             )
         if "weights" in section:
@@ -435,7 +444,7 @@ def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
     if kind != "nrmse":  # only the NRMSE is normalised: say so instead of ignoring it
         if args.normalise:
             raise UsageError(
-                f"--normalise: the {kind} cost (--cost {kind}) is not an NRMSE; leave "
+                f"--normalise: the {kind} cost ({source}) is not an NRMSE; leave "
                 "--normalise out or use the nrmse cost"
             )
         if "normalise" in section:
@@ -447,6 +456,8 @@ def cost_spec(args: argparse.Namespace, config: dict[str, Any]) -> CostSpec:
         kwargs["weights"] = args.weights
     elif "weights" in section:
         kwargs["weights"] = section["weights"]
+    elif "weights" in base:
+        kwargs["weights"] = base["weights"]
     try:
         return CostSpec(**kwargs)
     except ConfigError as exc:  # command-line values are checked by argparse already

@@ -155,7 +155,6 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data import open_dataset
     from kftune.experiment import manual_point
     from kftune.filters import UKFSettings
-    from kftune.tuning.cost import CostSpec
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import (
         FilterDivergedError,
@@ -180,7 +179,9 @@ def run(args: argparse.Namespace) -> int:
     }[args.split]
     if not manoeuvres:
         raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
-    spec = cost_spec(args, config)
+    # unless told otherwise, score the way the parameters were tuned: what the command line
+    # and the configuration give replaces that part of the tuned file's cost
+    spec = cost_spec(args, config, None if tuned is None else tuned.get("cost_spec", {}))
     scored_after = burn_in(args, config)
     if tuned is not None and args.model is None and "model" not in config:
         args.model = tuned.get("model", "single-track")  # the model it was tuned for
@@ -189,10 +190,6 @@ def run(args: argparse.Namespace) -> int:
     fs = filter_spec_of(args, config, dataset.vehicle)
     model = fs.model
     if tuned is not None:
-        # unless told otherwise, score the way the parameters were tuned
-        told = args.cost or args.weights or args.estimate or args.normalise or "cost" in config
-        if not told:
-            spec = CostSpec(**tuned.get("cost_spec", {}))
         if args.burn_in is None and "burn_in" not in config:
             scored_after = float(tuned.get("burn_in", 0.0))
         params = tuned["params"]

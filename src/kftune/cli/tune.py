@@ -90,7 +90,7 @@ def register(subparsers: Any) -> None:
         "-n",
         type=POSITIVE_INT,
         help="cost evaluations (default: the method's own — TR-BO 100, TSBO 40, GA 225, others "
-        "40; anytime methods such as TR-BO only get better with more)",
+        "40; an anytime method such as TR-BO never ends at a higher cost with more)",
     )
     p.add_argument("--storage", type=Path, help="SQLite study file saving every evaluation")
     p.add_argument(
@@ -119,7 +119,8 @@ def register(subparsers: Any) -> None:
         action="store_true",
         default=None,
         help="when the best point lies on a bound of a log10 parameter, widen that bound by "
-        "two decades and tune again with the same budget (at most 3 times)",
+        "two decades and tune again with the same budget (at most 3 times, so up to 4× the "
+        "budget in all: 400 evaluations with TR-BO's default)",
     )
     p.add_argument(
         "--out",
@@ -196,8 +197,11 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     require_success(result, method)
     doc = tuned_document(result, problem, dataset)
-    doc["held_out"] = held_out(problem, result.x, dataset)
+    # The result first: nothing after this line can lose it.
     write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
+    doc["held_out"], no_evidence = held_out(problem, result.x, dataset)
+    if doc["held_out"] is not None:
+        write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
     if args.json:
         emit_json({**doc, "file": str(args.out)})
     else:
@@ -214,6 +218,8 @@ def run(args: argparse.Namespace) -> int:
             print(line)
         if doc["held_out"] is not None:
             print(held_out_line(doc["held_out"]))
+        elif no_evidence:
+            print(f"no held-out evidence: {no_evidence}")
         print(f"tuned parameters written to {args.out}")
     return EXIT_OK
 
@@ -254,31 +260,51 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
     return lines
 
 
-def held_out(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[str, Any] | None:
+def held_out(
+    problem: TuningProblem, x: Any, dataset: Dataset
+) -> tuple[dict[str, Any] | None, str | None]:
     """The evidence that the lower training cost is the better filter: the tuned filter and
     the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
-    manoeuvres, which the tuning never saw — mean β RMSE [deg] over them (NaN where a
-    filter diverged). None without test manoeuvres, or when the model has no sideslip
-    output or a test manoeuvre has no β reference (``kftune evaluate --split test`` then
-    scores the measured channels)."""
+    manoeuvres, which the tuning never saw — mean β RMSE [deg] over those with a sideslip
+    reference (None where a filter diverged). Two filter runs over the test split, in this
+    process.
+
+    Returns:
+        (evidence, why not): evidence None without test manoeuvres or sideslip output (no
+        reason given: ``kftune evaluate --split test`` scores the measured channels), or
+        with the reason when they could not be scored (the tuned file is written before).
+    """
+    from kftune.errors import KftuneError
     from kftune.experiment import manual_point
     from kftune.tuning.kpi import average_kpis
-    from kftune.tuning.problem import assess, missing_references, output_names
+    from kftune.tuning.problem import assess, first_scored, output_names
 
-    test = list(dataset.test)
-    if not test or "beta" not in output_names(problem.model) or missing_references(problem, test):
-        return None
-    rmse = {}
-    for key, point in (("tuned", x), ("manual", manual_point(problem.parameterization))):
-        metrics, _ = assess(problem, point, test)
-        avg = average_kpis(metrics.values())
-        rmse[key] = None if math.isnan(avg["rmse"]) else avg["rmse"]
+    if not dataset.test or "beta" not in output_names(problem.model):
+        return None, None
+    test = [
+        m for m in dataset.test if m.has("beta_ref") and m.n - first_scored(m, problem.burn_in) >= 2
+    ]
+    if not test:
+        return None, "no test manoeuvre has a sideslip reference longer than the burn-in"
+    rmse: dict[str, float | None] = {}
+    try:
+        for key, point in (("tuned", x), ("manual", manual_point(problem.parameterization))):
+            metrics, _ = assess(problem, point, test)
+            if not all("rmse" in row for row in metrics.values()):
+                return None, None  # a model without the sideslip KPIs' channels
+            avg = average_kpis(metrics.values())
+            rmse[key] = None if math.isnan(avg["rmse"]) else avg["rmse"]
+    except KeyboardInterrupt:
+        return None, "skipped (interrupted); the tuned parameters are saved"
+    except (KftuneError, ValueError) as exc:
+        return None, f"the test manoeuvres could not be scored ({exc})"
     return {
         "split": "test",
         "n_manoeuvres": len(test),
+        "n_left_out": len(dataset.test) - len(test),
         "beta_rmse_deg": rmse["tuned"],
         "manual_beta_rmse_deg": rmse["manual"],
-    }
+    }, None
 
 
 def held_out_line(h: dict[str, Any]) -> str:
@@ -288,12 +314,15 @@ def held_out_line(h: dict[str, Any]) -> str:
         return "diverged" if v is None else f"{v:.3f}°"
 
     tuned, manual = h["beta_rmse_deg"], h["manual_beta_rmse_deg"]
-    worse = tuned is None or (manual is not None and tuned > manual)
+    worse = manual is not None and (tuned is None or tuned > manual)
+    left_out = h.get("n_left_out", 0)
     return (
-        f"on the {h['n_manoeuvres']} held-out test manoeuvres: β RMSE {deg(tuned)} (manual "
-        f"rule of thumb {deg(manual)})"
+        f"on the {h['n_manoeuvres']} held-out test manoeuvres"
+        + (f" with a sideslip reference ({left_out} without)" if left_out else "")
+        + f": β RMSE {deg(tuned)} (manual rule of thumb {deg(manual)})"
         + (
-            "; the tuned filter is the worse one there: more evaluations, or another cost"
+            "; the tuned filter is the worse one there — the search stopped early, or the "
+            "cost is a poor proxy on these data (try --normalise dataset)"
             if worse
             else ""
         )
@@ -351,6 +380,7 @@ def tuned_document(
         "method": result.method,
         "seed": result.seed,
         "cost": result.fun,
+        "held_out": None,  # filled in by tune after the file is first written
         "cost_spec": {
             "kind": problem.cost_spec.kind,
             "weights": dict(problem.cost_spec.weights),

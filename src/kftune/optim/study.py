@@ -472,10 +472,17 @@ class _transaction:
 
 
 def _check_settings(p: Path, stored: dict[str, Any], current: dict[str, Any]) -> None:
+    """Refuse to resume with other settings, naming the first that differs (inside the
+    method's options: the option)."""
     for key in sorted(set(stored) | set(current)):
-        if stored.get(key) != current.get(key):
-            raise ConfigError(
-                f"study {p} was created with {key} = {json.dumps(stored.get(key))}, but this "
-                f"run asks for {key} = {json.dumps(current.get(key))}; resume it with the "
-                "same settings or use another storage file"
-            )
+        old, new = stored.get(key), current.get(key)
+        if old == new:
+            continue
+        if key == "options" and isinstance(old, dict) and isinstance(new, dict):
+            sub = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
+            key, old, new = f"{key}.{sub}", old.get(sub, "(not set)"), new.get(sub, "(not set)")
+        raise ConfigError(
+            f"study {p} was created with {key} = {json.dumps(old)}, but this "
+            f"run asks for {key} = {json.dumps(new)}; resume it with the "
+            "same settings or use another storage file"
+        )

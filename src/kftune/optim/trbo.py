@@ -31,10 +31,10 @@ stage, and a global one — but lets them alternate for the whole budget:
   at 40 evaluations at 0.89 % instead of 0.39 % over 40 seeds, revs-250lm's at 0.14 %
   either way; TuRBO starts at 0.8). Two improvements in a row double ``L``
   (at most ``length_max``), three failures halve it; an improvement must beat the
-  incumbent by 1e-3 of its value. When ``L`` falls below ``length_min`` the region
-  restarts at ``length_init`` and the next ``escape`` steps go where the model is least
-  sure (largest predictive standard deviation over the whole box): EI alone stays in a
-  basin that the model believes it knows.
+  incumbent by ``improvement_rtol`` (1e-3) of its value. When ``L`` falls below
+  ``length_min`` the region restarts at ``length_init`` and the next ``escape`` steps go
+  where the model is least sure (largest predictive standard deviation over the whole
+  box): EI alone stays in a basin that the model believes it knows.
 * **Restarts** (``restart="alternate"``): the first collapse re-centres the region on the
   incumbent (one more polish of its basin); the second leaves it — the new region is
   centred on the best escape step and, like TuRBO's restarted regions, measures its local
@@ -295,6 +295,9 @@ class TrustRegionBO(Optimizer):
         return np.vstack(pts)[: self.n_init]
 
     def options(self) -> dict[str, Any]:
+        extra = {}  # left out at its default, so studies from before the option resume
+        if self.improvement_rtol != IMPROVEMENT_RTOL:
+            extra["improvement_rtol"] = self.improvement_rtol
         return {
             "surrogate": self.surrogate_name,
             "surrogate_options": {
@@ -314,11 +317,11 @@ class TrustRegionBO(Optimizer):
             "probe_after": self.probe_after,
             "probe_length_scale": self.probe_length_scale,
             "restart": self.restart,
-            "improvement_rtol": self.improvement_rtol,
             "n_candidates": self.n_candidates,
             "faces": self.faces,
             "refit_every": self.refit_every,
             "full_fit_until": self.full_fit_until,
+            **extra,
         }
 
     # ------------------------------------------------------------------ data
@@ -572,7 +575,8 @@ class TrustRegionBO(Optimizer):
     def _observe(self, trial: Trial, value: float | None) -> None:
         """Store the result; when it completes its round, update the trust region once for
         the round (TuRBO's batch rule, Eriksson et al. 2019): a round succeeds when any of
-        its points beats the incumbent it was asked against (by 1e-3 of its value), and
+        its points beats the incumbent it was asked against (by ``improvement_rtol`` of its
+        value), and
         fails otherwise; failures count local evaluations, so a failed round of m local
         points counts m towards ``failure_tol`` (TuRBO's ⌈max(4, d)/q⌉ rounds). Counting
         per told point instead halved the region in a batch of 4 whose first point

@@ -113,6 +113,10 @@ class CostSpec:
                 f"cost normalise must be one of {', '.join(map(repr, NORMALISATIONS))}, "
                 f"got {self.normalise!r}"
             )
+        if self.normalise != "manoeuvre" and self.kind != "nrmse":
+            raise ConfigError(
+                f"normalise applies to the nrmse cost only, but the cost is {self.kind!r}"
+            )
 
     @property
     def channels(self) -> tuple[str, ...]:
