@@ -583,3 +583,11 @@ def test_evaluate_changes_only_the_part_of_the_tuned_cost_it_is_told(small, tmp_
     assert carried == cost("--normalise", "dataset", "--weights", "beta=1,r=0,ay=0")
     assert carried != pytest.approx(cost("--normalise", "dataset", "--weights", "beta=5,r=1,ay=1"))
     assert carried != pytest.approx(cost())  # the file's own normalisation: Eq. 15
+
+
+def test_normalise_is_refused_for_a_file_tuned_with_another_cost(small, tmp_path):
+    out = tmp_path / "pem.json"
+    assert kftune("tune", str(small), "-n", "3", "--cost", "pem", "-o", str(out)).returncode == 0
+    res = kftune("evaluate", str(small), "--params", str(out), "--normalise", "dataset")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "--normalise: the pem cost (the cost the parameters were tuned with)" in res.stderr

@@ -429,7 +429,12 @@ def cost_spec(
         "normalise": args.normalise or section.get("normalise", base.get("normalise", "manoeuvre")),
     }
     kind = kwargs["kind"]
-    source = f"--cost {kind}" if args.cost else f"kind = {kind!r} in {_where(config, 'cost')}"
+    if args.cost:
+        source = f"--cost {kind}"
+    elif "kind" in section:
+        source = f"kind = {kind!r} in {_where(config, 'cost')}"
+    else:
+        source = "the cost the parameters were tuned with"
     if kind in ("nis", "pem"):  # weights would be ignored: say so instead
         if args.weights:
             raise UsageError(
