@@ -206,8 +206,8 @@ class CompareSettings:
         methods: methods in report order (default: the paper's four and kftune's default
             tuner, :data:`COMPARE_METHODS`).
         seed: drives every method's randomness.
-        budgets: method → evaluation budget, overriding the defaults (TSBO 40 = MAX_PE,
-            GA 225 = 15 × 15, manual 1).
+        budgets: method → evaluation budget, overriding :func:`compare_budget` (GA 225 =
+            15 × 15, manual its points, every other method 40 = MAX_PE, TR-BO included).
         cost: the cost (default: paper Eq. 14 with W = (5, 1, 1)).
         parameterization: what is tuned (default: the three Q entries, log10 in [1e-10, 1]).
         workers: processes per cost evaluation (1: serial).
