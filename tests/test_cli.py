@@ -414,6 +414,23 @@ def test_a_reader_that_closes_early_gets_no_traceback():
     assert "Traceback" not in err and "BrokenPipe" not in err
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+def test_a_full_standard_output_is_a_message_not_a_traceback(json_flag):
+    """``kftune evaluate --manual > /dev/full``: exit 1 and one line saying what failed."""
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run(
+            [sys.executable, "-m", "kftune", "evaluate", "--manual", *json_flag],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=300,
+        )
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+    assert "cannot write standard output" in proc.stderr, proc.stderr
+
+
 def test_unwritable_outputs_are_refused_before_any_work(tmp_path):
     """Output paths are checked first: exit 3 naming the option, no traceback, and no
     tuning run spent before a crash at the end."""

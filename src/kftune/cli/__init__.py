@@ -139,6 +139,18 @@ def _run(args: argparse.Namespace) -> int:
         # when it flushes stdout at exit (Python docs, "Note on SIGPIPE").
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
+    except OSError as exc:
+        # Files the commands write say so themselves (RunFailedError, naming the file and
+        # what is kept); what is left is standard output (> /dev/full, a full disk) or an
+        # error the commands did not foresee: a message, not a traceback.
+        what = f"cannot write {exc.filename}" if exc.filename else "cannot write standard output"
+        print(f"kftune {args.command}: failed: {what}: {exc.strerror or exc}", file=sys.stderr)
+        if exc.filename is None and sys.stdout is not None:
+            try:  # drop what is still buffered, or Python fails the same way at exit
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            except (OSError, ValueError):
+                pass
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":  # pragma: no cover
