@@ -380,3 +380,42 @@ def test_export_to_stdout_and_default_name(tuned, tmp_path, capsys):
     capsys.readouterr()
     assert main(["export", str(copy_), "-f", "yaml", "-o", "-"]) == 0
     assert "q_diag: [1.0e-06, 0.0001, 1.0e-06]" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("change", "where"),
+    [
+        (lambda d: d["q"].__setitem__(1, 1e9), ("'q'", "'vy'")),
+        (lambda d: d["deployment"]["Q"][2].__setitem__("variance", 1e9), ("'q'", "'r'")),
+        (lambda d: d["deployment"]["R"][0].__setitem__("variance", 2.0), ("'r'", "'vx'")),
+        (lambda d: d["deployment"]["Q"].pop(), ("holds 3 values",)),
+    ],
+)
+@pytest.mark.parametrize("command", ["export", "estimate", "evaluate"])
+def test_q_and_r_edited_in_one_place_only_are_refused_by_every_reader(
+    tuned, tmp_path, capsys, change, where, command
+):
+    """evaluate and estimate run the top-level q and r, export writes the deployment
+    record: a file whose two copies disagree would deploy another filter than was scored."""
+    params = edited(tuned, tmp_path, change)
+    argv = {
+        "export": ["export", str(params), "-o", str(tmp_path / "x.h"), "-f", "c"],
+        "estimate": ["estimate", "--params", str(params), "-o", str(tmp_path / "est")],
+        "evaluate": ["evaluate", "--params", str(params)],
+    }[command]
+    assert main(argv) == 3
+    err = capsys.readouterr().err
+    assert str(params) in err and "Traceback" not in err
+    assert all(w in err for w in where), err
+    assert not (tmp_path / "x.h").exists() and not (tmp_path / "est").exists()
+
+
+def test_q_rewritten_with_rounding_only_is_accepted(tuned, tmp_path, capsys):
+    """Both copies written out with 15 significant digits (an editor or a tool that
+    re-prints the numbers) still agree."""
+
+    def reprint(d):
+        d["q"] = [float(f"{v:.15g}") for v in d["q"]]
+
+    params = edited(tuned, tmp_path, reprint)
+    assert main(["export", str(params), "-o", "-"]) == 0

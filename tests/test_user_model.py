@@ -21,13 +21,54 @@ def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     res = kftune("tune", str(small), "--model", str(model), "-n", "6", "--json", "-o", str(out))
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
-    assert doc["model"] == str(model) and doc["filter"] == "ukf"
+    # recorded relative to the tuned file's folder, where it lies
+    assert doc["model"] == doc["deployment"]["model"] == "my_model.py"
+    assert doc["filter"] == "ukf"
     assert doc["states"] == ["vx", "vy", "r"] and set(doc["params"]) == {"q_vx", "q_vy", "q_r"}
     assert doc["n_evals"] == 6 and doc["cost"] > 0
     # evaluate takes the model from the tuned file and scores the same cost
     ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
     assert ev.returncode == 0, ev.stderr
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
+
+
+def test_the_tuned_file_finds_its_model_file_from_any_working_directory(small, tmp_path):
+    """A model file named relative to where ``tune`` ran is found again by ``evaluate`` and
+    ``estimate`` run elsewhere: recorded relative to the tuned file when it lies beside it
+    (the folder can move), otherwise absolute; a lost one names the tuned file."""
+    (tmp_path / "models").mkdir()
+    (tmp_path / "out").mkdir()
+    shutil.copyfile(EXAMPLE, tmp_path / "models" / "m.py")
+    res = kftune(
+        "tune", str(small), "--model", "models/m.py", "-n", "4", "-q", "-o", "out/t.json",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    doc = json.loads((tmp_path / "out" / "t.json").read_text())
+    assert Path(doc["model"]) == (tmp_path / "models" / "m.py").resolve()
+    ev = kftune("evaluate", str(small), "--params", "t.json", "--json", cwd=tmp_path / "out")
+    assert ev.returncode == 0, ev.stderr
+    # beside the tuned file: relative, and the pair moves together
+    shutil.copyfile(EXAMPLE, tmp_path / "out" / "m2.py")
+    res = kftune(
+        "tune", str(small), "--model", "m2.py", "-n", "4", "-q", "-o", "t2.json",
+        cwd=tmp_path / "out",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "out" / "t2.json").read_text())["model"] == "m2.py"
+    moved = shutil.copytree(tmp_path / "out", tmp_path / "moved")
+    est = kftune(
+        "estimate", str(small), "--params", str(moved / "t2.json"), "-o", str(tmp_path / "est"),
+        "-m", "test-05-j-turn",
+    )  # fmt: skip
+    assert est.returncode == 0, est.stderr
+    lost = shutil.copytree(tmp_path / "out", tmp_path / "lost")  # (loaded models are cached)
+    (lost / "m2.py").unlink()
+    for extra in ([], ["estimate", "-o", str(tmp_path / "e")]):
+        cmd, *out = extra or ["evaluate"]
+        res = kftune(cmd, str(small), "--params", str(lost / "t2.json"), *out)
+        assert res.returncode == 3, res.stderr
+        assert str(lost / "t2.json") in res.stderr and "does not exist" in res.stderr
 
 
 @pytest.mark.parametrize(
@@ -48,8 +89,8 @@ def test_a_broken_model_file_is_a_clear_error(tmp_path, text, expected):
 
 
 def test_unknown_model_and_filter_are_refused(tmp_path):
-    res = kftune("tune", "--model", "unicycle", "-n", "2")
-    assert res.returncode == 3 and "unknown model 'unicycle'" in res.stderr
+    res = kftune("tune", "--model", "unicycle", "-n", "2")  # a name: the command line is wrong
+    assert res.returncode == 2 and "--model: unknown model 'unicycle'" in res.stderr
     assert "single-track" in res.stderr  # the built-in models are listed
     res = kftune("tune", "--model", str(tmp_path / "missing.py"), "-n", "2")
     assert res.returncode == 3 and "does not exist" in res.stderr

@@ -11,6 +11,7 @@ pipe) are listed in :mod:`kftune.cli.exit_codes`; this module re-exports them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
@@ -146,10 +147,9 @@ def _run(args: argparse.Namespace) -> int:
         what = f"cannot write {exc.filename}" if exc.filename else "cannot write standard output"
         print(f"kftune {args.command}: failed: {what}: {exc.strerror or exc}", file=sys.stderr)
         if exc.filename is None and sys.stdout is not None:
-            try:  # drop what is still buffered, or Python fails the same way at exit
+            # drop what is still buffered, or Python fails the same way at exit
+            with contextlib.suppress(OSError, ValueError):
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-            except (OSError, ValueError):
-                pass
         return EXIT_FAILURE
 
 

@@ -52,7 +52,7 @@ import os
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -197,15 +197,39 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     if "dataset" in data and data["dataset"] != "default":
         ds = Path(data["dataset"])
         data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
-    model = data.get("model")
-    if isinstance(model, str) and (model.endswith(".py") or ".py:" in model):
-        head, sep, var = model.partition(".py:") if ".py:" in model else (model[:-3], "", "")
-        mf = Path(head + ".py")
-        data["model"] = str(mf if mf.is_absolute() else (p.parent / mf)) + (
-            ":" + var if sep else ""
-        )
+    if isinstance(data.get("model"), str):
+        data["model"] = model_file_from(data["model"], p.parent)
     data[_FILE] = str(p)
     return data
+
+
+def split_model_file(spec: str) -> tuple[Path, str] | None:
+    """(file, ":VAR" or "") of a model-file spec ``"path.py[:VAR]"``; None for a name."""
+    if ".py:" in spec:
+        head, _, var = spec.partition(".py:")
+        return Path(head + ".py"), ":" + var
+    return (Path(spec), "") if spec.endswith(".py") else None
+
+
+def model_file_from(spec: str, folder: Path) -> str:
+    """``spec`` with a relative model-file path read relative to ``folder`` (where the
+    configuration or tuned file that names it lies); a model name as it is."""
+    mf = split_model_file(spec)
+    if mf is None or mf[0].is_absolute():
+        return spec
+    return str(folder / mf[0]) + mf[1]
+
+
+def model_file_for(spec: str, out: Path) -> str:
+    """How a file written to ``out`` records the model ``spec`` so that
+    :func:`model_file_from` finds it again from any working directory: a model file
+    relative to ``out``'s folder when it lies below it (the pair can move together),
+    otherwise absolute; a model name as it is."""
+    mf = split_model_file(spec)
+    if mf is None:
+        return spec
+    path, folder = mf[0].resolve(), out.resolve().parent
+    return str(path.relative_to(folder) if path.is_relative_to(folder) else path) + mf[1]
 
 
 #: Key under which :func:`load_config` records the file it read (for error messages).
@@ -474,18 +498,44 @@ def burn_in(args: argparse.Namespace, config: dict[str, Any]) -> float:
     return float(pick(args, config, "burn_in", 0.0))
 
 
-def model_choice(args: argparse.Namespace, config: dict[str, Any]) -> tuple[str, str]:
-    """(model spec, filter name) from the command line and configuration; a model file
-    named in a configuration is relative to that file."""
-    return pick(args, config, "model", "single-track"), pick(args, config, "filter", "ukf")
+def model_choice(
+    args: argparse.Namespace, config: dict[str, Any], tuned: Mapping[str, Any] | None = None
+) -> tuple[str, str]:
+    """(model spec, filter name) from the command line, else the configuration (a model file
+    named there is relative to that file), else the tuned file ``tuned`` (the model it was
+    tuned with), else the paper's single-track UKF."""
+    base = tuned or {}
+    return (
+        pick(args, config, "model", base.get("model", "single-track")),
+        pick(args, config, "filter", base.get("filter", "ukf")),
+    )
 
 
-def filter_spec_of(args: argparse.Namespace, config: dict[str, Any], vehicle: Any) -> Any:
-    """The :class:`~kftune.tuning.problem.FilterSpec` the options name (loads a model file)."""
+def filter_spec_of(
+    args: argparse.Namespace,
+    config: dict[str, Any],
+    vehicle: Any,
+    tuned: tuple[Path, Mapping[str, Any]] | None = None,
+) -> Any:
+    """The :class:`~kftune.tuning.problem.FilterSpec` of :func:`model_choice` (loads a model
+    file). An unusable model says where it was named: an unknown ``--model`` name is a
+    usage error (exit 2); a model file, the configuration or the tuned file ``tuned``
+    (path, document) bad input (exit 3)."""
     from kftune.tuning.problem import filter_spec
 
-    model, filt = model_choice(args, config)
-    return filter_spec(model, filt, vehicle)
+    model, filt = model_choice(args, config, None if tuned is None else tuned[1])
+    try:
+        return filter_spec(model, filt, vehicle)
+    except ConfigError as exc:
+        if getattr(args, "model", None) is not None:
+            if split_model_file(model) is None:
+                raise UsageError(f"--model: {exc}") from None
+            raise ConfigError(f"--model: {exc}") from None
+        if "model" in config or "filter" in config:
+            raise ConfigError(f"{config.get(_FILE, 'the configuration')}: {exc}") from None
+        if tuned is not None:
+            raise ConfigError(f"{tuned[0]}: the model it was tuned with: {exc}") from None
+        raise
 
 
 def parameterization(

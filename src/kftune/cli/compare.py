@@ -29,6 +29,7 @@ from kftune.cli._common import (
     burn_in,
     cost_spec,
     emit_json,
+    filter_spec_of,
     load_config,
     model_choice,
     output_dir,
@@ -104,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, "compare")
     output_dir(args.out, "--out")
     dataset = open_dataset(pick(args, config, "dataset", None))
+    filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named
     methods = args.methods or config.get("methods")
     settings = CompareSettings(
         **({"methods": tuple(methods)} if methods else {}),

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data.io import file_stem
     from kftune.tuning.deploy import TunedFilter, estimate
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
-    from kftune.tuning.problem import first_scored, where_diverged
+    from kftune.tuning.problem import filter_spec, first_scored, where_diverged
 
     parquet = _parquet_writer() if args.format == "parquet" else None
     output_dir(args.out, "--out")
@@ -125,6 +125,10 @@ def run(args: argparse.Namespace) -> int:
         manoeuvres = list(dataset.manoeuvres)
     notes = _check(tuned, dataset, manoeuvres, args)
     vehicle = tuned.vehicle or dataset.vehicle
+    try:  # the model it was tuned with, once, before any output
+        filter_spec(tuned.model, tuned.filter, vehicle)
+    except ConfigError as exc:
+        raise ConfigError(f"{args.params}: the model it was tuned with: {exc}") from None
     out: dict[str, Any] = {
         "params": str(args.params),
         "dataset": dataset.name,

@@ -33,8 +33,10 @@ from kftune.cli._common import (
     emit_json,
     filter_spec_of,
     load_config,
+    model_file_from,
     parameterization,
     pick,
+    split_model_file,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
@@ -69,6 +71,60 @@ def register(subparsers: Any) -> None:
         help="which manoeuvres (default test)",
     )
     p.set_defaults(func=run)
+
+
+#: Relative tolerance between the top-level Q and R and the deployment record's: written
+#: from the same floats, so anything beyond rounding by an editor or a tool is an edit.
+AGREE_RTOL = 1e-9
+
+
+def _check_deployment(doc: dict[str, Any], path: Path) -> None:
+    """``q``/``r`` (what ``evaluate`` and ``estimate`` run) and ``deployment.Q``/``R`` (what
+    ``export`` writes) must be the same filter: a file edited in one place only would
+    deploy another filter than the one evaluated."""
+    dep = doc.get("deployment")
+    if not isinstance(dep, dict):
+        return
+    for key, top in (("Q", "q"), ("R", "r")):
+        values, entries = doc.get(top), dep.get(key)
+        if entries is None or not (isinstance(values, list) and all(map(_finite, values))):
+            continue  # no record (an old file), or an 'r' that TunedFilter refuses itself
+        try:
+            names = [str(e["name"]) for e in entries]
+            recorded = [float(e["variance"]) for e in entries]
+        except (TypeError, KeyError, ValueError):
+            raise DataError(
+                f"'deployment.{key}' must be a list of {{name, variance, unit}} objects",
+                file=str(path),
+            ) from None
+        if len(recorded) != len(values):
+            raise DataError(
+                f"'{top}' holds {len(values)} values, 'deployment.{key}' {len(recorded)}",
+                file=str(path),
+            )
+        for name, a, b in zip(names, values, recorded):
+            if not math.isclose(a, b, rel_tol=AGREE_RTOL):
+                raise DataError(
+                    f"'{top}' and 'deployment.{key}' disagree for {name!r} ({a!r} against "
+                    f"{b!r}): edited in one place only? evaluate and estimate run '{top}', "
+                    "export writes the deployment record; make them equal or tune again",
+                    file=str(path),
+                )
+
+
+def _locate_model(doc: dict[str, Any], path: Path) -> None:
+    """A model file the tuned file ``path`` records by a relative path is looked for from
+    the tuned file's folder (:func:`~kftune.cli._common.model_file_for`), and, for files
+    written before that, from the working directory."""
+    for part in (doc, doc.get("deployment")):
+        if not (isinstance(part, dict) and isinstance(part.get("model"), str)):
+            continue
+        recorded = split_model_file(part["model"])
+        if recorded is None:  # a built-in model
+            continue
+        there = model_file_from(part["model"], path.parent)
+        if Path(there.removesuffix(recorded[1])).is_file() or not recorded[0].is_file():
+            part["model"] = there
 
 
 def read_tuned(path: Path) -> dict[str, Any]:
@@ -107,6 +163,8 @@ def read_tuned(path: Path) -> dict[str, Any]:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
     if not isinstance(doc["params"], dict):
         raise DataError("'params' must be an object of parameter values", file=str(path))
+    _check_deployment(doc, path)
+    _locate_model(doc, path)
     for key, value, strict in (
         ("burn_in", doc.get("burn_in", 0.0), False),  # [s], >= 0
         ("params.r_scale", doc["params"].get("r_scale", 1.0), True),  # [-], > 0
@@ -183,11 +241,10 @@ def run(args: argparse.Namespace) -> int:
     # and the configuration give replaces that part of the tuned file's cost
     spec = cost_spec(args, config, None if tuned is None else tuned.get("cost_spec", {}))
     scored_after = burn_in(args, config)
-    if tuned is not None and args.model is None and "model" not in config:
-        args.model = tuned.get("model", "single-track")  # the model it was tuned for
-    if tuned is not None and args.filter is None and "filter" not in config:
-        args.filter = tuned.get("filter", "ukf")
-    fs = filter_spec_of(args, config, dataset.vehicle)
+    # unless told otherwise, the model it was tuned for
+    fs = filter_spec_of(
+        args, config, dataset.vehicle, None if tuned is None else (args.params, tuned)
+    )
     model = fs.model
     if tuned is not None:
         if args.burn_in is None and "burn_in" not in config:

@@ -54,6 +54,7 @@ from kftune.cli._common import (
     emit_json,
     filter_spec_of,
     load_config,
+    model_file_for,
     output_file,
     parameterization,
     pick,
@@ -196,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
         _interrupted(args)
         return EXIT_INTERRUPTED
     require_success(result, method)
-    doc = tuned_document(result, problem, dataset)
+    doc = tuned_document(result, problem, dataset, args.out)
     # The result first: nothing after this line can lose it.
     write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
     doc["held_out"], no_evidence = held_out(problem, result.x, dataset)
@@ -340,7 +341,7 @@ def _interrupted(
     lines = [f"kftune: interrupted after {0 if result is None else result.n_evals} evaluations"]
     if result is not None and result.x is not None and problem is not None and dataset is not None:
         partial = args.out.with_name(args.out.stem + ".partial" + args.out.suffix)
-        doc = tuned_document(result, problem, dataset)
+        doc = tuned_document(result, problem, dataset, partial)
         try:
             write_output(partial, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
             lines.append(f"best cost so far {result.fun:.5g}, its parameters written to {partial}")
@@ -364,15 +365,17 @@ def _kept(args: argparse.Namespace) -> str:
 
 
 def tuned_document(
-    result: OptimizeResult, problem: TuningProblem, dataset: Dataset
+    result: OptimizeResult, problem: TuningProblem, dataset: Dataset, out: Path
 ) -> dict[str, Any]:
-    """The tuned-parameters file: what was found, and how, in strict JSON; ``deployment``
-    holds everything needed to run the filter elsewhere (``kftune export``, see
-    :func:`kftune.tuning.deploy.deployment_record`)."""
+    """The tuned-parameters file written to ``out``: what was found, and how, in strict
+    JSON; ``deployment`` holds everything needed to run the filter elsewhere (``kftune
+    export``, see :func:`kftune.tuning.deploy.deployment_record`). A model file is recorded
+    so that it is found from the file's folder (:func:`~kftune.cli._common.model_file_for`)."""
     from kftune.experiment import on_bounds
     from kftune.tuning.deploy import deployment_record
 
     q, r, ukf = problem.decode(result.x)
+    model = model_file_for(problem.model_spec, out)
     return {
         "format": TUNED_FORMAT,
         "kftune_version": __version__,
@@ -388,7 +391,7 @@ def tuned_document(
             "normalise": problem.cost_spec.normalise,
         },
         "burn_in": problem.burn_in,
-        "model": problem.model_spec,
+        "model": model,
         "filter": problem.filter,
         "states": list(problem.model.state_names),
         "measurements": list(problem.model.measurement_names),
@@ -401,5 +404,5 @@ def tuned_document(
         "q": q.tolist(),
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
-        "deployment": deployment_record(problem, result.x, dataset),
+        "deployment": {**deployment_record(problem, result.x, dataset), "model": model},
     }
