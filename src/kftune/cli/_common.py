@@ -1,8 +1,9 @@
 """Options shared by ``tune``, ``evaluate`` and ``compare``, and the TOML configuration.
 
 A configuration file holds the same settings as the command line; an option given on the
-command line wins over the file, the file over the defaults. A key that the running command
-does not use is an error, not silently ignored::
+command line wins over the file, the file over the defaults. One file can serve every
+command: a key that only another command uses (marked below) is checked, then left out; an
+unknown key is an error, not silently ignored::
 
     dataset = "default"            # or a dataset directory (relative to this file)
     method = "trbo"                # tune only (the paper's: "tsbo-tsp")
@@ -92,7 +93,7 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "ukf": dict,
     "options": dict,
 }
-#: Keys that only some commands use (the others refuse them rather than ignore them).
+#: Keys that only some commands use (the others check them, then leave them out).
 USED_ONLY_BY: dict[str, set[str]] = {
     "method": {"tune"},
     "budget": {"tune"},
@@ -131,11 +132,13 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     """Read and check a TOML configuration; ``None`` gives an empty one.
 
     A relative ``dataset`` is resolved against the file's directory. With ``command``,
-    keys that only another command uses are refused.
+    keys that only another command uses (:data:`USED_ONLY_BY`) are checked like the others,
+    then left out of the result, so that one file serves ``tune``, ``evaluate`` and
+    ``compare``.
 
     Raises:
-        ConfigError: unreadable file, bad TOML, unknown or inapplicable key, wrong type or
-            out-of-range value (named).
+        ConfigError: unreadable file, bad TOML, unknown key, wrong type or out-of-range
+            value (named).
     """
     if path is None:
         return {}
@@ -162,15 +165,6 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
             raise ConfigError(
                 f"{p}: {key} must be {'>' if strict else '>='} {low}{upper}, got {value!r}"
             )
-    if command is not None:
-        for key in sorted(data):
-            users = USED_ONLY_BY.get(key)
-            if users is not None and command not in users:
-                raise ConfigError(
-                    f"{p}: '{key}' only applies to "
-                    f"{' and '.join(f'kftune {c}' for c in sorted(users))}, not to "
-                    f"'kftune {command}'"
-                )
     for method, budget in data.get("budgets", {}).items():
         if method not in METHODS or isinstance(budget, bool) or not isinstance(budget, int):
             raise ConfigError(f"{p} [budgets]: expected METHOD = N, got {method} = {budget!r}")
@@ -199,6 +193,10 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
         data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
     if isinstance(data.get("model"), str):
         data["model"] = model_file_from(data["model"], p.parent)
+    if command is not None:  # checked above; another command's settings
+        for key, users in USED_ONLY_BY.items():
+            if command not in users:
+                data.pop(key, None)
     data[_FILE] = str(p)
     return data
 
