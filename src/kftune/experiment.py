@@ -28,6 +28,7 @@ from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import ConfigError, RunFailedError
 from kftune.models import StateSpaceModel
 from kftune.optim import (
+    COMPARE_METHODS,
     DEFAULT_METHOD,
     MAX_TIMEOUT,
     METHODS,
@@ -70,10 +71,6 @@ LABELS: dict[str, str] = {
     "trbo": "TR-BO (kftune)",
 }
 
-#: The paper's comparison (Tables V–VII), in report order.
-PAPER_METHODS: tuple[str, ...] = ("manual", "ga", "tsbo-gp", "tsbo-tsp")
-#: What ``compare`` runs by default: the paper's four and kftune's default tuner beside them.
-COMPARE_METHODS: tuple[str, ...] = (*PAPER_METHODS, DEFAULT_METHOD)
 
 #: "Manual tuning": Q from a rule of thumb, not from a search. The process noise of each
 #: state is the squared change per 10 ms step that plausible model errors cause:

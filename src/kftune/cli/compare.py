@@ -1,8 +1,9 @@
 """``kftune compare``: the paper's experiment from one command.
 
 Tunes the UKF on the training manoeuvres with manual tuning, a genetic algorithm, TSBO with
-a GP and TSBO with a Student-t process (or the methods you name), evaluates every tuned
-filter on the training and test manoeuvres, and writes a report directory: ``report.md``,
+a GP and TSBO with a Student-t process (the paper's four) and, beside them, kftune's default
+tuner TR-BO (or the methods you name), evaluates every tuned filter on the training and test
+manoeuvres, and writes a report directory: ``report.md``,
 ``figures/*.png``, ``tables/*.csv``, ``results.json`` and one SQLite study per method under
 ``studies/`` (``--resume`` continues them after an interruption).
 
@@ -38,7 +39,7 @@ from kftune.cli._common import (
     writing,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
-from kftune.optim import METHODS
+from kftune.optim import COMPARE_METHODS, METHODS
 
 
 def register(subparsers: Any) -> None:
@@ -62,8 +63,8 @@ def register(subparsers: Any) -> None:
         nargs="+",
         choices=METHODS,
         metavar="METHOD",
-        help="methods in report order (default: the paper's four: manual ga tsbo-gp "
-        f"tsbo-tsp); any of {', '.join(METHODS)}",
+        help=f"methods in report order (default: {' '.join(COMPARE_METHODS)} — the paper's "
+        f"four and kftune's default tuner); any of {', '.join(METHODS)}",
     )
     p.add_argument(
         "--budget",

@@ -16,9 +16,11 @@ from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
 from kftune.optim.baselines import ManualPoints, RandomSearch
 from kftune.optim.ga import GeneticAlgorithm
 from kftune.optim.minimize import (
+    COMPARE_METHODS,
     DEFAULT_METHOD,
     MAX_TIMEOUT,
     METHODS,
+    PAPER_METHODS,
     OptimizationInterrupted,
     make_optimizer,
     minimize,
@@ -33,9 +35,11 @@ from kftune.space import Param, Space
 
 __all__ = [
     "CMAES",
+    "COMPARE_METHODS",
     "DEFAULT_METHOD",
     "MAX_TIMEOUT",
     "METHODS",
+    "PAPER_METHODS",
     "TSBO",
     "EvalRecord",
     "ExhaustedError",

@@ -112,6 +112,10 @@ METHODS: tuple[str, ...] = (
 )
 #: What ``kftune.minimize`` and ``kftune tune`` use when no method is named.
 DEFAULT_METHOD = "trbo"
+#: The paper's comparison (Tables V–VII), in report order.
+PAPER_METHODS: tuple[str, ...] = ("manual", "ga", "tsbo-gp", "tsbo-tsp")
+#: What ``kftune compare`` runs by default: the paper's four and the default tuner beside them.
+COMPARE_METHODS: tuple[str, ...] = (*PAPER_METHODS, DEFAULT_METHOD)
 
 
 def make_optimizer(
