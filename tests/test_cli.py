@@ -87,6 +87,7 @@ def test_bad_files_exit_3_and_name_the_file(tmp_path):
     cfg.write_text("budget = 40\n[cost]\nweights = { yaw = 1.0 }\n")
     res = kftune("tune", "--config", str(cfg), "--quiet", cwd=tmp_path)
     assert res.returncode == 3 and "unknown cost channel" in res.stderr
+    assert "bad.toml [cost]" in res.stderr
     bad_params = tmp_path / "tuned.json"
     bad_params.write_text('{"q": [1, 2]}')
     res = kftune("evaluate", "--params", str(bad_params))
@@ -140,6 +141,28 @@ def test_the_readme_configuration_serves_every_command(tmp_path):
         "compare", "--config", str(cfg), "--methods", "manual", "-q", "-o", str(tmp_path / "c")
     )
     assert res.returncode == 0, res.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["evaluate", "--q", "1", "2"], "--q"),
+        (["evaluate", "--manual", "--weights", "bta=5"], "--weights"),
+        (["tune", "--weights", "bta=5,r=1", "-n", "2"], "--weights"),
+        (["tune", "--timeout", "5", "--batch", "2", "-n", "2"], "--batch"),
+        (["tune", "-m", "manual", "--widen-bounds"], "--widen-bounds"),
+        (["tune", "--resume", "-n", "2"], "--storage"),
+        (["tune", "--model", "unicycle", "-n", "2"], "--model"),
+        (["compare", "--methods", "manual", "manual"], "--methods"),
+    ],
+)
+def test_values_and_contradictions_that_argparse_cannot_see_exit_2(tmp_path, args, named):
+    """Options well-formed for argparse but wrong for the run (a channel the model has not,
+    options that exclude each other) are still usage errors, naming the option."""
+    res = kftune(*args, "-q" if args[0] != "evaluate" else "--json", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr
+    assert named in res.stderr and "Traceback" not in res.stderr
+    assert not any(tmp_path.iterdir())  # refused before anything was written
 
 
 @pytest.mark.parametrize(

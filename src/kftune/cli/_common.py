@@ -433,11 +433,33 @@ def _weights_arg(text: str) -> dict[str, float]:
 
 
 def cost_spec(
-    args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None = None
+    args: argparse.Namespace,
+    config: dict[str, Any],
+    tuned: dict[str, Any] | None = None,
+    model: Any = None,
 ) -> CostSpec:
     """The cost from the command line and configuration; ``tuned``: a tuned file's cost,
     whose settings stand where neither gives one (and none of which carries over to
-    another kind of cost)."""
+    another kind of cost); ``model`` (a StateSpaceModel): the channels weighed must be
+    ones it can score, or the error names where the weights came from."""
+    spec = _cost_spec(args, config, tuned)
+    if model is not None:
+        from kftune.tuning.problem import check_cost_channels
+
+        try:
+            check_cost_channels(spec, model)
+        except ConfigError as exc:
+            if args.weights:
+                raise UsageError(f"--weights: {exc}") from None
+            if "weights" in config.get("cost", {}):
+                raise ConfigError(f"{_where(config, 'cost')}: {exc}") from None
+            raise
+    return spec
+
+
+def _cost_spec(
+    args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None
+) -> CostSpec:
     from kftune.tuning.cost import CostSpec
 
     section = config.get("cost", {})

@@ -39,6 +39,7 @@ from kftune.cli._common import (
     writing,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
+from kftune.errors import UsageError
 from kftune.optim import COMPARE_METHODS, METHODS
 
 
@@ -104,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
     from kftune.report.provenance import command_line
 
     config = load_config(args.config, "compare")
+    if args.methods and len(set(args.methods)) != len(args.methods):
+        raise UsageError(f"--methods: a method listed twice: {args.methods}")
     output_dir(args.out, "--out")
     dataset = open_dataset(pick(args, config, "dataset", None))
     filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named

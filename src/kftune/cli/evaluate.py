@@ -40,7 +40,7 @@ from kftune.cli._common import (
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
-from kftune.errors import ConfigError, DataError, DataWarning
+from kftune.errors import ConfigError, DataError, DataWarning, UsageError
 from kftune.tuning.kpi import KPI_NAMES
 
 
@@ -239,13 +239,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
     # unless told otherwise, score the way the parameters were tuned: what the command line
     # and the configuration give replaces that part of the tuned file's cost
-    spec = cost_spec(args, config, None if tuned is None else tuned.get("cost_spec", {}))
-    scored_after = burn_in(args, config)
     # unless told otherwise, the model it was tuned for
     fs = filter_spec_of(
         args, config, dataset.vehicle, None if tuned is None else (args.params, tuned)
     )
     model = fs.model
+    spec = cost_spec(
+        args, config, None if tuned is None else tuned.get("cost_spec", {}), model=model
+    )
+    scored_after = burn_in(args, config)
     if tuned is not None:
         if args.burn_in is None and "burn_in" not in config:
             scored_after = float(tuned.get("burn_in", 0.0))
@@ -275,7 +277,7 @@ def run(args: argparse.Namespace) -> int:
             measurements=model.measurement_names,
         )
         if args.q and len(args.q) != model.n_states:
-            raise ConfigError(
+            raise UsageError(
                 f"--q takes {model.n_states} values for model {model.name!r} "
                 f"{list(par.q_names)}, got {len(args.q)}"
             )

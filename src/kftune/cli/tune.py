@@ -61,7 +61,7 @@ from kftune.cli._common import (
     write_output,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
-from kftune.errors import ConfigError, RunFailedError
+from kftune.errors import ConfigError, RunFailedError, UsageError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 
@@ -137,7 +137,16 @@ def run(args: argparse.Namespace) -> int:
     """Run ``kftune tune``."""
     config = load_config(args.config, "tune")
     if args.resume and args.storage is None:
-        raise ConfigError("--resume needs --storage (the study file to continue)")
+        raise UsageError("--resume needs --storage (the study file to continue)")
+    # contradictions between options on the command line are usage errors (exit 2); the
+    # same between the configuration and the command line are refused by tune() (exit 3)
+    if args.timeout is not None and (args.batch is not None or args.scheduler is not None):
+        raise UsageError(
+            f"--timeout cannot be combined with {'--batch' if args.batch else '--scheduler'}: "
+            "a per-evaluation timeout runs every evaluation in one local worker process"
+        )
+    if args.widen_bounds and args.method == "manual":
+        raise UsageError("--widen-bounds needs a search; -m manual evaluates one point")
     output_file(args.out, "--out")
     if args.storage is not None:
         output_file(args.storage, "--storage")
@@ -167,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
             dataset.train,
             dataset.vehicle,
             default_r0(fs.model, dataset, config.get("r0")),
-            cost=cost_spec(args, config),
+            cost=cost_spec(args, config, model=fs.model),
             parameterization=parameterization(args, config, fs.model),
             workers=1 if scheduler is not None else workers,  # the cluster's processes
             burn_in=burn_in(args, config),

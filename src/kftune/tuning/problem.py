@@ -235,6 +235,24 @@ def output_names(model: StateSpaceModel) -> tuple[str, ...]:
     return (*model.outputs, *(s for s in states if s not in model.outputs))
 
 
+def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
+    """Refuse an NRMSE cost that weighs a channel ``model`` cannot score.
+
+    Raises:
+        ConfigError: naming the channel, the model's measurements and its outputs.
+    """
+    if spec.kind != "nrmse":
+        return
+    outputs = output_names(model)
+    for c in spec.channels:
+        if c not in model.measurement_names and c not in outputs:
+            raise ConfigError(
+                f"unknown cost channel {c!r}: neither a measurement of model {model.name!r} "
+                f"{list(model.measurement_names)} nor one of its outputs {list(outputs)} "
+                "(scored against a reference channel <output>_ref)"
+            )
+
+
 def model_output(res: RunResult, name: str) -> np.ndarray:
     """(N,) an output of the run's model (:func:`output_names`) from the posterior states,
     e.g. ``"beta"`` [rad] (the sideslip atan2(Vy, Vx) of the single-track models) or a
@@ -587,15 +605,7 @@ class TuningProblem:
             raise ConfigError(f"burn_in must be a number of seconds >= 0, got {burn_in!r}")
         self.burn_in = float(burn_in)
         self.cost_spec = cost or CostSpec()
-        if self.cost_spec.kind == "nrmse":
-            for c in self.cost_spec.channels:
-                if c not in mod.measurement_names and c not in self._outputs():
-                    raise ConfigError(
-                        f"unknown cost channel {c!r}: neither a measurement of model "
-                        f"{mod.name!r} {list(mod.measurement_names)} nor one of its outputs "
-                        f"{list(self._outputs())} (scored against a reference channel "
-                        "<output>_ref)"
-                    )
+        check_cost_channels(self.cost_spec, mod)
         if self.cost_spec.kind == "msp" and not (self._fs.fast and _msp_channels(self.cost_spec)):
             raise ConfigError(
                 "the multi-step prediction cost (msp) runs the single-track UKF only, and "
