@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shlex
 import signal
 import sqlite3
 import subprocess
@@ -650,3 +651,17 @@ def test_normalise_is_refused_for_a_file_tuned_with_another_cost(small, tmp_path
     res = kftune("evaluate", str(small), "--params", str(out), "--normalise", "dataset")
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "--normalise: the pem cost (the cost the parameters were tuned with)" in res.stderr
+
+
+def test_tune_ends_with_a_command_that_runs(small, tmp_path):
+    """The closing hint is a whole command (dataset, tuned file, split), and it works."""
+    out = tmp_path / "a b.json"
+    res = kftune("tune", str(small), "-n", "2", "-q", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    hint = res.stdout.strip().splitlines()[-1]
+    assert hint.startswith("KPIs per test manoeuvre: kftune evaluate ")
+    argv = shlex.split(hint.split(": ", 1)[1])
+    assert argv[2] == str(small) and str(out) in argv
+    ev = kftune(*argv[1:])
+    assert ev.returncode == 0, ev.stderr
+    assert "test split" in ev.stdout

@@ -38,6 +38,7 @@ import argparse
 import contextlib
 import json
 import math
+import shlex
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -231,6 +232,21 @@ def run(args: argparse.Namespace) -> int:
         elif no_evidence:
             print(f"no held-out evidence: {no_evidence}")
         print(f"tuned parameters written to {args.out}")
+        dataset_arg = pick(args, config, "dataset", None)
+        print(
+            "KPIs per test manoeuvre: "
+            + shlex.join(
+                [
+                    "kftune",
+                    "evaluate",
+                    *([] if dataset_arg in (None, "default") else [str(dataset_arg)]),
+                    "--params",
+                    str(args.out),
+                    "--split",
+                    "test",
+                ]
+            )
+        )
     return EXIT_OK
 
 
@@ -336,7 +352,6 @@ def held_out_line(h: dict[str, Any]) -> str:
             if worse
             else ""
         )
-        + "; more with kftune evaluate --split test"
     )
 
 
