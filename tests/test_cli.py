@@ -560,7 +560,10 @@ def test_tune_reports_a_best_point_on_a_bound(small, tmp_path, capsys):
         (n, "upper", 1e-7) for n in ("q_vx", "q_vy", "q_r")
     ]
     assert json.loads(out.read_text())["on_bounds"] == doc["on_bounds"]
-    assert main([*args, "--widen-bounds"]) == 3
+    assert main([*args, "--widen-bounds"]) == 2  # both on the command line: usage
+    assert "manual" in capsys.readouterr().err
+    cfg.write_text("widen_bounds = true\n[parameters]\nq_bounds = [1e-10, 1e-7]\n")
+    assert main(args) == 3  # one of them from the configuration
     assert "manual" in capsys.readouterr().err
 
 
@@ -665,3 +668,63 @@ def test_tune_ends_with_a_command_that_runs(small, tmp_path):
     ev = kftune(*argv[1:])
     assert ev.returncode == 0, ev.stderr
     assert "test split" in ev.stdout
+
+
+def test_a_finished_run_removes_the_partial_file_of_an_interrupted_one(small, tmp_path):
+    out = tmp_path / "t.json"
+    (tmp_path / "t.partial.json").write_text("{}")  # left by an earlier Ctrl-C
+    (tmp_path / "other.partial.json").write_text("{}")
+    res = kftune("tune", str(small), "-n", "2", "-q", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    assert out.is_file() and not (tmp_path / "t.partial.json").exists()
+    assert (tmp_path / "other.partial.json").exists()
+
+
+def test_resume_of_a_study_that_does_not_exist_is_refused(small, tmp_path):
+    """A misspelt --storage with --resume would silently start afresh."""
+    res = kftune("tune", str(small), "-n", "2", "--storage", str(tmp_path / "nos.db"), "--resume")
+    assert res.returncode == 3 and "nos.db" in res.stderr and "does not exist" in res.stderr
+    assert not (tmp_path / "nos.db").exists()
+    res = kftune(
+        "compare", str(small), "--methods", "manual", "--resume", "-o", str(tmp_path / "r")
+    )
+    assert res.returncode == 3 and "holds no study" in res.stderr
+    assert not (tmp_path / "r" / "report.md").exists()
+
+
+def test_ctrl_c_before_the_first_evaluation_says_so(small, tmp_path, monkeypatch):
+    """Interrupted while loading: no count of zero evaluations that hides a study's; the
+    hint says whether there is a study to resume."""
+    import kftune.data as data_module
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    db = tmp_path / "s.db"
+    monkeypatch.setattr(data_module, "open_dataset", interrupted)
+    res = kftune("tune", str(small), "-n", "2", "--storage", str(db))
+    assert res.returncode == 130
+    assert "before this run evaluated anything" in res.stderr and "after 0" not in res.stderr
+    assert "no study was started" in res.stderr and "--resume" not in res.stderr
+
+
+def test_a_dataset_without_training_manoeuvres_says_so(tmp_path):
+    from kftune.data import default_dataset, save_dataset
+
+    save_dataset(default_dataset().subset(["test-05-j-turn"]), tmp_path / "only-test")
+    res = kftune("tune", str(tmp_path / "only-test"), "-n", "2", "-q", "-o", str(tmp_path / "t"))
+    assert res.returncode == 3, res.stderr
+    assert "has no training manoeuvres" in res.stderr and "1 are all test" in res.stderr
+
+
+def test_config_method_names_the_file_and_a_budget_for_no_method_is_refused(tmp_path):
+    cfg = tmp_path / "run.toml"
+    cfg.write_text('method = "bogus"\n')
+    res = kftune("tune", "--config", str(cfg), "-n", "2", "-q")
+    assert res.returncode == 3 and str(cfg) in res.stderr and "'bogus'" in res.stderr
+    cfg.write_text('methods = ["manual", "gaa"]\n')
+    res = kftune("compare", "--config", str(cfg), "-q", "-o", str(tmp_path / "r"))
+    assert res.returncode == 3 and str(cfg) in res.stderr and "gaa" in res.stderr
+    res = kftune("compare", "--methods", "manual", "--budget", "ga=5", "-o", str(tmp_path / "r"))
+    assert res.returncode == 2 and "--budget ga" in res.stderr and "not among" in res.stderr
+    assert not (tmp_path / "r").exists()

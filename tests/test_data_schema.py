@@ -233,8 +233,10 @@ def test_a_sideslip_recording_without_a_reference_loads_and_tunes_on_nis(no_refe
     assert "beta_std" in header and "beta_ref" not in header
     res = kftune("tune", str(no_reference), "--cost", "nrmse", "-n", "2")
     assert res.returncode == 3 and "Traceback" not in res.stderr
+    assert "the nrmse cost (without a reference sensor" in res.stderr
+    assert "or use the nis or pem cost" in res.stderr  # the way out
     assert (
-        "the nrmse cost needs a reference channel beta_ref, which manoeuvre "
+        "needs a reference channel beta_ref, which manoeuvre "
         f"{ds.train[0].name!r} lacks" in res.stderr
     )
     # without beta_ref, compare reports the RMSE of every measurement (a reference-free cost)

@@ -491,3 +491,22 @@ def test_resume_refuses_an_in_flight_point_the_code_no_longer_proposes(tmp_path)
         conn.execute("UPDATE trials SET u = '[0.5, 0.5]' WHERE state = 'running'")
     with pytest.raises(StudyError, match=r"replay diverged at trial 3"):
         minimize(objective, SPACE, "random", budget=8, seed=0, storage=str(db), resume=True)
+
+
+def test_resume_on_other_data_says_what_differs_in_words(tmp_path):
+    """A tuning problem's fingerprint carries a summary: the refusal shows it, not a hash
+    in JSON with escapes."""
+    db = tmp_path / "s.db"
+    a = {"sha256": "aa", "summary": "8 manoeuvres (t-01 … t-08), car A, cost nrmse"}
+    minimize(objective, SPACE, "random", budget=2, seed=0, storage=db, objective=a)
+    b = {"sha256": "bb", "summary": "6 manoeuvres (s01 … s16), car B, cost nrmse"}
+    with pytest.raises(ConfigError) as info:
+        minimize(objective, SPACE, "random", budget=2, seed=0, storage=db, resume=True, objective=b)
+    msg = str(info.value)
+    assert "(t-01 … t-08), car A" in msg and "car B" in msg and "\\u" not in msg
+    assert "bb" not in msg
+    with pytest.raises(ConfigError, match=r"the data differ"):
+        minimize(
+            objective, SPACE, "random", budget=2, seed=0, storage=db, resume=True,
+            objective={**a, "sha256": "cc"},
+        )  # fmt: skip

@@ -218,3 +218,13 @@ def test_report_names_best_points_on_a_bound(results, tmp_path):
     results.method("tsbo-tsp").extra["on_bounds"] = []
     text = write_report(results, tmp_path / "rep2").read_text()
     assert "No method's best point lies within 1 % of a bound" in text
+
+
+def test_report_says_the_burn_in_when_there_is_one(results, tmp_path):
+    """The burn-in changes every KPI: report.md says it (not only results.json)."""
+    results.traces, results.cost_slice = {}, None  # fewer figures: faster
+    results.meta["burn_in_s"] = 1.0
+    text = write_report(results, tmp_path / "rep").read_text()
+    assert "- Burn-in: the first 1 s of every manoeuvre left out" in text
+    results.meta["burn_in_s"] = 0.0  # the paper's: nothing to say
+    assert "Burn-in" not in write_report(results, tmp_path / "rep2").read_text()

@@ -173,6 +173,11 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     for section, keys in _SECTION_KEYS.items():
         if section in data:
             _check_keys(data[section], keys, f"{p} [{section}]")
+    if "method" in data and data["method"] not in METHODS:
+        raise ConfigError(f"{p}: method {data['method']!r} is not one of {list(METHODS)}")
+    unknown = [m for m in data.get("methods", []) if m not in METHODS]
+    if unknown:
+        raise ConfigError(f"{p}: methods {unknown} are not among {list(METHODS)}")
     for method, opts in data.get("options", {}).items():
         if method not in METHODS or not isinstance(opts, dict):
             raise ConfigError(

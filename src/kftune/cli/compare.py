@@ -39,7 +39,7 @@ from kftune.cli._common import (
     writing,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
-from kftune.errors import UsageError
+from kftune.errors import ConfigError, UsageError
 from kftune.optim import COMPARE_METHODS, METHODS
 
 
@@ -111,6 +111,12 @@ def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(pick(args, config, "dataset", None))
     filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named
     methods = args.methods or config.get("methods")
+    idle = [m for m, _ in args.budget or [] if m not in (methods or COMPARE_METHODS)]
+    if idle:
+        raise UsageError(
+            f"--budget {idle[0]}=…: {idle[0]} is not among the methods run "
+            f"({' '.join(methods or COMPARE_METHODS)}); add it with --methods or drop the budget"
+        )
     settings = CompareSettings(
         **({"methods": tuple(methods)} if methods else {}),
         seed=pick(args, config, "seed", 0),
@@ -125,6 +131,11 @@ def run(args: argparse.Namespace) -> int:
         r0=config.get("r0", {}),
     )
     studies = args.out / "studies"
+    if args.resume and not any(studies.glob("*.db")):
+        raise ConfigError(
+            f"--resume: {studies} holds no study to continue (a misspelt --out would start "
+            "afresh); leave out --resume to start there"
+        )
     keep = (
         f"every finished evaluation is saved in {studies}; once that is fixed, the same "
         "command plus --resume writes the report without tuning again"

@@ -152,6 +152,11 @@ def run(args: argparse.Namespace) -> int:
     if args.storage is not None:
         output_file(args.storage, "--storage")
     widen = bool(pick(args, config, "widen_bounds", False))
+    if args.resume and args.storage is not None and not args.storage.exists():
+        raise ConfigError(
+            f"--resume: study file {args.storage} does not exist (a misspelt name would "
+            "start afresh); leave out --resume to start a new study there"
+        )
     if args.storage is not None and not args.resume:
         for k in range(WIDEN_ROUNDS + 1 if widen else 1):
             study = round_storage(args.storage, k)
@@ -167,9 +172,12 @@ def run(args: argparse.Namespace) -> int:
         from kftune.tuning.problem import TuningProblem, default_r0
 
         dataset = open_dataset(pick(args, config, "dataset", None))
-        method = pick(args, config, "method", DEFAULT_METHOD)
-        if method not in METHODS:
-            raise ConfigError(f"method {method!r} is not one of {list(METHODS)}")
+        if not dataset.train:
+            raise ConfigError(
+                f"dataset {dataset.name!r} has no training manoeuvres to tune on (its "
+                f"{len(dataset.test)} are all test manoeuvres; see kftune dataset info)"
+            )
+        method = pick(args, config, "method", DEFAULT_METHOD)  # both checked already
         fs = filter_spec_of(args, config, dataset.vehicle)
         scheduler = pick(args, config, "scheduler", None)
         workers = pick(args, config, "workers", 1)
@@ -210,6 +218,9 @@ def run(args: argparse.Namespace) -> int:
     doc = tuned_document(result, problem, dataset, args.out)
     # The result first: nothing after this line can lose it.
     write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
+    # an interrupted run's best-so-far (see _interrupted) is superseded now
+    with contextlib.suppress(OSError):
+        _partial(args.out).unlink(missing_ok=True)
     doc["held_out"], no_evidence = held_out(problem, result.x, dataset)
     if doc["held_out"] is not None:
         write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
@@ -362,23 +373,34 @@ def _interrupted(
     dataset: Dataset | None = None,
 ) -> None:
     """Ctrl-C: say what was kept, save the best point so far, and how to go on."""
-    lines = [f"kftune: interrupted after {0 if result is None else result.n_evals} evaluations"]
+    lines = [
+        "kftune: interrupted before this run evaluated anything (while loading or starting)"
+        if result is None
+        else f"kftune: interrupted after {result.n_evals} evaluations"
+    ]
     if result is not None and result.x is not None and problem is not None and dataset is not None:
-        partial = args.out.with_name(args.out.stem + ".partial" + args.out.suffix)
+        partial = _partial(args.out)
         doc = tuned_document(result, problem, dataset, partial)
         try:
             write_output(partial, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
             lines.append(f"best cost so far {result.fun:.5g}, its parameters written to {partial}")
         except RunFailedError as exc:
             lines.append(f"best cost so far {result.fun:.5g}; {exc}")
-    if args.storage is not None:
+    if args.storage is not None and not args.storage.exists():
+        lines.append(f"no study was started in {args.storage}; run the same command again")
+    elif args.storage is not None:
         lines.append(
             f"every finished evaluation is saved in {args.storage}; continue with the same "
-            "command plus --resume"
+            "command" + ("" if args.resume else " plus --resume")
         )
     else:
         lines.append("nothing else was saved (run with --storage FILE to be able to resume)")
     print("\n".join(lines), file=sys.stderr)
+
+
+def _partial(out: Path) -> Path:
+    """Where an interrupted run leaves its best point so far (``tuned.partial.json``)."""
+    return out.with_name(out.stem + ".partial" + out.suffix)
 
 
 def _kept(args: argparse.Namespace) -> str:

@@ -481,8 +481,16 @@ def _check_settings(p: Path, stored: dict[str, Any], current: dict[str, Any]) ->
         if key == "options" and isinstance(old, dict) and isinstance(new, dict):
             sub = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
             key, old, new = f"{key}.{sub}", old.get(sub, "(not set)"), new.get(sub, "(not set)")
+        if all(isinstance(v, dict) and "summary" in v for v in (old, new)):
+            # an objective's fingerprint: what it is, not its hash
+            raise ConfigError(
+                f"study {p} was created for another {key}: {old['summary']}; this run's is "
+                f"{new['summary']}"
+                + ("" if old["summary"] != new["summary"] else " (the data differ)")
+                + "; resume it on the same data, cost and model, or use another storage file"
+            )
         raise ConfigError(
-            f"study {p} was created with {key} = {json.dumps(old)}, but this "
-            f"run asks for {key} = {json.dumps(new)}; resume it with the "
-            "same settings or use another storage file"
+            f"study {p} was created with {key} = {json.dumps(old, ensure_ascii=False)}, but "
+            f"this run asks for {key} = {json.dumps(new, ensure_ascii=False)}; resume it with "
+            "the same settings or use another storage file"
         )

@@ -235,6 +235,11 @@ def _meta_lines(meta: dict) -> list[str]:
     ):
         if key in meta:
             lines.append(f"- {label}: {meta[key]}")
+        if key == "cost" and meta.get("burn_in_s"):  # 0 (the paper) goes unsaid
+            lines.append(
+                f"- Burn-in: the first {meta['burn_in_s']:g} s of every manoeuvre left out of "
+                "the cost and the KPIs"
+            )
     if meta.get("command"):
         lines.append(f"- Command: `{meta['command']}`")
     fp = meta.get("dataset_fingerprint")

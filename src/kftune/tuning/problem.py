@@ -674,7 +674,13 @@ class TuningProblem:
         m.require(mod.measurement_names, who, "measurement channel")
         if self.cost_spec.kind == "nrmse":
             refs = [f"{c}_ref" for c in self.cost_spec.channels if c not in mod.measurement_names]
-            m.require(refs, "the nrmse cost", "a reference channel")
+            m.require(
+                refs,
+                "the nrmse cost (without a reference sensor, weigh only measured channels — "
+                f"{', '.join(mod.measurement_names)} — or use the nis or pem cost, which need "
+                "none)",
+                "a reference channel",
+            )
         if mod.validate_data is not None:
             u, z = self._fs.inputs(m)
             try:
