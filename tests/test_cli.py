@@ -407,8 +407,10 @@ def _cpu_seconds(pid: int, since: float) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _interrupt_tune(args: list[str], ready) -> subprocess.CompletedProcess:
-    """Run ``kftune tune ARGS`` and send SIGINT once ``ready(process)`` holds."""
+def _interrupt_tune(
+    args: list[str], ready, sig: int = signal.SIGINT
+) -> subprocess.CompletedProcess:
+    """Run ``kftune tune ARGS`` and send ``sig`` once ``ready(process)`` holds."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "kftune", "tune", *args],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint,
@@ -417,7 +419,7 @@ def _interrupt_tune(args: list[str], ready) -> subprocess.CompletedProcess:
     while not ready(proc) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     assert proc.poll() is None, "tune finished before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     out, err = proc.communicate(timeout=60)
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
@@ -441,6 +443,22 @@ def test_ctrl_c_keeps_the_best_so_far_and_says_how_to_resume(small, tmp_path):
     )  # fmt: skip
     assert res.returncode == 130
     assert "nothing else was saved" in res.stderr and "saved in" not in res.stderr
+
+
+def test_sigterm_is_handled_as_ctrl_c_with_exit_143(small, tmp_path):
+    """``timeout`` and batch schedulers stop a job with SIGTERM: the best point so far and
+    the resume hint as for Ctrl-C, no traceback, and the pool's workers go too."""
+    db = tmp_path / "s.db"
+    res = _interrupt_tune(
+        [str(small), "-m", "ga", "-n", "5000", "--quiet", "--storage", str(db),
+         "--workers", "2", "-o", str(tmp_path / "t.json")],
+        ready=lambda proc: _completed(db) >= 10,
+        sig=signal.SIGTERM,
+    )  # fmt: skip
+    assert res.returncode == 143, res.stderr
+    assert "--resume" in res.stderr and "Traceback" not in res.stderr
+    partial = json.loads((tmp_path / "t.partial.json").read_text())
+    assert partial["status"] == "interrupted" and _completed(db) >= partial["n_evals"] >= 10
 
 
 def test_a_reader_that_closes_early_gets_no_traceback():

@@ -5,7 +5,8 @@ and sets ``func`` to a callable ``(args) -> int``. This module only wires them t
 maps errors to exit codes.
 
 The exit codes (0 success, 1 failure, 2 usage, 3 bad input, 130 interrupted, 141 broken
-pipe) are listed in :mod:`kftune.cli.exit_codes`; this module re-exports them.
+pipe, 143 terminated) are listed in :mod:`kftune.cli.exit_codes`; this module re-exports
+them.
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ import argparse
 import contextlib
 import importlib
 import os
+import signal
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import TextIO
 
 from kftune import __version__
@@ -26,6 +28,7 @@ from kftune.cli.exit_codes import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
     EXIT_OK,
+    EXIT_TERMINATED,
     EXIT_USAGE,
 )
 from kftune.errors import DataWarning, KftuneError, RunFailedError, UsageError
@@ -36,6 +39,7 @@ __all__ = [
     "EXIT_FAILURE",
     "EXIT_INTERRUPTED",
     "EXIT_OK",
+    "EXIT_TERMINATED",
     "EXIT_USAGE",
     "SUBCOMMANDS",
     "build_parser",
@@ -109,9 +113,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by reports
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _sigterm_as_interrupt() as terminated:
         warnings.showwarning = _plain_warnings(warnings.showwarning)
-        return _run(args)
+        code = _run(args)
+    return EXIT_TERMINATED if terminated and code == EXIT_INTERRUPTED else code
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[list[bool]]:
+    """SIGTERM (``timeout``, a batch scheduler's stop) ends a command as Ctrl-C does — the
+    best point so far saved, how to resume said — and the exit code is then 143. Yields a
+    list that holds ``True`` once SIGTERM arrived. Processes forked from this one (a pool's
+    workers) keep the default action; the previous handler is restored on the way out."""
+    received: list[bool] = []
+    pid = os.getpid()
+
+    def handler(signum: int, frame: object) -> None:
+        if os.getpid() != pid:  # a forked worker: terminate as by default
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        received.append(True)
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave SIGTERM alone
+        yield received
+        return
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -7,6 +7,7 @@ Exit codes:
        standard output closed
     3  bad input: a data file, manifest, configuration or study file is unusable
     130 interrupted (Ctrl-C); whatever finished has been saved
+    143 terminated (SIGTERM: ``timeout``, a batch scheduler); handled as Ctrl-C is
     141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
 
 A module of their own so that the subcommand modules, which :mod:`kftune.cli` imports, do
@@ -18,4 +19,5 @@ EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 EXIT_BROKEN_PIPE = 141
