@@ -290,8 +290,10 @@ class TrustRegionBO(Optimizer):
             axial[np.arange(2 * d), np.repeat(np.arange(d), 2)] = np.tile(at, d)
             pts.append(axial)
         n_more = self.n_init - sum(len(p) for p in pts)
-        if n_more > 0:
-            pts.append(qmc.Sobol(d, scramble=True, seed=rng).random(n_more))
+        if n_more > 0:  # the first n_more points of 2^m (the same points as random(n_more),
+            # without scipy's warning that a count other than 2^m loses balance)
+            sobol = qmc.Sobol(d, scramble=True, seed=rng)
+            pts.append(sobol.random_base2(math.ceil(math.log2(n_more)))[:n_more])
         return np.vstack(pts)[: self.n_init]
 
     def options(self) -> dict[str, Any]:
