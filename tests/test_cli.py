@@ -5,6 +5,7 @@ closed pipe, SIGKILL), which runs ``python -m kftune``."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -445,20 +446,49 @@ def test_ctrl_c_keeps_the_best_so_far_and_says_how_to_resume(small, tmp_path):
     assert "nothing else was saved" in res.stderr and "saved in" not in res.stderr
 
 
+def _children(pid: int) -> set[int]:
+    """The child processes of ``pid`` (Linux /proc; empty elsewhere)."""
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*/children"):
+        with contextlib.suppress(OSError):
+            out |= {int(c) for c in task.read_text().split()}
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
 def test_sigterm_is_handled_as_ctrl_c_with_exit_143(small, tmp_path):
-    """``timeout`` and batch schedulers stop a job with SIGTERM: the best point so far and
-    the resume hint as for Ctrl-C, no traceback, and the pool's workers go too."""
+    """Batch schedulers stop a job with SIGTERM: the best point so far and the resume hint
+    as for Ctrl-C, no traceback, exit 143, and the pool's workers go too."""
     db = tmp_path / "s.db"
+    workers: set[int] = set()
+
+    def ready(proc) -> bool:
+        workers.update(_children(proc.pid))
+        return _completed(db) >= 10
+
     res = _interrupt_tune(
         [str(small), "-m", "ga", "-n", "5000", "--quiet", "--storage", str(db),
          "--workers", "2", "-o", str(tmp_path / "t.json")],
-        ready=lambda proc: _completed(db) >= 10,
+        ready=ready,
         sig=signal.SIGTERM,
     )  # fmt: skip
     assert res.returncode == 143, res.stderr
     assert "--resume" in res.stderr and "Traceback" not in res.stderr
     partial = json.loads((tmp_path / "t.partial.json").read_text())
     assert partial["status"] == "interrupted" and _completed(db) >= partial["n_evals"] >= 10
+    if Path("/proc").is_dir():
+        assert workers, "the pool's workers were not seen"
+        deadline = time.monotonic() + 30
+        while any(map(_alive, workers)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(map(_alive, workers))
 
 
 def test_a_reader_that_closes_early_gets_no_traceback():
@@ -711,8 +741,8 @@ def test_resume_of_a_study_that_does_not_exist_is_refused(small, tmp_path):
 
 
 def test_ctrl_c_before_the_first_evaluation_says_so(small, tmp_path, monkeypatch):
-    """Interrupted while loading: no count of zero evaluations that hides a study's; the
-    hint says whether there is a study to resume."""
+    """Interrupted while loading: no count of zero evaluations (a resumed study holds more);
+    the hint says whether there is a study to resume."""
     import kftune.data as data_module
 
     def interrupted(*args, **kwargs):
@@ -722,7 +752,7 @@ def test_ctrl_c_before_the_first_evaluation_says_so(small, tmp_path, monkeypatch
     monkeypatch.setattr(data_module, "open_dataset", interrupted)
     res = kftune("tune", str(small), "-n", "2", "--storage", str(db))
     assert res.returncode == 130
-    assert "before this run evaluated anything" in res.stderr and "after 0" not in res.stderr
+    assert "kftune: interrupted" in res.stderr and "after 0" not in res.stderr
     assert "no study was started" in res.stderr and "--resume" not in res.stderr
 
 
@@ -746,3 +776,29 @@ def test_config_method_names_the_file_and_a_budget_for_no_method_is_refused(tmp_
     res = kftune("compare", "--methods", "manual", "--budget", "ga=5", "-o", str(tmp_path / "r"))
     assert res.returncode == 2 and "--budget ga" in res.stderr and "not among" in res.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_evaluate_runs_the_tuned_files_r_as_estimate_and_export_do(small, tmp_path):
+    """R set by the configuration at tuning time (r0) is part of the tuned filter:
+    evaluate --params, without that configuration, scores the same cost, and an R edited in
+    the file (both copies) changes what it scores."""
+    cfg = tmp_path / "r0.toml"
+    cfg.write_text("r0 = { vx = 1.0 }\n")
+    out = tmp_path / "t.json"
+    res = kftune("tune", str(small), "--config", str(cfg), "-n", "3", "-q", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(out.read_text())
+    assert doc["r"][0] == 1.0
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
+    assert ev.returncode == 0, ev.stderr
+    got = json.loads(ev.stdout)
+    assert got["r"] == pytest.approx(doc["r"], rel=1e-12)
+    assert got["cost"] == pytest.approx(doc["cost"], rel=1e-9)
+    doc["r"] = [v * 100 for v in doc["r"]]
+    for e in doc["deployment"]["R"]:
+        e["variance"] *= 100
+    out.write_text(json.dumps(doc))
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
+    assert ev.returncode == 0, ev.stderr
+    assert json.loads(ev.stdout)["r"] == pytest.approx(doc["r"], rel=1e-12)
+    assert json.loads(ev.stdout)["cost"] != pytest.approx(got["cost"], rel=1e-3)

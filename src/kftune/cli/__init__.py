@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import importlib
 import os
 import signal
@@ -123,14 +124,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _sigterm_as_interrupt() -> Iterator[list[bool]]:
     """SIGTERM (``timeout``, a batch scheduler's stop) ends a command as Ctrl-C does — the
     best point so far saved, how to resume said — and the exit code is then 143. Yields a
-    list that holds ``True`` once SIGTERM arrived. Processes forked from this one (a pool's
-    workers) keep the default action; the previous handler is restored on the way out."""
+    list that holds ``True`` once SIGTERM arrived. A second SIGTERM (during the clean-up)
+    terminates at once; a process forked from this one (``--timeout``'s worker) keeps the
+    default action; the previous handler is restored on the way out."""
     received: list[bool] = []
     pid = os.getpid()
 
     def handler(signum: int, frame: object) -> None:
-        if os.getpid() != pid:  # a forked worker: terminate as by default
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # the next one is not caught
+        if os.getpid() != pid:  # a forked process: terminate as by default
             os.kill(os.getpid(), signal.SIGTERM)
             return
         received.append(True)
@@ -145,6 +147,12 @@ def _sigterm_as_interrupt() -> Iterator[list[bool]]:
         yield received
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+#: errno values of a write that failed (a full disk or quota, /dev/full, an I/O error).
+_WRITE_ERRNOS = frozenset(
+    getattr(errno, name) for name in ("ENOSPC", "EDQUOT", "EFBIG", "EIO") if hasattr(errno, name)
+)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -177,13 +185,21 @@ def _run(args: argparse.Namespace) -> int:
         # Files the commands write say so themselves (RunFailedError, naming the file and
         # what is kept); what is left is standard output (> /dev/full, a full disk) or an
         # error the commands did not foresee: a message, not a traceback.
-        what = f"cannot write {exc.filename}" if exc.filename else "cannot write standard output"
-        print(f"kftune {args.command}: failed: {what}: {exc.strerror or exc}", file=sys.stderr)
-        if exc.filename is None and sys.stdout is not None:
+        if exc.filename is None and exc.errno in _WRITE_ERRNOS:
+            # the files kftune writes are named by their own errors: this is stdout
+            what = f"cannot write standard output: {exc.strerror}"
             # drop what is still buffered, or Python fails the same way at exit
             with contextlib.suppress(OSError, ValueError):
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        else:
+            what = f"{exc.filename}: {exc.strerror}" if exc.filename else str(exc)
+        print(f"kftune {args.command}: failed: {what}", file=sys.stderr)
         return EXIT_FAILURE
+    try:
+        sys.stdout.flush()
+    except (OSError, ValueError):
+        return True
+    return False
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -207,11 +207,14 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
 
 
 def split_model_file(spec: str) -> tuple[Path, str] | None:
-    """(file, ":VAR" or "") of a model-file spec ``"path.py[:VAR]"``; None for a name."""
-    if ".py:" in spec:
-        head, _, var = spec.partition(".py:")
-        return Path(head + ".py"), ":" + var
-    return (Path(spec), "") if spec.endswith(".py") else None
+    """(file with ``~`` expanded, ":NAME" or "") of a model-file spec, read as the loader
+    reads it (:func:`kftune.models.user.model_file_parts`); None for a model name."""
+    from kftune.models.user import model_file_parts
+
+    parts = model_file_parts(spec)
+    if parts is None:
+        return None
+    return Path(parts[0]).expanduser(), ":" + parts[1] if parts[1] else ""
 
 
 def model_file_from(spec: str, folder: Path) -> str:
@@ -231,7 +234,7 @@ def model_file_for(spec: str, out: Path) -> str:
     mf = split_model_file(spec)
     if mf is None:
         return spec
-    path, folder = mf[0].resolve(), out.resolve().parent
+    path, folder = mf[0].resolve(), out.parent.resolve()  # a link to the file: its folder
     return str(path.relative_to(folder) if path.is_relative_to(folder) else path) + mf[1]
 
 
@@ -556,10 +559,12 @@ def filter_spec_of(
             if split_model_file(model) is None:
                 raise UsageError(f"--model: {exc}") from None
             raise ConfigError(f"--model: {exc}") from None
-        if "model" in config or "filter" in config:
+        if "model" in config:
             raise ConfigError(f"{config.get(_FILE, 'the configuration')}: {exc}") from None
-        if tuned is not None:
+        if tuned is not None and "model" in tuned[1]:
             raise ConfigError(f"{tuned[0]}: the model it was tuned with: {exc}") from None
+        if "filter" in config:
+            raise ConfigError(f"{config.get(_FILE, 'the configuration')}: {exc}") from None
         raise
 
 

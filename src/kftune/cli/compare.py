@@ -155,11 +155,14 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt as stop:
         partial = getattr(stop, "result", None)  # an OptimizationInterrupted's partial run
         during = f" during {partial.method} after {partial.n_evals} evaluations" if partial else ""
-        print(
-            f"kftune: interrupted{during}; every finished evaluation is saved in {studies}; "
-            "continue with the same command plus --resume",
-            file=sys.stderr,
-        )
+        if not any(studies.glob("*.db")):
+            hint = "no study was started yet; run the same command again"
+        else:
+            hint = (
+                f"every finished evaluation is saved in {studies}; continue with the same "
+                "command" + ("" if args.resume else " plus --resume")
+            )
+        print(f"kftune: interrupted{during}; {hint}", file=sys.stderr)
         return EXIT_INTERRUPTED
     tables = all_tables(results)
     if args.json:

@@ -35,7 +35,14 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from kftune.cli._common import add_command, emit_json, output_dir, write_output, writing
+from kftune.cli._common import (
+    add_command,
+    emit_json,
+    filter_spec_of,
+    output_dir,
+    write_output,
+    writing,
+)
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.errors import ConfigError, DataWarning, UsageError
 
@@ -107,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data.io import file_stem
     from kftune.tuning.deploy import TunedFilter, estimate
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
-    from kftune.tuning.problem import filter_spec, first_scored, where_diverged
+    from kftune.tuning.problem import first_scored, where_diverged
 
     parquet = _parquet_writer() if args.format == "parquet" else None
     output_dir(args.out, "--out")
@@ -125,10 +132,8 @@ def run(args: argparse.Namespace) -> int:
         manoeuvres = list(dataset.manoeuvres)
     notes = _check(tuned, dataset, manoeuvres, args)
     vehicle = tuned.vehicle or dataset.vehicle
-    try:  # the model it was tuned with, once, before any output
-        filter_spec(tuned.model, tuned.filter, vehicle)
-    except ConfigError as exc:
-        raise ConfigError(f"{args.params}: the model it was tuned with: {exc}") from None
+    # the model it was tuned with, loaded once before any output (a lost one is named)
+    filter_spec_of(args, {}, vehicle, (args.params, tuned.document))
     out: dict[str, Any] = {
         "params": str(args.params),
         "dataset": dataset.name,

@@ -2,8 +2,9 @@
 
 The parameters come from a file written by ``kftune tune`` (``--params tuned.json``), from
 the command line (``--q QVX QVY QR``), or are the manual-tuning rule of thumb
-(``--manual``). R is the evaluated dataset's own (from its sensor statistics), times the
-tuned ``r_scale`` if there is one. Parameters tuned on another dataset than the one scored
+(``--manual``). With ``--params`` the filter is the file's, Q and R as tuned (what
+``kftune estimate`` runs and ``kftune export`` deploys); otherwise R is the evaluated
+dataset's own, from its sensor statistics. Parameters tuned on another dataset than the one scored
 are refused when no dataset is named (the bundled one would be scored by default) and
 scored with a warning when one is.
 
@@ -113,18 +114,16 @@ def _check_deployment(doc: dict[str, Any], path: Path) -> None:
 
 
 def _locate_model(doc: dict[str, Any], path: Path) -> None:
-    """A model file the tuned file ``path`` records by a relative path is looked for from
-    the tuned file's folder (:func:`~kftune.cli._common.model_file_for`), and, for files
-    written before that, from the working directory."""
-    for part in (doc, doc.get("deployment")):
-        if not (isinstance(part, dict) and isinstance(part.get("model"), str)):
-            continue
-        recorded = split_model_file(part["model"])
-        if recorded is None:  # a built-in model
-            continue
-        there = model_file_from(part["model"], path.parent)
-        if Path(there.removesuffix(recorded[1])).is_file() or not recorded[0].is_file():
-            part["model"] = there
+    """The model file the tuned file ``path`` records (``model``) by a relative path is
+    looked for from the tuned file's folder (:func:`~kftune.cli._common.model_file_for`),
+    and, for files written before that, from the working directory."""
+    spec = doc.get("model")
+    recorded = split_model_file(spec) if isinstance(spec, str) else None
+    if recorded is None:  # a built-in model (the deployment record keeps what was written)
+        return
+    there = model_file_from(spec, path.parent)
+    if Path(there.removesuffix(recorded[1])).expanduser().is_file() or not recorded[0].is_file():
+        doc["model"] = there
 
 
 def read_tuned(path: Path) -> dict[str, Any]:
@@ -259,9 +258,19 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.params} holds {len(tuned['q'])} Q values but model {model.name!r} "
                 f"has {model.n_states} states {list(model.state_names)}"
             )
-        factors = [
-            r_scale * float(params.get(f"r_{m}_scale", 1.0)) for m in model.measurement_names
-        ]
+        r_file = tuned.get("r")
+        if (
+            isinstance(r_file, list)
+            and len(r_file) == model.n_measurements
+            and all(_finite(v) and v > 0 for v in r_file)
+        ):  # the filter as tuned, the one estimate runs and export deploys
+            r0: Any = np.array(r_file, dtype=float)
+            factors = [1.0] * model.n_measurements
+        else:  # a file from before R was recorded: the data's R times the tuned scales
+            r0 = default_r0(model, dataset, config.get("r0"))
+            factors = [
+                r_scale * float(params.get(f"r_{m}_scale", 1.0)) for m in model.measurement_names
+            ]
         x = np.array([*tuned["q"], *factors])
         par = NoiseParameterization(
             tune_r="diag",
@@ -282,10 +291,11 @@ def run(args: argparse.Namespace) -> int:
                 f"{list(par.q_names)}, got {len(args.q)}"
             )
         x = np.array(args.q) if args.q else manual_point(par)
+        r0 = default_r0(model, dataset, config.get("r0"))
     problem = TuningProblem(
         manoeuvres,
         dataset.vehicle,
-        default_r0(model, dataset, config.get("r0")),
+        r0,
         cost=spec,
         parameterization=par,
         workers=pick(args, config, "workers", 1),

@@ -165,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
                     f"study file {study} already exists; pass --resume to continue it, or "
                     "choose another --storage"
                 )
+    result = problem = dataset = None
     try:  # from here on a Ctrl-C says what was kept, also before the first evaluation
         from kftune.data import open_dataset
         from kftune.experiment import require_success, tune
@@ -211,8 +212,8 @@ def run(args: argparse.Namespace) -> int:
             except OptimizationInterrupted as stop:
                 _interrupted(args, stop.result, problem, dataset)
                 return EXIT_INTERRUPTED
-    except KeyboardInterrupt:  # before the first evaluation: loading, starting workers
-        _interrupted(args)
+    except KeyboardInterrupt:  # loading, starting or stopping workers: keep what there is
+        _interrupted(args, result, problem, dataset)
         return EXIT_INTERRUPTED
     require_success(result, method)
     doc = tuned_document(result, problem, dataset, args.out)
@@ -374,7 +375,7 @@ def _interrupted(
 ) -> None:
     """Ctrl-C: say what was kept, save the best point so far, and how to go on."""
     lines = [
-        "kftune: interrupted before this run evaluated anything (while loading or starting)"
+        "kftune: interrupted"  # how many ran is the study's to say
         if result is None
         else f"kftune: interrupted after {result.n_evals} evaluations"
     ]

@@ -31,8 +31,16 @@ _LOADED: dict[tuple[str, str], StateSpaceModel] = {}
 
 def is_model_file(spec: str) -> bool:
     """Whether ``spec`` names a Python file (``x.py`` or ``x.py:NAME``), not a model name."""
-    path, _, _ = spec.partition(".py:")
-    return spec.endswith(".py") or path != spec
+    return model_file_parts(spec) is not None
+
+
+def model_file_parts(spec: str) -> tuple[str, str] | None:
+    """(file, NAME or "") of a model-file spec ``x.py[:NAME]`` (a spec that ends in ``.py``
+    is all file); None for a model name."""
+    if spec.endswith(".py"):
+        return spec, ""
+    head, sep, attr = spec.partition(".py:")
+    return (head + ".py", attr) if sep else None
 
 
 def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:
@@ -47,7 +55,8 @@ def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:
         return spec
     if not isinstance(spec, str) or not spec.strip():
         raise ConfigError(f"model must be a model name or a Python file, got {spec!r}")
-    if not is_model_file(spec):
+    parts = model_file_parts(spec)
+    if parts is None:
         try:
             return get_model(spec)
         except ValueError:
@@ -55,11 +64,7 @@ def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:
                 f"unknown model {spec!r}; built-in models: {', '.join(model_names())}; or "
                 "give a Python file that defines one (e.g. --model my_model.py)"
             ) from None
-    if spec.endswith(".py"):
-        file, attr = spec, ""
-    else:
-        head, _, attr = spec.partition(".py:")
-        file = head + ".py"
+    file, attr = parts
     path = Path(file).expanduser().resolve()
     key = (str(path), attr)
     if key in _LOADED:
