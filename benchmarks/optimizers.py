@@ -191,6 +191,8 @@ METHODS: dict[str, tuple[str, dict[str, Any], bool]] = {
     # every collapse restarts at the incumbent (the default before "alternate"), or leaves it
     "trbo-restart-incumbent": ("trbo", {"restart": "incumbent"}, False),
     "trbo-restart-fresh": ("trbo", {"restart": "fresh"}, False),
+    # DIRECT's first trisection as the design (centre ± 1/3) instead of the face centres
+    "trbo-direct": ("trbo", {"init_design": "direct"}, False),
     "tsbo-tsp": ("tsbo-tsp", {}, True),
     "tsbo-gp": ("tsbo-gp", {}, True),
     "tsbo-tsp-improved": ("tsbo-tsp", {"mode": "improved"}, True),
@@ -234,6 +236,7 @@ PAIRS: list[tuple[str, str]] = [
     ("trbo-length0.3", "trbo-length0.4"),
     ("trbo", "trbo-no-probe"),
     ("trbo", "trbo-restart-incumbent"),
+    ("trbo-direct", "trbo"),
     ("tsbo-tsp-improved", "tsbo-tsp"),
     ("tsbo-gp-improved", "tsbo-gp"),
     ("tsbo-tsp-improved-prev", "tsbo-tsp"),

@@ -66,6 +66,25 @@ def test_initial_design_is_the_centre_then_two_points_on_each_axis(design, at):
     assert len(np.unique(np.round(u, 12), axis=0)) == len(u)
 
 
+def test_the_default_design_probes_the_faces_of_log10_parameters_only():
+    """``"auto"``: face centres along a log10 parameter (a variance: optima on its bounds),
+    DIRECT's thirds along a linear one; recorded as the concrete design when all
+    parameters are alike, so studies of the tuning problems (all log10) keep "axial"."""
+    opt = make_optimizer("trbo", BRANIN_SPACE, seed=0)
+    u = []
+    for _ in range(5):
+        t = opt.ask()
+        u.append(t.u)
+        opt.tell(t, 1.0)
+    np.testing.assert_allclose(
+        u, [[0.5, 0.5], [1 / 6, 0.5], [5 / 6, 0.5], [0.5, 0.0], [0.5, 1.0]], atol=1e-15
+    )
+    assert opt.options()["init_design"] == "auto"
+    assert make_optimizer("trbo", CUBE3).options()["init_design"] == "direct"
+    logs = {"q1": (1e-10, 1.0, "log10"), "q2": (1e-6, 1e2, "log10")}
+    assert make_optimizer("trbo", logs).options()["init_design"] == "axial"
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_corner_minimum_found_exactly_in_40(seed):
     res = minimize(corner, CUBE3, "trbo", budget=40, seed=seed)
