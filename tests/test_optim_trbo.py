@@ -94,13 +94,13 @@ def test_corner_minimum_found_exactly_in_40(seed):
 
 def test_decoy_basin_is_left_on_most_seeds():
     """Measured: the global minimum is reached (value < 0.01; the decoy's floor is 0.3) within
-    100 evaluations on 16 of seeds 0-19 (8 of 0-9, 8 of 10-19); the others stay in the
-    decoy. Asserted: at least 12 of 20, so that another CPU's rounding, which can change a
-    run's path, does not turn the measured rate into a failure (P(< 12) ≈ 0.01 for a rate
-    of 0.8 on fresh draws). The decoy is left after its trust region collapses, by the
-    escape steps."""
-    solved = [minimize(decoy, CUBE3, "trbo", budget=100, seed=s).fun < 0.01 for s in range(20)]
-    assert sum(solved) >= 12, solved
+    100 evaluations on 28 of seeds 0-39 (13 of 0-19, 15 of 20-39; the face-centre design,
+    which a linear box no longer gets, 35 of 40); the others stay in the decoy. Asserted:
+    most of 40 (at least 21), so that another CPU's rounding, which can change a run's path,
+    does not turn the measured rate into a failure (P(< 21) ≈ 0.006 for a rate of 0.7 on
+    fresh draws). The decoy is left after its trust region collapses, by the escape steps."""
+    solved = [minimize(decoy, CUBE3, "trbo", budget=100, seed=s).fun < 0.01 for s in range(40)]
+    assert sum(solved) >= 21, solved
 
 
 def test_log_min_warp_is_log_of_the_shifted_values():
