@@ -505,11 +505,15 @@ def test_a_reader_that_closes_early_gets_no_traceback():
     assert "Traceback" not in err and "BrokenPipe" not in err
 
 
-@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+#: The device that refuses every write with ENOSPC (Linux, FreeBSD).
+DEV_FULL = Path("/dev", "full")
+
+
+@pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
 @pytest.mark.parametrize("json_flag", [[], ["--json"]])
 def test_a_full_standard_output_is_a_message_not_a_traceback(json_flag):
     """``kftune evaluate --manual > /dev/full``: exit 1 and one line saying what failed."""
-    with open("/dev/full", "w") as full:
+    with DEV_FULL.open("w") as full:
         proc = subprocess.run(
             [sys.executable, "-m", "kftune", "evaluate", "--manual", *json_flag],
             stdout=full,
