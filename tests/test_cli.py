@@ -806,3 +806,20 @@ def test_evaluate_runs_the_tuned_files_r_as_estimate_and_export_do(small, tmp_pa
     assert ev.returncode == 0, ev.stderr
     assert json.loads(ev.stdout)["r"] == pytest.approx(doc["r"], rel=1e-12)
     assert json.loads(ev.stdout)["cost"] != pytest.approx(got["cost"], rel=1e-3)
+
+
+def test_evaluate_refuses_a_damaged_r_in_the_tuned_file(small, tmp_path):
+    """A tuned file's R that is no positive variance per measurement is named, not replaced
+    by the data's R."""
+    out = tmp_path / "t.json"
+    assert kftune("tune", str(small), "-m", "manual", "-q", "-o", str(out)).returncode == 0
+    doc = json.loads(out.read_text())
+    doc["r"][1] = -1.0
+    out.write_text(json.dumps(doc))
+    res = kftune("evaluate", str(small), "--params", str(out))  # disagrees with the record
+    assert res.returncode == 3 and str(out) in res.stderr and "'r'" in res.stderr, res.stderr
+    doc.pop("deployment")  # an older file: no record to disagree with
+    out.write_text(json.dumps(doc))
+    res = kftune("evaluate", str(small), "--params", str(out))
+    assert res.returncode == 3 and str(out) in res.stderr, res.stderr
+    assert "'r' must be one positive variance per measurement" in res.stderr

@@ -195,11 +195,6 @@ def _run(args: argparse.Namespace) -> int:
             what = f"{exc.filename}: {exc.strerror}" if exc.filename else str(exc)
         print(f"kftune {args.command}: failed: {what}", file=sys.stderr)
         return EXIT_FAILURE
-    try:
-        sys.stdout.flush()
-    except (OSError, ValueError):
-        return True
-    return False
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -4,9 +4,9 @@ The parameters come from a file written by ``kftune tune`` (``--params tuned.jso
 the command line (``--q QVX QVY QR``), or are the manual-tuning rule of thumb
 (``--manual``). With ``--params`` the filter is the file's, Q and R as tuned (what
 ``kftune estimate`` runs and ``kftune export`` deploys); otherwise R is the evaluated
-dataset's own, from its sensor statistics. Parameters tuned on another dataset than the one scored
-are refused when no dataset is named (the bundled one would be scored by default) and
-scored with a warning when one is.
+dataset's own, from its sensor statistics. Parameters tuned on another dataset than the one
+scored are refused when no dataset is named (the bundled one would be scored by default)
+and scored with a warning when one is.
 
 The sideslip KPIs, in degrees: RMSE, MAE — the maximum absolute error, as in the paper,
 not the mean — and both again over the samples with |ay| ≥ 4 m/s² (RMSE_NON, MAE_NON).
@@ -212,6 +212,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data import open_dataset
     from kftune.experiment import manual_point
     from kftune.filters import UKFSettings
+    from kftune.tuning.deploy import TunedFilter
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import (
         FilterDivergedError,
@@ -236,13 +237,13 @@ def run(args: argparse.Namespace) -> int:
     }[args.split]
     if not manoeuvres:
         raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
-    # unless told otherwise, score the way the parameters were tuned: what the command line
-    # and the configuration give replaces that part of the tuned file's cost
-    # unless told otherwise, the model it was tuned for
+    # unless told otherwise, the model the parameters were tuned for
     fs = filter_spec_of(
         args, config, dataset.vehicle, None if tuned is None else (args.params, tuned)
     )
     model = fs.model
+    # unless told otherwise, score the way the parameters were tuned: what the command line
+    # and the configuration give replaces that part of the tuned file's cost
     spec = cost_spec(
         args, config, None if tuned is None else tuned.get("cost_spec", {}), model=model
     )
@@ -258,13 +259,13 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.params} holds {len(tuned['q'])} Q values but model {model.name!r} "
                 f"has {model.n_states} states {list(model.state_names)}"
             )
-        r_file = tuned.get("r")
-        if (
-            isinstance(r_file, list)
-            and len(r_file) == model.n_measurements
-            and all(_finite(v) and v > 0 for v in r_file)
-        ):  # the filter as tuned, the one estimate runs and export deploys
-            r0: Any = np.array(r_file, dtype=float)
+        if "r" in tuned:  # the filter as tuned, the one estimate runs and export deploys
+            r0: Any = TunedFilter.from_document(tuned, str(args.params)).r  # checks 'r'
+            if len(r0) != model.n_measurements:
+                raise ConfigError(
+                    f"{args.params} holds {len(r0)} R values but model {model.name!r} has "
+                    f"{model.n_measurements} measurements {list(model.measurement_names)}"
+                )
             factors = [1.0] * model.n_measurements
         else:  # a file from before R was recorded: the data's R times the tuned scales
             r0 = default_r0(model, dataset, config.get("r0"))

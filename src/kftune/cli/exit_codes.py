@@ -7,8 +7,9 @@ Exit codes:
        standard output closed
     3  bad input: a data file, manifest, configuration or study file is unusable
     130 interrupted (Ctrl-C); whatever finished has been saved
-    143 terminated (SIGTERM: ``timeout``, a batch scheduler); handled as Ctrl-C is
     141 stdout was closed early (``kftune dataset info | head``), as for SIGPIPE in a shell
+    143 terminated (SIGTERM: a batch scheduler, ``timeout --preserve-status``); handled as
+        Ctrl-C is
 
 A module of their own so that the subcommand modules, which :mod:`kftune.cli` imports, do
 not import :mod:`kftune.cli` back.
