@@ -205,6 +205,16 @@ def test_values_that_print_alike_are_all_bold():
     )
 
 
+def test_small_values_keep_three_significant_digits():
+    """A tuned variance of 0.00154 printed with three decimals read 0.002 (+30 %)."""
+    from kftune.report.tables import Table
+
+    t = Table("t", ("Method", "q_vx", "q_r"), (("TR-BO", 0.00154, 0.0999),))
+    row = t.to_markdown().splitlines()[-1]
+    assert row == "| TR-BO | 0.00154 | 0.0999 |"
+    assert float(row.split("|")[2]) == pytest.approx(0.00154, rel=5e-3)
+
+
 def test_report_names_best_points_on_a_bound(results, tmp_path):
     hit = {"parameter": "q_r", "side": "upper", "value": 0.998, "bound": 1.0}
     results.method("tsbo-tsp").extra["on_bounds"] = [hit]

@@ -139,6 +139,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
             if stem.startswith("kpi_"):
                 md += [MAE_NOTE if channels is None else RMSE_NOTE, ""]
+            if stem == "parameters":
+                md += [PARAMETER_NOTE, ""]
     md += _bound_lines(results)
     md += _option_lines(results)
     for file, heading, caption in figures:
@@ -186,6 +188,15 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
 MAE_NOTE = (
     "RMSE: root-mean-square error; MAE: the *maximum* absolute error (the paper's "
     "definition, not the mean); _NON: only the samples with |ay| ≥ 4 m/s²."
+)
+
+
+#: What the tuned parameters are, under the parameter table.
+PARAMETER_NOTE = (
+    "q_<state>: the process-noise variance of that state per filter step (a diagonal entry "
+    "of Q, in the state's SI unit squared: (m/s)² for vx and vy, (rad/s)² for r); "
+    "r_<channel>_scale: the factor on that measurement's variance; alpha, beta, kappa: the "
+    "unscented transform's sigma-point parameters (dimensionless)."
 )
 
 
