@@ -23,6 +23,7 @@ from conftest import run_cli
 from kftune.cli import main
 from kftune.data import SIDESLIP_CHANNELS, Dataset, load_dataset, load_mat, save_dataset, textfile
 from kftune.data.io import file_stem, read_csv
+from kftune.data.readers import read_text_table
 from kftune.data.textfile import ReadLimits, read_values
 from kftune.errors import ConfigError, DataError
 from kftune.optim import METHODS
@@ -479,3 +480,52 @@ def test_mat_variables_beyond_the_row_limit_are_refused_before_loading(tmp_path:
     with pytest.raises(DataError, match="has 500 elements, more than the limit of 400") as info:
         load_mat(f, MAPPING, preset("bmw-320i"), limits=ReadLimits(max_rows=400))
     assert textfile.ENV_MAX_ROWS in str(info.value)
+
+
+# =========================================================================== import
+IMPORT_CHANNELS = "\n".join(
+    ["[channels]", 't = "t"', 'vx = "vx"', 'ay = "ay"', 'r = "r"', "delta = "
+     '{ column = "delta", hand_wheel = true }']
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "mapping", "named"),
+    [
+        # a catalogue vehicle without a steering ratio, for a hand-wheel channel
+        ("rec.csv", csv_text().encode(), 'vehicle = "revs-250lm"\n',
+         ["map.toml", "channels.delta.hand_wheel", "steering_ratio"]),
+        # Windows-1252 text read as UTF-8: says how to name its encoding
+        ("rec.csv", csv_text().replace("\n", ",°\n", 1).replace("\n", ",1\n").encode("cp1252"),
+         'steering_ratio = 15.0\n', ["rec.csv", "row 1", '[source] encoding = "cp1252"']),
+        # … and bytes that are not cp1252 either (0x81 is undefined in it)
+        ("rec.csv", b"\x81" + csv_text().encode(),
+         'steering_ratio = 15.0\n[source]\nencoding = "cp1252"\n', ["rec.csv", "row 1", "cp1252"]),
+        # a typo under [source]
+        ("rec.csv", csv_text().encode(), 'steering_ratio = 15.0\n[source]\ndelimeter = ","\n',
+         ["map.toml", "'source.delimeter'"]),
+        # a suffix no reader takes
+        ("rec.dat", csv_text().encode(), "steering_ratio = 15.0\n",
+         ["rec.dat", '[source] format = "csv"']),
+    ],
+)  # fmt: skip
+def test_import_refuses_cleanly(tmp_path: Path, name, content, mapping, named):
+    (tmp_path / name).write_bytes(content)
+    (tmp_path / "map.toml").write_text(mapping + IMPORT_CHANNELS + "\n", encoding="utf-8")
+    res = kftune("dataset", "import", tmp_path / name, "--mapping", tmp_path / "map.toml",
+                 "-o", tmp_path / "out")  # fmt: skip
+    assert_clean_failure(res, 3, *named)
+    assert not (tmp_path / "out").exists()
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(data=st.binary(max_size=2000), encoding=st.sampled_from(["cp1252", "latin-1", "utf-8"]))
+def test_any_bytes_in_any_encoding_give_data_or_a_short_data_error(tmp_path, data, encoding):
+    f = tmp_path / "fuzz.csv"
+    f.write_bytes(b"t;vx\n" + data)
+    try:
+        read_text_table(f, ["t", "vx"], {"encoding": encoding}, ReadLimits())
+    except DataError as exc:
+        assert exc.file == str(f) and len(str(exc)) < 600

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,10 +22,13 @@ from conftest import run_cli
 from kftune.cli import EXIT_BAD_INPUT, main
 from kftune.data import load_dataset
 from kftune.data.importer import import_recordings, read_mapping
-from kftune.errors import ConfigError, DataError
+from kftune.errors import ConfigError, DataError, DataWarning
 from test_data_helpers import synthetic_channels
 
 G = 9.80665  # standard gravity: the unit g
+
+# most imports here are of one uncut recording, which the default rule cannot split
+pytestmark = pytest.mark.filterwarnings("ignore:.*makes none of the:kftune.errors.DataWarning")
 
 RATIO = 16.0
 KMH = 1 / 3.6
@@ -323,3 +327,185 @@ def test_the_readme_mapping_example_is_valid():
     m = read_mapping(tomllib.loads(block))
     assert m.split == ("test", ["run3*"]) and m.min_speed == pytest.approx(3 / 3.6)
     assert m.channels["delta"].hand_wheel and m.channels["beta_ref"].sources == ("Vy", "Vx")
+
+
+# ------------------------------------------------------------------------------ review fixes
+def _drive_csv(tmp_path: Path, name: str = "run.csv", **kw) -> tuple[Path, dict]:
+    user = _user_units(_recording(**kw))
+    return _write_csv(tmp_path / name, user, sep=","), user
+
+
+TIMED = {"t": "time", **CHANNELS}
+
+
+@pytest.mark.parametrize(
+    ("vehicle", "where"),
+    [("revs-250lm", "vehicle 'revs-250lm'"), ({"m": 1093.3, "Iz": 1791.6, "a": 1.156,
+     "b": 1.423, "h": 0.575, "C_af": 55600.0, "C_ar": 68220.0, "mu": 1.05},
+     "the [vehicle] table")],
+)  # fmt: skip
+def test_a_hand_wheel_channel_with_a_vehicle_without_a_ratio_names_the_key(
+    tmp_path, vehicle, where
+):
+    src, _ = _drive_csv(tmp_path)
+    mapping = {"vehicle": vehicle, "channels": TIMED}  # no steering_ratio anywhere
+    with pytest.raises(DataError) as info:
+        import_recordings([src], mapping)
+    text = str(info.value)
+    assert "key 'channels.delta.hand_wheel'" in text and f"{where} has no steering_ratio" in text
+    assert "give steering_ratio = " in text
+
+
+def test_the_model_refuses_standstill_at_import_naming_the_file_row(tmp_path):
+    user = _user_units(_recording(n=600))
+    user["Speed"][300] = 0.0  # one sample at standstill: the single-track model refuses it
+    src = _write_csv(tmp_path / "stop.csv", user, sep=",")
+    with pytest.raises(DataError) as info:
+        import_recordings([src], _mapping(channels=TIMED, model="single-track"))
+    e = info.value
+    # the header is row 1: sample 300 is on line 302 of the file
+    assert (e.file, e.column, e.row) == (str(src), "vx", 302)
+    assert "model 'single-track' refuses" in str(e) and "min_speed" in str(e)
+    ds = import_recordings([src], _mapping(channels=TIMED, model="single-track", min_speed=1.0))
+    assert [m.n for m in ds.manoeuvres] == [300, 299]  # cut at the stop
+
+
+def test_the_sample_time_of_late_timestamps_has_no_binary_noise(tmp_path):
+    user = _user_units(_recording())
+    user["time"] = 100.0 + np.arange(user["time"].size) * 0.01  # 100.01 − 100.0 ≠ 0.01 in binary
+    src = _write_csv(tmp_path / "late.csv", user, sep=",")
+    ds = import_recordings([src], _mapping(channels=TIMED), tmp_path / "ds")
+    assert ds.dt == 0.01 and ds.manoeuvres[0].dt == 0.01
+    assert "\ndt = 0.01\n" in (tmp_path / "ds" / "manifest.toml").read_text()
+
+
+def test_a_cp1252_file_needs_its_encoding(tmp_path):
+    user = _user_units(_recording())
+    names = ["time", "Speed", "YawRate", "SWA", "AccY"]
+    lines = [",".join(names), "s,km/h,°/s,°,g"]  # the units row: 0xb0 in cp1252
+    lines += [",".join(repr(float(user[n][k])) for n in names) for k in range(user["time"].size)]
+    src = tmp_path / "win.csv"
+    src.write_bytes("\r\n".join(lines).encode("cp1252"))
+    channels = {"t": "time", "vx": "Speed", "r": "YawRate", "ay": "AccY",
+                "delta": {"column": "SWA", "hand_wheel": True}}  # fmt: skip
+    mapping = _mapping(channels=channels, source={"units_row": True})
+    with pytest.raises(DataError, match=r'row 2: not UTF-8.*encoding = "cp1252"') as info:
+        import_recordings([src], mapping)
+    assert info.value.file == str(src)
+    mapping["source"]["encoding"] = "cp1252"
+    (m,) = import_recordings([src], mapping).manoeuvres
+    np.testing.assert_allclose(m.r, user["YawRate"] * math.pi / 180, rtol=1e-12)
+    np.testing.assert_allclose(m.delta, user["SWA"] * math.pi / 180 / RATIO, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("encoding", "message"),
+    [("nope", "unknown text encoding 'nope'"), ("base64", "unknown text encoding"),
+     ("utf-16", "'utf-16' does not write ASCII as ASCII"), (1252, "expected a codec name")],
+)  # fmt: skip
+def test_a_bad_encoding_names_the_key(encoding, message):
+    with pytest.raises(DataError, match=rf"key 'source\.encoding': {message}"):
+        read_mapping({"channels": {"t": "time"}, "source": {"encoding": encoding}})
+
+
+def test_a_txt_export_is_read_as_the_format_the_mapping_names(tmp_path):
+    src, user = _drive_csv(tmp_path, "logger.txt")
+    with pytest.raises(DataError, match=r'unknown file type.*\[source\] format = "csv"'):
+        import_recordings([src], _mapping(channels=TIMED))
+    (m,) = import_recordings([src], _mapping(channels=TIMED, source={"format": "CSV"})).manoeuvres
+    _check(m, user)
+    with pytest.raises(DataError, match=r"key 'source\.format': unknown format 'xls'.*'csv'"):
+        read_mapping({"channels": {"t": "time"}, "source": {"format": "xls"}})
+
+
+def _jittered(tmp_path: Path, n: int = 600) -> tuple[Path, dict]:
+    """A CSV logged at 10 ms whose timestamps jitter by up to ±0.4 ms, with a brake
+    pressure linear in time (so that linear interpolation reproduces it exactly)."""
+    user = _user_units(_recording(n=n))
+    user["time"] = user["time"] + np.random.default_rng(1).uniform(-4e-4, 4e-4, n)
+    user["BrakeP"] = 2.0 + 0.1 * user["time"]
+    return _write_csv(tmp_path / "jitter.csv", user, sep=","), user
+
+
+def test_jittered_timestamps_suggest_and_take_a_raster(tmp_path):
+    src, user = _jittered(tmp_path)
+    with pytest.raises(DataError, match=r"irregular sample time.*\[source\] raster = 0\.01\b"):
+        import_recordings([src], _mapping(channels=TIMED))
+    (m,) = import_recordings([src], _mapping(channels=TIMED, source={"raster": "10 ms"})).manoeuvres
+    t0, t_end = user["time"][0], user["time"][-1]
+    assert m.n >= user["time"].size - 1 and m.t[-1] <= t_end
+    np.testing.assert_allclose(m.t, t0 + np.arange(m.n) * 0.01, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.channel("p_brake"), (2.0 + 0.1 * m.t) * 1e5, rtol=1e-12)
+
+
+def test_a_raster_never_bridges_a_gap(tmp_path):
+    user = _user_units(_recording(n=600))
+    kept = np.r_[0:300, 340:600]  # 0.4 s lost after sample 299
+    src = _write_csv(tmp_path / "gap.csv", {k: v[kept] for k, v in user.items()}, sep=",")
+    with pytest.raises(DataError, match=r"a gap in the recording: step 0\.4\d* s") as info:
+        import_recordings([src], _mapping(channels=TIMED, source={"raster": 0.01}))
+    assert (info.value.column, info.value.row) == ("t", 302)  # line of the sample after it
+    with pytest.raises(DataError, match=r"irregular sample time: step 0\.4.*split it at the gap"):
+        import_recordings([src], _mapping(channels=TIMED))
+
+
+def test_a_raster_naming_a_signal_is_for_mdf_files(tmp_path):
+    src, _ = _drive_csv(tmp_path)
+    with pytest.raises(DataError, match=r"key 'source\.raster': 'Speed' names a signal"):
+        import_recordings([src], _mapping(channels=TIMED, source={"raster": "Speed"}))
+
+
+def test_a_numeric_raster_resamples_an_mdf_file(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    t = np.arange(0.0, 4.0, 0.01)
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append([asammdf.Signal(72 + t, t, name="Speed", unit="km/h")])
+    mdf.save(tmp_path / "run.mf4", overwrite=True)
+    mdf.close()
+    mapping = {"channels": {"vx": "Speed"}, "source": {"raster": 0.02}}
+    (m,) = import_recordings([tmp_path / "run.mf4"], mapping).manoeuvres
+    np.testing.assert_allclose(m.t, np.arange(200) * 0.02, atol=1e-12)
+    np.testing.assert_allclose(m.vx, (72 + m.t) / 3.6, rtol=1e-12)
+
+
+def test_split_rules_without_a_test_manoeuvre_warn(tmp_path):
+    src, _ = _drive_csv(tmp_path, "drive4.csv", n=1000)
+    with pytest.warns(DataWarning, match=r"'split\.test_fraction'.*none of the 1 manoeuvre test"):
+        import_recordings([src], _mapping(channels=TIMED, split={"test_fraction": 0.3}))
+    with pytest.warns(DataWarning) as record:
+        ds = import_recordings([src], _mapping(channels=TIMED, split={"test": ["drive9*"]}))
+    texts = [str(w.message) for w in record]
+    assert any(
+        "pattern 'drive9*' matches none of the recordings ['drive4.csv']" in x for x in texts
+    )
+    assert any("segment_length" in x for x in texts) and not ds.test
+    # cut into segments, the same rule gives a test split, without a warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        ds = import_recordings(
+            [src], _mapping(channels=TIMED, split={"test_fraction": 0.3}, segment_length=2.5)
+        )
+    assert [m.split for m in ds.manoeuvres] == ["train", "train", "train", "test"]
+
+
+def test_segments_too_short_name_the_key(tmp_path):
+    src, _ = _drive_csv(tmp_path, n=1000)
+    with pytest.raises(DataError, match=r"key 'segment_length': .*into 10 segments of 100 samp"):
+        import_recordings([src], _mapping(channels=TIMED, segment_length=1.0))
+
+
+def test_a_typo_under_source_is_named():
+    with pytest.raises(DataError, match=r"key 'source\.delimeter': unknown; expected .*delimiter"):
+        read_mapping({"channels": {"t": "time"}, "source": {"delimeter": ","}})
+
+
+def test_min_speed_is_echoed_in_the_unit_it_was_given_in(tmp_path):
+    user = _user_units(_recording())
+    user["Speed"][:] = 2.0  # km/h: below min_speed everywhere
+    src = _write_csv(tmp_path / "parked.csv", user, sep=",")
+    with pytest.raises(DataError, match=r"min_speed = 3 km/h \(0\.8333 m/s\).*top speed 2 km/h"):
+        import_recordings([src], _mapping(channels=TIMED, min_speed="3 km/h"))
+    user["Speed"][:] = _user_units(_recording())["Speed"]
+    _write_csv(src, user, sep=",")
+    ds = import_recordings([src], _mapping(channels=TIMED, min_speed="3 km/h"), tmp_path / "ds")
+    assert ds.meta["min_speed"] == "3 km/h"

@@ -42,6 +42,16 @@ def _same(a: Dataset, b: Dataset) -> None:
         assert x.equals(y), x.name
 
 
+def test_a_raw_recording_is_pointed_to_the_importer(tmp_path):
+    """A user's CSV given where a dataset goes: say what it is not and how to import it."""
+    rec = tmp_path / "drive4.csv"
+    rec.write_text("time_s,vx_kmh\n0,50\n")
+    with pytest.raises(
+        DataError, match=r"not a kftune dataset .*kftune dataset import drive4\.csv"
+    ):
+        load_dataset(rec)
+
+
 @pytest.mark.parametrize("compress", [True, False])
 def test_round_trip_is_bit_exact(tmp_path, compress):
     ds = synthetic_dataset()

@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from kftune.data import Manoeuvre, load_dataset, read_columns, save_dataset, validate_channels
-from kftune.data.validate import _LIMITS, SIDESLIP_CHANNELS
+from kftune.data.validate import _LIMITS, SIDESLIP_CHANNELS, sample_time
 from kftune.errors import DataError
 from test_data_helpers import synthetic_channels, synthetic_dataset
 
@@ -93,6 +93,34 @@ def test_irregular_sample_time():
     e = _fails(c, row_offset=2)
     assert (e.column, e.row) == ("t", 202)
     assert "irregular sample time" in str(e)
+
+
+def test_time_in_messages_has_four_significant_digits():
+    c = synthetic_channels(n=400, t0=100.0)  # late timestamps: binary noise in every step
+    c["t"][200:] += 0.5  # a gap of half a second
+    e = _fails(c, row_offset=2)
+    assert (e.column, e.row) == ("t", 202)
+    assert "step 0.51 s from the previous row, the median step is 0.01 s" in str(e)
+    assert "a gap in the recording: split it at the gap" in str(e)
+
+
+def test_jittered_timestamps_are_told_how_to_resample():
+    c = synthetic_channels(n=400)
+    c["t"] = c["t"] + np.random.default_rng(3).uniform(-4e-4, 4e-4, 400)
+    e = _fails(c, resample_option="[source] raster")
+    assert "jittered timestamps" in str(e) and "(set [source] raster = 0.01, the mean step)" in str(
+        e
+    )
+
+
+def test_sample_time_drops_the_binary_noise_of_late_timestamps():
+    assert (100.0 + 0.01) - 100.0 != 0.01  # the noise
+    assert sample_time(100.0 + np.arange(500) * 0.01) == 0.01
+    assert sample_time(1e5 + np.arange(500) * 0.001) == 0.001  # 28 hours into a recording
+    assert sample_time(np.arange(500) * 0.005) == 0.005
+    assert sample_time(np.arange(500) / 3) == pytest.approx(1 / 3, rel=1e-12, abs=0)
+    t = 100.0 + np.arange(300) * 0.01
+    assert Manoeuvre("late", "segment", "train", t, vx=np.full(300, 10.0)).dt == 0.01
 
 
 def test_small_timing_jitter_is_accepted():

@@ -225,8 +225,9 @@ def test_non_positive_speed_is_refused_naming_manoeuvre_and_row(ds, model):
     # vx > 0 is the single-track models' assumption: the data load, the models refuse them
     stopped = m.replace(vx=vx)
     r0 = default_r0(get_model(model), ds)
-    where = r"manoeuvre 'train-03-j-turn', column 'vx', row 17: model '" + model
-    with pytest.raises(DataError, match=where + r"' refuses these data: .*must be > 0"):
+    t17 = f"{m.t[17]:.4g}"
+    where = rf"^manoeuvre 'train-03-j-turn', channel 'vx', sample 17 \(t = {t17} s\): model '"
+    with pytest.raises(DataError, match=where + model + r"' refuses these data: Vx = 0 m/s;"):
         TuningProblem([stopped], ds.vehicle, r0, model=model)
 
 

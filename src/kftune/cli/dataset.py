@@ -189,7 +189,8 @@ def run_import(args: argparse.Namespace) -> int:
     for file, kept, total in zip(meta["imported_from"], meta["kept_s"], meta["recorded_s"]):
         print(f"{file}: kept {kept:.1f} s of {total:.1f} s")
     print(
-        f"wrote {len(dataset)} manoeuvres ({len(dataset.train)} train, {len(dataset.test)} "
+        f"wrote {len(dataset)} manoeuvre{'' if len(dataset) == 1 else 's'} "
+        f"({len(dataset.train)} train, {len(dataset.test)} "
         f"test; dt = {dataset.dt:g} s; channels {', '.join(dataset.channel_names)}) to "
         f"{manifest.parent}"
     )

@@ -14,10 +14,13 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     segment_length = 30.0           # [s] cut each stretch into segments of about this length
 
     [source]                        # reader options (each format uses its own)
+    format = "csv"                  # the reader, instead of the file's suffix (a .txt export)
+    raster = 0.01                   # [s] resample onto a uniform grid (jittered timestamps)
     delimiter = ";"                 # CSV: default sniffed from the header row
     units_row = true                # CSV: the row after the header holds units
+    encoding = "cp1252"             # CSV: the text encoding (default utf-8)
     struct = "data"                 # MATLAB: the signals are fields of this struct
-    raster = "YawRate"              # MDF: resample onto this signal's timestamps
+    # raster = "YawRate"            # MDF: resample onto this signal's timestamps
 
     [split]                         # one rule: test = [globs], train_every = k, test_fraction = f
     test = ["run3*"]
@@ -33,8 +36,15 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
 A source value becomes ``sign · (scale · raw + offset) · unit factor`` (``scale`` and
 ``offset`` in the source's unit). ``hand_wheel = true`` divides by ``steering_ratio`` (the
 mapping's, else the vehicle's); ``atan2 = [vy, vx]`` gives atan2(vy, vx) of two speed
-sources. Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``)
-are SI numbers or strings with a unit (``"5 km/h"``, ``"5 ms"``).
+sources. Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``,
+a ``raster`` step) are SI numbers or strings with a unit (``"5 km/h"``, ``"5 ms"``).
+
+``[source] raster = <step>`` resamples a recording onto the uniform grid t₀ + k·step over
+its span (every channel linearly interpolated; MDF: see :func:`~kftune.data.readers.read_mdf`)
+before anything else: for loggers whose timestamps jitter. A step longer than
+:data:`~kftune.data.validate.GAP_STEPS` median steps is a gap and is refused, never
+bridged. Rows in later messages then count raster samples from the first data row (the
+file's rows when the raster step is the recording's own).
 
 Each recording is read (:mod:`kftune.data.readers`), converted, trimmed — with ``min_speed``
 only the samples with vx > min_speed are kept (a NaN speed counts as not above it), each
@@ -47,38 +57,50 @@ segment of a recording whose file name (or stem) matches a glob test; ``train_ev
 makes segment ``i`` (0-based, counted over all recordings) training when ``i % k == 0``
 (the default, k = 3, as for :func:`~kftune.data.io.recording_to_dataset`);
 ``test_fraction = f`` makes test the segments that start after the first ``1 − f`` of the
-total duration.
+total duration (so one uncut recording gives no test segment: cut it with
+``segment_length``). A rule that gives no test (or no training) manoeuvre, and a test
+pattern that matches no recording, are warned about (:class:`~kftune.errors.DataWarning`).
+With a ``model``, each stretch is checked as the model checks data before a filter runs
+(the single-track models refuse vx ≤ 0: set ``min_speed``).
 """
 
 from __future__ import annotations
 
+import codecs
 import fnmatch
 import itertools
 import math
 import sys
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from kftune.data.io import _vehicle_from, file_stem, save_dataset, segment_bounds
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.data.readers import FORMATS, READER_OPTIONS, Table, format_of
+from kftune.data.readers import FORMATS, READER_OPTIONS, Format, Table, format_named, format_of
 from kftune.data.textfile import ReadLimits
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
+    GAP_STEPS,
     MIN_SAMPLES,
     SI_UNIT,
     UNITS,
     channel_problems,
     check_channel_name,
+    check_increasing,
+    sample_time,
     unit_factor,
     validate_channels,
 )
-from kftune.errors import ConfigError, DataError, excerpt
+from kftune.errors import ConfigError, DataError, DataWarning, excerpt
 from kftune.vehicle.params import VehicleParams
+
+if TYPE_CHECKING:
+    from kftune.models import StateSpaceModel
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -104,6 +126,10 @@ MAPPING_KEYS = {
 CHANNEL_KEYS = ("column", "atan2", "unit", "scale", "offset", "sign", "hand_wheel")
 SPLIT_RULES = ("test", "train_every", "test_fraction")
 DEFAULT_TRAIN_EVERY = 3
+#: What ``[source] raster`` is called in messages that suggest it.
+RASTER_OPTION = "[source] raster"
+#: Text that every ASCII-compatible encoding writes as ASCII (a CSV's separators, numbers).
+_ASCII_PROBE = "time,1.5;-2e+3\t|[m/s]\n"
 
 
 @dataclass(frozen=True)
@@ -141,6 +167,20 @@ class Mapping_:
     segment_length: float | None
     steering_ratio: float | None
     split: tuple[str, Any]
+    format: Format | None = None  # [source] format: the reader, instead of the suffix
+    raster_step: float | None = None  # [s] [source] raster as a step: resample onto it
+    given: Mapping[str, Any] = field(default_factory=dict)  # quantities as written
+    state_space: StateSpaceModel | None = None  # the model named by ``model``
+
+    def echo(self, key: str, si_value: float, dimension: str) -> str:
+        """A quantity for messages: in the unit the mapping wrote ``key`` in, then in SI
+        (``"3 km/h (0.8333 m/s)"``), or in SI alone when the mapping gave a number."""
+        si = f"{si_value:.4g} {SI_UNIT[dimension]}"
+        given = self.given.get(key)
+        unit = given.strip().partition(" ")[2].strip() if isinstance(given, str) else ""
+        if not unit or unit == SI_UNIT[dimension]:
+            return si
+        return f"{si_value / UNITS[unit][1]:.4g} {unit} ({si})"
 
 
 # ------------------------------------------------------------------------------ mapping
@@ -166,8 +206,7 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
     if unknown:
         raise bad(unknown[0], f"unknown; expected some of {list(MAPPING_KEYS)}")
 
-    def quantity(key: str, dimension: str) -> float | None:
-        value = data.get(key)
+    def quantity(key: str, value: Any, dimension: str) -> float | None:
         if value is None:
             return None
         if isinstance(value, str):
@@ -184,21 +223,44 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         return float(value)
 
     options = data.get("source", {})
-    if not isinstance(options, dict) or set(options) - set(READER_OPTIONS):
+    if not isinstance(options, dict):
         raise bad("source", f"expected a table of some of {list(READER_OPTIONS)}")
+    unknown = sorted(set(options) - set(READER_OPTIONS))
+    if unknown:
+        raise bad(f"source.{unknown[0]}", f"unknown; expected some of {list(READER_OPTIONS)}")
+    options = dict(options)
     delimiter = options.get("delimiter")
     if delimiter is not None and (not isinstance(delimiter, str) or len(delimiter) != 1):
         raise bad("source.delimiter", f"expected one character, got {excerpt(delimiter)}")
+    if "encoding" in options:
+        _check_encoding(options["encoding"], bad)
+    fmt = None
+    if "format" in options:
+        if not isinstance(options["format"], str):
+            raise bad("source.format", f"expected a format name, got {excerpt(options['format'])}")
+        try:
+            fmt = format_named(options.pop("format"))
+        except ConfigError as exc:
+            raise bad("source.format", str(exc)) from None
     raster = options.get("raster")
-    if raster is not None and not isinstance(raster, str):
-        raise bad("source.raster", "expected a signal name (a step goes in sample_time)")
+    raster_step = None
+    if isinstance(raster, str) and not _starts_with_number(raster):
+        pass  # an MDF signal's name
+    elif raster is not None:
+        raster_step = quantity("source.raster", options.pop("raster"), "time") or 0.0
+        if not 1e-4 <= raster_step <= 1.0:
+            raise bad("source.raster", f"expected a step of 1e-4 to 1 s, got {raster_step!r}")
 
     vehicle = _vehicle_from(data["vehicle"], file) if "vehicle" in data else None
-    sample_time = quantity("sample_time", "time")
+    sample_time = quantity("sample_time", data.get("sample_time"), "time")
     if sample_time is not None and not 1e-4 <= sample_time <= 1.0:
         raise bad("sample_time", f"expected 1e-4 to 1 s, got {sample_time!r}")
     if raster is not None and sample_time is not None:
-        raise bad("source.raster", "give the MDF raster as raster or as sample_time, not both")
+        raise bad(
+            "source.raster",
+            "give raster or sample_time, not both (sample_time: no time column, or an MDF "
+            "file's raster step)",
+        )
     steering_ratio = data.get("steering_ratio")
     if steering_ratio is not None and (
         isinstance(steering_ratio, bool)
@@ -206,38 +268,84 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         or not steering_ratio > 0
     ):
         raise bad("steering_ratio", f"expected a number > 0, got {excerpt(steering_ratio)}")
-    segment_length = quantity("segment_length", "time")
+    segment_length = quantity("segment_length", data.get("segment_length"), "time")
     if segment_length == 0:
         raise bad("segment_length", "expected a length > 0 s")
 
     channels = _channel_specs(data.get("channels"), file)
     needs_ratio = [c for c, s in channels.items() if s.hand_wheel]
-    if needs_ratio and steering_ratio is None and vehicle is None:
-        raise bad(
-            f"channels.{needs_ratio[0]}.hand_wheel",
-            "needs steering_ratio (or a vehicle, whose steering_ratio is used)",
-        )
+    if needs_ratio and steering_ratio is None:
+        key = f"channels.{needs_ratio[0]}.hand_wheel"
+        if vehicle is None:
+            raise bad(key, "needs steering_ratio (or a vehicle, whose steering_ratio is used)")
+        if vehicle.steering_ratio is None:
+            where = (
+                f"vehicle {data['vehicle']!r}"
+                if isinstance(data["vehicle"], str)
+                else "the [vehicle] table"
+            )
+            raise bad(
+                key,
+                f"{where} has no steering_ratio to divide the hand-wheel angle by: give "
+                "steering_ratio = <hand-wheel angle / road-wheel angle, e.g. 15.8> at the top "
+                "of the mapping"
+                + ("" if isinstance(data["vehicle"], str) else " or in the [vehicle] table"),
+            )
     model = data.get("model")
-    if model is not None:
-        _check_model(model, channels, vehicle, file)
+    state_space = None if model is None else _check_model(model, channels, vehicle, file)
     for key in ("name", "description"):
         if key in data and not isinstance(data[key], str):
             raise bad(key, f"expected a string, got {excerpt(data[key])}")
     return Mapping_(
         file=file,
         channels=channels,
-        options=dict(options),
+        options=options,
         name=data.get("name"),
         description=data.get("description", ""),
         vehicle=vehicle,
         model=model,
         sample_time=sample_time,
-        min_speed=quantity("min_speed", "speed"),
-        min_duration=quantity("min_duration", "time") or 0.0,
+        min_speed=quantity("min_speed", data.get("min_speed"), "speed"),
+        min_duration=quantity("min_duration", data.get("min_duration"), "time") or 0.0,
         segment_length=segment_length,
         steering_ratio=None if steering_ratio is None else float(steering_ratio),
         split=_split_rule(data.get("split"), file),
+        format=fmt,
+        raster_step=raster_step,
+        given={k: data[k] for k in ("min_speed", "min_duration", "split") if k in data},
+        state_space=state_space,
     )
+
+
+def _starts_with_number(text: str) -> bool:
+    """Whether a string's first word is a number (``"10 ms"``, not ``"YawRate"``)."""
+    try:
+        float(text.strip().partition(" ")[0])
+    except ValueError:
+        return False
+    return True
+
+
+def _check_encoding(name: Any, bad: Callable[[str, str], DataError]) -> None:
+    """Refuse an ``encoding`` Python does not know, or one that does not write ASCII as
+    ASCII (UTF-16: its lines cannot be cut at the line-feed byte)."""
+    if not isinstance(name, str):
+        raise bad("source.encoding", f"expected a codec name such as 'cp1252', got {excerpt(name)}")
+    try:
+        codecs.lookup(name)
+        same = _ASCII_PROBE.encode(name) == _ASCII_PROBE.encode("ascii")
+    except LookupError:
+        raise bad(
+            "source.encoding",
+            f"unknown text encoding {excerpt(name)}; expected a codec name Python knows, such "
+            "as 'utf-8', 'cp1252' or 'latin-1'",
+        ) from None
+    if not same:
+        raise bad(
+            "source.encoding",
+            f"{excerpt(name)} does not write ASCII as ASCII (UTF-16 or -32?): re-save the file "
+            "as UTF-8, or name an encoding such as 'cp1252' or 'latin-1'",
+        )
 
 
 def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
@@ -315,7 +423,9 @@ def _split_rule(table: Any, file: str) -> tuple[str, Any]:
 
 def _check_model(
     name: Any, channels: Mapping[str, ChannelSpec], vehicle: VehicleParams | None, file: str
-) -> None:
+) -> StateSpaceModel:
+    """The model ``name``, checked: the mapping gives every channel it needs (and a
+    vehicle when it needs one)."""
     from kftune.models import get_model
 
     try:
@@ -332,6 +442,7 @@ def _check_model(
         )
     if model.needs_vehicle and vehicle is None:
         raise DataError(f"key 'vehicle': model {name!r} needs a vehicle", file=file)
+    return model
 
 
 # ------------------------------------------------------------------------------ import
@@ -398,7 +509,8 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
         else:
             value = values[0]
         if spec.hand_wheel:
-            ratio = m.steering_ratio or m.vehicle.steering_ratio  # read_mapping checked one
+            ratio = m.steering_ratio or (m.vehicle and m.vehicle.steering_ratio)
+            assert ratio, "read_mapping checks that a hand_wheel channel has a ratio"
             value = value / ratio
         out[channel] = spec.sign * value
     if table.time is not None:
@@ -442,24 +554,97 @@ def _stretches(
     return [int(a) for a, _ in kept], [int(b) for _, b in kept]
 
 
+def _resample(
+    channels: dict[str, np.ndarray], step: float, file: str, row_offset: int
+) -> dict[str, np.ndarray]:
+    """The channels on the uniform grid t₀ + k·step [s] over the recording's span, each
+    linearly interpolated (``[source] raster``). Time must increase strictly and have no
+    gap: a step longer than :data:`~kftune.data.validate.GAP_STEPS` median steps is refused
+    (naming its row), never bridged."""
+    t = channels["t"]
+    check_increasing(t, file=file, row_offset=row_offset)
+    if t.size < 2:
+        return channels  # too short: validation says so
+    steps = np.diff(t)
+    median = float(np.median(steps))
+    gaps = np.flatnonzero(steps > GAP_STEPS * median)
+    if gaps.size:
+        k = int(gaps[0])
+        raise DataError(
+            f"a gap in the recording: step {steps[k]:.4g} s from the previous row, the median "
+            f"step is {median:.4g} s; {RASTER_OPTION} resamples jittered timestamps but never "
+            "across a gap: split the recording at the gap",
+            file=file,
+            column="t",
+            row=k + 1 + row_offset,
+        )
+    grid = t[0] + np.arange(math.floor((t[-1] - t[0]) / step * (1 + 1e-12)) + 1) * step
+    return {c: grid if c == "t" else np.interp(grid, t, v) for c, v in channels.items()}
+
+
+def _check_model_data(m: Mapping_, part: Mapping[str, np.ndarray], file: str, row: int) -> None:
+    """Refuse a stretch that the mapping's model refuses (its ``validate_data``, as run
+    before a filter), naming the file, the channel and the row (``row``: the stretch's
+    first)."""
+    from kftune.models.base import DataRefused
+
+    model = m.state_space
+    if model is None or model.validate_data is None:
+        return
+    u = np.column_stack([part[c] for c in model.input_names] or [np.empty((part["t"].size, 0))])
+    z = np.column_stack([part[c] for c in model.measurement_names])
+    who = f"model {m.model!r}"
+    try:
+        model.validate_data(u, z)
+    except DataRefused as exc:
+        names = model.input_names if exc.array == "u" else model.measurement_names
+        channel = names[exc.column]
+        hint = ""
+        if channel == "vx" and m.min_speed is None:
+            hint = (
+                '; set min_speed (e.g. min_speed = "3 km/h") in the mapping to keep only the '
+                "stretches with vx above it"
+            )
+        raise DataError(
+            f"{who} refuses these data: {exc.reason}{hint}",
+            file=file,
+            column=channel,
+            row=exc.row + row,
+        ) from None
+    except ValueError as exc:
+        raise DataError(f"{who} refuses these data: {exc}", file=file) from None
+
+
 def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
-    fmt = format_of(path)
+    fmt = m.format or format_of(path)
+    file = str(path)
     if not path.is_file():
-        raise DataError("file not found", file=str(path))
+        raise DataError("file not found", file=file)
     names = list(dict.fromkeys(s for spec in m.channels.values() for s in spec.sources))
     options = {k: v for k, v in m.options.items() if k in fmt.options}
-    if fmt.own_time and m.sample_time is not None:
-        options["sample_time"] = m.sample_time
+    if isinstance(m.options.get("raster"), str) and "raster" not in fmt.options:
+        raise DataError(
+            f"key 'source.raster': {excerpt(m.options['raster'])} names a signal, whose "
+            f"timestamps only an MDF file has; for a {fmt.name} file give a step [s] to "
+            "resample onto (raster = 0.01)",
+            file=m.file,
+        )
+    step = m.sample_time or m.raster_step
+    if fmt.own_time and step is not None:
+        options["sample_time"] = step
     table = fmt.read(path, names, options, limits)
     channels, units = _convert(m, path, table)
+    if m.raster_step is not None and not fmt.own_time:
+        channels = _resample(channels, m.raster_step, file, table.row_offset)
     starts, ends = _stretches(m, path, channels)
-    file = str(path)
     t = channels["t"]
     if not starts:
+        longer = f" and {m.min_duration:g} s" if m.min_duration else ""
+        top = float(np.nanmax(channels["vx"], initial=-np.inf))
         raise DataError(
-            f"no stretch of at least {MIN_SAMPLES} samples and {m.min_duration:g} s with vx "
-            f"above min_speed = {m.min_speed:g} m/s ({t.size} samples, top speed "
-            f"{np.nanmax(channels['vx'], initial=-np.inf):.3g} m/s)",
+            f"no stretch of at least {MIN_SAMPLES} samples{longer} with vx above min_speed = "
+            f"{m.echo('min_speed', m.min_speed or 0.0, 'speed')} ({t.size} samples, top speed "
+            f"{m.echo('min_speed', top, 'speed') if math.isfinite(top) else top})",
             file=file,
             column="vx",
         )
@@ -477,7 +662,9 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             file=file,
         )
     for a, part in zip(starts, stretches):
-        validate_channels(part, file=file, row_offset=a + table.row_offset)
+        row = a + table.row_offset
+        validate_channels(part, file=file, row_offset=row, resample_option=RASTER_OPTION)
+        _check_model_data(m, part, file, row)
     total = float(t[-1] - t[0]) if t.size > 1 else 0.0
     kept = sum(float(p["t"][-1] - p["t"][0]) for p in stretches)
     rows = [a + table.row_offset for a in starts]
@@ -523,19 +710,23 @@ def import_recordings(
                 "rename one"
             )
     recordings = [_read(m, Path(s), lab, lim) for s, lab in zip(sources, labels)]
-    steps = [float(np.median(np.diff(r.stretches[0]["t"]))) for r in recordings]
+    steps = [sample_time(r.stretches[0]["t"]) for r in recordings]
     for r, step in zip(recordings, steps):
         if abs(step - steps[0]) > 0.01 * steps[0]:
             raise DataError(
-                f"sample time {step:g} s, while {recordings[0].file.name} has {steps[0]:g} s: "
-                "one dataset has one sample time",
+                f"sample time {step:.4g} s, while {recordings[0].file.name} has {steps[0]:.4g} "
+                f"s: one dataset has one sample time (resample with {RASTER_OPTION} = "
+                f"{steps[0]:.4g})",
                 file=str(r.file),
             )
     pieces = []  # (recording, label, channels, description)
     for r in recordings:
         parts = []
         for row, part in zip(r.starts, r.stretches):
-            bounds = segment_bounds(part["t"], m.segment_length, r.label)
+            try:
+                bounds = segment_bounds(part["t"], m.segment_length, r.label)
+            except ValueError as exc:  # segments too short
+                raise DataError(f"key 'segment_length': {exc}", file=m.file) from None
             parts += [
                 ({c: v[a:b] for c, v in part.items()}, row + a)
                 for a, b in itertools.pairwise(bounds)
@@ -546,6 +737,8 @@ def import_recordings(
             where = f"{r.file.name}, rows {row}–{row + seg['t'].size - 1}"
             pieces.append((r, label, seg, f"{where}, t = {seg['t'][0]:.2f} … {seg['t'][-1]:.2f} s"))
     splits = _splits(m, pieces)
+    for text in _split_warnings(m, recordings, splits):
+        warnings.warn(text, DataWarning, stacklevel=2)
     manoeuvres = [
         Manoeuvre(
             label,
@@ -569,7 +762,7 @@ def import_recordings(
     if m.model is not None:
         meta["model"] = m.model
     if m.min_speed is not None:
-        meta["min_speed"] = m.min_speed
+        meta["min_speed"] = m.given["min_speed"]  # as written: [m/s], or with its unit
     dataset = Dataset(
         dataset_name,
         m.vehicle,
@@ -584,20 +777,54 @@ def import_recordings(
     return dataset
 
 
+def _matches(r: _Recording, glob: str) -> bool:
+    """Whether a ``[split] test`` glob matches a recording's file name or its stem."""
+    return fnmatch.fnmatch(r.file.name, glob) or fnmatch.fnmatch(r.label, glob)
+
+
 def _splits(m: Mapping_, pieces: list[tuple[Any, str, dict[str, np.ndarray], str]]) -> list[str]:
     rule, value = m.split
     if rule == "test":
-        return [
-            "test"
-            if any(fnmatch.fnmatch(r.file.name, g) or fnmatch.fnmatch(r.label, g) for g in value)
-            else "train"
-            for r, _, _, _ in pieces
-        ]
+        return ["test" if any(_matches(r, g) for g in value) else "train" for r, _, _, _ in pieces]
     if rule == "train_every":
         return ["train" if i % value == 0 else "test" for i in range(len(pieces))]
     durations = np.array([float(seg["t"][-1] - seg["t"][0]) for _, _, seg, _ in pieces])
     before = np.concatenate([[0.0], np.cumsum(durations)[:-1]])
     return ["test" if b >= (1 - value) * durations.sum() else "train" for b in before]
+
+
+def _split_warnings(m: Mapping_, recordings: list[_Recording], splits: list[str]) -> list[str]:
+    """What is suspicious about the split: a test pattern that matches no recording, and a
+    split without test (or training) manoeuvres, each naming the mapping's key."""
+    rule, value = m.split
+    where = f"mapping {m.file}, key 'split.{rule}'"
+    out = [
+        f"{where}: pattern {excerpt(g)} matches none of the recordings "
+        f"{excerpt([r.file.name for r in recordings], 200)} (by file name or stem)"
+        for g in (value if rule == "test" else ())
+        if not any(_matches(r, g) for r in recordings)
+    ]
+    given = f"{rule} = {excerpt(value, 100)}" + ("" if "split" in m.given else " (the default)")
+    n = f"{len(splits)} manoeuvre{'s' if len(splits) > 1 else ''}"
+    if "test" not in splits:
+        if rule == "test":
+            why, fix = "no recording matches a pattern", "name a recording in split.test, or "
+        elif rule == "train_every":
+            why, fix = f"manoeuvre i is test when i % {value} != 0", ""
+        else:
+            why = f"test are the manoeuvres that start in the last {value:.0%} of the total time"
+            fix = ""
+        out.append(
+            f"{where}: {given} makes none of the {n} test ({why}); for a test split, {fix}cut "
+            "the recordings into segments with segment_length (e.g. segment_length = 30.0, "
+            "in s)"
+        )
+    if "train" not in splits:
+        out.append(
+            f"{where}: {given} makes none of the {n} training: every recording matches a test "
+            "pattern"
+        )
+    return out
 
 
 def format_table() -> str:

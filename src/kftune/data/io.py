@@ -60,6 +60,7 @@ from kftune.data.validate import (
     SIDESLIP_CHANNELS,
     UNITS,
     check_channel_name,
+    sample_time,
     unit_factor,
     validate_channels,
 )
@@ -332,8 +333,9 @@ def _find_manifest(path: Path) -> Path:
         raise DataError("dataset not found", file=str(path))
     if path.suffix not in (".toml", ".json") or not path.is_file():
         raise DataError(
-            "not a dataset: expected a dataset folder or its manifest file "
-            f"({' or '.join(MANIFEST_NAMES)})",
+            "not a kftune dataset (expected a dataset folder or its manifest file, "
+            f"{' or '.join(MANIFEST_NAMES)}); a recording is imported first with "
+            f"`kftune dataset import {path.name} --mapping MAP -o DIR`",
             file=str(path),
         )
     return path
@@ -478,11 +480,11 @@ def load_dataset(path: str | Path | None = None, *, limits: ReadLimits | None = 
             )
         channels = read_csv(csv_path, factors, limits)
         validate_channels(channels, file=str(csv_path), row_offset=2)
-        step = float(np.median(np.diff(channels["t"])))
+        step = sample_time(channels["t"])
         if abs(step - dt) > 0.01 * dt:
             raise DataError(
-                f"sample time {step!r} s (median step) differs from the manifest's dt = "
-                f"{dt!r} s by more than 1 %",
+                f"sample time {step:.4g} s (median step) differs from the manifest's dt = "
+                f"{dt:.4g} s by more than 1 %",
                 file=str(csv_path),
                 column="t",
             )
@@ -812,7 +814,7 @@ def recording_to_dataset(
                 description=f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
             )
         )
-    dt = float(np.median(np.diff(t)))
+    dt = sample_time(t)
     return Dataset(
         name, vehicle, dt, tuple(manoeuvres), description, dict(meta or {}), dict(units or {})
     )

@@ -21,6 +21,7 @@ from kftune.data.validate import (
     SIDESLIP_CHANNELS,
     SIDESLIP_MEASURED,
     plausibility_warnings,
+    sample_time,
     validate_channels,
 )
 from kftune.errors import DataError, DataWarning, MissingChannelError, excerpt
@@ -225,8 +226,9 @@ class Manoeuvre:
 
     @cached_property
     def dt(self) -> float:
-        """Sample time [s] (median step)."""
-        return float(np.median(np.diff(self.t)))
+        """Sample time [s] (median step, without the timestamps' binary noise:
+        :func:`~kftune.data.validate.sample_time`)."""
+        return sample_time(self.t)
 
     @property
     def duration(self) -> float:
@@ -349,7 +351,7 @@ class Dataset:
             if abs(m.dt - self.dt) > 0.01 * self.dt:
                 raise DataError(
                     f"dataset {excerpt(self.name)}: manoeuvre {excerpt(m.name)} has sample "
-                    f"time {m.dt!r} s, the dataset {self.dt!r} s"
+                    f"time {m.dt:.4g} s, the dataset {self.dt:.4g} s"
                 )
         object.__setattr__(self, "meta", MappingProxyType(dict(self.meta)))
         object.__setattr__(self, "units", MappingProxyType(dict(self.units)))

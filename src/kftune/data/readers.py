@@ -13,7 +13,8 @@ CSV / TSV  .csv .tsv (.gz)          —           header row of names; separator
                                                 header (the most frequent of ``, ; TAB |``; TSV:
                                                 tab) or ``delimiter``; units from ``name [unit]``
                                                 headers or a units row (``units_row = true``);
-                                                rows are the file's line numbers
+                                                UTF-8 or ``encoding`` (``"cp1252"``, …); rows
+                                                are the file's line numbers
 Parquet    .parquet .pq             parquet     numeric columns (nulls become NaN, reported by
                                                 validation); rows 1-based
 MATLAB     .mat                     (mat73)     v4–v7.2 through ``scipy.io.loadmat``; v7.3 (HDF5)
@@ -25,6 +26,8 @@ MDF4       .mf4 .mdf                mdf         through asammdf; signals resampl
                                                 samples, 1-based
 ========== ======================== =========== ==================================================
 
+A file's suffix picks its format (:func:`format_of`); a mapping's ``[source] format`` names
+one instead (:func:`format_named`: ``"csv"`` for a ``.txt`` or ``.dat`` logger export).
 Only the signals asked for are read. A file is untrusted input: messages quote at most a
 short excerpt of it, and the size limits of :class:`~kftune.data.textfile.ReadLimits` hold.
 A reader whose optional package is missing says which extra installs it.
@@ -32,6 +35,7 @@ A reader whose optional package is missing says which extra installs it.
 
 from __future__ import annotations
 
+import codecs
 import contextlib
 import importlib
 import math
@@ -128,7 +132,15 @@ def read_text_table(
     numbers per sample. Only the columns named are parsed (others may hold text)."""
     file = str(path)
     delimiter = options.get("delimiter")
-    with contextlib.closing(line_blocks(path, limits)) as blocks:
+    encoding = options.get("encoding", "utf-8")
+    if codecs.lookup(encoding).name == "utf-8":
+        fix = (
+            'set [source] encoding = "cp1252" in the mapping for a file written by Windows '
+            'software ("latin-1" for ISO 8859-1), or re-save the file as UTF-8'
+        )
+    else:
+        fix = f"expected text in the encoding {encoding!r} of [source] encoding: is it another?"
+    with contextlib.closing(line_blocks(path, limits, encoding=encoding, fix=fix)) as blocks:
         first_row, lines = next(blocks, (1, []))
         if not lines or not lines[0].strip():
             raise DataError(
@@ -500,25 +512,58 @@ def read_mdf(
 #: Every format read, in the order listed to users. The one place suffixes are named.
 FORMATS: tuple[Format, ...] = (
     Format("CSV/TSV", (".csv", ".tsv", ".csv.gz", ".tsv.gz"), read_text_table, None,
-           ("delimiter", "units_row")),
+           ("delimiter", "units_row", "encoding")),
     Format("Parquet", (".parquet", ".pq"), read_parquet, "parquet", ()),
     Format("MATLAB", (".mat",), read_mat, "mat73", ("struct",)),
     Format("MDF4", (".mf4", ".mdf"), read_mdf, "mdf", ("raster",), own_time=True),
 )  # fmt: skip
 
+#: ``[source]`` options of every format, applied by the importer: ``format`` (a name of
+#: :func:`format_named`, instead of the suffix) and ``raster`` (a step [s] to resample onto;
+#: an MDF file's ``raster`` may also name a signal, see :func:`read_mdf`).
+COMMON_OPTIONS: tuple[str, ...] = ("format", "raster")
 #: Reader options a mapping's ``[source]`` table may hold (each format uses its own).
-READER_OPTIONS: tuple[str, ...] = tuple(dict.fromkeys(o for f in FORMATS for o in f.options))
+READER_OPTIONS: tuple[str, ...] = tuple(
+    dict.fromkeys([*COMMON_OPTIONS, *(o for f in FORMATS for o in f.options)])
+)
+
+
+def format_names(fmt: Format) -> tuple[str, ...]:
+    """The names :func:`format_named` takes for a format, lower case: each part of its name
+    (``CSV/TSV``: ``csv``, ``tsv``) and its simple suffixes without the dot (``mat``)."""
+    names = [*fmt.name.lower().split("/"), *(s[1:] for s in fmt.suffixes if s.count(".") == 1)]
+    return tuple(dict.fromkeys(names))
+
+
+def format_named(name: str) -> Format:
+    """The format of a name of :func:`format_names` (case-insensitive).
+
+    Raises:
+        ConfigError: a name of no format (the message lists the names).
+    """
+    for fmt in FORMATS:
+        if name.strip().lower() in format_names(fmt):
+            return fmt
+    raise ConfigError(
+        f"unknown format {excerpt(name)}; expected one of "
+        f"{[n for f in FORMATS for n in format_names(f)]}"
+    )
 
 
 def format_of(path: str | Path) -> Format:
     """The format of a file, by its suffix (case-insensitive; the longest match wins).
 
     Raises:
-        DataError: a suffix no reader takes (the message lists the ones read).
+        DataError: a suffix no reader takes (the message lists the ones read, and how a
+            mapping names the format of a file of another suffix).
     """
     name = Path(path).name.lower()
     matches = [(len(s), f) for f in FORMATS for s in f.suffixes if name.endswith(s)]
     if not matches:
         known = ", ".join(f"{f.name} ({' '.join(f.suffixes)})" for f in FORMATS)
-        raise DataError(f"unknown file type; kftune reads {known}", file=str(path))
+        raise DataError(
+            f"unknown file type; kftune reads {known}: for another suffix (a .txt or .dat "
+            'export), name the format in the mapping, e.g. [source] format = "csv"',
+            file=str(path),
+        )
     return max(matches, key=lambda m: m[0])[1]

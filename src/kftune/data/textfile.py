@@ -21,7 +21,8 @@ limit and how to raise it:
 * :data:`MAX_LINE_BYTES`: one line; a binary or sparse file without line breaks is refused
   after its first block.
 
-Line ends LF or CRLF, a UTF-8 byte-order mark, and (in a CSV) a ``;`` or tab separator
+Text is UTF-8 unless the caller names another encoding that keeps ASCII as it is (cp1252,
+latin-1, …). Line ends LF or CRLF, a UTF-8 byte-order mark, and (in a CSV) a ``;`` or tab separator
 named by the header row are handled. Trailing empty lines are ignored; an empty line with
 data after it is an error naming its row. Messages quote at most a short excerpt of a file.
 """
@@ -29,6 +30,7 @@ data after it is an error naming its row. Messages quote at most a short excerpt
 from __future__ import annotations
 
 import array
+import codecs
 import contextlib
 import gzip
 import os
@@ -116,15 +118,20 @@ def _open(path: Path) -> BinaryIO:
     return open(path, "rb")
 
 
-def _decode(data: bytes, file: str, row: int) -> str:
-    """UTF-8 text with LF line ends (a CR before each LF dropped)."""
+#: What a text file that is not UTF-8 is told to do, by default.
+RESAVE_AS_UTF8 = "expected a text file in UTF-8 (re-save it as UTF-8)"
+
+
+def _decode(data: bytes, file: str, row: int, encoding: str, fix: str) -> str:
+    """Text with LF line ends (a CR before each LF dropped)."""
     if row == 1 and data.startswith((b"\xff\xfe", b"\xfe\xff")):
         raise DataError("UTF-16 text; expected UTF-8 (save it as UTF-8)", file=file, row=1)
     try:
-        text = data.decode("utf-8")
+        text = data.decode(encoding)
     except UnicodeDecodeError as exc:
+        what = "UTF-8" if codecs.lookup(encoding).name == "utf-8" else encoding
         raise DataError(
-            f"not UTF-8 text (byte 0x{data[exc.start]:02x}): expected a text file",
+            f"not {what} text (byte 0x{data[exc.start]:02x}): {fix}",
             file=file,
             row=row + data.count(b"\n", 0, exc.start),
         ) from None
@@ -140,16 +147,27 @@ def _decode(data: bytes, file: str, row: int) -> str:
 
 
 def line_blocks(
-    path: str | Path, limits: ReadLimits | None = None
+    path: str | Path,
+    limits: ReadLimits | None = None,
+    *,
+    encoding: str = "utf-8",
+    fix: str = RESAVE_AS_UTF8,
 ) -> Iterator[tuple[int, list[str]]]:
     """The lines of a text file, in blocks: ``(number of the block's first line, lines)``.
 
     Lines are numbered from 1 and come without their line end (LF or CRLF); a UTF-8
     byte-order mark at the start is dropped.
 
+    Args:
+        path: the file (gzipped when its name ends in ``.gz``). limits: size limits.
+        encoding: the text encoding, a codec Python knows that encodes ASCII as ASCII
+            (UTF-8, cp1252, latin-1, …: blocks are cut at the byte of a line feed).
+        fix: what the message of a file that is not in ``encoding`` tells the user to do.
+
     Raises:
-        DataError: unreadable or not UTF-8, a line longer than :data:`MAX_LINE_BYTES`, line
-            breaks that are a lone CR, or more than ``limits.max_bytes`` bytes.
+        DataError: unreadable or not in ``encoding``, a line longer than
+            :data:`MAX_LINE_BYTES`, line breaks that are a lone CR, or more than
+            ``limits.max_bytes`` bytes.
     """
     path = Path(path)
     file = str(path)
@@ -180,7 +198,7 @@ def line_blocks(
                     continue
                 carry = data[cut + 1 :]
                 _check_line_length(carry, file, row + data.count(b"\n", 0, cut + 1))
-                text = _decode(data[:cut], file, row)
+                text = _decode(data[:cut], file, row, encoding, fix)
                 if first:
                     text = _start(text, file)
                     first = False
@@ -192,7 +210,7 @@ def line_blocks(
     except OSError as exc:
         raise DataError(f"cannot read: {exc.strerror or type(exc).__name__}", file=file) from None
     if carry:
-        text = _decode(carry, file, row)
+        text = _decode(carry, file, row, encoding, fix)
         if first:
             text = _start(text, file)
         yield row, [text]

@@ -124,6 +124,12 @@ SI_UNIT: dict[str, str] = {
 MIN_SAMPLES = 200
 #: Relative tolerance of the sample time (each step within dt·(1 ± tol)).
 DT_TOLERANCE = 0.01
+#: A step longer than this many median steps is a gap in the recording (a lost sample makes
+#: 2), not jitter of the timestamps: it is never resampled across.
+GAP_STEPS = 1.5
+#: How many float spacings of the largest timestamp a median step is rounded to (its binary
+#: noise: 100.01 − 100.0 = 0.010000000000005116 in float64).
+TIME_NOISE_SPACINGS = 64
 
 # Plausibility limits in SI units, and what a violation usually means.
 _LIMITS: dict[str, tuple[float, float, str]] = {
@@ -202,6 +208,58 @@ def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: s
     return factor
 
 
+def sample_time(t: np.ndarray) -> float:
+    """The sample time [s] of a time axis: its median step, with the binary noise of the
+    timestamps rounded off (timestamps near 100 s give 0.01 s, not 0.010000000000005116 s).
+
+    The step is rounded to the decimal place just above :data:`TIME_NOISE_SPACINGS` float
+    spacings of the largest timestamp [s] (the resolution float64 has there), and to no
+    more than 12 significant digits.
+
+    Args:
+        t: (n,) time [s], n ≥ 2; non-finite values are ignored for the resolution.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    dt = float(np.median(np.diff(t)))
+    finite = np.abs(t[np.isfinite(t)])
+    if not (math.isfinite(dt) and dt > 0.0 and finite.size):
+        return dt
+    quantum = max(TIME_NOISE_SPACINGS * float(np.spacing(finite.max())), dt * 1e-12)
+    return round(dt, -math.floor(math.log10(quantum)))
+
+
+def check_increasing(
+    t: np.ndarray, *, file: str | None, row_offset: int = 0, column: str = "t"
+) -> None:
+    """Refuse a time axis with a value that is not a finite number or that does not
+    increase strictly (naming the first such row: 0-based index + ``row_offset``).
+
+    Raises:
+        DataError: naming the file, the column and the row.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise DataError(
+            f"value {float(t[bad[0]])} is not a finite number ({bad.size} such values)",
+            file=file,
+            column=column,
+            row=int(bad[0]) + row_offset,
+        )
+    steps = np.diff(t)
+    bad = np.flatnonzero(steps <= 0.0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        what = "duplicated" if steps[bad[0]] == 0.0 else "decreasing"
+        raise DataError(
+            f"time is {what}: t = {float(t[k]):.10g} s after t = {float(t[k - 1]):.10g} s; time "
+            "must be strictly increasing",
+            file=file,
+            column=column,
+            row=k + row_offset,
+        )
+
+
 def check_channel_name(name: str, *, file: str | None) -> None:
     """Channel names must be identifiers (they become CSV headers and attributes)."""
     if not isinstance(name, str) or not _NAME.match(name):
@@ -221,6 +279,7 @@ def validate_channels(
     dt_tolerance: float = DT_TOLERANCE,
     check_units: bool = True,
     files: Mapping[str, str] | None = None,
+    resample_option: str | None = None,
 ) -> float:
     """Check one manoeuvre's channels (already in SI units) before anything uses them.
 
@@ -239,9 +298,12 @@ def validate_channels(
         channels: name → (n,) array. file: reported in errors. row_offset: added to 0-based
             indices in errors (see module docstring). files: per-channel file names that
             replace ``file`` in errors about that channel (column-per-file layouts).
+            resample_option: the option that resamples onto a uniform grid (the
+            importer's ``[source] raster``), suggested with the median step when the
+            timestamps jitter (steps within :data:`GAP_STEPS` median steps, never a gap).
 
     Returns:
-        The sample time dt [s] (median step).
+        The sample time dt [s] (median step, :func:`sample_time`).
 
     Raises:
         DataError: the first problem found, naming file, column and row.
@@ -297,32 +359,30 @@ def validate_channels(
                 row=int(bad[0]) + row_offset,
             )
     t = arrays["t"]
+    check_increasing(t, file=_file_of("t", file, files), row_offset=row_offset)
     steps = np.diff(t)
-    bad = np.flatnonzero(steps <= 0.0)
-    if bad.size:
-        k = int(bad[0]) + 1
-        what = "duplicated" if steps[bad[0]] == 0.0 else "decreasing"
-        raise DataError(
-            f"time is {what}: t = {float(t[k])!r} s after t = {float(t[k - 1])!r} s; time must be "
-            "strictly increasing",
-            file=_file_of("t", file, files),
-            column="t",
-            row=k + row_offset,
-        )
-    dt = float(np.median(steps))
+    dt = sample_time(t)
     if not 1e-4 <= dt <= 1.0:
         raise DataError(
-            f"sample time {float(dt)!r} s is outside [1e-4, 1] s: is time in ms?",
+            f"sample time {dt:.4g} s is outside [1e-4, 1] s: is time in ms?",
             file=_file_of("t", file, files),
             column="t",
         )
     bad = np.flatnonzero(np.abs(steps - dt) > dt_tolerance * dt)
     if bad.size:
         k = int(bad[0]) + 1
+        step = float(steps[bad[0]])
+        if step > GAP_STEPS * dt:
+            fix = "a gap in the recording: split it at the gap"
+        else:
+            fix = "jittered timestamps: resample the data onto a uniform grid"
+            if resample_option:
+                # the mean step: jitter averages out over it (but a gap would not)
+                mean = float(np.mean(steps[steps <= GAP_STEPS * dt]))
+                fix += f" (set {resample_option} = {mean:.4g}, the mean step)"
         raise DataError(
-            f"irregular sample time: step {float(steps[bad[0]])!r} s from the previous row, the "
-            f"median step is {float(dt)!r} s (tolerance {dt_tolerance:.0%}); resample the data "
-            "or split it at the gap",
+            f"irregular sample time: step {step:.4g} s from the previous row, the median step "
+            f"is {dt:.4g} s (tolerance {dt_tolerance:.0%}); {fix}",
             file=_file_of("t", file, files),
             column="t",
             row=k + row_offset,

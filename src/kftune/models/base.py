@@ -79,14 +79,18 @@ class DataRefused(ValueError):
     """What a model's ``validate_data`` raises for data it is not meant for, saying where:
     the array (``"u"`` or ``"z"``), the row (0-based sample) and the column (index into the
     model's input or measurement names), so that the caller can name the manoeuvre's
-    channel and row.
+    channel and row. ``reason`` is the message without the array position, for those
+    callers (default: the message).
     """
 
-    def __init__(self, message: str, *, array: str, row: int, column: int) -> None:
+    def __init__(
+        self, message: str, *, array: str, row: int, column: int, reason: str | None = None
+    ) -> None:
         super().__init__(message)
         self.array = array
         self.row = row
         self.column = column
+        self.reason = message if reason is None else reason
 
 
 PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]

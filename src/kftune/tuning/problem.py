@@ -465,9 +465,7 @@ def _score_result(
         try:
             scores[c] = nrmse(est[k0:], ref[k0:])
         except ValueError as exc:  # e.g. a reference that is zero throughout
-            raise DataError(
-                f"cannot score channel {c!r}: {exc}", file=f"manoeuvre {m.name!r}"
-            ) from None
+            raise DataError(f"manoeuvre {m.name!r}: cannot score channel {c!r}: {exc}") from None
         scales[c] = float(np.max(np.abs(ref[k0:])))
     msp_sq: tuple[float, ...] = ()
     msp_n = 0
@@ -688,15 +686,11 @@ class TuningProblem:
             except DataRefused as exc:
                 names = mod.input_names if exc.array == "u" else mod.measurement_names
                 raise DataError(
-                    f"{who} refuses these data: {exc}",
-                    file=f"manoeuvre {m.name!r}",
-                    column=names[exc.column],
-                    row=exc.row,
+                    f"manoeuvre {m.name!r}, channel {names[exc.column]!r}, sample {exc.row} "
+                    f"(t = {float(m.t[exc.row]):.4g} s): {who} refuses these data: {exc.reason}"
                 ) from None
             except ValueError as exc:
-                raise DataError(
-                    f"{who} refuses these data: {exc}", file=f"manoeuvre {m.name!r}"
-                ) from None
+                raise DataError(f"manoeuvre {m.name!r}: {who} refuses these data: {exc}") from None
 
     def decode(self, x: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
         """(q, r, settings) of a point."""
