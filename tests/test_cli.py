@@ -38,6 +38,12 @@ def kftune_process(
     )
 
 
+def test_estimate_help_says_it_needs_a_kftune_dataset():
+    text = " ".join(kftune("estimate", "--help").stdout.split())
+    assert "a kftune dataset: its folder or manifest" in text
+    assert "kftune dataset import FILE... --mapping MAP -o DIR" in text
+
+
 def test_help_of_every_command():
     top = kftune_process("--help")  # the entry point, as a user runs it
     assert top.returncode == 0
@@ -61,6 +67,42 @@ def test_bad_options_exit_2(args):
     res = kftune(*args)
     assert res.returncode == 2
     assert "usage:" in res.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "command", "said"),
+    [
+        (("tune", "my-car", "--budjet", "12"), "tune", "unrecognized arguments: --budjet 12"),
+        (("tune", "-n", "0"), "tune", "argument --budget/-n: expected an integer >= 1, got '0'"),
+        (("evaluate",), "evaluate", "one of the arguments --params/-p --q --manual is required"),
+        (("dataset", "info", "--bogus"), "dataset info", "unrecognized arguments: --bogus"),
+    ],
+)
+def test_a_subcommands_error_names_the_subcommand_in_two_lines(args, command, said):
+    """A mistyped option of ``tune`` is tune's error (argparse leaves it to the top-level
+    parser, which printed ``usage: kftune [-h] …``), and a bad value gives a short usage,
+    not every option of the command."""
+    res = kftune(*args)
+    assert res.returncode == 2
+    assert res.stderr.splitlines() == [
+        f"usage: kftune {command} [options] [dataset]",
+        f"kftune {command}: error: {said} (see kftune {command} --help)",
+    ], res.stderr
+
+
+def test_weights_errors_name_the_option_once():
+    res = kftune("tune", "--weights", "beta=five")
+    assert res.returncode == 2
+    assert "argument --weights: expected CHANNEL=NUMBER items" in res.stderr, res.stderr
+
+
+def test_compare_budget_wants_a_method():
+    """tune's --budget takes N, compare's METHOD=N: a bare N says how to write it."""
+    res = kftune("compare", "--budget", "12")
+    assert res.returncode == 2
+    assert "expected METHOD=N" in res.stderr and "e.g. --budget trbo=12" in res.stderr
+    help_text = kftune("compare", "--help").stdout
+    assert "e.g. --budget trbo=12" in " ".join(help_text.split())
 
 
 @pytest.mark.parametrize(
@@ -546,6 +588,16 @@ def test_unwritable_outputs_are_refused_before_any_work(tmp_path):
         assert time.perf_counter() - start < 30, args
 
 
+def test_the_readme_documents_the_exit_code_of_an_unwritable_output():
+    """An output path that cannot be written is refused before any work with exit 3 (see
+    the test above); the README's table said exit 1 for it."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    codes = " ".join(readme.split("Exit codes:", 1)[1].split("130 interrupted", 1)[0].split())
+    three = codes.split("; 3 ", 1)[1]
+    assert "output or study path that cannot be written" in three
+    assert "refused before any work starts" in three
+
+
 def test_output_checks(tmp_path):
     from kftune.cli._common import output_dir, output_file
     from kftune.errors import ConfigError
@@ -557,7 +609,8 @@ def test_output_checks(tmp_path):
     for call, path, expected in [
         (output_file, tmp_path, "is a folder"),
         (output_file, tmp_path / "no" / "x.json", "does not exist"),
-        (output_file, f / "x.json", "does not exist"),
+        (output_file, f / "x.json", f"{f} is a file, not a folder"),
+        (output_file, f / "sub" / "x.json", f"{f} is a file, not a folder"),
         (output_dir, f, "is a file"),
         (output_dir, f / "a" / "b", "lies below the file"),
     ]:
@@ -720,6 +773,32 @@ def test_tune_ends_with_a_command_that_runs(small, tmp_path):
     ev = kftune(*argv[1:])
     assert ev.returncode == 0, ev.stderr
     assert "test split" in ev.stdout
+    assert "RMSE r °/s RMSE ay m/s²" in ev.stdout  # every column with its unit
+
+
+def test_without_test_manoeuvres_tune_and_evaluate_use_the_training_ones(tmp_path):
+    """tune's closing hint named --split test, which failed there; evaluate's default split
+    (test) falls back to all manoeuvres with a warning; an explicit --split test says what
+    to use instead."""
+    only_train = tmp_path / "train-only"
+    save_dataset(default_dataset().subset(SMALL_TRAIN), only_train)
+    out = tmp_path / "t.json"
+    res = kftune("tune", str(only_train), "-n", "2", "-q", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    hint = res.stdout.strip().splitlines()[-1]
+    assert hint.startswith("KPIs per training manoeuvre (the dataset has no test manoeuvres): ")
+    argv = shlex.split(hint.split(": ", 1)[1])
+    assert argv[-2:] == ["--split", "train"]
+    ev = kftune(*argv[1:])
+    assert ev.returncode == 0, ev.stderr
+    ev = kftune("evaluate", str(only_train), "--params", str(out), "--json")
+    assert ev.returncode == 0, ev.stderr
+    assert "kftune: warning: dataset" in ev.stderr and "no test manoeuvres" in ev.stderr
+    doc = json.loads(ev.stdout)
+    assert doc["split"] == "all" and set(doc["manoeuvres"]) == set(SMALL_TRAIN)
+    ev = kftune("evaluate", str(only_train), "--params", str(out), "--split", "test")
+    assert ev.returncode == 3 and "use --split all" in ev.stderr, ev.stderr
+    assert "Traceback" not in ev.stderr
 
 
 def test_a_finished_run_removes_the_partial_file_of_an_interrupted_one(small, tmp_path):

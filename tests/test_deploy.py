@@ -173,26 +173,63 @@ def test_estimate_command_writes_tables_figures_and_kpis(tuned, tmp_path, capsys
     assert doc["warnings"] == []
 
 
-def test_estimate_refuses_another_sample_time_unless_forced(tuned, tmp_path, capsys):
+def _runs(command: str, params: Path, tmp_path: Path, small: Path) -> list[str]:
+    """The command line that runs ``params``'s filter: ``estimate`` on one manoeuvre of the
+    bundled set, ``evaluate`` on the small dataset's test split."""
+    if command == "estimate":
+        return ["estimate", "--params", str(params), "-m", MANOEUVRE, "-o", str(tmp_path / "e")]
+    return ["evaluate", str(small), "--params", str(params), "--json"]
+
+
+@pytest.mark.parametrize("command", ["estimate", "evaluate"])
+def test_another_sample_time_is_refused_unless_forced(tuned, tmp_path, capsys, small, command):
+    """evaluate --params scores the filter estimate runs: the same check, the same --force
+    (evaluate used to score a filter tuned at 100 Hz on 50 Hz data without a word)."""
     params = edited(tuned, tmp_path, lambda d: d["deployment"].update(dt=0.0102))
-    args = ["estimate", "--params", str(params), "-m", MANOEUVRE, "-o", str(tmp_path / "e")]
+    args = _runs(command, params, tmp_path, small)
     assert main(args) == 3
     err = capsys.readouterr().err
-    assert "0.0102" in err and "--force" in err and MANOEUVRE in err
+    assert "0.0102" in err and "--force" in err and str(params) in err
+    assert (MANOEUVRE if command == "estimate" else "test-05-j-turn") in err
     assert "Traceback" not in err
-    assert main([*args, "--force", "--no-plot"]) == 0
+    assert main([*args, "--force", *(["--no-plot"] if command == "estimate" else [])]) == 0
     err = capsys.readouterr().err
     assert "kftune: warning: --force" in err and "sampled every 0.01 s" in err
 
 
-def test_estimate_refuses_another_vehicle_unless_forced(tuned, tmp_path, capsys):
+@pytest.mark.parametrize("command", ["estimate", "evaluate"])
+def test_another_vehicle_is_refused_unless_forced(tuned, tmp_path, capsys, small, command):
     params = edited(tuned, tmp_path, lambda d: d["deployment"]["vehicle"].update(m=1500.0))
-    args = ["estimate", "--params", str(params), "-m", MANOEUVRE, "-o", str(tmp_path / "e")]
+    args = _runs(command, params, tmp_path, small)
     assert main(args) == 3
     err = capsys.readouterr().err
-    assert "vehicle" in err and "m 1500.0 vs 1093.29" in err
-    assert main([*args, "--force", "--no-plot"]) == 0
+    assert "vehicle" in err and "m 1500.0 vs 1093.29" in err and "--force" in err
+    assert main([*args, "--force", *(["--no-plot"] if command == "estimate" else [])]) == 0
     assert "kftune: warning: --force" in capsys.readouterr().err
+
+
+def test_evaluate_force_scores_the_filter_estimate_runs(tuned, tmp_path, capsys, small):
+    """Forced onto another vehicle, evaluate scores the tuned filter — on the tuned vehicle,
+    as estimate runs and export deploys it — not a filter rebuilt on the data's vehicle."""
+    params = edited(tuned, tmp_path, lambda d: d["deployment"]["vehicle"].update(m=1500.0))
+    ev = ["evaluate", str(small), "--params", str(params), "--json", "--force"]
+    assert main(ev) == 0
+    scored = json.loads(capsys.readouterr().out)
+    out = tmp_path / "e"
+    est = ["estimate", str(small), "--params", str(params), "-o", str(out), "--no-plot"]
+    for name in scored["manoeuvres"]:
+        est += ["-m", name]
+    assert main([*est, "--json", "--force"]) == 0
+    ran = json.loads(capsys.readouterr().out)
+    assert scored["average"]["rmse"] == pytest.approx(ran["average"]["rmse"], rel=1e-12)
+    assert main(["evaluate", str(small), "--params", str(tuned), "--json"]) == 0
+    own = json.loads(capsys.readouterr().out)  # the tuned vehicle is another filter
+    assert own["average"]["rmse"] != pytest.approx(scored["average"]["rmse"], rel=1e-6)
+
+
+def test_force_without_a_tuned_file_is_a_usage_error(capsys):
+    assert main(["evaluate", "--manual", "--force"]) == 2
+    assert "--force" in capsys.readouterr().err
 
 
 def test_estimate_reads_a_file_from_before_the_deployment_record(tuned, tmp_path, capsys):
@@ -382,6 +419,16 @@ def test_export_to_stdout_and_default_name(tuned, tmp_path, capsys):
     assert "q_diag: [1.0e-06, 0.0001, 1.0e-06]" in capsys.readouterr().out
 
 
+def reader_argv(command: str, params: Path, tmp_path: Path) -> list[str]:
+    """The arguments of ``command`` (export, estimate, evaluate) reading the tuned file
+    ``params``, with outputs under ``tmp_path`` (x.h, est)."""
+    return {
+        "export": ["export", str(params), "-o", str(tmp_path / "x.h"), "-f", "c"],
+        "estimate": ["estimate", "--params", str(params), "-o", str(tmp_path / "est")],
+        "evaluate": ["evaluate", "--params", str(params)],
+    }[command]
+
+
 @pytest.mark.parametrize(
     ("change", "where"),
     [
@@ -398,12 +445,7 @@ def test_q_and_r_edited_in_one_place_only_are_refused_by_every_reader(
     """evaluate and estimate run the top-level q and r, export writes the deployment
     record: a file whose two copies disagree would deploy another filter than was scored."""
     params = edited(tuned, tmp_path, change)
-    argv = {
-        "export": ["export", str(params), "-o", str(tmp_path / "x.h"), "-f", "c"],
-        "estimate": ["estimate", "--params", str(params), "-o", str(tmp_path / "est")],
-        "evaluate": ["evaluate", "--params", str(params)],
-    }[command]
-    assert main(argv) == 3
+    assert main(reader_argv(command, params, tmp_path)) == 3
     err = capsys.readouterr().err
     assert str(params) in err and "Traceback" not in err
     assert all(w in err for w in where), err
@@ -419,3 +461,30 @@ def test_q_rewritten_with_rounding_only_is_accepted(tuned, tmp_path, capsys):
 
     params = edited(tuned, tmp_path, reprint)
     assert main(["export", str(params), "-o", "-"]) == 0
+
+
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [
+        (lambda d: d["deployment"].update(dt=-5), "'deployment.dt' must be a positive number"),
+        (lambda d: d["deployment"].update(dt="0.01"), "'deployment.dt' must be a positive"),
+        (lambda d: d["deployment"].update(dt=10**400), "'deployment.dt' must be a positive"),
+        (lambda d: d["deployment"]["vehicle"].update(m=-1000), "'deployment.vehicle'"),
+        (lambda d: d["deployment"].update(vehicle="bmw"), "'deployment.vehicle' must be an"),
+    ],
+)
+@pytest.mark.parametrize("command", ["export", "estimate", "evaluate"])
+def test_a_bad_deployment_record_is_refused_the_same_way_by_every_reader(
+    tuned, tmp_path, capsys, change, says, command
+):
+    """The tuned file is checked where it is read, once for all three commands: export
+    used to write ``#define KFTUNE_DT -5.0`` and a vehicle mass of -1000 kg that estimate
+    refuses."""
+    params = edited(tuned, tmp_path, change)
+    assert main(reader_argv(command, params, tmp_path)) == 3
+    err = capsys.readouterr().err
+    assert f"file {params}: {says}" in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.h").exists() and not (tmp_path / "est").exists()
+    if "vehicle" in says and "must" not in says:
+        assert "VehicleParams.m = -1000" in err

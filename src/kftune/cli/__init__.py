@@ -20,7 +20,7 @@ import signal
 import sys
 import warnings
 from collections.abc import Callable, Iterator, Sequence
-from typing import TextIO
+from typing import NoReturn, TextIO
 
 from kftune import __version__
 from kftune.cli.exit_codes import (
@@ -61,6 +61,37 @@ SUBCOMMANDS: tuple[str, ...] = (
 )
 
 
+class CommandParser(argparse.ArgumentParser):
+    """The parser of a subcommand (and of its own subcommands, ``dataset info``).
+
+    Two changes to argparse's behaviour, which is otherwise kept: an error prints a
+    one-line usage (the command, ``[options]`` and its positional arguments, not every
+    option: that is ``--help``'s job) and the error, ending in where help is (exit 2 as
+    ever); an argument the command does not know is its own error, not the top-level
+    parser's (argparse leaves those to the top level, which then shows
+    ``usage: kftune [-h] …`` and not the command that was mistyped).
+    """
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extra = super().parse_known_args(args, namespace)
+        if extra:  # only the subcommand's parser reads what follows the subcommand
+            self.error(f"unrecognized arguments: {' '.join(extra)}")
+        return parsed, extra
+
+    def error(self, message: str) -> NoReturn:
+        positionals = [a for a in self._actions if not a.option_strings]
+        formatter = self._get_formatter()
+        formatter.add_usage(None, positionals, [], prefix="")
+        usage = formatter.format_help().strip().removeprefix(self.prog).strip()
+        self.exit(
+            EXIT_USAGE,
+            f"usage: {self.prog} [options] {usage}".rstrip()
+            + f"\n{self.prog}: error: {message} (see {self.prog} --help)\n",
+        )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (exposed for tests and documentation)."""
     parser = argparse.ArgumentParser(
@@ -69,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Bayesian optimisation with a Student-t process surrogate.",
     )
     parser.add_argument("--version", action="version", version=f"kftune {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
     sub.required = True
     for name in SUBCOMMANDS:
         importlib.import_module(f"kftune.cli.{name}").register(sub)

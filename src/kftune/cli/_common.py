@@ -418,7 +418,8 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
 
 
 def parse_weights(text: str) -> dict[str, float]:
-    """``"beta=5,r=1,ay=1"`` → dict (errors name the bad item)."""
+    """``"beta=5,r=1,ay=1"`` → dict (errors name the bad item; argparse adds the option's
+    name)."""
     out: dict[str, float] = {}
     for item in text.split(","):
         name, sep, value = item.partition("=")
@@ -428,7 +429,7 @@ def parse_weights(text: str) -> dict[str, float]:
         except ValueError:
             w = math.nan
         if not sep or not name or not math.isfinite(w):
-            raise ConfigError(f"--weights: expected CHANNEL=NUMBER items, got {item!r}")
+            raise ConfigError(f"expected CHANNEL=NUMBER items, e.g. beta=5,r=1,ay=1, got {item!r}")
         out[name] = w
     return out
 
@@ -632,7 +633,7 @@ def output_file(path: Path, option: str) -> Path:
     Raises:
         ConfigError: naming ``option``, when ``path`` is a folder, a pipe, socket or other
             non-file, an existing file that cannot be replaced, a link into a missing
-            folder, or its folder is missing or lets no file be created (tried, not
+            folder, its folder is missing (or a file) or lets no file be created (tried, not
             inferred from permission bits, which do not hold for root or read-only mounts).
     """
     if path.is_dir():
@@ -646,8 +647,18 @@ def output_file(path: Path, option: str) -> Path:
         if not os.access(real, os.W_OK):
             raise ConfigError(f"{where}: the file cannot be written (read-only or immutable)")
     if not real.parent.is_dir():
+        existing = _existing_ancestor(real.parent)
+        if not existing.is_dir():
+            raise ConfigError(f"{where}: {existing} is a file, not a folder")
         raise ConfigError(f"{where}: the folder {real.parent} does not exist")
     _check_can_create(real.parent, where)
+    return path
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """``path`` or its nearest ancestor that exists (a file or a folder)."""
+    while not path.exists() and path != path.parent:
+        path = path.parent
     return path
 
 
@@ -664,9 +675,7 @@ def output_dir(path: Path, option: str) -> Path:
             file can be created in the nearest existing ancestor, or one of the
             :data:`REPORT_FILES` in it cannot be replaced (see :func:`output_file`).
     """
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
+    existing = _existing_ancestor(path)
     if not existing.is_dir():
         where = "is a file" if existing == path else f"lies below the file {existing}"
         raise ConfigError(f"{option} {path}: {where}; expected a folder")

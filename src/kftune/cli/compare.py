@@ -40,7 +40,7 @@ from kftune.cli._common import (
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from kftune.errors import ConfigError, UsageError
-from kftune.optim import COMPARE_METHODS, METHODS
+from kftune.optim import COMPARE_METHODS, DEFAULT_METHOD, METHODS
 
 
 def register(subparsers: Any) -> None:
@@ -72,8 +72,9 @@ def register(subparsers: Any) -> None:
         action="append",
         type=_budget,
         metavar="METHOD=N",
-        help="evaluation budget of a method, e.g. --budget ga=225 --budget tsbo-tsp=40 "
-        "(defaults: TSBO 40, GA 225, manual 1, others 40)",
+        help="evaluation budget of one method, e.g. --budget trbo=12; repeat it for more: "
+        "--budget ga=225 --budget tsbo-tsp=40 (defaults: TSBO 40, GA 225, manual 1, "
+        "others 40)",
     )
     again = p.add_mutually_exclusive_group()
     again.add_argument(
@@ -88,13 +89,21 @@ def register(subparsers: Any) -> None:
 
 
 def _budget(item: str) -> tuple[str, int]:
-    """argparse type of ``--budget METHOD=N`` (errors exit with code 2)."""
+    """argparse type of ``--budget METHOD=N`` (errors exit with code 2; a bare N, as
+    ``tune --budget`` takes, is refused too: the methods' defaults differ)."""
+
+    def count(text: str) -> int:
+        text = text.strip()
+        return int(text) if text.isascii() and text.isdigit() else 0
+
     name, sep, value = item.partition("=")
-    if not sep or name not in METHODS or not value.strip().isdigit() or int(value) < 1:
+    if not sep or name not in METHODS or count(value) < 1:
+        example = f"{name if name in METHODS else DEFAULT_METHOD}={count(value or item) or 12}"
         raise argparse.ArgumentTypeError(
-            f"expected METHOD=N with N >= 1 and METHOD one of {', '.join(METHODS)}, got {item!r}"
+            f"expected METHOD=N, a budget per method, e.g. --budget {example} (repeat it for "
+            f"more), with N >= 1 and METHOD one of {', '.join(METHODS)}; got {item!r}"
         )
-    return name, int(value)
+    return name, count(value)
 
 
 def run(args: argparse.Namespace) -> int:

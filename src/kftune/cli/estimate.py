@@ -1,11 +1,14 @@
-"""``kftune estimate``: run a tuned filter on recordings and write its estimates.
+"""``kftune estimate``: run a tuned filter on a dataset's recordings and write its estimates.
 
 Reads the filter from a file written by ``kftune tune`` (``--params tuned.json``) — its Q
 and R as tuned, not re-estimated from the recordings — and runs it on every manoeuvre of
-DATASET (a kftune dataset directory or manifest, a revs-250lm directory, or 'default';
-``--manoeuvre`` picks some). For each manoeuvre it writes, into ``--out`` (default
-./estimates), one table (CSV, or Parquet with ``--format parquet``, which needs pyarrow:
-pip install 'kftune[parquet]') and one figure (``--no-plot`` leaves them out):
+DATASET: a kftune dataset (its folder or manifest), a directory in the revs-250lm layout,
+or 'default'; ``--manoeuvre`` picks some. Raw recordings (CSV, Parquet, MAT, MDF4 files)
+are imported into a dataset first: kftune dataset import FILE... --mapping MAP -o DIR.
+
+For each manoeuvre it writes, into ``--out`` (default ./estimates), one table (CSV, or
+Parquet with ``--format parquet``, which needs pyarrow: pip install 'kftune[parquet]') and
+one figure (``--no-plot`` leaves them out):
 
   NAME.csv   t [s]; the model's states (single-track: vx, vy [m/s], r [rad/s]) and their
              standard deviations <state>_std from the diagonal of the covariance P; beta
@@ -20,10 +23,11 @@ With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error
 for |ay| ≥ 4 m/s², in degrees) after the file's burn-in.
 
 It refuses (exit 3) recordings whose sample time differs from the tuned one by more than
-1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones;
---force runs anyway and warns. Files written before kftune recorded the sample time and
-vehicle are run with the recording's vehicle, with a warning. Exit 1 when the filter
-diverged on a manoeuvre (its rows from that step on are empty).
+1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones, as
+``kftune evaluate --params`` does; --force runs anyway, on the tuned vehicle, and warns.
+Files written before kftune recorded the sample time and vehicle are run with the
+recording's vehicle, with a warning. Exit 1 when the filter diverged on a manoeuvre (its
+rows from that step on are empty).
 """
 
 from __future__ import annotations
@@ -31,7 +35,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -43,8 +46,9 @@ from kftune.cli._common import (
     write_output,
     writing,
 )
+from kftune.cli.evaluate import add_force, check_recordings, read_tuned
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
-from kftune.errors import ConfigError, DataWarning, UsageError
+from kftune.errors import ConfigError, UsageError
 
 FORMATS = ("csv", "parquet")
 
@@ -54,15 +58,16 @@ def register(subparsers: Any) -> None:
     p = add_command(
         subparsers,
         "estimate",
-        "run a tuned filter on recordings; write estimates, std, innovations, NIS and plots",
+        "run a tuned filter on a dataset; write estimates, std, innovations, NIS and plots",
         __doc__,
     )
     p.add_argument(
         "dataset",
         nargs="?",
         default=None,
-        help="recordings: 'default' (the bundled set), a kftune dataset directory or "
-        "manifest, or a directory in the revs-250lm layout",
+        help="a kftune dataset: its folder or manifest, a directory in the revs-250lm "
+        "layout, or 'default' (the bundled set); raw recordings (CSV, ...) are imported "
+        "first with 'kftune dataset import'",
     )
     p.add_argument(
         "--params", "-p", type=Path, required=True, help="tuned-parameters file ('kftune tune')"
@@ -84,11 +89,7 @@ def register(subparsers: Any) -> None:
         help="table format (default csv; parquet needs pyarrow)",
     )
     p.add_argument("--no-plot", action="store_true", help="write no figures")
-    p.add_argument(
-        "--force",
-        action="store_true",
-        help="run even when the sample time or vehicle differ from the tuned ones (warns)",
-    )
+    add_force(p, "run the filter")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -109,7 +110,6 @@ def run(args: argparse.Namespace) -> int:
     """Run ``kftune estimate``."""
     import numpy as np
 
-    from kftune.cli.evaluate import read_tuned
     from kftune.data import open_dataset
     from kftune.data.io import file_stem
     from kftune.tuning.deploy import TunedFilter, estimate
@@ -130,8 +130,7 @@ def run(args: argparse.Namespace) -> int:
         manoeuvres = [dataset[n] for n in dict.fromkeys(args.manoeuvre)]
     else:
         manoeuvres = list(dataset.manoeuvres)
-    notes = _check(tuned, dataset, manoeuvres, args)
-    vehicle = tuned.vehicle or dataset.vehicle
+    vehicle, notes = check_recordings(tuned.document, args.params, dataset, manoeuvres, args.force)
     # the model it was tuned with, loaded once before any output (a lost one is named)
     filter_spec_of(args, {}, vehicle, (args.params, tuned.document))
     out: dict[str, Any] = {
@@ -209,34 +208,6 @@ def run(args: argparse.Namespace) -> int:
         )
         return EXIT_FAILURE
     return EXIT_OK
-
-
-def _check(tuned: Any, dataset: Any, manoeuvres: list[Any], args: argparse.Namespace) -> list[str]:
-    """Refuse recordings the filter was not tuned for (unless --force); warnings in words."""
-    notes = []
-    missing = tuned.missing()
-    if missing:
-        notes.append(
-            f"{args.params} does not record {', '.join(missing)} (written before kftune "
-            "recorded deployments): the sample time and vehicle cannot be checked"
-            + (
-                f", the recording's vehicle {dataset.vehicle.name!r} is used"
-                if dataset.vehicle is not None
-                else ""
-            )
-        )
-    bad = tuned.mismatches(dataset, manoeuvres)
-    if bad and not args.force:
-        raise ConfigError(
-            f"{args.params}: the filter was not tuned for these recordings: {bad[0]}"
-            + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else "")
-            + "; tune it on recordings like these, or pass --force to run it anyway"
-        )
-    for b in bad:
-        notes.append(f"--force: {b}; the estimates may be poor")
-    for note in notes:
-        warnings.warn(note, DataWarning, stacklevel=2)
-    return notes
 
 
 def _csv(columns: dict[str, Any]) -> str:

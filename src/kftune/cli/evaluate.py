@@ -6,7 +6,14 @@ the command line (``--q QVX QVY QR``), or are the manual-tuning rule of thumb
 ``kftune estimate`` runs and ``kftune export`` deploys); otherwise R is the evaluated
 dataset's own, from its sensor statistics. Parameters tuned on another dataset than the one
 scored are refused when no dataset is named (the bundled one would be scored by default)
-and scored with a warning when one is.
+and scored with a warning when one is. As ``kftune estimate`` does, it refuses (exit 3)
+manoeuvres whose sample time differs from the one the file was tuned at by more than 1 %
+(Q is a variance per step) or a vehicle other than the tuned one; --force scores them
+anyway, with a warning, on the tuned vehicle.
+
+--split picks the manoeuvres: test (the default), train or all. Without --split, a dataset
+that has no test manoeuvres is scored on all of them, with a warning that these are the
+training ones (not held-out evidence); an explicit --split test is then refused.
 
 The sideslip KPIs, in degrees: RMSE, MAE — the maximum absolute error, as in the paper,
 not the mean — and both again over the samples with |ay| ≥ 4 m/s² (RMSE_NON, MAE_NON).
@@ -22,8 +29,9 @@ import json
 import math
 import sys
 import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from kftune.cli._common import (
     NON_NEGATIVE_FLOAT,
@@ -43,6 +51,10 @@ from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
 from kftune.errors import ConfigError, DataError, DataWarning, UsageError
 from kftune.tuning.kpi import KPI_NAMES
+
+if TYPE_CHECKING:
+    from kftune.data import Dataset, Manoeuvre
+    from kftune.vehicle.params import VehicleParams
 
 
 def register(subparsers: Any) -> None:
@@ -68,10 +80,21 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--split",
         choices=("train", "test", "all"),
-        default="test",
-        help="which manoeuvres (default test)",
+        help="which manoeuvres (default test; all when the dataset has no test manoeuvres)",
     )
+    add_force(p, "score the --params file's filter")
     p.set_defaults(func=run)
+
+
+def add_force(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--force`` of the commands that run a tuned file's filter (``evaluate``,
+    ``estimate``; see :func:`check_recordings`); ``what`` it does, for the help."""
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help=f"{what} even when the recordings' sample time or vehicle differ from the tuned "
+        "ones (warns; the tuned vehicle is used)",
+    )
 
 
 #: Relative tolerance between the top-level Q and R and the deployment record's: written
@@ -127,7 +150,12 @@ def _locate_model(doc: dict[str, Any], path: Path) -> None:
 
 
 def read_tuned(path: Path) -> dict[str, Any]:
-    """Read and check a tuned-parameters file."""
+    """Read and check a tuned-parameters file: the one place where ``evaluate``,
+    ``estimate`` and ``export`` check it (a bad key is named, with what was expected).
+
+    Raises:
+        DataError: (exit 3) naming ``path`` and the key.
+    """
     try:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
@@ -162,6 +190,9 @@ def read_tuned(path: Path) -> dict[str, Any]:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
     if not isinstance(doc["params"], dict):
         raise DataError("'params' must be an object of parameter values", file=str(path))
+    from kftune.tuning.deploy import tuned_for
+
+    tuned_for(doc, str(path))  # the record's sample time and vehicle
     _check_deployment(doc, path)
     _locate_model(doc, path)
     for key, value, strict in (
@@ -177,13 +208,11 @@ def read_tuned(path: Path) -> dict[str, Any]:
 
 
 def _finite(value: Any) -> bool:
-    """A JSON number (not a boolean) that is finite as a float (a huge integer is not)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
+    """:func:`kftune.tuning.deploy.finite_number` (imported when a file is read: it loads
+    the filter layer)."""
+    from kftune.tuning.deploy import finite_number
+
+    return finite_number(value)
 
 
 def _check_tuned_on(tuned: dict[str, Any], dataset: str, path: Path, named: str | None) -> None:
@@ -205,6 +234,83 @@ def _check_tuned_on(tuned: dict[str, Any], dataset: str, path: Path, named: str 
     )
 
 
+def check_recordings(
+    doc: Mapping[str, Any],
+    path: Path,
+    dataset: Dataset,
+    manoeuvres: Sequence[Manoeuvre],
+    force: bool,
+) -> tuple[VehicleParams | None, list[str]]:
+    """Refuse recordings that the filter of the tuned file ``doc`` (read from ``path`` by
+    :func:`read_tuned`) was not tuned for: another sample time or vehicle
+    (:func:`~kftune.tuning.deploy.mismatches`), unless ``force``; each warning is issued
+    as a :class:`~kftune.errors.DataWarning`.
+
+    Returns:
+        (the vehicle to run the filter with: the tuned one, else the recording's; the
+        warnings, in words).
+
+    Raises:
+        ConfigError: (exit 3) naming ``path`` and the first difference, and --force.
+    """
+    from kftune.tuning.deploy import mismatches, tuned_for, unrecorded
+
+    dt, vehicle = tuned_for(doc, str(path))
+    notes = []
+    missing = unrecorded(doc)
+    if missing:
+        notes.append(
+            f"{path} does not record {', '.join(missing)} (written before kftune "
+            "recorded deployments): the sample time and vehicle cannot be checked"
+            + (
+                f", the recording's vehicle {dataset.vehicle.name!r} is used"
+                if vehicle is None and dataset.vehicle is not None
+                else ""
+            )
+        )
+    bad = mismatches(dt, vehicle, dataset, manoeuvres)
+    if bad and not force:
+        raise ConfigError(
+            f"{path}: the filter was not tuned for these recordings: {bad[0]}"
+            + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else "")
+            + "; tune it on recordings like these, or pass --force to run it anyway"
+        )
+    for b in bad:
+        notes.append(f"--force: {b}; the results may be poor")
+    for note in notes:
+        warnings.warn(note, DataWarning, stacklevel=2)
+    return vehicle or dataset.vehicle, notes
+
+
+def pick_split(split: str | None, dataset: Dataset) -> tuple[str, tuple[Manoeuvre, ...]]:
+    """(split, its manoeuvres) of ``--split`` (None: test, or all with a warning when the
+    dataset has no test manoeuvres).
+
+    Raises:
+        ConfigError: (exit 3) a split the dataset has no manoeuvres in, naming those it has.
+    """
+    if split is None:
+        split = "test"
+        if not dataset.test:
+            split = "all"
+            warnings.warn(
+                f"dataset {dataset.name!r} has no test manoeuvres: scoring all "
+                f"{len(dataset.manoeuvres)} (--split all), which are training ones, so the "
+                "KPIs are no held-out evidence",
+                DataWarning,
+                stacklevel=2,
+            )
+    chosen = {"train": dataset.train, "test": dataset.test, "all": dataset.manoeuvres}[split]
+    if not chosen:
+        other = "train" if split == "test" else "test"
+        raise ConfigError(
+            f"--split {split}: dataset {dataset.name!r} has no {split} manoeuvres (its "
+            f"{len(dataset.manoeuvres)} are all {other} manoeuvres); use --split all or "
+            f"--split {other}"
+        )
+    return split, chosen
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``kftune evaluate``."""
     import numpy as np
@@ -224,23 +330,20 @@ def run(args: argparse.Namespace) -> int:
         where_diverged,
     )
 
+    if args.force and args.params is None:
+        raise UsageError("--force applies to a tuned file's filter (--params) only")
     config = load_config(args.config, "evaluate")
     tuned = read_tuned(args.params) if args.params is not None else None
     named = pick(args, config, "dataset", None)
     dataset = open_dataset(named)
     if tuned is not None:
         _check_tuned_on(tuned, dataset.name, args.params, named)
-    manoeuvres = {
-        "train": dataset.train,
-        "test": dataset.test,
-        "all": dataset.manoeuvres,
-    }[args.split]
-    if not manoeuvres:
-        raise ConfigError(f"dataset {dataset.name!r} has no {args.split} manoeuvres")
+    split, manoeuvres = pick_split(args.split, dataset)
+    vehicle = dataset.vehicle
+    if tuned is not None:  # the filter as tuned: for these recordings, on its vehicle
+        vehicle, _ = check_recordings(tuned, args.params, dataset, manoeuvres, args.force)
     # unless told otherwise, the model the parameters were tuned for
-    fs = filter_spec_of(
-        args, config, dataset.vehicle, None if tuned is None else (args.params, tuned)
-    )
+    fs = filter_spec_of(args, config, vehicle, None if tuned is None else (args.params, tuned))
     model = fs.model
     # unless told otherwise, score the way the parameters were tuned: what the command line
     # and the configuration give replaces that part of the tuned file's cost
@@ -295,7 +398,7 @@ def run(args: argparse.Namespace) -> int:
         r0 = default_r0(model, dataset, config.get("r0"))
     problem = TuningProblem(
         manoeuvres,
-        dataset.vehicle,
+        vehicle,
         r0,
         cost=spec,
         parameterization=par,
@@ -320,7 +423,7 @@ def run(args: argparse.Namespace) -> int:
     q, r, ukf = problem.decode(x)
     doc = {
         "dataset": dataset.name,
-        "split": args.split,
+        "split": split,
         "q": q.tolist(),
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
@@ -384,19 +487,21 @@ def _print_table(doc: dict[str, Any]) -> None:
             "RMSE_NON°",
             "MAE_NON°",
             "RMSE r °/s",
-            "RMSE ay",
+            "RMSE ay m/s²",
         )
         averaged: tuple[str, ...] = KPI_NAMES
     else:  # another model: the RMSE of each measurement and referenced output
         cols = tuple(k for k in doc["average"] if k.startswith("rmse_"))
         heads = tuple(f"RMSE {k[5:]}" for k in cols)
         averaged = cols
+    widths = [max(10, len(h)) for h in heads]
     width = max(12, *(len(n) for n in rows))
-    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>10s}" for h in heads))
+    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
     for name, row in rows.items():
-        cells = " ".join(_cell(row.get(c)) for c in cols)
+        cells = " ".join(_cell(row.get(c), w) for c, w in zip(cols, widths))
         print(f"{name:{width}s} {cells}")
-    print(f"{'average':{width}s} " + " ".join(_cell(doc["average"].get(c)) for c in averaged))
+    average = (_cell(doc["average"].get(c), w) for c, w in zip(averaged, widths))
+    print(f"{'average':{width}s} " + " ".join(average))
     if averaged == KPI_NAMES:
         print("MAE: maximum absolute error; _NON: samples with |ay| >= 4 m/s²")
     for ref, lacking in doc["missing_references"].items():
@@ -413,5 +518,5 @@ def _print_table(doc: dict[str, Any]) -> None:
                 print(f"  {row['diverged_at']}")
 
 
-def _cell(v: float | None) -> str:
-    return f"{'–':>10s}" if v is None else f"{v:10.4f}"
+def _cell(v: float | None, width: int = 10) -> str:
+    return f"{'–':>{width}s}" if v is None else f"{v:{width}.4f}"

@@ -245,8 +245,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"no held-out evidence: {no_evidence}")
         print(f"tuned parameters written to {args.out}")
         dataset_arg = pick(args, config, "dataset", None)
+        # no test manoeuvres: the training ones, and the hint says they are
+        split, what = ("test", "test") if dataset.test else ("train", "training")
         print(
-            "KPIs per test manoeuvre: "
+            f"KPIs per {what} manoeuvre"
+            + ("" if dataset.test else " (the dataset has no test manoeuvres)")
+            + ": "
             + shlex.join(
                 [
                     "kftune",
@@ -255,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
                     "--params",
                     str(args.out),
                     "--split",
-                    "test",
+                    split,
                 ]
             )
         )

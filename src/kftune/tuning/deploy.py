@@ -7,14 +7,16 @@ model parameters, Q and R (diagonals, named by state and measurement, with units
 sigma-point settings, the rule that sets the initial state and covariance, and the
 fingerprint of the dataset it was tuned on (:func:`dataset_fingerprint`).
 :class:`TunedFilter` reads that back (files written before it existed load with ``dt``,
-``vehicle`` and ``dataset`` unknown) and :func:`estimate` runs it on a manoeuvre.
+``vehicle`` and ``dataset`` unknown; :func:`tuned_for` checks the record), :func:`mismatches`
+says how recordings differ from what it was tuned for, and :func:`estimate` runs it on a
+manoeuvre.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -142,86 +144,123 @@ class TunedFilter:
 
         Raises:
             DataError: naming ``source``, when ``r`` is missing or not one positive number
-                per measurement, or the ``deployment`` part is damaged.
+                per measurement, or the ``deployment`` part is damaged
+                (:func:`tuned_for`).
         """
-        dep = doc.get("deployment")
-        if dep is not None and not isinstance(dep, Mapping):
-            raise DataError("'deployment' must be an object", file=source)
-        dep = dep or {}
         r = doc.get("r")
         if not (
             isinstance(r, list)
             and r
-            and all(_number(v) and 0 < v < math.inf for v in r)
+            and all(finite_number(v) and v > 0 for v in r)
             and len(r) == len(doc.get("measurements", r))
         ):
             raise DataError(
                 f"'r' must be one positive variance per measurement, got {r!r:.80}", file=source
             )
-        dt = dep.get("dt")
-        if dt is not None and not (_number(dt) and 0 < dt < math.inf):
-            raise DataError(
-                f"'deployment.dt' must be a positive number [s], got {dt!r}", file=source
-            )
-        vehicle = dep.get("vehicle")
-        if vehicle is not None:
-            try:
-                vehicle = VehicleParams.from_dict(dict(vehicle))
-            except (TypeError, ValueError) as exc:
-                raise DataError(f"'deployment.vehicle': {exc}", file=source) from None
+        dt, vehicle = tuned_for(doc, source)
         return cls(
             model=str(doc.get("model", "single-track")),
             filter=str(doc.get("filter", "ukf")),
             q=np.array(doc["q"], dtype=float),
             r=np.array(r, dtype=float),
             settings=UKFSettings(**doc["ukf"]),
-            dt=None if dt is None else float(dt),
+            dt=dt,
             vehicle=vehicle,
-            dataset=dep.get("dataset"),
+            dataset=(doc.get("deployment") or {}).get("dataset"),
             burn_in=float(doc.get("burn_in", 0.0)),
             source=source,
             document=doc,
         )
 
-    def missing(self) -> list[str]:
-        """What a deployment needs that this (older) file does not record."""
-        dep = self.document.get("deployment") or {}
-        # (an explicit null vehicle is a model without one, not an old file)
-        return [
-            k
-            for k in ("dt", "vehicle", "dataset")
-            if k not in dep or (k != "vehicle" and dep[k] is None)
-        ]
 
-    def mismatches(self, dataset: Dataset, manoeuvres: list[Manoeuvre]) -> list[str]:
-        """How the recordings differ from what the filter was tuned for: a sample time off
-        by more than :data:`DT_TOLERANCE` (each manoeuvre named), other vehicle parameters."""
-        out = []
-        if self.dt is not None:
-            for m in manoeuvres:
-                if abs(m.dt - self.dt) > DT_TOLERANCE * self.dt:
-                    out.append(
-                        f"manoeuvre {m.name!r} is sampled every {m.dt:.6g} s, the filter was "
-                        f"tuned at dt = {self.dt:.6g} s (Q is a variance per step)"
-                    )
-        if self.vehicle is not None and dataset.vehicle is None:
-            out.append(
-                f"the filter was tuned for vehicle {self.vehicle.name!r}; the recording names "
-                "no vehicle"
+def tuned_for(doc: Mapping[str, Any], source: str) -> tuple[float | None, VehicleParams | None]:
+    """(dt [s], vehicle) that a tuned-parameters file records under ``deployment`` — what
+    the filter was tuned for — each None where the file does not say (an older file, or a
+    model without a vehicle). The one check of these keys: every reader of tuned files
+    (``evaluate``, ``estimate``, ``export``) goes through it.
+
+    Raises:
+        DataError: naming ``source`` and the key, when ``deployment`` is not an object,
+            ``deployment.dt`` is not a positive finite number, or ``deployment.vehicle`` is
+            not a vehicle (unknown keys, implausible values).
+    """
+    dep = doc.get("deployment")
+    if dep is None:
+        return None, None
+    if not isinstance(dep, Mapping):
+        raise DataError("'deployment' must be an object", file=source)
+    dt = dep.get("dt")
+    if dt is not None and not (finite_number(dt) and dt > 0):
+        raise DataError(
+            f"'deployment.dt' must be a positive number [s], got {dt!r:.40}", file=source
+        )
+    vehicle = dep.get("vehicle")
+    if vehicle is not None:
+        if not isinstance(vehicle, Mapping):
+            raise DataError(
+                f"'deployment.vehicle' must be an object of vehicle parameters, got "
+                f"{vehicle!r:.40}",
+                file=source,
             )
-        elif self.vehicle is not None:
-            differ = vehicle_differences(self.vehicle, dataset.vehicle)
-            if differ:
+        try:
+            vehicle = VehicleParams.from_dict(dict(vehicle))
+        except (TypeError, ValueError) as exc:
+            raise DataError(f"'deployment.vehicle': {exc}", file=source) from None
+    return None if dt is None else float(dt), vehicle
+
+
+def unrecorded(doc: Mapping[str, Any]) -> list[str]:
+    """What a deployment needs that a tuned-parameters file (an older one) does not record:
+    some of ``dt``, ``vehicle``, ``dataset``."""
+    dep = doc.get("deployment") or {}
+    # (an explicit null vehicle is a model without one, not an old file)
+    return [
+        k
+        for k in ("dt", "vehicle", "dataset")
+        if k not in dep or (k != "vehicle" and dep[k] is None)
+    ]
+
+
+def mismatches(
+    dt: float | None,
+    vehicle: VehicleParams | None,
+    dataset: Dataset,
+    manoeuvres: Sequence[Manoeuvre],
+) -> list[str]:
+    """How recordings differ from what a filter was tuned for (``dt``, ``vehicle`` from
+    :func:`tuned_for`; None: not recorded, not checked): a sample time off by more than
+    :data:`DT_TOLERANCE` (each manoeuvre named), other vehicle parameters."""
+    out = []
+    if dt is not None:
+        for m in manoeuvres:
+            if abs(m.dt - dt) > DT_TOLERANCE * dt:
                 out.append(
-                    f"the recording's vehicle {dataset.vehicle.name!r} differs from the tuned "
-                    f"one {self.vehicle.name!r} in {', '.join(differ[:3])}"
-                    + (f" and {len(differ) - 3} more parameters" if len(differ) > 3 else "")
+                    f"manoeuvre {m.name!r} is sampled every {m.dt:.6g} s, the filter was "
+                    f"tuned at dt = {dt:.6g} s (Q is a variance per step)"
                 )
-        return out
+    if vehicle is not None and dataset.vehicle is None:
+        out.append(
+            f"the filter was tuned for vehicle {vehicle.name!r}; the recording names no vehicle"
+        )
+    elif vehicle is not None:
+        differ = vehicle_differences(vehicle, dataset.vehicle)
+        if differ:
+            out.append(
+                f"the recording's vehicle {dataset.vehicle.name!r} differs from the tuned "
+                f"one {vehicle.name!r} in {', '.join(differ[:3])}"
+                + (f" and {len(differ) - 3} more parameters" if len(differ) > 3 else "")
+            )
+    return out
 
 
-def _number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+def finite_number(value: Any) -> bool:
+    """A JSON number (not a boolean) that is finite as a float (a huge integer is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def vehicle_differences(a: VehicleParams, b: VehicleParams, rtol: float = 1e-9) -> list[str]:
