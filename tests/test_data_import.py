@@ -445,8 +445,36 @@ def test_a_raster_never_bridges_a_gap(tmp_path):
     with pytest.raises(DataError, match=r"a gap in the recording: step 0\.4\d* s") as info:
         import_recordings([src], _mapping(channels=TIMED, source={"raster": 0.01}))
     assert (info.value.column, info.value.row) == ("t", 302)  # line of the sample after it
-    with pytest.raises(DataError, match=r"irregular sample time: step 0\.4.*split it at the gap"):
+    with pytest.raises(DataError, match=r"irregular.*split it at the gap \(split_at_gaps = true"):
         import_recordings([src], _mapping(channels=TIMED))
+
+
+def test_split_at_gaps_keeps_each_side_of_a_dropout(tmp_path):
+    """A logger dropout refused by default (above) is cut out with split_at_gaps: each side
+    is a manoeuvre with the file's samples, also when resampled onto a raster; a piece too
+    short to be a manoeuvre is dropped, and none long enough is an error."""
+    user = _user_units(_recording(n=700))
+    kept = np.r_[0:300, 340:600, 650:700]  # gaps after samples 299 and 599; 50 at the end
+    src = _write_csv(tmp_path / "gap.csv", {k: v[kept] for k, v in user.items()}, sep=",")
+    ds = import_recordings([src], _mapping(channels=TIMED, split_at_gaps=True))
+    assert [m.n for m in ds.manoeuvres] == [300, 260]
+    np.testing.assert_array_equal(ds.manoeuvres[1].t, user["time"][340:600])
+    np.testing.assert_allclose(ds.manoeuvres[1].r, user["YawRate"][340:600] * math.pi / 180)
+    assert ds.meta["kept_s"] == [pytest.approx(2.99 + 2.59)]
+    jitter = user["time"] + np.random.default_rng(2).uniform(-4e-4, 4e-4, user["time"].size)
+    src = _write_csv(
+        tmp_path / "jg.csv", {k: v[kept] for k, v in {**user, "time": jitter}.items()}, sep=","
+    )
+    mapping = _mapping(channels=TIMED, split_at_gaps=True, source={"raster": 0.01})
+    ds = import_recordings([src], mapping)
+    for m, (a, b) in zip(ds.manoeuvres, [(0, 299), (340, 599)], strict=True):
+        # the 10 ms grid from each side's first timestamp to within one step of its last
+        assert m.t[0] == jitter[a] and m.t[-1] <= jitter[b] < m.t[-1] + 0.01
+        np.testing.assert_allclose(np.diff(m.t), 0.01, rtol=0, atol=1e-12)
+    with pytest.raises(DataError, match=r"no stretch of at least 200 samples and 4 s between"):
+        import_recordings([src], _mapping(channels=TIMED, split_at_gaps=True, min_duration=4.0))
+    with pytest.raises(DataError, match=r"key 'split_at_gaps': expected true or false"):
+        read_mapping({"channels": {"t": "time"}, "split_at_gaps": "yes"})
 
 
 def test_a_raster_naming_a_signal_is_for_mdf_files(tmp_path):

@@ -11,6 +11,7 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     sample_time = 0.005             # [s] no time column: t = k·sample_time (MDF: the raster)
     min_speed = 1.0                 # [m/s] keep the stretches above it (standstill, reversing out)
     min_duration = 5.0              # [s] drop kept stretches shorter than this
+    split_at_gaps = true            # a dropout in time ends a stretch (default: refused)
     segment_length = 30.0           # [s] cut each stretch into segments of about this length
 
     [source]                        # reader options (each format uses its own)
@@ -116,6 +117,7 @@ MAPPING_KEYS = {
     "sample_time": "[s] when there is no time column (MDF: the raster step)",
     "min_speed": "[m/s] keep stretches with vx above it",
     "min_duration": "[s] drop kept stretches shorter than it",
+    "split_at_gaps": "true: a gap in time ends a stretch instead of being refused",
     "segment_length": "[s] cut stretches into segments",
     "steering_ratio": "hand-wheel to road-wheel ratio for hand_wheel channels",
     "source": f"reader options: {', '.join(READER_OPTIONS)}",
@@ -128,6 +130,8 @@ SPLIT_RULES = ("test", "train_every", "test_fraction")
 DEFAULT_TRAIN_EVERY = 3
 #: What ``[source] raster`` is called in messages that suggest it.
 RASTER_OPTION = "[source] raster"
+#: What ``split_at_gaps`` is called in messages that suggest it.
+GAP_OPTION = "split_at_gaps = true"
 #: Text that every ASCII-compatible encoding writes as ASCII (a CSV's separators, numbers).
 _ASCII_PROBE = "time,1.5;-2e+3\t|[m/s]\n"
 
@@ -167,6 +171,7 @@ class Mapping_:
     segment_length: float | None
     steering_ratio: float | None
     split: tuple[str, Any]
+    split_at_gaps: bool = False  # a gap in time ends a stretch instead of being refused
     format: Format | None = None  # [source] format: the reader, instead of the suffix
     raster_step: float | None = None  # [s] [source] raster as a step: resample onto it
     given: Mapping[str, Any] = field(default_factory=dict)  # quantities as written
@@ -268,6 +273,9 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         or not steering_ratio > 0
     ):
         raise bad("steering_ratio", f"expected a number > 0, got {excerpt(steering_ratio)}")
+    split_at_gaps = data.get("split_at_gaps", False)
+    if not isinstance(split_at_gaps, bool):
+        raise bad("split_at_gaps", f"expected true or false, got {excerpt(split_at_gaps)}")
     segment_length = quantity("segment_length", data.get("segment_length"), "time")
     if segment_length == 0:
         raise bad("segment_length", "expected a length > 0 s")
@@ -310,6 +318,7 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         segment_length=segment_length,
         steering_ratio=None if steering_ratio is None else float(steering_ratio),
         split=_split_rule(data.get("split"), file),
+        split_at_gaps=split_at_gaps,
         format=fmt,
         raster_step=raster_step,
         given={k: data[k] for k in ("min_speed", "min_duration", "split") if k in data},
@@ -554,6 +563,31 @@ def _stretches(
     return [int(a) for a, _ in kept], [int(b) for _, b in kept]
 
 
+def _pieces(
+    m: Mapping_, channels: dict[str, np.ndarray], file: str, row_offset: int
+) -> list[tuple[int, dict[str, np.ndarray]]]:
+    """The recording cut at its gaps in time when ``split_at_gaps`` (a step longer than
+    :data:`~kftune.data.validate.GAP_STEPS` median steps: a logger dropout), else whole:
+    ``(index of the piece's first sample, its channels)``. Pieces too short to be a
+    manoeuvre (``min_duration``, :data:`MIN_SAMPLES` samples) are dropped; a recording cut
+    in no piece long enough gives none."""
+    t = channels["t"]
+    if not m.split_at_gaps or t.size < 2:
+        return [(0, channels)]
+    check_increasing(t, file=file, row_offset=row_offset)
+    steps = np.diff(t)
+    dt = float(np.median(steps))
+    cuts = [0, *(np.flatnonzero(steps > GAP_STEPS * dt) + 1).tolist(), t.size]
+    if len(cuts) == 2:
+        return [(0, channels)]
+    shortest = max(m.min_duration, (MIN_SAMPLES - 1) * dt)
+    return [
+        (a, {c: v[a:b] for c, v in channels.items()})
+        for a, b in itertools.pairwise(cuts)
+        if t[b - 1] - t[a] >= shortest
+    ]
+
+
 def _resample(
     channels: dict[str, np.ndarray], step: float, file: str, row_offset: int
 ) -> dict[str, np.ndarray]:
@@ -573,7 +607,7 @@ def _resample(
         raise DataError(
             f"a gap in the recording: step {steps[k]:.4g} s from the previous row, the median "
             f"step is {median:.4g} s; {RASTER_OPTION} resamples jittered timestamps but never "
-            "across a gap: split the recording at the gap",
+            f"across a gap: split the recording at the gap ({GAP_OPTION} does)",
             file=file,
             column="t",
             row=k + 1 + row_offset,
@@ -634,10 +668,23 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
         options["sample_time"] = step
     table = fmt.read(path, names, options, limits)
     channels, units = _convert(m, path, table)
-    if m.raster_step is not None and not fmt.own_time:
-        channels = _resample(channels, m.raster_step, file, table.row_offset)
-    starts, ends = _stretches(m, path, channels)
+    starts, stretches = [], []
+    for first, piece in _pieces(m, channels, file, table.row_offset):
+        if m.raster_step is not None and not fmt.own_time:
+            piece = _resample(piece, m.raster_step, file, first + table.row_offset)
+        for a, b in zip(*_stretches(m, path, piece)):
+            starts.append(first + a)
+            stretches.append({c: v[a:b] for c, v in piece.items()})
     t = channels["t"]
+    if not starts and m.min_speed is None:  # split_at_gaps left no piece long enough
+        longer = f" and {m.min_duration:g} s" if m.min_duration else ""
+        raise DataError(
+            f"no stretch of at least {MIN_SAMPLES} samples{longer} between the gaps in time "
+            f"({t.size} samples; {GAP_OPTION} cuts at every step over {GAP_STEPS:g} median "
+            "steps)",
+            file=file,
+            column="t",
+        )
     if not starts:
         longer = f" and {m.min_duration:g} s" if m.min_duration else ""
         top = float(np.nanmax(channels["vx"], initial=-np.inf))
@@ -648,7 +695,6 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             file=file,
             column="vx",
         )
-    stretches = [{c: v[a:b] for c, v in channels.items()} for a, b in zip(starts, ends)]
     problems: dict[str, str] = {}
     for a, part in zip(starts, stretches):
         for channel, text in channel_problems(part, row_offset=a + table.row_offset).items():
@@ -663,7 +709,9 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
         )
     for a, part in zip(starts, stretches):
         row = a + table.row_offset
-        validate_channels(part, file=file, row_offset=row, resample_option=RASTER_OPTION)
+        validate_channels(
+            part, file=file, row_offset=row, resample_option=RASTER_OPTION, gap_option=GAP_OPTION
+        )
         _check_model_data(m, part, file, row)
     total = float(t[-1] - t[0]) if t.size > 1 else 0.0
     kept = sum(float(p["t"][-1] - p["t"][0]) for p in stretches)

@@ -280,6 +280,7 @@ def validate_channels(
     check_units: bool = True,
     files: Mapping[str, str] | None = None,
     resample_option: str | None = None,
+    gap_option: str | None = None,
 ) -> float:
     """Check one manoeuvre's channels (already in SI units) before anything uses them.
 
@@ -301,6 +302,9 @@ def validate_channels(
             resample_option: the option that resamples onto a uniform grid (the
             importer's ``[source] raster``), suggested with the median step when the
             timestamps jitter (steps within :data:`GAP_STEPS` median steps, never a gap).
+            gap_option: the option that splits a recording at its gaps (the importer's
+            ``split_at_gaps = true``), suggested for a step over :data:`GAP_STEPS` median
+            steps.
 
     Returns:
         The sample time dt [s] (median step, :func:`sample_time`).
@@ -374,6 +378,8 @@ def validate_channels(
         step = float(steps[bad[0]])
         if step > GAP_STEPS * dt:
             fix = "a gap in the recording: split it at the gap"
+            if gap_option:
+                fix += f" ({gap_option} does)"
         else:
             fix = "jittered timestamps: resample the data onto a uniform grid"
             if resample_option:
