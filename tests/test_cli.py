@@ -90,6 +90,15 @@ def test_a_subcommands_error_names_the_subcommand_in_two_lines(args, command, sa
     ], res.stderr
 
 
+def test_the_short_usage_shows_the_required_options():
+    """``dataset import`` without -o: the usage line names what is required."""
+    res = kftune("dataset", "import", "a.csv", "--mapping", "m.toml")
+    assert res.returncode == 2
+    usage = res.stderr.splitlines()[0]
+    assert usage.startswith("usage: kftune dataset import [options] ")
+    assert "--mapping MAPPING" in usage and "--out OUT" in usage and "SOURCE" in usage
+
+
 def test_weights_errors_name_the_option_once():
     res = kftune("tune", "--weights", "beta=five")
     assert res.returncode == 2

@@ -4,6 +4,7 @@ standstill trimming, merging with a train/test rule, errors, missing extras, the
 
 from __future__ import annotations
 
+import codecs
 import math
 import sys
 import warnings
@@ -401,11 +402,25 @@ def test_a_cp1252_file_needs_its_encoding(tmp_path):
 @pytest.mark.parametrize(
     ("encoding", "message"),
     [("nope", "unknown text encoding 'nope'"), ("base64", "unknown text encoding"),
-     ("utf-16", "'utf-16' does not write ASCII as ASCII"), (1252, "expected a codec name")],
+     ("utf-16", "'utf-16' does not write ASCII as ASCII"), (1252, "expected a codec name"),
+     ("undefined", "unknown text encoding 'undefined'")],
 )  # fmt: skip
 def test_a_bad_encoding_names_the_key(encoding, message):
     with pytest.raises(DataError, match=rf"key 'source\.encoding': {message}"):
         read_mapping({"channels": {"t": "time"}, "source": {"encoding": encoding}})
+
+
+def test_excel_utf8_csv_reads_with_any_encoding_named(tmp_path):
+    """Excel's "CSV UTF-8" starts with a byte-order mark: its name (utf-8-sig) is a valid
+    encoding, and the mark is honoured whatever encoding the mapping names (cp1252 read it
+    into the first column's name)."""
+    src, user = _drive_csv(tmp_path)
+    bom = tmp_path / "excel.csv"
+    bom.write_bytes(codecs.BOM_UTF8 + src.read_bytes())
+    for encoding in ("utf-8-sig", "cp1252", "latin-1"):
+        mapping = _mapping(channels=TIMED, source={"encoding": encoding})
+        (m,) = import_recordings([bom], mapping).manoeuvres
+        _check(m, user)
 
 
 def test_a_txt_export_is_read_as_the_format_the_mapping_names(tmp_path):
@@ -416,6 +431,23 @@ def test_a_txt_export_is_read_as_the_format_the_mapping_names(tmp_path):
     _check(m, user)
     with pytest.raises(DataError, match=r"key 'source\.format': unknown format 'xls'.*'csv'"):
         read_mapping({"channels": {"t": "time"}, "source": {"format": "xls"}})
+    # "tsv" means tab, as the suffix does: header names with commas stay whole
+    user = {"time, s" if k == "time" else k: v for k, v in user.items()}
+    tab = _write_csv(tmp_path / "logger2.txt", user, sep="\t")
+    mapping = _mapping(channels={**TIMED, "t": "time, s"}, source={"format": "tsv"})
+    (m,) = import_recordings([tab], mapping).manoeuvres
+    _check(m, {**user, "time": user["time, s"]})
+    assert read_mapping({"channels": {"t": "t"}, "source": {"format": "TSV"}}).options == {
+        "delimiter": "\t"
+    }  # not sniffed: a header with more commas than tabs is still split at the tabs
+
+
+def test_a_raster_step_without_a_space_is_a_quantity():
+    with pytest.raises(DataError, match=r"key 'source\.raster': expected a number or '<number>"):
+        read_mapping({"channels": {"t": "time"}, "source": {"raster": "10ms"}})
+    assert read_mapping({"channels": {"t": "time"}, "source": {"raster": "10 ms"}}).raster_step == (
+        pytest.approx(0.01)
+    )
 
 
 def _jittered(tmp_path: Path, n: int = 600) -> tuple[Path, dict]:
@@ -477,6 +509,44 @@ def test_split_at_gaps_keeps_each_side_of_a_dropout(tmp_path):
         read_mapping({"channels": {"t": "time"}, "split_at_gaps": "yes"})
 
 
+def test_errors_in_resampled_data_say_their_rows_are_raster_samples(tmp_path):
+    src, user = _jittered(tmp_path)
+    lines = src.read_text().splitlines()
+    cells = lines[101].split(",")  # line 102: sample 100
+    cells[list(user).index("AccY")] = "nan"
+    lines[101] = ",".join(cells)
+    src.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"resampled: a row counts 0\.01 s raster samples"):
+        import_recordings([src], _mapping(channels=TIMED, source={"raster": 0.01}))
+    with pytest.raises(DataError, match=r"row\(s\) 102\b") as info:  # not resampled: the line
+        import_recordings([src], _mapping(channels=TIMED))
+    assert "(resampled:" not in str(info.value)
+
+
+def test_a_raster_coarser_than_the_recording_warns(tmp_path):
+    src, _ = _jittered(tmp_path, n=3000)
+    with pytest.warns(DataWarning, match=r"raster = 0\.05 s is coarser .* anti-alias"):
+        (m,) = import_recordings(
+            [src], _mapping(channels=TIMED, source={"raster": 0.05})
+        ).manoeuvres
+    assert m.dt == 0.05
+
+
+def test_a_raster_applies_to_the_kept_stretches_only(tmp_path):
+    """A logger that pauses while parked: min_speed cuts the pause out, so a raster must
+    not refuse the gap there (it was checked on the whole recording, before trimming)."""
+    user = _user_units(_recording(n=1200))
+    user["Speed"][550:650] = 0.0  # parked
+    kept = np.r_[0:580, 620:1200]  # the logger paused while parked
+    user["time"] = user["time"] + np.random.default_rng(0).uniform(-3e-4, 3e-4, 1200)
+    src = _write_csv(tmp_path / "park.csv", {k: v[kept] for k, v in user.items()}, sep=",")
+    mapping = _mapping(channels=TIMED, min_speed="3 km/h", source={"raster": 0.01})
+    ds = import_recordings([src], mapping)
+    assert len(ds.manoeuvres) == 2
+    assert ds.manoeuvres[0].t[0] == user["time"][0]
+    assert ds.manoeuvres[1].t[0] == user["time"][650]  # the first sample moving again
+
+
 def test_a_raster_naming_a_signal_is_for_mdf_files(tmp_path):
     src, _ = _drive_csv(tmp_path)
     with pytest.raises(DataError, match=r"key 'source\.raster': 'Speed' names a signal"):
@@ -506,7 +576,17 @@ def test_split_rules_without_a_test_manoeuvre_warn(tmp_path):
     assert any(
         "pattern 'drive9*' matches none of the recordings ['drive4.csv']" in x for x in texts
     )
-    assert any("segment_length" in x for x in texts) and not ds.test
+    assert any(x.endswith("for a test split, name a recording in split.test") for x in texts)
+    assert not ds.test
+    # the advice fits the rule: segments do not help train_every = 1, nor a test pattern
+    with pytest.warns(DataWarning, match=r"for a test split, use train_every = 2 or more$"):
+        import_recordings(
+            [src], _mapping(channels=TIMED, split={"train_every": 1}, segment_length=2.5)
+        )
+    with pytest.warns(DataWarning, match=r"raise test_fraction or cut .* shorter segment_length$"):
+        import_recordings(
+            [src], _mapping(channels=TIMED, split={"test_fraction": 0.05}, segment_length=2.5)
+        )
     # cut into segments, the same rule gives a test split, without a warning
     with warnings.catch_warnings():
         warnings.simplefilter("error", DataWarning)
@@ -536,4 +616,4 @@ def test_min_speed_is_echoed_in_the_unit_it_was_given_in(tmp_path):
     user["Speed"][:] = _user_units(_recording())["Speed"]
     _write_csv(src, user, sep=",")
     ds = import_recordings([src], _mapping(channels=TIMED, min_speed="3 km/h"), tmp_path / "ds")
-    assert ds.meta["min_speed"] == "3 km/h"
+    assert ds.meta["min_speed"] == pytest.approx(3 / 3.6)  # SI, whatever unit was written

@@ -123,6 +123,23 @@ def test_sample_time_drops_the_binary_noise_of_late_timestamps():
     assert Manoeuvre("late", "segment", "train", t, vx=np.full(300, 10.0)).dt == 0.01
 
 
+@pytest.mark.parametrize("t0", [0.0, 100.0, 1000.0])
+@pytest.mark.parametrize("dt", [0.01, 0.0125, 0.002])
+def test_sample_time_of_float32_timestamps(t0, dt):
+    """Single-precision time (a MATLAB single, a Parquet float column) is 6e-5 s coarse at
+    1000 s: its median step is rounded within that resolution, never beyond it."""
+    t = (t0 + np.arange(2000) * dt).astype(np.float32)
+    assert np.median(np.diff(t.astype(np.float64))) != dt or t0 == 0.0  # the noise
+    assert sample_time(t) == dt
+
+
+def test_sample_time_never_rounds_beyond_the_noise():
+    """A step that is not a short decimal stays as measured (to 12 digits)."""
+    assert sample_time(10.0 + np.arange(500) * 0.0123456789) == pytest.approx(0.0123456789, 1e-12)
+    t = (1000.0 + np.arange(500) * 0.0123456789).astype(np.float32)  # 6e-5 s resolution
+    assert abs(sample_time(t) - 0.0123456789) <= 2 * np.spacing(np.float32(1010.0))
+
+
 def test_small_timing_jitter_is_accepted():
     c = synthetic_channels()
     c["t"] = np.round(c["t"] + 149.99, 5)  # a logger's printed time (revs-like)

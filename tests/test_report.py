@@ -205,13 +205,24 @@ def test_values_that_print_alike_are_all_bold():
     )
 
 
+def test_parameter_note_names_the_columns_it_has():
+    from kftune.report import parameter_note
+
+    note = parameter_note(("q_vx", "q_vy", "q_r", "r_scale", "ukf_alpha"))
+    assert "(m/s)² for vx and vy, (rad/s)² for r" in note and "r_scale: " in note
+    assert "ukf_alpha, ukf_beta, ukf_kappa" in note and "r_<measurement>" not in note
+    note = parameter_note(("q_px", "q_py", "r_z_scale"))  # another model: no sideslip units
+    assert "rad/s" not in note and "r_<measurement>_scale" in note
+    assert parameter_note(("gain",)) == ""
+
+
 def test_small_values_keep_three_significant_digits():
     """A tuned variance of 0.00154 printed with three decimals read 0.002 (+30 %)."""
     from kftune.report.tables import Table
 
-    t = Table("t", ("Method", "q_vx", "q_r"), (("TR-BO", 0.00154, 0.0999),))
+    t = Table("t", ("Method", "q_vx", "q_r", "a", "b"), (("TR-BO", 0.00154, 0.0999, 0.9996, 1.0),))
     row = t.to_markdown().splitlines()[-1]
-    assert row == "| TR-BO | 0.00154 | 0.0999 |"
+    assert row == "| TR-BO | 0.00154 | 0.0999 | 1.000 | 1.000 |"  # one format from 1 on
     assert float(row.split("|")[2]) == pytest.approx(0.00154, rel=5e-3)
 
 

@@ -65,10 +65,10 @@ class CommandParser(argparse.ArgumentParser):
     """The parser of a subcommand (and of its own subcommands, ``dataset info``).
 
     Two changes to argparse's behaviour, which is otherwise kept: an error prints a
-    one-line usage (the command, ``[options]`` and its positional arguments, not every
-    option: that is ``--help``'s job) and the error, ending in where help is (exit 2 as
-    ever); an argument the command does not know is its own error, not the top-level
-    parser's (argparse leaves those to the top level, which then shows
+    one-line usage (the command, ``[options]``, its required options and its positional
+    arguments, not every option: that is ``--help``'s job) and the error, ending in where
+    help is (exit 2 as ever); an argument the command does not know is its own error, not
+    the top-level parser's (argparse leaves those to the top level, which then shows
     ``usage: kftune [-h] …`` and not the command that was mistyped).
     """
 
@@ -81,9 +81,9 @@ class CommandParser(argparse.ArgumentParser):
         return parsed, extra
 
     def error(self, message: str) -> NoReturn:
-        positionals = [a for a in self._actions if not a.option_strings]
+        shown = [a for a in self._actions if a.required or not a.option_strings]
         formatter = self._get_formatter()
-        formatter.add_usage(None, positionals, [], prefix="")
+        formatter.add_usage(None, shown, [], prefix="")
         usage = formatter.format_help().strip().removeprefix(self.prog).strip()
         self.exit(
             EXIT_USAGE,

@@ -71,6 +71,7 @@ import codecs
 import fnmatch
 import itertools
 import math
+import re
 import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -244,9 +245,12 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         if not isinstance(options["format"], str):
             raise bad("source.format", f"expected a format name, got {excerpt(options['format'])}")
         try:
-            fmt = format_named(options.pop("format"))
+            name = options.pop("format")
+            fmt = format_named(name)
         except ConfigError as exc:
             raise bad("source.format", str(exc)) from None
+        if name.strip().lower() == "tsv":
+            options.setdefault("delimiter", "\t")  # what the .tsv suffix means
     raster = options.get("raster")
     raster_step = None
     if isinstance(raster, str) and not _starts_with_number(raster):
@@ -327,12 +331,9 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
 
 
 def _starts_with_number(text: str) -> bool:
-    """Whether a string's first word is a number (``"10 ms"``, not ``"YawRate"``)."""
-    try:
-        float(text.strip().partition(" ")[0])
-    except ValueError:
-        return False
-    return True
+    """Whether a string starts like a number (``"10 ms"``, ``"10ms"``: a quantity, checked
+    as one; ``"YawRate"``: a signal's name)."""
+    return re.match(r"\s*[-+]?\.?\d", text) is not None
 
 
 def _check_encoding(name: Any, bad: Callable[[str, str], DataError]) -> None:
@@ -341,9 +342,9 @@ def _check_encoding(name: Any, bad: Callable[[str, str], DataError]) -> None:
     if not isinstance(name, str):
         raise bad("source.encoding", f"expected a codec name such as 'cp1252', got {excerpt(name)}")
     try:
-        codecs.lookup(name)
-        same = _ASCII_PROBE.encode(name) == _ASCII_PROBE.encode("ascii")
-    except LookupError:
+        codecs.lookup(name)  # a BOM is no byte of the text ("utf-8-sig": Excel's UTF-8 CSV)
+        same = _ASCII_PROBE.encode(name).removeprefix(codecs.BOM_UTF8) == _ASCII_PROBE.encode()
+    except (LookupError, UnicodeError):  # no such codec, or none for text ("undefined")
         raise bad(
             "source.encoding",
             f"unknown text encoding {excerpt(name)}; expected a codec name Python knows, such "
@@ -612,6 +613,14 @@ def _resample(
             column="t",
             row=k + 1 + row_offset,
         )
+    if step > GAP_STEPS * median:
+        warnings.warn(
+            f"file {file}: [source] raster = {step:.4g} s is coarser than the recording's "
+            f"step {median:.4g} s: resampled by linear interpolation, without an anti-alias "
+            "filter (a raster is meant for jittered timestamps)",
+            DataWarning,
+            stacklevel=2,
+        )
     grid = t[0] + np.arange(math.floor((t[-1] - t[0]) / step * (1 + 1e-12)) + 1) * step
     return {c: grid if c == "t" else np.interp(grid, t, v) for c, v in channels.items()}
 
@@ -631,8 +640,7 @@ def _check_model_data(m: Mapping_, part: Mapping[str, np.ndarray], file: str, ro
     try:
         model.validate_data(u, z)
     except DataRefused as exc:
-        names = model.input_names if exc.array == "u" else model.measurement_names
-        channel = names[exc.column]
+        channel = exc.channel(model)
         hint = ""
         if channel == "vx" and m.min_speed is None:
             hint = (
@@ -647,6 +655,31 @@ def _check_model_data(m: Mapping_, part: Mapping[str, np.ndarray], file: str, ro
         ) from None
     except ValueError as exc:
         raise DataError(f"{who} refuses these data: {exc}", file=file) from None
+
+
+def _check_stretches(
+    m: Mapping_, file: str, starts: list[int], stretches: list[dict[str, np.ndarray]], offset: int
+) -> None:
+    """Validate every kept stretch (all bad channels at once, then each stretch and the
+    model's own check), naming rows as ``start + offset + index``."""
+    problems: dict[str, str] = {}
+    for a, part in zip(starts, stretches):
+        for channel, text in channel_problems(part, row_offset=a + offset).items():
+            problems.setdefault(channel, text)
+    if problems:
+        label_of = {c: s.label for c, s in m.channels.items()}
+        label_of.setdefault("t", "t (sample_time)")
+        raise DataError(
+            f"{len(problems)} bad channel(s): "
+            + "; ".join(f"{label_of[c]}: {text}" for c, text in problems.items()),
+            file=file,
+        )
+    for a, part in zip(starts, stretches):
+        row = a + offset
+        validate_channels(
+            part, file=file, row_offset=row, resample_option=RASTER_OPTION, gap_option=GAP_OPTION
+        )
+        _check_model_data(m, part, file, row)
 
 
 def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
@@ -670,11 +703,12 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
     channels, units = _convert(m, path, table)
     starts, stretches = [], []
     for first, piece in _pieces(m, channels, file, table.row_offset):
-        if m.raster_step is not None and not fmt.own_time:
-            piece = _resample(piece, m.raster_step, file, first + table.row_offset)
-        for a, b in zip(*_stretches(m, path, piece)):
+        for a, b in zip(*_stretches(m, path, piece)):  # resampled after trimming: a gap
+            part = {c: v[a:b] for c, v in piece.items()}  # where vx is too low is cut out
+            if m.raster_step is not None and not fmt.own_time:
+                part = _resample(part, m.raster_step, file, first + a + table.row_offset)
             starts.append(first + a)
-            stretches.append({c: v[a:b] for c, v in piece.items()})
+            stretches.append(part)
     t = channels["t"]
     if not starts and m.min_speed is None:  # split_at_gaps left no piece long enough
         longer = f" and {m.min_duration:g} s" if m.min_duration else ""
@@ -690,29 +724,27 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
         top = float(np.nanmax(channels["vx"], initial=-np.inf))
         raise DataError(
             f"no stretch of at least {MIN_SAMPLES} samples{longer} with vx above min_speed = "
-            f"{m.echo('min_speed', m.min_speed or 0.0, 'speed')} ({t.size} samples, top speed "
-            f"{m.echo('min_speed', top, 'speed') if math.isfinite(top) else top})",
+            f"{m.echo('min_speed', m.min_speed or 0.0, 'speed')} ({t.size} samples, "
+            + (
+                f"top speed {m.echo('min_speed', top, 'speed')})"
+                if math.isfinite(top)
+                else "no vx sample is a number)"
+            ),
             file=file,
             column="vx",
         )
-    problems: dict[str, str] = {}
-    for a, part in zip(starts, stretches):
-        for channel, text in channel_problems(part, row_offset=a + table.row_offset).items():
-            problems.setdefault(channel, text)
-    if problems:
-        label_of = {c: s.label for c, s in m.channels.items()}
-        label_of.setdefault("t", "t (sample_time)")
-        raise DataError(
-            f"{len(problems)} bad channel(s): "
-            + "; ".join(f"{label_of[c]}: {text}" for c, text in problems.items()),
-            file=file,
-        )
-    for a, part in zip(starts, stretches):
-        row = a + table.row_offset
-        validate_channels(
-            part, file=file, row_offset=row, resample_option=RASTER_OPTION, gap_option=GAP_OPTION
-        )
-        _check_model_data(m, part, file, row)
+    try:
+        _check_stretches(m, file, starts, stretches, table.row_offset)
+    except DataError as exc:
+        if m.raster_step is None or fmt.own_time:
+            raise
+        raise DataError(  # rows of resampled data are raster samples, not lines
+            f"{exc.message} (resampled: a row counts {m.raster_step:g} s raster samples from "
+            "the first row of its stretch)",
+            file=exc.file,
+            column=exc.column,
+            row=exc.row,
+        ) from None
     total = float(t[-1] - t[0]) if t.size > 1 else 0.0
     kept = sum(float(p["t"][-1] - p["t"][0]) for p in stretches)
     rows = [a + table.row_offset for a in starts]
@@ -810,7 +842,7 @@ def import_recordings(
     if m.model is not None:
         meta["model"] = m.model
     if m.min_speed is not None:
-        meta["min_speed"] = m.given["min_speed"]  # as written: [m/s], or with its unit
+        meta["min_speed"] = m.min_speed  # [m/s]
     dataset = Dataset(
         dataset_name,
         m.vehicle,
@@ -855,18 +887,21 @@ def _split_warnings(m: Mapping_, recordings: list[_Recording], splits: list[str]
     given = f"{rule} = {excerpt(value, 100)}" + ("" if "split" in m.given else " (the default)")
     n = f"{len(splits)} manoeuvre{'s' if len(splits) > 1 else ''}"
     if "test" not in splits:
-        if rule == "test":
-            why, fix = "no recording matches a pattern", "name a recording in split.test, or "
+        cut = (
+            "cut the recordings into more segments with a shorter segment_length"
+            if m.segment_length is not None
+            else "cut the recordings into segments with segment_length (e.g. "
+            "segment_length = 30.0, in s)"
+        )
+        if rule == "test":  # by recording: segments do not help
+            why, fix = "no recording matches a pattern", "name a recording in split.test"
         elif rule == "train_every":
-            why, fix = f"manoeuvre i is test when i % {value} != 0", ""
+            why = f"manoeuvre i is test when i % {value} != 0"
+            fix = "use train_every = 2 or more" if value == 1 else cut
         else:
             why = f"test are the manoeuvres that start in the last {value:.0%} of the total time"
-            fix = ""
-        out.append(
-            f"{where}: {given} makes none of the {n} test ({why}); for a test split, {fix}cut "
-            "the recordings into segments with segment_length (e.g. segment_length = 30.0, "
-            "in s)"
-        )
+            fix = f"raise test_fraction or {cut}"
+        out.append(f"{where}: {given} makes none of the {n} test ({why}); for a test split, {fix}")
     if "train" not in splits:
         out.append(
             f"{where}: {given} makes none of the {n} training: every recording matches a test "

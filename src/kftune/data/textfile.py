@@ -191,6 +191,8 @@ def line_blocks(
                         file=file,
                     )
                 data = carry + chunk
+                if first and data.startswith(codecs.BOM_UTF8):
+                    encoding = "utf-8"  # the file says it is UTF-8, whatever was assumed
                 cut = data.rfind(b"\n")
                 if cut < 0:
                     carry = data

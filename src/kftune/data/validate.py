@@ -127,9 +127,10 @@ DT_TOLERANCE = 0.01
 #: A step longer than this many median steps is a gap in the recording (a lost sample makes
 #: 2), not jitter of the timestamps: it is never resampled across.
 GAP_STEPS = 1.5
-#: How many float spacings of the largest timestamp a median step is rounded to (its binary
-#: noise: 100.01 − 100.0 = 0.010000000000005116 in float64).
-TIME_NOISE_SPACINGS = 64
+#: How many float spacings of the largest timestamp a median step is rounded to: each
+#: timestamp is off by up to half a spacing, so a step by up to one (its binary noise:
+#: 100.01 − 100.0 = 0.010000000000005116 in float64).
+TIME_NOISE_SPACINGS = 2
 
 # Plausibility limits in SI units, and what a violation usually means.
 _LIMITS: dict[str, tuple[float, float, str]] = {
@@ -212,20 +213,34 @@ def sample_time(t: np.ndarray) -> float:
     """The sample time [s] of a time axis: its median step, with the binary noise of the
     timestamps rounded off (timestamps near 100 s give 0.01 s, not 0.010000000000005116 s).
 
-    The step is rounded to the decimal place just above :data:`TIME_NOISE_SPACINGS` float
-    spacings of the largest timestamp [s] (the resolution float64 has there), and to no
-    more than 12 significant digits.
+    The step is rounded to the shortest decimal within :data:`TIME_NOISE_SPACINGS` float
+    spacings of the largest timestamp (the resolution the timestamps have there), and to
+    no more than 12 significant digits.
+
+    The resolution is that of the timestamps' own type (float32 time from a MATLAB single
+    or a Parquet float column is far coarser than float64). Rounding only removes noise:
+    when it would move the step by more than that resolution (or the resolution is not
+    below the step), the median step is returned as it is.
 
     Args:
         t: (n,) time [s], n ≥ 2; non-finite values are ignored for the resolution.
     """
-    t = np.asarray(t, dtype=np.float64)
+    src = np.asarray(t)
+    kind = src.dtype.type if np.issubdtype(src.dtype, np.floating) else np.float64
+    t = src.astype(np.float64)
     dt = float(np.median(np.diff(t)))
     finite = np.abs(t[np.isfinite(t)])
     if not (math.isfinite(dt) and dt > 0.0 and finite.size):
         return dt
-    quantum = max(TIME_NOISE_SPACINGS * float(np.spacing(finite.max())), dt * 1e-12)
-    return round(dt, -math.floor(math.log10(quantum)))
+    spacing = float(np.spacing(kind(finite.max())))
+    quantum = max(TIME_NOISE_SPACINGS * spacing, dt * 1e-12)
+    if quantum >= dt:
+        return dt
+    for decimals in range(-math.floor(math.log10(dt)), -math.floor(math.log10(quantum)) + 1):
+        rounded = round(dt, decimals)  # the shortest decimal within the noise
+        if abs(rounded - dt) <= quantum:
+            return rounded
+    return dt  # not reached: the last rounding is within half the quantum
 
 
 def check_increasing(

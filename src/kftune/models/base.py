@@ -92,6 +92,11 @@ class DataRefused(ValueError):
         self.column = column
         self.reason = message if reason is None else reason
 
+    def channel(self, model: StateSpaceModel) -> str:
+        """The name of the refused channel among ``model``'s inputs or measurements."""
+        names = model.input_names if self.array == "u" else model.measurement_names
+        return names[self.column]
+
 
 PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 

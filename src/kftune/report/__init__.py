@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from kftune.data.io import file_stem
@@ -139,8 +140,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
             if stem.startswith("kpi_"):
                 md += [MAE_NOTE if channels is None else RMSE_NOTE, ""]
-            if stem == "parameters":
-                md += [PARAMETER_NOTE, ""]
+            if stem == "parameters" and (note := parameter_note(tables[stem].header[1:])):
+                md += [note, ""]
     md += _bound_lines(results)
     md += _option_lines(results)
     for file, heading, caption in figures:
@@ -191,13 +192,23 @@ MAE_NOTE = (
 )
 
 
-#: What the tuned parameters are, under the parameter table.
-PARAMETER_NOTE = (
-    "q_<state>: the process-noise variance of that state per filter step (a diagonal entry "
-    "of Q, in the state's SI unit squared: (m/s)² for vx and vy, (rad/s)² for r); "
-    "r_<channel>_scale: the factor on that measurement's variance; alpha, beta, kappa: the "
-    "unscented transform's sigma-point parameters (dimensionless)."
-)
+def parameter_note(names: Sequence[str]) -> str:
+    """What the parameter table's columns are, for the kinds of parameter it holds (the
+    names of :class:`~kftune.tuning.problem.TuningProblem`'s space); "" for none known."""
+    parts = []
+    if any(n.startswith("q_") for n in names):
+        units = "(m/s)² for vx and vy, (rad/s)² for r" if {"q_vx", "q_r"} <= set(names) else ""
+        parts.append(
+            "q_<state>: the process-noise variance of that state per filter step (a diagonal "
+            "entry of Q, in the state's SI unit squared" + (f": {units}" if units else "") + ")"
+        )
+    if "r_scale" in names:
+        parts.append("r_scale: the factor on every measurement variance (R = r_scale · R₀)")
+    if any(n.startswith("r_") and n.endswith("_scale") and n != "r_scale" for n in names):
+        parts.append("r_<measurement>_scale: the factor on that measurement's variance in R₀")
+    if any(n.startswith("ukf_") for n in names):
+        parts.append("ukf_alpha, ukf_beta, ukf_kappa: the sigma-point parameters (dimensionless)")
+    return "; ".join(parts) + "." if parts else ""
 
 
 #: What the KPIs of a model without the sideslip report mean, under every KPI table.

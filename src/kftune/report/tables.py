@@ -123,7 +123,7 @@ def _fmt(x: object, digits: int) -> str:
         return "–"
     if x != 0 and (abs(x) < 10 ** (-digits) or abs(x) >= 1e6):
         return f"{x:.{digits - 1}e}"
-    if 0 < abs(x) < 1:  # ``digits`` significant digits: 0.00154, not 0.002
+    if x != 0 and abs(float(f"{x:.{digits}g}")) < 1:  # significant: 0.00154, not 0.002
         return f"{x:#.{digits}g}"
     return f"{x:.{digits}f}"
 

@@ -25,7 +25,7 @@ import numpy as np
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import DataError
 from kftune.filters import UKFSettings
-from kftune.models import StateSpaceModel
+from kftune.models import StateSpaceModel, get_model, model_names
 from kftune.tuning.problem import RunResult, TuningProblem, filter_spec, model_output
 from kftune.vehicle.params import VehicleParams
 
@@ -179,10 +179,15 @@ def tuned_for(doc: Mapping[str, Any], source: str) -> tuple[float | None, Vehicl
     model without a vehicle). The one check of these keys: every reader of tuned files
     (``evaluate``, ``estimate``, ``export``) goes through it.
 
+    A record that is there must be whole: ``dt`` a number, ``dataset`` an object, and
+    ``vehicle`` null only for a registered model that needs none (a model file's needs
+    are not known here).
+
     Raises:
         DataError: naming ``source`` and the key, when ``deployment`` is not an object,
-            ``deployment.dt`` is not a positive finite number, or ``deployment.vehicle`` is
-            not a vehicle (unknown keys, implausible values).
+            ``deployment.dt`` is not a positive finite number, ``deployment.dataset`` is
+            not an object, or ``deployment.vehicle`` is not a vehicle (unknown keys,
+            implausible values; null for a model that needs one).
     """
     dep = doc.get("deployment")
     if dep is None:
@@ -190,11 +195,27 @@ def tuned_for(doc: Mapping[str, Any], source: str) -> tuple[float | None, Vehicl
     if not isinstance(dep, Mapping):
         raise DataError("'deployment' must be an object", file=source)
     dt = dep.get("dt")
-    if dt is not None and not (finite_number(dt) and dt > 0):
+    if "dt" in dep and not (finite_number(dt) and dt > 0):
         raise DataError(
             f"'deployment.dt' must be a positive number [s], got {dt!r:.40}", file=source
         )
+    if "dataset" in dep and not isinstance(dep["dataset"], Mapping):
+        raise DataError(
+            f"'deployment.dataset' must be an object (the dataset's fingerprint), got "
+            f"{dep['dataset']!r:.40}",
+            file=source,
+        )
     vehicle = dep.get("vehicle")
+    model = doc.get("model", "single-track")
+    if (
+        "vehicle" in dep
+        and vehicle is None
+        and model in model_names()
+        and get_model(model).needs_vehicle
+    ):
+        raise DataError(
+            f"'deployment.vehicle' is null, but model {model!r} needs a vehicle", file=source
+        )
     if vehicle is not None:
         if not isinstance(vehicle, Mapping):
             raise DataError(
@@ -213,12 +234,8 @@ def unrecorded(doc: Mapping[str, Any]) -> list[str]:
     """What a deployment needs that a tuned-parameters file (an older one) does not record:
     some of ``dt``, ``vehicle``, ``dataset``."""
     dep = doc.get("deployment") or {}
-    # (an explicit null vehicle is a model without one, not an old file)
-    return [
-        k
-        for k in ("dt", "vehicle", "dataset")
-        if k not in dep or (k != "vehicle" and dep[k] is None)
-    ]
+    # (an explicit null vehicle is a model without one, not an old file: tuned_for)
+    return [k for k in ("dt", "vehicle", "dataset") if k not in dep]
 
 
 def mismatches(

@@ -684,9 +684,8 @@ class TuningProblem:
             try:
                 mod.validate_data(np.zeros((m.n, 0)) if u is None else u, z)
             except DataRefused as exc:
-                names = mod.input_names if exc.array == "u" else mod.measurement_names
                 raise DataError(
-                    f"manoeuvre {m.name!r}, channel {names[exc.column]!r}, sample {exc.row} "
+                    f"manoeuvre {m.name!r}, channel {exc.channel(mod)!r}, sample {exc.row} "
                     f"(t = {float(m.t[exc.row]):.4g} s): {who} refuses these data: {exc.reason}"
                 ) from None
             except ValueError as exc:
