@@ -177,6 +177,16 @@ def test_unreachable_scheduler_and_missing_extra_are_bad_input(monkeypatch, prob
     assert main(["tune", "--scheduler", "local", "-n", "2", "-q", "-o", os.devnull]) == 3
 
 
+@pytest.mark.parametrize("address", ["foo", "tcp:/127.0.0.1", "tcp://127.0.0.1:99999", ""])
+def test_a_malformed_scheduler_address_is_refused_before_connecting(problem, address):
+    """distributed raised its own ValueError for these (a traceback, exit 1); port 99999
+    waited out the connect timeout."""
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"not a scheduler address; expected tcp://HOST:PORT"):
+        DaskEngine(problem, scheduler=address, connect_timeout=30)
+    assert time.perf_counter() - t0 < 5
+
+
 def test_a_point_that_kills_every_worker_is_recorded_failed(cluster):
     points = [[0.2, 0.2], [0.9, 0.1], [0.3, 0.4]]
     space = [(0.0, 1.0), (0.0, 1.0)]

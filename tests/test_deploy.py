@@ -345,6 +345,29 @@ def test_c_header_compiles_and_its_values_round_trip(tuned, tmp_path):
     assert got["n 3"] == "1"
 
 
+def test_c_header_of_a_model_without_parameters_compiles(tuned, tmp_path):
+    """A model with no parameter vector (a kinematic model of one's own) wrote
+    ``KFTUNE_MODEL_PARAMS[0] = {}``, which ISO C refuses (zero-size array, empty braces)."""
+    from kftune.report.export import to_c_header
+
+    cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if cc is None:
+        pytest.skip("no C compiler (cc) on this machine")
+    doc = json.loads(export(tuned, tmp_path, "json", ".json").read_text())
+    doc.update(model_params=[], model_param_names=[], model_param_units=[])
+    (tmp_path / "filter.h").write_text(to_c_header(doc, "tuned.json"))
+    program = tmp_path / "main.c"
+    program.write_text('#include "filter.h"\nint main(void) { return KFTUNE_N_MODEL_PARAMS; }\n')
+    res = subprocess.run(
+        [cc, "-std=c99", "-pedantic-errors", "-Wall", "-Werror", str(program), "-o", "main"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert res.returncode == 0, res.stderr
+    assert subprocess.run([str(tmp_path / "main")]).returncode == 0
+
+
 def parse_matlab(text: str) -> dict[str, object]:
     """A parser of the statements the MATLAB export writes: ``kf.a.b = VALUE;`` with
     VALUE a number, a quoted string, [] or a column vector, or a cell array of strings."""

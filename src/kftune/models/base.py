@@ -41,6 +41,7 @@ is not meant for, raising ``ValueError`` that names the argument, row and expect
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 import types
 from collections.abc import Callable, Mapping
@@ -99,6 +100,19 @@ class DataRefused(ValueError):
 
 
 PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+#: The arguments of each compiled hook, in order (module docstring).
+HOOK_ARGUMENTS: dict[str, tuple[str, ...]] = {
+    "f": ("x", "u", "p", "dt", "out"),
+    "h": ("x", "u", "p", "out"),
+    "prepare": ("u_raw", "p", "out"),
+    "check": ("x", "z", "u", "p", "held"),
+    "F": ("x", "u", "p", "dt", "out"),
+    "H": ("x", "u", "p", "out"),
+}
+#: What :meth:`StateSpaceModel.probe` fills an output buffer with, to see what a hook left
+#: unwritten or wrote beyond its end.
+_UNWRITTEN = -1.2345678901234567e300
 
 
 def _names(model: str, what: str, names: tuple[str, ...], units: tuple[str, ...]) -> None:
@@ -203,12 +217,17 @@ class StateSpaceModel:
                 f"({self.param_names}), got {self.param_defaults}"
             )
         object.__setattr__(self, "param_defaults", defaults)
-        for hook in ("f", "h", "prepare", "check", "F", "H"):
+        for hook, args in HOOK_ARGUMENTS.items():
             fn = getattr(self, hook)
             if (fn is not None or hook in ("f", "h")) and not isinstance(fn, Dispatcher):
                 raise ValueError(
                     f"model {name!r}: {hook} must be a numba-compiled function (@njit), "
                     f"got {type(fn).__name__}"
+                )
+            if fn is not None and _arity(fn) not in (None, len(args)):
+                raise ValueError(
+                    f"model {name!r}: {hook} must take {len(args)} arguments "
+                    f"{hook}({', '.join(args)}), it takes {_arity(fn)}"
                 )
         if self.prepare is not None and not (
             isinstance(self.prepared_size, int) and self.prepared_size >= 0
@@ -296,6 +315,64 @@ class StateSpaceModel:
             raise ValueError(f"params[{i}] ({self.param_names[i]}) must be finite, got {arr[i]}")
         return arr
 
+    def probe(
+        self, u: np.ndarray | None, z: np.ndarray, r: np.ndarray, p: np.ndarray, dt: float
+    ) -> None:
+        """Run every hook once on the first sample of some data, before a filter relies on
+        them: the prior rule (from z[0] and r), ``prepare``, ``f``, ``h``, the Jacobians
+        and the outputs, each on the prior mean. A hook that raises, returns or writes the
+        wrong size (leaves an entry of ``out`` unwritten, or writes beyond its end) or a
+        non-finite value is named. Without a prior rule the state is zero and only sizes
+        are checked.
+
+        Args:
+            u: (N, n_u) raw inputs or None; z: (N, m) measurements; r: (m,) measurement
+                variances; p: (n_p,) parameters; dt: [s] the sample time.
+
+        Raises:
+            ValueError: naming the hook, what it did and what was expected.
+        """
+        n, m = self.n_states, self.n_measurements
+        u0 = np.zeros((1, self.n_inputs)) if u is None else np.ascontiguousarray(u[:1], float)
+        z0 = np.ascontiguousarray(z[0], dtype=np.float64)
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        finite = self.initial_state is not None
+        if finite:
+            prior = _call("initial_state(z0, r, p)", self.initial_state, z0, np.asarray(r), p)
+            if not (isinstance(prior, tuple) and len(prior) == 2):
+                raise ValueError("initial_state(z0, r, p) must return (x0, P0)")
+            x0 = np.asarray(prior[0], dtype=np.float64)
+            P0 = np.asarray(prior[1], dtype=np.float64)
+            for what, arr, shape in (("x0", x0, (n,)), ("P0", P0, (n, n))):
+                if arr.shape != shape:
+                    raise ValueError(
+                        f"initial_state(z0, r, p) returned {what} of shape {arr.shape}; "
+                        f"expected {shape} (states {', '.join(self.state_names)})"
+                    )
+                if not np.all(np.isfinite(arr)):
+                    raise ValueError(f"initial_state(z0, r, p) returned a non-finite {what}")
+        else:
+            x0 = np.zeros(n)
+        w0 = u0[0]
+        if self.prepare is not None:
+            w0 = _filled("prepare(u_raw, p, out)", self.prepare, (u0[0], p), self.prepared_size,
+                         None, finite)  # fmt: skip
+        _filled("f(x, u, p, dt, out)", self.f, (x0, w0, p, float(dt)), n, self.state_names, finite)
+        _filled("h(x, u, p, out)", self.h, (x0, w0, p), m, self.measurement_names, finite)
+        if self.F is not None:
+            _filled("F(x, u, p, dt, out)", self.F, (x0, w0, p, float(dt)), (n, n), None, finite)
+        if self.H is not None:
+            _filled("H(x, u, p, out)", self.H, (x0, w0, p), (m, n), None, finite)
+        for key, g in self.outputs.items():
+            value = np.asarray(_call(f"output {key!r}(x)", g, x0[None, :]), dtype=np.float64)
+            if value.shape != (1,):
+                raise ValueError(
+                    f"output {key!r}(x) returned shape {value.shape} for x of shape (1, {n}); "
+                    "expected (1,): one value per row of states"
+                )
+            if finite and not np.isfinite(value[0]):
+                raise ValueError(f"output {key!r}(x) is not finite at the prior mean x0")
+
     def prepared_inputs(self, u: ArrayLike, p: np.ndarray) -> np.ndarray:
         """(N, n_w) prepared input rows of (N, n_u) raw inputs ``u`` (u itself without prepare)."""
         u_arr = np.ascontiguousarray(u, dtype=np.float64)
@@ -304,6 +381,58 @@ class StateSpaceModel:
         out = np.empty((u_arr.shape[0], self.prepared_size))
         _bound_prepare(self.prepare)(u_arr, p, out)
         return out
+
+
+def _arity(fn: Dispatcher) -> int | None:
+    """How many arguments a compiled function takes (None: not known)."""
+    try:
+        return len(inspect.signature(fn.py_func).parameters)
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
+def _call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``; any failure as a ValueError naming ``what`` (first line only)."""
+    try:
+        return fn(*args)
+    except Exception as exc:  # the user's code: any failure is reported
+        lines = str(exc).strip().splitlines()
+        first = lines[0][:200] if lines else ""
+        raise ValueError(
+            f"{what} failed on the first sample: {type(exc).__name__}: {first}"
+        ) from None
+
+
+def _filled(
+    what: str,
+    fn: Dispatcher,
+    args: tuple[Any, ...],
+    shape: int | tuple[int, int],
+    names: tuple[str, ...] | None,
+    finite: bool,
+) -> np.ndarray:
+    """Call a hook that writes ``out`` of ``shape`` and check what it wrote: every entry,
+    nothing beyond the end (the buffer continues past ``out``: compiled code does not
+    check bounds), and finite values when ``finite``."""
+    size = int(np.prod(shape))
+    buf = np.full(size + 8, _UNWRITTEN)
+    out = buf[:size].reshape(shape)
+    _call(what, fn, *args, out)
+    if np.any(buf[size:] != _UNWRITTEN):
+        raise ValueError(
+            f"{what} wrote beyond the end of out (shape {out.shape}): index it by the "
+            "model's "
+            + ("names" if names else "sizes")
+            + (f" ({', '.join(names)})" if names else "")
+        )
+    flat = buf[:size]
+    for kind, bad in (("left unwritten", flat == _UNWRITTEN), ("wrote a non-finite value to",
+                      ~np.isfinite(flat) if finite else np.zeros(size, bool))):  # fmt: skip
+        if bad.any():
+            i = int(np.argmax(bad))
+            at = f"out[{i}]" + (f" ({names[i]})" if names else "")
+            raise ValueError(f"{what} {kind} {at} at the prior mean x0")
+    return out
 
 
 @functools.cache

@@ -80,6 +80,26 @@ def _task_chunk(problem: Any, x: np.ndarray, indices: list[int]) -> tuple[Any, .
     return "ok", scores, time.perf_counter() - t0
 
 
+def _check_address(scheduler: str) -> None:
+    """Refuse a scheduler address that is not ``[PROTOCOL://]HOST:PORT`` with a port in
+    1–65535 (before any connection is tried).
+
+    Raises:
+        ConfigError: naming the address and what was expected.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        port = parse_host_port(parse_address(scheduler)[1])[1]
+    except (ValueError, TypeError):
+        port = None
+    if not (isinstance(port, int) and 1 <= port <= 65535):
+        raise ConfigError(
+            f"--scheduler {scheduler!r}: not a scheduler address; expected "
+            "tcp://HOST:PORT (port 1–65535, e.g. tcp://10.0.0.5:8786) or 'local'"
+        )
+
+
 class DaskEngine(Engine):
     """Evaluates batches on a Dask cluster.
 
@@ -116,6 +136,10 @@ class DaskEngine(Engine):
         self.retries = int(retries)
         self._cluster: Any = None
         self.client: Any = None
+        if isinstance(scheduler, str) and scheduler.strip().lower() == "local":
+            scheduler = "local"
+        elif scheduler is not None:
+            _check_address(scheduler)
         if scheduler in (None, "local"):
             with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
                 self._cluster = distributed.LocalCluster(

@@ -228,6 +228,9 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
         out.append("")
 
     def array(name: str, values: list[float], labels: list[str], what: str) -> None:
+        if not values:  # ISO C has no zero-size array: N_<name> = 0 says there is none
+            out.extend([f"/* {what}: none */", ""])
+            return
         out.append(f"/* {what} */")
         out.append(f"static const double {p}{name}[{len(values)}] = {{")
         for v, label in zip(values, labels):

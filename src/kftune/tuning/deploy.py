@@ -59,11 +59,19 @@ def _squared(unit: str) -> str:
 
 
 def _initial_rule(model: StateSpaceModel) -> str:
-    """The first line of the model's prior rule's docstring (how x0 and P0 are set)."""
-    doc = (getattr(model.initial_state, "__doc__", None) or "").strip()
-    if not doc:
+    """How x0 and P0 are set: the first line of the model's prior rule's docstring, or,
+    for a rule without one, its name and where it is defined."""
+    rule = model.initial_state
+    if rule is None:
         return "none: the caller gives x0 and P0"
-    return doc.splitlines()[0].strip()
+    doc = (getattr(rule, "__doc__", None) or "").strip()
+    if doc:
+        return doc.splitlines()[0].strip()
+    name = getattr(rule, "__qualname__", type(rule).__name__)
+    return (
+        f"the model's initial_state rule {name}(z0, r, p) (model {model.name!r}; undocumented): "
+        "x0 and P0 from the first measurement z0 and the measurement variances r"
+    )
 
 
 def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[str, Any]:
@@ -349,6 +357,7 @@ def estimate(tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams) -> Estima
     parameters, at the manoeuvre's own sample time."""
     fs = filter_spec(tuned.model, tuned.filter, vehicle)
     model = fs.model
+    fs.probe(m, tuned.r)
     res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings)
     cols: dict[str, np.ndarray] = {"t": m.t}
     units: dict[str, str] = {"t": "s"}

@@ -337,6 +337,22 @@ class FilterSpec:
         u = np.column_stack([m.channel(c) for c in names]) if names else None
         return u, np.column_stack([m.channel(c) for c in self.model.measurement_names])
 
+    def probe(self, m: Manoeuvre, r: np.ndarray) -> None:
+        """Run the model's hooks once on ``m``'s first sample with measurement variances
+        ``r`` (:meth:`~kftune.models.StateSpaceModel.probe`; the paper's kernel is not
+        probed: its model is kftune's own).
+
+        Raises:
+            ConfigError: naming the model (its file), the manoeuvre and the hook.
+        """
+        if self.fast:
+            return
+        u, z = self.inputs(m)
+        try:
+            self.model.probe(u, z, r, self.params, m.dt)
+        except ValueError as exc:
+            raise ConfigError(f"model {self.spec}, on manoeuvre {m.name!r}: {exc}") from None
+
     def run(
         self,
         m: Manoeuvre,
@@ -571,7 +587,8 @@ class TuningProblem:
             the paper's cost), the model refuses its data (the single-track models: Vx ≤ 0),
             or it has fewer than 2 samples after the burn-in; the message names the
             manoeuvre, and the channel and sample where there is one.
-        ConfigError: a model that needs a vehicle without one, an unknown cost channel.
+        ConfigError: a model that needs a vehicle without one, an unknown cost channel, a
+            model whose hooks fail on the first sample (:meth:`StateSpaceModel.probe`).
 
     ``problem(x)`` returns J for a point of ``problem.space`` (natural units).
     """
@@ -624,6 +641,7 @@ class TuningProblem:
                 f"r0 must be {k} positive finite variances {list(mod.measurement_names)}, "
                 f"got {r0!r}"
             )
+        self._fs.probe(self.manoeuvres[0], self.r0)  # before a budget is spent on the model
         self.parameterization = parameterization or NoiseParameterization(
             states=mod.state_names, measurements=mod.measurement_names
         )
