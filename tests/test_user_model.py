@@ -32,6 +32,33 @@ def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
 
 
+def test_an_edited_model_file_is_not_taken_for_the_tuned_one(small, tmp_path):
+    """The tuned file and the study record the model file's SHA-256: after an edit,
+    evaluate refuses (--force runs it with a warning), export warns, and a study does not
+    resume on it (it silently scored another model, and resumed an old cost)."""
+    model = tmp_path / "m.py"
+    shutil.copyfile(EXAMPLE, model)
+    out, study = tmp_path / "t.json", tmp_path / "s.db"
+    res = kftune("tune", str(small), "--model", str(model), "-n", "3", "-q", "-o", str(out),
+                 "--storage", str(study))  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(out.read_text())
+    assert len(doc["deployment"]["model_sha256"]) == 64
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train")
+    assert ev.returncode == 0 and "model file" not in ev.stderr, ev.stderr
+    model.write_text(model.read_text() + "\n# an edit\n")
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train")
+    assert ev.returncode == 3, ev.stderr
+    assert "has changed since the filter was tuned" in ev.stderr and "--force" in ev.stderr
+    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--force")
+    assert ev.returncode == 0 and "has changed since the filter was tuned" in ev.stderr
+    ex = kftune("export", str(out), "-o", "-")
+    assert ex.returncode == 0 and "has changed since the filter was tuned" in ex.stderr
+    res = kftune("tune", str(small), "--model", str(model), "-n", "3", "-q", "-o", str(out),
+                 "--storage", str(study), "--resume")  # fmt: skip
+    assert res.returncode == 3 and "model file sha256" in res.stderr, res.stderr
+
+
 def test_the_tuned_file_finds_its_model_file_from_any_working_directory(small, tmp_path):
     """A model file named relative to where ``tune`` ran is found again by ``evaluate`` and
     ``estimate`` run elsewhere: recorded relative to the tuned file when it lies beside it

@@ -253,7 +253,7 @@ def check_recordings(
     Raises:
         ConfigError: (exit 3) naming ``path`` and the first difference, and --force.
     """
-    from kftune.tuning.deploy import mismatches, tuned_for, unrecorded
+    from kftune.tuning.deploy import mismatches, model_file_changed, tuned_for, unrecorded
 
     dt, vehicle = tuned_for(doc, str(path))
     notes = []
@@ -268,7 +268,8 @@ def check_recordings(
                 else ""
             )
         )
-    bad = mismatches(dt, vehicle, dataset, manoeuvres)
+    changed = model_file_changed(doc)
+    bad = ([changed] if changed else []) + mismatches(dt, vehicle, dataset, manoeuvres)
     if bad and not force:
         raise ConfigError(
             f"{path}: the filter was not tuned for these recordings: {bad[0]}"

@@ -21,11 +21,13 @@ from __future__ import annotations
 
 import argparse
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
 from kftune.cli._common import add_command, output_file, write_output
 from kftune.cli.exit_codes import EXIT_OK
+from kftune.errors import DataWarning
 
 FORMATS = ("json", "yaml", "c", "matlab")
 SUFFIXES = {"json": ".json", "yaml": ".yaml", "c": ".h", "matlab": ".m"}
@@ -57,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``kftune export``."""
     from kftune.cli.evaluate import read_tuned
     from kftune.report.export import export_document, render
+    from kftune.tuning.deploy import model_file_changed
 
     out = args.out
     if out is None:
@@ -66,7 +69,15 @@ def run(args: argparse.Namespace) -> int:
     if str(out) != "-":
         output_file(out, "--out")
     source = args.params.name
-    doc = export_document(read_tuned(args.params), str(args.params))
+    tuned = read_tuned(args.params)
+    changed = model_file_changed(tuned)
+    if changed:  # the deployed model code is the file's, as it is now
+        warnings.warn(
+            f"{args.params}: {changed}; the export is of the tuned values",
+            DataWarning,
+            stacklevel=2,
+        )
+    doc = export_document(tuned, str(args.params))
     guard = re.sub(r"[^0-9A-Za-z]+", "_", "x" if str(out) == "-" else out.name).upper()
     text = render(doc, args.format, source, guard=f"KFTUNE_{guard.strip('_')}")
     if str(out) == "-":

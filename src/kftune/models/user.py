@@ -24,7 +24,7 @@ from kftune.errors import ConfigError
 from kftune.models.base import StateSpaceModel
 from kftune.models.registry import get_model, model_names, register_model
 
-__all__ = ["is_model_file", "load_model"]
+__all__ = ["is_model_file", "load_model", "model_file_sha256"]
 
 _LOADED: dict[tuple[str, str], StateSpaceModel] = {}
 
@@ -41,6 +41,19 @@ def model_file_parts(spec: str) -> tuple[str, str] | None:
         return spec, ""
     head, sep, attr = spec.partition(".py:")
     return (head + ".py", attr) if sep else None
+
+
+def model_file_sha256(spec: str) -> str | None:
+    """The SHA-256 of the file a model-file spec names (hex), so that a tuned file and a
+    study can tell an edited model from the one they were made with; None for a model
+    name, or a file that cannot be read."""
+    parts = model_file_parts(spec) if isinstance(spec, str) else None
+    if parts is None:
+        return None
+    try:
+        return hashlib.sha256(Path(parts[0]).expanduser().read_bytes()).hexdigest()
+    except OSError:
+        return None
 
 
 def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:

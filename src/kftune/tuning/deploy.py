@@ -26,6 +26,7 @@ from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import DataError
 from kftune.filters import UKFSettings
 from kftune.models import StateSpaceModel, get_model, model_names
+from kftune.models.user import model_file_sha256
 from kftune.tuning.problem import RunResult, TuningProblem, filter_spec, model_output
 from kftune.vehicle.params import VehicleParams
 
@@ -80,8 +81,10 @@ def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[
     q, r, settings = problem.decode(x)
     model = problem.model
     fs = filter_spec(problem.model_spec, problem.filter, problem.vehicle)
+    file_sha = model_file_sha256(problem.model_spec)
     return {
         "model": problem.model_spec,
+        **({"model_sha256": file_sha} if file_sha else {}),
         "filter": problem.filter,
         "dt": float(dataset.dt),
         "vehicle": None if problem.vehicle is None else problem.vehicle.to_dict(),
@@ -276,6 +279,20 @@ def mismatches(
                 + (f" and {len(differ) - 3} more parameters" if len(differ) > 3 else "")
             )
     return out
+
+
+def model_file_changed(doc: Mapping[str, Any]) -> str | None:
+    """How the model file of a tuned-parameters file differs from the one it was tuned with
+    (the SHA-256 ``deployment.model_sha256`` records), in words; None when it is the same,
+    or when either is unknown (a built-in model, an older file, an unreadable one)."""
+    recorded = (doc.get("deployment") or {}).get("model_sha256")
+    now = model_file_sha256(doc.get("model", ""))
+    if not isinstance(recorded, str) or now is None or now == recorded:
+        return None
+    return (
+        f"the model file {doc['model']} has changed since the filter was tuned (sha256 "
+        f"{recorded[:12]}… then, {now[:12]}… now)"
+    )
 
 
 def finite_number(value: Any) -> bool:

@@ -28,7 +28,7 @@ from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf, run_ukf_simd
 from kftune.filters.generic import FilterResult, ModelFilter, get_filter
 from kftune.models import DataRefused, StateSpaceModel, model_names
-from kftune.models.user import load_model
+from kftune.models.user import load_model, model_file_sha256
 from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
 from kftune.tuning.cost import (
@@ -864,15 +864,19 @@ class TuningProblem:
         }
         if spec.normalise != "manoeuvre":  # the paper's Eq. 15 keeps earlier fingerprints
             described["cost"]["normalise"] = spec.normalise
+        file_sha = model_file_sha256(self._fs.spec)
         if not self._fs.fast:  # the paper's pair keeps the fingerprints of earlier studies
             described["model"] = {"name": self._fs.model.name, "filter": self._fs.filter}
+            if file_sha is not None:  # an edited model file is another objective
+                described["model"]["file_sha256"] = file_sha
         h.update(json.dumps(described, sort_keys=True).encode())
         names = [m.name for m in self.manoeuvres]
         return {
             "summary": f"{len(names)} manoeuvres ({names[0]} … {names[-1]}), "
             f"{self.vehicle.name if self.vehicle is not None else 'no vehicle'}, "
             f"cost {spec.kind}"
-            + (f" ({spec.normalise}-normalised)" if spec.normalise != "manoeuvre" else ""),
+            + (f" ({spec.normalise}-normalised)" if spec.normalise != "manoeuvre" else "")
+            + (f", model file sha256 {file_sha[:12]}" if file_sha else ""),
             "sha256": h.hexdigest(),
         }
 
