@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -203,6 +204,31 @@ def test_values_that_print_alike_are_all_bold():
         t.to_markdown()
         == "| KPI | A | B | C |\n| --- | --- | --- | --- |\n| x | **0.454** | **0.454** | 0.500 |"
     )
+
+
+@pytest.mark.parametrize(
+    "span", [(0.0012, 0.009), (0.025, 0.09), (0.055, 0.09), (0.02, 5.0), (0.01, 300.0)]
+)
+def test_convergence_time_labels_do_not_overlap(results, span):
+    """Under a decade of wall time, the log axis labelled its minor ticks too, and
+    "3×10⁻²4×10⁻²6×10⁻²" ran together."""
+    from kftune.report import plots
+
+    for m in results.methods:
+        m.history_time_s = list(np.geomspace(*span, len(m.history_time_s)))
+    fig = plots.convergence(results)
+    fig.canvas.draw()
+    ax = fig.axes[1]
+    boxes = [
+        t.get_window_extent()
+        for t in (*ax.get_xticklabels(), *ax.get_xticklabels(minor=True))
+        if t.get_visible()
+        and t.get_text()
+        and ax.get_xlim()[0] <= t.get_position()[0] <= ax.get_xlim()[1]
+    ]
+    assert len(boxes) >= 2  # the axis is labelled
+    boxes.sort(key=lambda b: b.x0)
+    assert all(a.x1 <= b.x0 for a, b in itertools.pairwise(boxes)), [b.x0 for b in boxes]
 
 
 def test_parameter_note_names_the_columns_it_has():

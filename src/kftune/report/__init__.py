@@ -93,8 +93,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
         stems.add(stem)
         shown = tuple(k for k in ("ga", "tsbo-tsp", "trbo") if k in keys)
         kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
-        if channels is not None:
-            shown = shown or tuple(m.key for m in results.methods)
+        if channels is not None:  # a model of one's own: every method, none left out
+            shown = tuple(m.key for m in results.methods)
         labels = ", ".join(results.method(k).label for k in shown)
         if channels is not None:
             plots.save(plots.channel_traces(results, name, shown), out / "figures" / stem)

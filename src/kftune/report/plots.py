@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -16,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 
 from kftune.report.results import ExperimentResults
 from kftune.report.tables import channel_metrics, relative_improvement, scored_channels
@@ -70,6 +72,7 @@ def convergence(results: ExperimentResults) -> Figure:
     ax_n.set_xlabel("cost evaluations")
     ax_t.set_xlabel("tuning wall time [s]")
     ax_t.set_xscale("log")
+    _label_log_axis(ax_t.xaxis, *ax_t.get_xlim())
     ax_n.set_ylabel("best cost J [-]")
     for ax in (ax_n, ax_t):
         ax.set_yscale("log")
@@ -77,6 +80,27 @@ def convergence(results: ExperimentResults) -> Figure:
     ax_n.legend(fontsize=8)
     fig.suptitle("Convergence of the tuning methods (training set)")
     return fig
+
+
+def _label_log_axis(axis: Any, low: float, high: float) -> None:
+    """Label a log axis with plain numbers (0.002, not 2×10⁻³), as many as fit: the
+    decades over two decades and more, also the 2s and 5s over one, also the 3s under one,
+    every tick under 0.3 of a decade (matplotlib labelled every minor tick of a span under
+    a decade in scientific notation, and the labels ran together)."""
+    decades = math.log10(high / low) if 0 < low < high else 2.0
+    shown = (
+        set(range(1, 10)) if decades < 0.3
+        else {1, 2, 3, 5} if decades < 1
+        else {1, 2, 5} if decades < 2
+        else {1}
+    )  # fmt: skip
+
+    def label(value: float, _pos: int) -> str:
+        mantissa = round(value / 10 ** math.floor(math.log10(value) + 1e-9), 6)
+        return f"{value:g}" if mantissa in shown else ""
+
+    axis.set_major_formatter(FuncFormatter(label))
+    axis.set_minor_formatter(FuncFormatter(label))
 
 
 def improvement(
