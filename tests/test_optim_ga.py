@@ -169,3 +169,17 @@ def test_crossover_children_are_rounded_as_matlab_does(population, fraction, n_x
     ga = GeneticAlgorithm({"a": (0, 1)}, population_size=population, crossover_fraction=fraction)
     assert ga.n_elite == 1
     assert (ga.n_xover, ga.n_mut) == (n_xover, population - 1 - n_xover)
+
+
+def test_a_budget_that_breeds_no_generation_warns():
+    """A GA of 10 evaluations is 10 random points: compare called it "GA" in every table."""
+    from kftune.errors import SettingWarning
+    from kftune.optim import make_optimizer
+
+    with pytest.warns(SettingWarning, match=r"no generation is bred: this GA is a random"):
+        make_optimizer("ga", {"x": (0.0, 1.0)}, budget=10)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SettingWarning)
+        make_optimizer("ga", {"x": (0.0, 1.0)}, budget=16)  # one (partial) generation

@@ -85,6 +85,11 @@ class DataWarning(UserWarning):
     prints it as ``kftune: warning: …``."""
 
 
+class SettingWarning(DataWarning):
+    """A setting that runs but does not do what its name says (a GA whose budget breeds no
+    generation: random search); printed by the CLI as a :class:`DataWarning`."""
+
+
 class UsageError(ConfigError):
     """Command-line options that contradict each other; the CLI exits with 2 (usage), as
     for options argparse refuses. The message names the options."""

@@ -302,6 +302,12 @@ def scored_channels(model: StateSpaceModel, dataset: Dataset, cost: CostSpec) ->
     reference (nis, pem, msp). A unit is the model's for a measurement or state, else the
     unit the dataset declares for ``<channel>_ref`` ("" if none)."""
     names = cost.channels if cost.kind == "nrmse" else model.measurement_names
+    return channel_units(model, dataset, names)
+
+
+def channel_units(model: StateSpaceModel, dataset: Dataset, names: Sequence[str]) -> dict[str, str]:
+    """Channel → unit of scored channels: the model's for a measurement or state, else the
+    unit the dataset declares for ``<channel>_ref`` ("" if none)."""
     units = {
         **dict(zip(model.state_names, model.state_units)),
         **dict(zip(model.measurement_names, model.measurement_units)),

@@ -317,7 +317,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from kftune.data import open_dataset
-    from kftune.experiment import manual_point
+    from kftune.experiment import channel_units, manual_point
     from kftune.filters import UKFSettings
     from kftune.tuning.deploy import TunedFilter
     from kftune.tuning.kpi import average_kpis
@@ -436,6 +436,15 @@ def run(args: argparse.Namespace) -> int:
         "diverged": reason,
         "missing_references": missing,
         "average": {k: _num(v) for k, v in avg.items()},
+        **(
+            {}
+            if sideslip
+            else {
+                "units": channel_units(
+                    problem.model, dataset, [k[5:] for k in avg if k.startswith("rmse_")]
+                )
+            }
+        ),
         "manoeuvres": {
             name: {
                 "kind": dataset[name].kind,
@@ -493,7 +502,8 @@ def _print_table(doc: dict[str, Any]) -> None:
         averaged: tuple[str, ...] = KPI_NAMES
     else:  # another model: the RMSE of each measurement and referenced output
         cols = tuple(k for k in doc["average"] if k.startswith("rmse_"))
-        heads = tuple(f"RMSE {k[5:]}" for k in cols)
+        units = doc.get("units", {})
+        heads = tuple(f"RMSE {k[5:]} {units.get(k[5:], '')}".rstrip() for k in cols)
         averaged = cols
     widths = [max(10, len(h)) for h in heads]
     width = max(12, *(len(n) for n in rows))

@@ -96,13 +96,17 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--storage", type=Path, help="SQLite study file saving every evaluation")
     p.add_argument(
-        "--resume", action="store_true", help="continue the study in --storage where it stopped"
+        "--resume",
+        action="store_true",
+        help="continue the study in --storage where it stopped, with the settings it was "
+        "created with (the same -n, method, seed and data; for a larger budget start a new "
+        "study)",
     )
     p.add_argument(
         "--timeout",
         type=TIMEOUT_SECONDS,
         help="per-evaluation time limit [s], at most 1e6; a slower evaluation fails and the "
-        "run goes on",
+        "run goes on (not with --batch or --scheduler)",
     )
     p.add_argument(
         "--scheduler",

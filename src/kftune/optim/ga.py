@@ -42,10 +42,12 @@ parameters. Failed evaluations score +inf, so they rank last.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, ClassVar
 
 import numpy as np
 
+from kftune.errors import SettingWarning
 from kftune.optim.base import SAME_POINT_ATOL, Optimizer, Proposal, Trial
 
 
@@ -109,6 +111,14 @@ class GeneticAlgorithm(Optimizer):
         if not isinstance(generations, (int, np.integer)) or generations < 0:
             raise ValueError(f"generations must be a non-negative integer, got {generations!r}")
         self.generations = int(generations)
+        if self.generations == 0:
+            warnings.warn(
+                f"GA: with a budget of {self.budget} evaluations and a population of "
+                f"{self.population_size}, no generation is bred: this GA is a random search "
+                "(the paper's: 225 evaluations, 15 generations)",
+                SettingWarning,
+                stacklevel=2,
+            )
         self.crossover_fraction = float(crossover_fraction)
         self.mutation_scale = float(mutation_scale)
         self.mutation_shrink = float(mutation_shrink)
