@@ -132,8 +132,17 @@ def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_
     assert est.returncode == 0, est.stderr
     rows = (tmp_path / "est" / "run-3.csv").read_text().splitlines()
     header = rows[0].split(",")
-    assert {"t", "px", "v_std", "innovation_py", "nis"} <= set(header)
+    assert {"t", "px", "v_std", "innovation_py", "nis", "v_ref"} <= set(header)
     assert len(rows) - 1 == load_dataset(track)["run-3"].n
+    # its references: the RMSE of each, in its unit, and a figure (none were written)
+    assert (tmp_path / "est" / "run-3.png").stat().st_size > 5000
+    assert "RMSE v m/s" in est.stdout
+    js = kftune("estimate", str(track), "--params", str(out), "-o", str(tmp_path / "e2"),
+                "--json", "--no-plot")  # fmt: skip
+    row = json.loads(js.stdout)["manoeuvres"]["run-3"]
+    table = np.genfromtxt(tmp_path / "est" / "run-3.csv", delimiter=",", names=True)
+    assert row["rmse"]["v"] == pytest.approx(np.sqrt(np.mean((table["v"] - table["v_ref"]) ** 2)))
+    assert row["units"]["v"] == "m/s"
     c_file = tmp_path / "kf.h"
     exp = kftune("export", str(out), "--format", "c", "-o", str(c_file))
     assert exp.returncode == 0, exp.stderr

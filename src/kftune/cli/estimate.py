@@ -16,11 +16,14 @@ one figure (``--no-plot`` leaves them out):
              variances (their covariance is not kept, so it is left out); the innovations
              innovation_<measurement> (z − predicted z, in the measurement's unit); nis [-]
              (normalised innovation squared); and beta_ref [rad] where the recording has a
-             reference sideslip. SI units throughout.
-  NAME.png   β with its ±2σ band, and the reference and the error where there is one.
+             reference sideslip — for another model, <name>_ref for each state or output
+             the recording has a reference of. SI units throughout.
+  NAME.png   β with its ±2σ band, and the reference and the error where there is one (for
+             another model: its first state or output with a reference).
 
 With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error, and both
-for |ay| ≥ 4 m/s², in degrees) after the file's burn-in.
+for |ay| ≥ 4 m/s², in degrees) after the file's burn-in; for another model, the RMSE of
+each referenced state or output in its unit.
 
 It refuses (exit 3) recordings whose sample time differs from the tuned one by more than
 1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones, as
@@ -112,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
 
     from kftune.data import open_dataset
     from kftune.data.io import file_stem
-    from kftune.tuning.deploy import TunedFilter, estimate
+    from kftune.tuning.deploy import TunedFilter, estimate, referenced
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
     from kftune.tuning.problem import first_scored, where_diverged
 
@@ -168,16 +171,23 @@ def run(args: argparse.Namespace) -> int:
         if est.result.diverged:
             row["diverged_at"] = where_diverged(m, est.result)
             diverged.append(row["diverged_at"])
-        if not args.no_plot and "beta" in est.columns:
+        others = referenced(est)  # a model of one's own: its channels with a reference
+        for c in others:  # an output's unit is the one the dataset declares for its reference
+            if not est.units.get(c):
+                est.units[c] = est.units[f"{c}_ref"] = dataset.units.get(f"{c}_ref", "")
+        shown = "beta" if "beta" in est.columns else (others[0] if others else None)
+        if not args.no_plot and shown is not None:
             from kftune.report import plots
 
             figure = args.out / f"{stem}.png"
             fig = plots.estimate_trace(
                 m.t,
-                est.columns["beta"],
-                est.columns.get("beta_std"),
-                est.columns.get("beta_ref"),
-                f"Sideslip estimate, {m.name}",
+                est.columns[shown],
+                est.columns.get(f"{shown}_std"),
+                est.columns.get(f"{shown}_ref"),
+                f"Sideslip estimate, {m.name}" if shown == "beta" else f"{shown}, {m.name}",
+                label="β" if shown == "beta" else shown,
+                unit=est.units.get(shown, ""),
             )
             with writing(f"the figure {figure}", keep):
                 plots.save(fig, figure)
@@ -193,6 +203,17 @@ def run(args: argparse.Namespace) -> int:
                 )
             kpis.append(kpi)
             row["kpis"] = {k: _num(v) for k, v in kpi.items()}
+        elif others:  # the RMSE of each referenced channel, in its unit, after the burn-in
+            k0 = first_scored(m, tuned.burn_in)
+            row["rmse"] = {
+                c: _num(
+                    float(
+                        np.sqrt(np.mean((est.columns[c][k0:] - est.columns[f"{c}_ref"][k0:]) ** 2))
+                    )
+                )
+                for c in others
+            }
+            row["units"] = {c: est.units.get(c, "") for c in others}
         out["manoeuvres"][m.name] = row
     out["average"] = {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
     if args.json:
@@ -232,13 +253,17 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
     width = max(12, *(len(n) for n in rows))
     with_kpis = any("kpis" in r for r in rows.values())
     heads = ("mean NIS", "RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°") if with_kpis else ("mean NIS",)
-    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>10s}" for h in heads))
+    units = next((r["units"] for r in rows.values() if "units" in r), {})
+    heads += tuple(f"RMSE {c} {u}".rstrip() for c, u in units.items())
+    widths = [max(10, len(h)) for h in heads]
+    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
     for name, row in rows.items():
-        cells = [_cell(row.get("mean_nis"))]
+        cells = [row.get("mean_nis")]
         if with_kpis:
             k = row.get("kpis", {})
-            cells += [_cell(k.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
-        print(f"{name:{width}s} " + " ".join(cells))
+            cells += [k.get(c) for c in ("rmse", "mae", "rmse_non", "mae_non")]
+        cells += [row.get("rmse", {}).get(c) for c in units]
+        print(f"{name:{width}s} " + " ".join(_cell(v, w) for v, w in zip(cells, widths)))
     if doc["average"] is not None:
         avg = doc["average"]
         cells = [" " * 10] + [_cell(avg.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
@@ -252,5 +277,5 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
     print(f"estimates written to {doc['out']} ({files})")
 
 
-def _cell(v: float | None) -> str:
-    return f"{'–':>10s}" if v is None else f"{v:10.4f}"
+def _cell(v: float | None, width: int = 10) -> str:
+    return f"{'–':>{width}s}" if v is None else f"{v:{width}.4f}"

@@ -288,9 +288,12 @@ def estimate_trace(
     beta_std: np.ndarray | None,
     beta_ref: np.ndarray | None,
     title: str,
+    label: str = "β",
+    unit: str = "rad",
 ) -> Figure:
-    """``kftune estimate``: the sideslip estimate [rad in, degrees shown] with its ±2σ band
-    and, when there is one, the reference and the error."""
+    """``kftune estimate``: an estimate (by default the sideslip β) with its ±2σ band and,
+    when there is one, the reference and the error; radians are shown in degrees, other
+    units as they are."""
     rows = 2 if beta_ref is not None else 1
     fig, axes = plt.subplots(
         rows,
@@ -301,23 +304,25 @@ def estimate_trace(
         gridspec_kw={"height_ratios": [2, 1][:rows]},
     )
     ax = axes[0, 0]
-    est = np.degrees(beta)
+    show = np.degrees if unit == "rad" else np.asarray
+    shown_unit = "deg" if unit == "rad" else unit or "-"
+    est = show(beta)
     colour = COLOURS["estimate"]
     if beta_std is not None:
-        band = 2.0 * np.degrees(beta_std)
+        band = 2.0 * show(beta_std)
         ax.fill_between(t, est - band, est + band, color=colour, alpha=0.25, lw=0, label="±2σ")
     ax.plot(t, est, color=colour, lw=1.0, label="estimate")
     if beta_ref is not None:
-        ref = np.degrees(beta_ref)
+        ref = show(beta_ref)
         ax.plot(t, ref, color=COLOURS["reference"], lw=1.0, label="reference")
         ax_e = axes[1, 0]
         ax_e.axhline(0.0, color="black", lw=0.6)
         if beta_std is not None:
             ax_e.fill_between(t, -band, band, color=colour, alpha=0.25, lw=0, label="±2σ")
         ax_e.plot(t, est - ref, color=colour, lw=0.9, label="estimate − reference")
-        ax_e.set_ylabel("error [deg]")
+        ax_e.set_ylabel(f"error [{shown_unit}]")
         ax_e.legend(fontsize=8, loc="best")
-    ax.set_ylabel("β [deg]")
+    ax.set_ylabel(f"{label} [{shown_unit}]")
     ax.set_title(title)
     ax.legend(fontsize=8, loc="best")
     axes[-1, 0].set_xlabel("time [s]")

@@ -403,4 +403,16 @@ def estimate(tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams) -> Estima
     if ref is not None:
         cols["beta_ref"] = ref
         units["beta_ref"] = "rad"
+    for name in (*model.state_names, *model.outputs):  # the references a model's user has
+        if name != "beta" and f"{name}_ref" not in cols:
+            other = reference(m, f"{name}_ref")
+            if other is not None:
+                cols[f"{name}_ref"] = other
+                units[f"{name}_ref"] = units.get(name, "")
     return Estimates(columns=cols, units=units, result=res)
+
+
+def referenced(est: Estimates) -> list[str]:
+    """The estimated channels (states and outputs other than β) with a reference column
+    ``<name>_ref`` in ``est``, in column order."""
+    return [c for c in est.columns if c != "beta" and f"{c}_ref" in est.columns]
