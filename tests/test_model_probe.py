@@ -151,3 +151,21 @@ def test_estimate_probes_the_model_too(monkeypatch):
     )  # fmt: skip
     with pytest.raises(ConfigError, match=r"^model cv1d-raises, on manoeuvre 'track': f\(x"):
         estimate(tuned, m, None)
+
+
+def test_measurement_units_must_be_the_datas():
+    """A model that says km for a channel the dataset holds in metres was tuned silently on
+    numbers 1000 times off its own description."""
+    from types import SimpleNamespace
+
+    from kftune.tuning.problem import check_units
+
+    data = SimpleNamespace(name="track", units={"pos": "m"})
+    check_units(cv(), data)  # the same unit
+    km = StateSpaceModel(
+        name="cv-km", state_names=("pos", "vel"), state_units=("km", "km/s"), input_names=(),
+        input_units=(), measurement_names=("pos",), measurement_units=("km",), f=f_cv, h=h_cv,
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match=r"measurement 'pos' is in 'km', but the dataset 'track'"):
+        check_units(km, data)
+    check_units(km, SimpleNamespace(name="other", units={}))  # a unit the data do not say

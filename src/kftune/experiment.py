@@ -52,6 +52,7 @@ from kftune.tuning.problem import (
     TuningProblem,
     assess,
     channel_estimate,
+    check_units,
     default_r0,
     filter_spec,
     model_output,
@@ -468,6 +469,7 @@ def run_compare(
         raise ConfigError(f"dataset {dataset.name!r} has no training manoeuvres")
     fs = filter_spec(settings.model, settings.filter, dataset.vehicle)
     sideslip = sideslip_report(fs.model, dataset)  # before anything is written or run
+    check_units(fs.model, dataset)
     out = Path(out_dir)
     studies = out / "studies"
     existing = sorted(studies.glob("*.db"))

@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data.io import file_stem
     from kftune.tuning.deploy import TunedFilter, estimate, referenced
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
-    from kftune.tuning.problem import first_scored, where_diverged
+    from kftune.tuning.problem import check_units, first_scored, where_diverged
 
     parquet = _parquet_writer() if args.format == "parquet" else None
     output_dir(args.out, "--out")
@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         manoeuvres = list(dataset.manoeuvres)
     vehicle, notes = check_recordings(tuned.document, args.params, dataset, manoeuvres, args.force)
     # the model it was tuned with, loaded once before any output (a lost one is named)
-    filter_spec_of(args, {}, vehicle, (args.params, tuned.document))
+    check_units(filter_spec_of(args, {}, vehicle, (args.params, tuned.document)).model, dataset)
     out: dict[str, Any] = {
         "params": str(args.params),
         "dataset": dataset.name,

@@ -326,6 +326,7 @@ def run(args: argparse.Namespace) -> int:
         NoiseParameterization,
         TuningProblem,
         assess,
+        check_units,
         default_r0,
         missing_references,
         where_diverged,
@@ -345,6 +346,7 @@ def run(args: argparse.Namespace) -> int:
         vehicle, _ = check_recordings(tuned, args.params, dataset, manoeuvres, args.force)
     # unless told otherwise, the model the parameters were tuned for
     fs = filter_spec_of(args, config, vehicle, None if tuned is None else (args.params, tuned))
+    check_units(fs.model, dataset)
     model = fs.model
     # unless told otherwise, score the way the parameters were tuned: what the command line
     # and the configuration give replaces that part of the tuned file's cost

@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
         from kftune.data import open_dataset
         from kftune.experiment import require_success, tune
         from kftune.optim import OptimizationInterrupted
-        from kftune.tuning.problem import TuningProblem, default_r0
+        from kftune.tuning.problem import TuningProblem, check_units, default_r0
 
         dataset = open_dataset(pick(args, config, "dataset", None))
         if not dataset.train:
@@ -184,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
             )
         method = pick(args, config, "method", DEFAULT_METHOD)  # both checked already
         fs = filter_spec_of(args, config, dataset.vehicle)
+        check_units(fs.model, dataset)
         scheduler = pick(args, config, "scheduler", None)
         workers = pick(args, config, "workers", 1)
         problem = TuningProblem(

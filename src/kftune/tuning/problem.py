@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from kftune.data.manoeuvre import Dataset, Manoeuvre
+from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT, UNITS
 from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf, run_ukf_simd
 from kftune.filters.generic import FilterResult, ModelFilter, get_filter
@@ -233,6 +234,33 @@ def output_names(model: StateSpaceModel) -> tuple[str, ...]:
     measurements (the single-track ``vy``, the CTRV model's ``v``, ``psi``, ``omega``)."""
     states = [s for s in model.state_names if s not in model.measurement_names]
     return (*model.outputs, *(s for s in states if s not in model.outputs))
+
+
+def check_units(model: StateSpaceModel, dataset: Dataset) -> None:
+    """Refuse a model whose inputs or measurements are in other units than the dataset's
+    channels of the same names (SI, as kftune holds every channel; a model that says km
+    would read metres as kilometres).
+
+    Raises:
+        ConfigError: naming the model, the channel and both units.
+    """
+    for kind, names, units in (
+        ("input", model.input_names, model.input_units),
+        ("measurement", model.measurement_names, model.measurement_units),
+    ):
+        for name, unit in zip(names, units):
+            dim = CHANNEL_DIMENSION.get(name)
+            data = SI_UNIT[dim] if dim is not None else dataset.units.get(name)
+            if data is None or unit.strip() == data:
+                continue
+            ours, theirs = UNITS.get(unit.strip()), UNITS.get(data)
+            if ours is not None and theirs is not None and ours == theirs:
+                continue  # two spellings of one unit
+            raise ConfigError(
+                f"model {model.name!r}: {kind} {name!r} is in {unit!r}, but the dataset "
+                f"{dataset.name!r} holds it in {data!r} (SI): give the model's units as the "
+                "data's"
+            )
 
 
 def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
