@@ -177,6 +177,37 @@ def test_unreachable_scheduler_and_missing_extra_are_bad_input(monkeypatch, prob
     assert main(["tune", "--scheduler", "local", "-n", "2", "-q", "-o", os.devnull]) == 3
 
 
+def test_ctrl_c_on_a_local_cluster_prints_no_worker_tracebacks(tmp_path):
+    """A terminal's Ctrl-C reaches the whole process group: each local worker printed a
+    KeyboardInterrupt traceback (71 lines on stderr). The workers now ignore SIGINT; the
+    command says what was kept, in three lines, and exits 130."""
+    db = tmp_path / "study.db"
+    cmd = [sys.executable, "-m", "kftune", "tune", "--scheduler", "local", "--workers", "2"]
+    cmd += ["-n", "100", "--storage", str(db), "-o", str(tmp_path / "t.json")]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True, text=True
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
+                    done = conn.execute("SELECT count(*) FROM trials WHERE state = ?", (COMPLETE,))
+                    if done.fetchone()[0] >= 3:
+                        os.killpg(proc.pid, signal.SIGINT)  # as a terminal does
+                        break
+            except sqlite3.Error:
+                pass
+            time.sleep(0.05)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and "ERROR" not in err, err[-2000:]
+    assert "continue with the same command plus --resume" in err
+
+
 @pytest.mark.parametrize("address", ["foo", "tcp:/127.0.0.1", "tcp://127.0.0.1:99999", ""])
 def test_a_malformed_scheduler_address_is_refused_before_connecting(problem, address):
     """distributed raised its own ValueError for these (a traceback, exit 1); port 99999

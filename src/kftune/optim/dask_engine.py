@@ -30,7 +30,10 @@ Workers that die
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
@@ -78,6 +81,21 @@ def _task_chunk(problem: Any, x: np.ndarray, indices: list[int]) -> tuple[Any, .
         except Exception as exc:
             return "error", describe(exc), time.perf_counter() - t0, i
     return "ok", scores, time.perf_counter() - t0
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while worker processes start (they keep it ignored: a Ctrl-C in the
+    terminal reaches the whole process group, and each worker printed its traceback), then
+    the caller's handler again. Only in the main thread, where handlers can be set."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _check_address(scheduler: str) -> None:
@@ -141,7 +159,10 @@ class DaskEngine(Engine):
         elif scheduler is not None:
             _check_address(scheduler)
         if scheduler in (None, "local"):
-            with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+            with (
+                dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+                _sigint_ignored(),  # the workers inherit it: Ctrl-C is the client's to handle
+            ):
                 self._cluster = distributed.LocalCluster(
                     n_workers=workers,
                     processes=True,
