@@ -177,6 +177,25 @@ def test_unreachable_scheduler_and_missing_extra_are_bad_input(monkeypatch, prob
     assert main(["tune", "--scheduler", "local", "-n", "2", "-q", "-o", os.devnull]) == 3
 
 
+def test_an_address_that_is_not_a_dask_scheduler_is_given_up(problem, monkeypatch):
+    """A service that accepts the connection and never answers in Dask's protocol (an HTTP
+    server on the port) made tune wait for ever: distributed's timeout does not cover the
+    handshake."""
+    import socket
+
+    from kftune.optim import dask_engine
+
+    monkeypatch.setattr(dask_engine, "HANDSHAKE_GRACE", 1.0)
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        t0 = time.perf_counter()
+        with pytest.raises(ConfigError, match=r"cannot reach .* is it a Dask scheduler\?"):
+            DaskEngine(problem, scheduler=f"tcp://127.0.0.1:{port}", connect_timeout=1.0)
+        assert time.perf_counter() - t0 < 10
+
+
 def test_ctrl_c_on_a_local_cluster_prints_no_worker_tracebacks(tmp_path):
     """A terminal's Ctrl-C reaches the whole process group: each local worker printed a
     KeyboardInterrupt traceback (71 lines on stderr). The workers now ignore SIGINT; the

@@ -98,6 +98,33 @@ def _sigint_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
+#: How long past the connect timeout a handshake may take before the address is given up
+#: on (something that is not a Dask scheduler accepts the connection and never answers).
+HANDSHAKE_GRACE = 5.0
+
+
+def _connect(distributed: Any, scheduler: str, timeout: float) -> Any:
+    """A client of the scheduler at ``scheduler``, or TimeoutError when none answers
+    within ``timeout`` + :data:`HANDSHAKE_GRACE` seconds (distributed's own timeout does
+    not cover a handshake with a service that is not Dask's: it waited for ever)."""
+    box: dict[str, Any] = {}
+
+    def connect() -> None:
+        try:
+            box["client"] = distributed.Client(scheduler, timeout=timeout)
+        except BaseException as exc:  # handed to the caller
+            box["error"] = exc
+
+    thread = threading.Thread(target=connect, name="kftune-dask-connect", daemon=True)
+    thread.start()
+    thread.join(timeout + HANDSHAKE_GRACE)
+    if thread.is_alive():
+        raise TimeoutError("no answer in Dask's protocol: is it a Dask scheduler?")
+    if "error" in box:
+        raise box["error"]
+    return box["client"]
+
+
 def _check_address(scheduler: str) -> None:
     """Refuse a scheduler address that is not ``[PROTOCOL://]HOST:PORT`` with a port in
     1–65535 (before any connection is tried).
@@ -173,7 +200,7 @@ class DaskEngine(Engine):
             self.client = distributed.Client(self._cluster)
         else:
             try:
-                self.client = distributed.Client(scheduler, timeout=connect_timeout)
+                self.client = _connect(distributed, scheduler, connect_timeout)
             except (OSError, TimeoutError) as exc:
                 raise ConfigError(
                     f"cannot reach the Dask scheduler at {scheduler!r} within "
