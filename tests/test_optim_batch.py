@@ -14,6 +14,10 @@ from kftune.optim import METHODS, make_optimizer
 from kftune.optim.base import coincides
 from test_optim_contract import SPACE, _method, _options, objective
 
+#: The contract runs every method on small budgets: the GA's "no generation" warning
+#: is expected there.
+pytestmark = pytest.mark.filterwarnings("ignore::kftune.errors.SettingWarning")
+
 
 def _drive(method: str, q: int, order_seed: int, budget: int = 14) -> list:
     opt = make_optimizer(_method(method), SPACE, budget=budget, seed=0, **_options(method))

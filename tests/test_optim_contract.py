@@ -14,6 +14,10 @@ from hypothesis import strategies as st
 from kftune.optim import METHODS, ExhaustedError, make_optimizer, minimize
 from kftune.optim.base import coincides
 
+#: The contract runs every method on small budgets: the GA's "no generation" warning
+#: is expected there.
+pytestmark = pytest.mark.filterwarnings("ignore::kftune.errors.SettingWarning")
+
 SPACE = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10"), "c": (0.0, 1.0)}
 BUDGET = 12
 

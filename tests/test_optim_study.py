@@ -31,6 +31,10 @@ WORKER = HERE / "optim_study_worker.py"
 sys.path.insert(0, str(HERE))
 from optim_study_worker import SPACE, method_options, objective  # noqa: E402
 
+#: The contract runs every method on small budgets: the GA's "no generation" warning
+#: is expected there.
+pytestmark = pytest.mark.filterwarnings("ignore::kftune.errors.SettingWarning")
+
 
 def strip_timings(res: OptimizeResult) -> dict:
     """The result as a dict without wall-clock timings (the only legitimate difference)."""
