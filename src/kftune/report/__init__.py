@@ -215,7 +215,9 @@ def parameter_note(names: Sequence[str]) -> str:
 RMSE_NOTE = (
     "RMSE: root-mean-square error of each scored channel (the cost's channels, or every "
     "measurement for a cost without a reference) against its reference `<channel>_ref`, "
-    "or against the measured channel for a measurement, averaged over the manoeuvres."
+    "or against the measured channel for a measurement, averaged over the manoeuvres. "
+    "Against a measurement, a lower RMSE is not a more accurate filter: one that follows "
+    "the measurement noise scores lowest there; only a reference says how accurate it is."
 )
 
 
