@@ -770,14 +770,19 @@ def test_normalise_is_refused_for_a_file_tuned_with_another_cost(small, tmp_path
     assert "--normalise: the pem cost (the cost the parameters were tuned with)" in res.stderr
 
 
+def closing_hint(dataset: Path, out: Path) -> tuple[str, list[str]]:
+    """Tune briefly on ``dataset`` into ``out``: tune's last line, and the command in it."""
+    res = kftune("tune", str(dataset), "-n", "2", "-q", "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    hint = res.stdout.strip().splitlines()[-1]
+    return hint, shlex.split(hint.split(": ", 1)[1])
+
+
 def test_tune_ends_with_a_command_that_runs(small, tmp_path):
     """The closing hint is a whole command (dataset, tuned file, split), and it works."""
     out = tmp_path / "a b.json"
-    res = kftune("tune", str(small), "-n", "2", "-q", "-o", str(out))
-    assert res.returncode == 0, res.stderr
-    hint = res.stdout.strip().splitlines()[-1]
+    hint, argv = closing_hint(small, out)
     assert hint.startswith("KPIs per test manoeuvre: kftune evaluate ")
-    argv = shlex.split(hint.split(": ", 1)[1])
     assert argv[2] == str(small) and str(out) in argv
     ev = kftune(*argv[1:])
     assert ev.returncode == 0, ev.stderr
@@ -792,11 +797,8 @@ def test_without_test_manoeuvres_tune_and_evaluate_use_the_training_ones(tmp_pat
     only_train = tmp_path / "train-only"
     save_dataset(default_dataset().subset(SMALL_TRAIN), only_train)
     out = tmp_path / "t.json"
-    res = kftune("tune", str(only_train), "-n", "2", "-q", "-o", str(out))
-    assert res.returncode == 0, res.stderr
-    hint = res.stdout.strip().splitlines()[-1]
+    hint, argv = closing_hint(only_train, out)
     assert hint.startswith("KPIs per training manoeuvre (the dataset has no test manoeuvres): ")
-    argv = shlex.split(hint.split(": ", 1)[1])
     assert argv[-2:] == ["--split", "train"]
     ev = kftune(*argv[1:])
     assert ev.returncode == 0, ev.stderr

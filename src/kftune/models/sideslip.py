@@ -238,13 +238,13 @@ def check_forward_speed(z: np.ndarray) -> None:
     bad = z[:, 0] <= 0
     if bad.any():
         row = int(np.argmax(bad))
-        reason = (
-            f"Vx = {float(z[row, 0]):.4g} m/s; the measured longitudinal speed must be > 0 "
-            "(the single-track slip-angle model is for forward driving: cut standstill and "
-            "reversing out of the manoeuvre)"
+        why = (
+            "the measured longitudinal speed must be > 0 (the single-track slip-angle model "
+            "is for forward driving: cut standstill and reversing out of the manoeuvre)"
         )
+        reason = f"Vx = {float(z[row, 0]):.4g} m/s; {why}"
         raise DataRefused(
-            f"z[{row}, 0] (Vx) = {float(z[row, 0])} m/s; {reason.partition('; ')[2]}",
+            f"z[{row}, 0] (Vx) = {float(z[row, 0])} m/s; {why}",
             array="z",
             row=row,
             column=0,
