@@ -26,8 +26,10 @@ def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     assert doc["filter"] == "ukf"
     assert doc["states"] == ["vx", "vy", "r"] and set(doc["params"]) == {"q_vx", "q_vy", "q_r"}
     assert doc["n_evals"] == 6 and doc["cost"] > 0
-    # evaluate takes the model from the tuned file and scores the same cost
-    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
+    # evaluate runs the model file the user names (checked against the tuned file's record)
+    # and scores the same cost
+    ev = kftune("evaluate", str(small), "--params", str(out), "--model", str(model), "--split",
+                "train", "--json")  # fmt: skip
     assert ev.returncode == 0, ev.stderr
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
 
@@ -44,13 +46,15 @@ def test_an_edited_model_file_is_not_taken_for_the_tuned_one(small, tmp_path):
     assert res.returncode == 0, res.stderr
     doc = json.loads(out.read_text())
     assert len(doc["deployment"]["model_sha256"]) == 64
-    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train")
+    named = ("--model", str(model))
+    ev = kftune("evaluate", str(small), "--params", str(out), *named, "--split", "train")
     assert ev.returncode == 0 and "model file" not in ev.stderr, ev.stderr
     model.write_text(model.read_text() + "\n# an edit\n")
-    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train")
+    ev = kftune("evaluate", str(small), "--params", str(out), *named, "--split", "train")
     assert ev.returncode == 3, ev.stderr
     assert "has changed since the filter was tuned" in ev.stderr and "--force" in ev.stderr
-    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--force")
+    ev = kftune("evaluate", str(small), "--params", str(out), *named, "--split", "train",
+                "--force")  # fmt: skip
     assert ev.returncode == 0 and "has changed since the filter was tuned" in ev.stderr
     ex = kftune("export", str(out), "-o", "-")
     assert ex.returncode == 0 and "has changed since the filter was tuned" in ex.stderr
@@ -59,10 +63,10 @@ def test_an_edited_model_file_is_not_taken_for_the_tuned_one(small, tmp_path):
     assert res.returncode == 3 and "model file sha256" in res.stderr, res.stderr
 
 
-def test_the_tuned_file_finds_its_model_file_from_any_working_directory(small, tmp_path):
-    """A model file named relative to where ``tune`` ran is found again by ``evaluate`` and
-    ``estimate`` run elsewhere: recorded relative to the tuned file when it lies beside it
-    (the folder can move), otherwise absolute; a lost one names the tuned file."""
+def test_the_tuned_file_says_where_its_model_file_lies_from_any_working_directory(small, tmp_path):
+    """A tuned file records its model file relative to itself when it lies beside it (the
+    folder can move), otherwise absolute; run elsewhere, ``evaluate`` and ``estimate``
+    refuse to run it unnamed and tell where it lies, and run it once named."""
     (tmp_path / "models").mkdir()
     (tmp_path / "out").mkdir()
     shutil.copyfile(EXAMPLE, tmp_path / "models" / "m.py")
@@ -71,9 +75,13 @@ def test_the_tuned_file_finds_its_model_file_from_any_working_directory(small, t
         cwd=tmp_path,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
+    assert "--model models/m.py" in res.stdout  # the closing hint names it
     doc = json.loads((tmp_path / "out" / "t.json").read_text())
     assert Path(doc["model"]) == (tmp_path / "models" / "m.py").resolve()
     ev = kftune("evaluate", str(small), "--params", "t.json", "--json", cwd=tmp_path / "out")
+    assert ev.returncode == 3 and f"--model {doc['model']}" in ev.stderr, ev.stderr
+    ev = kftune("evaluate", str(small), "--params", "t.json", "--model", "../models/m.py",
+                "--json", cwd=tmp_path / "out")  # fmt: skip
     assert ev.returncode == 0, ev.stderr
     # beside the tuned file: relative, and the pair moves together
     shutil.copyfile(EXAMPLE, tmp_path / "out" / "m2.py")
@@ -84,18 +92,21 @@ def test_the_tuned_file_finds_its_model_file_from_any_working_directory(small, t
     assert res.returncode == 0, res.stderr
     assert json.loads((tmp_path / "out" / "t2.json").read_text())["model"] == "m2.py"
     moved = shutil.copytree(tmp_path / "out", tmp_path / "moved")
-    est = kftune(
-        "estimate", str(small), "--params", str(moved / "t2.json"), "-o", str(tmp_path / "est"),
-        "-m", "test-05-j-turn",
-    )  # fmt: skip
+    est = kftune("estimate", str(small), "--params", str(moved / "t2.json"), "-o",
+                 str(tmp_path / "est"), "-m", "test-05-j-turn")  # fmt: skip
+    assert est.returncode == 3 and f"--model {moved / 'm2.py'}" in est.stderr, est.stderr
+    est = kftune("estimate", str(small), "--params", str(moved / "t2.json"), "-o",
+                 str(tmp_path / "est"), "-m", "test-05-j-turn", "--model",
+                 str(moved / "m2.py"))  # fmt: skip
     assert est.returncode == 0, est.stderr
     lost = shutil.copytree(tmp_path / "out", tmp_path / "lost")  # (loaded models are cached)
     (lost / "m2.py").unlink()
     for extra in ([], ["estimate", "-o", str(tmp_path / "e")]):
         cmd, *out = extra or ["evaluate"]
-        res = kftune(cmd, str(small), "--params", str(lost / "t2.json"), *out)
+        res = kftune(cmd, str(small), "--params", str(lost / "t2.json"), *out, "--model",
+                     str(lost / "m2.py"))  # fmt: skip
         assert res.returncode == 3, res.stderr
-        assert str(lost / "t2.json") in res.stderr and "does not exist" in res.stderr
+        assert "--model" in res.stderr and "does not exist" in res.stderr
 
 
 @pytest.mark.parametrize(

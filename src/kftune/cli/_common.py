@@ -347,7 +347,9 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
         "--model",
         metavar="NAME|FILE.py[:VAR]",
         help="the filter's state-space model: a built-in one (default single-track, the "
-        "paper's; see 'kftune models') or a Python file defining your own",
+        "paper's; see 'kftune models') or a Python file defining your own. A model file is "
+        "Python code that runs with your rights: name only files you trust (kftune never "
+        "runs one because a tuned file names it)",
     )
     parser.add_argument(
         "--filter", choices=("ukf", "ekf"), help="unscented (default) or extended Kalman filter"

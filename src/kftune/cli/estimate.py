@@ -49,7 +49,7 @@ from kftune.cli._common import (
     write_output,
     writing,
 )
-from kftune.cli.evaluate import add_force, check_recordings, read_tuned
+from kftune.cli.evaluate import add_force, check_recordings, read_tuned, require_named_model
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.errors import ConfigError, UsageError
 
@@ -76,6 +76,15 @@ def register(subparsers: Any) -> None:
         "--params", "-p", type=Path, required=True, help="tuned-parameters file ('kftune tune')"
     )
     p.add_argument(
+        "--model",
+        metavar="FILE.py[:VAR]",
+        type=_model_file,
+        help="the model file the filter was tuned with, when it is one (a built-in model "
+        "comes from PARAMS): a model file is Python code that runs with your rights, so "
+        "kftune runs it only when you name it here; its SHA-256 must be the one PARAMS "
+        "records (--force runs an edited one)",
+    )
+    p.add_argument(
         "--manoeuvre",
         "-m",
         action="append",
@@ -95,6 +104,18 @@ def register(subparsers: Any) -> None:
     add_force(p, "run the filter")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
+
+
+def _model_file(text: str) -> str:
+    """``--model``: a model file (the filter's model is the tuned file's)."""
+    from kftune.models.user import is_model_file
+
+    if not is_model_file(text):
+        raise argparse.ArgumentTypeError(
+            f"expected the model file the filter was tuned with (FILE.py), got {text!r}; a "
+            "built-in model comes from the tuned file"
+        )
+    return text
 
 
 def _parquet_writer() -> Any:
@@ -121,7 +142,9 @@ def run(args: argparse.Namespace) -> int:
 
     parquet = _parquet_writer() if args.format == "parquet" else None
     output_dir(args.out, "--out")
-    tuned = TunedFilter.from_document(read_tuned(args.params), str(args.params))
+    doc = read_tuned(args.params)
+    require_named_model(doc, args.params, args.model)
+    tuned = TunedFilter.from_document(doc, str(args.params))
     dataset = open_dataset(args.dataset)
     if args.manoeuvre:
         unknown = [n for n in args.manoeuvre if n not in dataset.names]

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shlex
 import sys
 import warnings
 from collections.abc import Mapping, Sequence
@@ -49,7 +50,7 @@ from kftune.cli._common import (
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
-from kftune.errors import ConfigError, DataError, DataWarning, UsageError
+from kftune.errors import ConfigError, DataError, DataWarning, UsageError, excerpt
 from kftune.tuning.kpi import KPI_NAMES
 
 if TYPE_CHECKING:
@@ -147,6 +148,31 @@ def _locate_model(doc: dict[str, Any], path: Path) -> None:
     there = model_file_from(spec, path.parent)
     if Path(there.removesuffix(recorded[1])).expanduser().is_file() or not recorded[0].is_file():
         doc["model"] = there
+
+
+def require_named_model(doc: dict[str, Any], path: Path, named: str | None) -> None:
+    """Run a tuned file's model file only when the user names it: a model file is Python
+    code that runs with the user's rights, and a tuned file is what users send each other,
+    so the file it records is never imported on its word. ``named`` is the model the user
+    gave (``--model``, or the ``model`` of a configuration passed on the command line);
+    it takes the recorded one's place in ``doc``, so that its SHA-256 is checked against
+    the one recorded (:func:`check_recordings`). A built-in model needs no naming.
+
+    Raises:
+        ConfigError: (exit 3) naming ``path`` and the model file, when the tuned file
+            records a model file and the user named none.
+    """
+    if named is not None:
+        doc["model"] = named
+        return
+    spec = doc.get("model")
+    if isinstance(spec, str) and split_model_file(spec) is not None:
+        raise ConfigError(
+            f"{path}: the filter was tuned with the model file {excerpt(spec, 200)}; a model "
+            "file is Python code that runs with your rights, and kftune does not run one "
+            "because a tuned file names it: if you trust that file, pass it with --model "
+            f"{shlex.quote(spec)}"
+        )
 
 
 def read_tuned(path: Path) -> dict[str, Any]:
@@ -336,6 +362,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--force applies to a tuned file's filter (--params) only")
     config = load_config(args.config, "evaluate")
     tuned = read_tuned(args.params) if args.params is not None else None
+    if tuned is not None:
+        require_named_model(tuned, args.params, pick(args, config, "model", None))
     named = pick(args, config, "dataset", None)
     dataset = open_dataset(named)
     if tuned is not None:

@@ -59,6 +59,7 @@ from kftune.cli._common import (
     output_file,
     parameterization,
     pick,
+    split_model_file,
     write_output,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
@@ -252,6 +253,8 @@ def run(args: argparse.Namespace) -> int:
         dataset_arg = pick(args, config, "dataset", None)
         # no test manoeuvres: the training ones, and the hint says they are
         split, what = ("test", "test") if dataset.test else ("train", "training")
+        spec = problem.model_spec  # never run on a tuned file's word: named in the hint
+        model_named = ["--model", spec] if split_model_file(spec) else []
         print(
             f"KPIs per {what} manoeuvre"
             + ("" if dataset.test else " (the dataset has no test manoeuvres)")
@@ -263,6 +266,7 @@ def run(args: argparse.Namespace) -> int:
                     *([] if dataset_arg in (None, "default") else [str(dataset_arg)]),
                     "--params",
                     str(args.out),
+                    *model_named,  # a model file runs only when named
                     "--split",
                     split,
                 ]
