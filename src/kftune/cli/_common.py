@@ -153,6 +153,13 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
         raise ConfigError(f"configuration file {p} is not valid TOML: {exc}") from None
     except RecursionError:
         raise ConfigError(f"configuration file {p} nests arrays or tables too deeply") from None
+    except ValueError:  # an integer beyond Python's int-conversion limit
+        from kftune.data.jsonfile import MAX_INT_DIGITS
+
+        raise ConfigError(
+            f"configuration file {p} is not valid TOML: an integer with more than "
+            f"{MAX_INT_DIGITS:,} digits"
+        ) from None
     _check_keys(data, CONFIG_KEYS, str(p))
     for key, (low, strict, high) in _LIMITS.items():
         value = data.get(key)

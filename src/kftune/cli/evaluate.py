@@ -25,7 +25,6 @@ away on any manoeuvre; the message names each, with the step and the cause.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import shlex
 import sys
@@ -182,14 +181,9 @@ def read_tuned(path: Path) -> dict[str, Any]:
     Raises:
         DataError: (exit 3) naming ``path`` and the key.
     """
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DataError("file does not exist", file=str(path)) from None
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"not a readable JSON file ({exc})", file=str(path)) from None
-    except RecursionError:
-        raise DataError("nests arrays or objects too deeply", file=str(path)) from None
+    from kftune.data.jsonfile import read_json
+
+    doc = read_json(path)
     if not isinstance(doc, dict) or doc.get("format") != TUNED_FORMAT:
         raise DataError(
             f'not a tuned-parameters file (expected "format": "{TUNED_FORMAT}", written '

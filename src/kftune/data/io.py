@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from kftune.data.jsonfile import MAX_INT_DIGITS, parse_json
 from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
 from kftune.data.readers import mat_variables
 from kftune.data.textfile import (
@@ -283,17 +284,24 @@ def _read_manifest(path: Path) -> dict[str, Any]:
                 file=str(path),
             )
         text = raw.decode("utf-8")
-        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+        data = parse_json(text, str(path)) if path.suffix == ".json" else tomllib.loads(text)
+    except DataError:
+        raise
     except FileNotFoundError:
         raise DataError("manifest not found", file=str(path)) from None
     except OSError as exc:
         raise DataError(f"cannot read the manifest: {exc.strerror}", file=str(path)) from None
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise DataError(
             f"manifest is not valid {path.suffix[1:].upper()}: {exc}", file=str(path)
         ) from None
     except RecursionError:
         raise DataError("manifest nests arrays or tables too deeply", file=str(path)) from None
+    except ValueError:  # tomllib: an integer beyond Python's int-conversion limit
+        raise DataError(
+            f"manifest is not valid TOML: an integer with more than {MAX_INT_DIGITS:,} digits",
+            file=str(path),
+        ) from None
     if not isinstance(data, dict):
         raise DataError("manifest must be a table/object at the top level", file=str(path))
     return data

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from kftune.data.jsonfile import read_json
 from kftune.errors import DataError
 
 RESULTS_FILE = "results.json"
@@ -133,14 +134,7 @@ class ExperimentResults:
                 f"no {RESULTS_FILE} here; expected a results directory written by 'kftune compare'",
                 file=str(src),
             )
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError) as exc:
-            raise DataError(f"cannot be read ({exc})", file=str(path)) from None
-        except json.JSONDecodeError as exc:
-            raise DataError(f"not valid JSON ({exc})", file=str(path)) from None
-        except RecursionError:
-            raise DataError("nests arrays or objects too deeply", file=str(path)) from None
+        doc = read_json(path)
         if not isinstance(doc, dict):
             raise DataError(
                 f"expected a JSON object written by 'kftune compare', got a {type(doc).__name__}",

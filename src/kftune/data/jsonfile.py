@@ -1,0 +1,85 @@
+"""One reader of the JSON files users hand to kftune (tuned files, manifests, results).
+
+:func:`json.loads` fails on hostile input in ways that are not :class:`json.JSONDecodeError`:
+an integer of more than 4,300 digits is a ``ValueError`` from Python's int-conversion
+limit (which exists because converting one costs quadratic time), deep nesting a
+``RecursionError``. Every reader goes through :func:`parse_json`, which turns each of
+those into a :class:`~kftune.errors.DataError` naming the file, so none of them becomes a
+traceback.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from kftune.errors import DataError
+
+#: Most digits of an integer in a JSON file: Python's own default limit of int() on a
+#: string (``sys.get_int_max_str_digits``), fixed here so that a raised process-wide limit
+#: does not raise it. No number kftune writes comes near it.
+MAX_INT_DIGITS = 4300
+
+
+class _LongInteger(ValueError):
+    """An integer literal with more digits than :data:`MAX_INT_DIGITS`."""
+
+
+def _parse_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > MAX_INT_DIGITS:
+        raise _LongInteger(digits)
+    return int(text)
+
+
+def parse_json(text: str, file: str) -> Any:
+    """The JSON document ``text`` read from ``file`` (named in errors).
+
+    Raises:
+        DataError: naming ``file``: not JSON, an integer of more than
+            :data:`MAX_INT_DIGITS` digits, or nesting deeper than Python's recursion limit.
+    """
+    try:
+        return json.loads(text, parse_int=_parse_int)
+    except _LongInteger as exc:
+        raise DataError(
+            f"not valid JSON: an integer with more than {MAX_INT_DIGITS:,} digits "
+            f"({exc.args[0]:,})",
+            file=file,
+        ) from None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"not valid JSON: {exc}", file=file) from None
+    except RecursionError:
+        raise DataError("not valid JSON: arrays or objects nest too deeply", file=file) from None
+    except ValueError as exc:  # anything else json refuses (a number it cannot convert)
+        raise DataError(f"not valid JSON: {exc}", file=file) from None
+
+
+def read_json(path: str | Path, max_bytes: int | None = None) -> Any:
+    """The JSON document in the file ``path`` (UTF-8), read by :func:`parse_json`.
+
+    Args:
+        max_bytes: refuse a larger file without reading it all (``None``: no limit).
+
+    Raises:
+        DataError: naming ``path``: missing, unreadable, larger than ``max_bytes``, not
+            UTF-8, or not valid JSON (see :func:`parse_json`).
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            raw = fh.read() if max_bytes is None else fh.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise DataError("file does not exist", file=str(p)) from None
+    except IsADirectoryError:
+        raise DataError("is a folder; expected a JSON file", file=str(p)) from None
+    except OSError as exc:
+        raise DataError(f"cannot be read ({exc.strerror or exc})", file=str(p)) from None
+    if max_bytes is not None and len(raw) > max_bytes:
+        raise DataError(f"larger than {max_bytes:,} bytes", file=str(p))
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=str(p)) from None
+    return parse_json(text, str(p))
