@@ -701,6 +701,13 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
         options["sample_time"] = step
     table = fmt.read(path, names, options, limits)
     channels, units = _convert(m, path, table)
+    try:  # every reader's time, once, over the whole recording (rows min_speed drops too)
+        check_increasing(channels["t"], file=file, row_offset=table.row_offset)
+    except DataError as exc:
+        spec = m.channels.get("t")
+        raise DataError(
+            f"{spec.label if spec else 't'}: {exc.message}", file=file, column="t", row=exc.row
+        ) from None
     starts, stretches = [], []
     for first, piece in _pieces(m, channels, file, table.row_offset):
         for a, b in zip(*_stretches(m, path, piece)):  # resampled after trimming: a gap

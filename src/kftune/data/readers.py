@@ -52,6 +52,7 @@ from kftune.data.textfile import (
     ReadLimits,
     line_blocks,
 )
+from kftune.data.validate import check_increasing
 from kftune.errors import ConfigError, DataError, excerpt
 
 
@@ -378,11 +379,16 @@ def _mat73_variables(
     with fh:
         container = fh
         for part in struct.split(".") if struct else ():
-            if not isinstance(container, h5py.Group) or part not in container:
+            found = (
+                _h5_member(fh, container, part, struct or "", file)
+                if isinstance(container, h5py.Group)
+                else None
+            )
+            if found is None:
                 raise DataError(
                     f"struct {excerpt(struct)} not found (no field {excerpt(part)})", file=file
                 )
-            container = container[part]
+            container = found
         if not isinstance(container, h5py.Group):
             raise DataError(f"{excerpt(struct)} is not a struct", file=file)
         known = [k for k in container if not k.startswith("#")]
@@ -390,7 +396,16 @@ def _mat73_variables(
         for name in names:
             if name not in known:
                 raise _not_found("variable", name, known, file)
-            item = container[name]
+            item = _h5_member(fh, container, name, name, file)
+            if isinstance(item, h5py.Dataset) and (item.is_virtual or item.external):
+                kind = "virtual dataset" if item.is_virtual else "dataset with external storage"
+                raise DataError(
+                    f"variable {excerpt(name)} is an HDF5 {kind}: its data lie in "
+                    "other files; kftune reads only data stored in the file itself (MATLAB "
+                    "never writes these)",
+                    file=file,
+                    column=name,
+                )
             cls = (
                 item.attrs.get("MATLAB_class", b"double")
                 if isinstance(item, h5py.Dataset)
@@ -408,6 +423,58 @@ def _mat73_variables(
                 raise _too_many(name, int(item.size), limits, file)
             out[name] = item[()]
     return out
+
+
+#: Most soft links followed to find one object of a v7.3 file (a chain longer than this
+#: is taken for a loop).
+MAX_SOFT_LINKS = 16
+
+
+def _h5_member(root: Any, group: Any, name: str, label: str, file: str, hops: int = 0) -> Any:
+    """The object ``name`` of an HDF5 group, or None if there is none — without ever leaving
+    the file: an external link is refused, a soft link is followed by its path inside the
+    file (each step checked the same way) and refused when it does not resolve or loops.
+
+    Raises:
+        DataError: naming the file and ``label`` (the variable or struct asked for).
+    """
+    import h5py
+
+    link = group.get(name, getlink=True)
+    if link is None:
+        return None
+    if isinstance(link, h5py.ExternalLink):
+        raise DataError(
+            f"{excerpt(label)} is an HDF5 external link to another file; kftune reads only "
+            "data stored in the file itself (MATLAB never writes links)",
+            file=file,
+            column=label,
+        )
+    if not isinstance(link, h5py.SoftLink):
+        return group[name]  # a hard link: an object of this file
+    if hops >= MAX_SOFT_LINKS:
+        raise DataError(
+            f"{excerpt(label)} is an HDF5 soft link that does not resolve (more than "
+            f"{MAX_SOFT_LINKS} links in a row: a loop?)",
+            file=file,
+            column=label,
+        )
+    target: Any = root if link.path.startswith("/") else group
+    for part in [p for p in link.path.split("/") if p not in ("", ".")]:
+        found = (
+            _h5_member(root, target, part, label, file, hops + 1)
+            if isinstance(target, h5py.Group)
+            else None
+        )
+        if found is None:
+            raise DataError(
+                f"{excerpt(label)} is an HDF5 soft link to {excerpt(link.path)}, which does not "
+                "exist in the file",
+                file=file,
+                column=label,
+            )
+        target = found
+    return target
 
 
 def read_mat(
@@ -475,8 +542,15 @@ def read_mdf(
                     file=file,
                     column=name,
                 )
-            if not np.all(np.diff(stamps) > 0):
-                raise DataError("timestamps not strictly increasing", file=file, column=name)
+            try:
+                check_increasing(stamps, file=file, column=name, row_offset=1)
+            except DataError as exc:  # the shared check, its row a sample of this signal
+                raise DataError(
+                    f"the signal's own timestamps (row: its sample, from 1): {exc.message}",
+                    file=file,
+                    column=name,
+                    row=exc.row,
+                ) from None
             signals[name] = (samples, stamps)
             if getattr(sig, "unit", ""):
                 units[name] = str(sig.unit)

@@ -1,0 +1,227 @@
+"""Hostile recordings given to ``kftune dataset import``: MATLAB v7.3 (HDF5) files whose
+variables lead out of the file (links, virtual datasets, external storage), timestamps that
+run backwards in every format, decompression bombs and oversized MATLAB variables, sources
+that are not regular files, and a disk that fills while the dataset is written. Each case
+is run through the command: exit code, a message naming the file and the variable, column,
+row or limit, no traceback, no foreign content quoted, nothing written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+from conftest import run_cli
+from kftune.data import load_dataset
+from test_data_helpers import synthetic_channels
+
+SECRET = "SECRET-content-of-a-foreign-file"
+#: A mapping of the channels of :func:`synthetic_channels`, named as they are, in SI.
+CHANNELS = {c: c for c in ("t", "vx", "ax", "ay", "r", "delta", "beta_ref")}
+
+
+def mapping_file(folder: Path, source: dict | None = None, **top: object) -> Path:
+    """A mapping TOML of :data:`CHANNELS` (``source``: its ``[source]`` table)."""
+    lines = ['vehicle = "bmw-320i"']
+    lines += [f"{k} = {v!r}".replace("'", '"') for k, v in top.items()]
+    if source:
+        lines += ["[source]", *(f'{k} = "{v}"' for k, v in source.items())]
+    lines += ["[channels]", *(f'{c} = "{s}"' for c, s in CHANNELS.items())]
+    path = folder / "map.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def run_import(folder: Path, source: Path, mapping: Path | None = None) -> tuple:
+    """``kftune dataset import SOURCE --mapping MAP -o folder/out``: (result, out)."""
+    out = folder / "out"
+    res = run_cli("dataset", "import", source, "--mapping", mapping or mapping_file(folder),
+                  "-o", out)  # fmt: skip
+    return res, out
+
+
+def assert_refused(res, out: Path, *names: str, code: int = 3) -> None:
+    """Exit ``code``, one short message naming each of ``names``, no traceback, no foreign
+    content, and no output folder."""
+    assert res.returncode == code, res.stderr
+    assert "Traceback" not in res.stderr and SECRET not in res.stderr + res.stdout
+    assert res.stderr.startswith("kftune: error: ") and len(res.stderr) < 1500, res.stderr
+    for name in names:
+        assert name in res.stderr, (name, res.stderr)
+    assert not out.exists()
+
+
+# =========================================================================== MATLAB v7.3
+MAT73_HEADER = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5"
+
+
+def savemat73(path: Path, variables: dict[str, np.ndarray], extra=None) -> Path:
+    """A MATLAB v7.3 file (512-byte header, then HDF5): each variable a 1×n dataset tagged
+    ``MATLAB_class``, in the struct ``rec``; ``extra(h5py, group)`` adds more to it."""
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(path, "w", userblock_size=512) as f:
+        group = f.create_group("rec")
+        group.attrs["MATLAB_class"] = np.bytes_("struct")
+        for name, values in variables.items():
+            ds = group.create_dataset(name, data=np.asarray(values, dtype=float)[None, :])
+            ds.attrs["MATLAB_class"] = np.bytes_("double")
+        if extra is not None:
+            extra(h5py, group)
+    with open(path, "r+b") as fh:
+        fh.write(MAT73_HEADER.ljust(116) + b"\0" * 8 + b"\x00\x02IM")
+    return path
+
+
+@pytest.fixture
+def foreign(tmp_path: Path) -> dict[str, Path]:
+    """Files outside the recording that a link could reach: an HDF5 file and a text file,
+    each holding the secret."""
+    h5py = pytest.importorskip("h5py")
+    h5 = tmp_path / "foreign.h5"
+    with h5py.File(h5, "w") as f:
+        f["vx"] = np.full((1, 400), 20.0)
+        f["vx"].attrs["MATLAB_class"] = np.bytes_("double")
+        f.attrs["note"] = SECRET
+    text = tmp_path / "foreign.txt"
+    text.write_text(SECRET + "\n" * 4000)
+    return {"h5": h5, "text": text}
+
+
+def _replace_vx(kind: str, foreign: dict[str, Path]):
+    def extra(h5py, group) -> None:
+        del group["vx"]
+        if kind == "external link":
+            group["vx"] = h5py.ExternalLink(str(foreign["h5"]), "/vx")
+        elif kind == "external link to text":
+            group["vx"] = h5py.ExternalLink(str(foreign["text"]), "/vx")
+        elif kind == "soft link loop":
+            group["vx"] = h5py.SoftLink("/rec/speed")
+            group["speed"] = h5py.SoftLink("/rec/vx")
+        elif kind == "dangling soft link":
+            group["vx"] = h5py.SoftLink("/nowhere/vx")
+        elif kind == "soft link through an external link":
+            group["elsewhere"] = h5py.ExternalLink(str(foreign["h5"]), "/")
+            group["vx"] = h5py.SoftLink("/rec/elsewhere/vx")
+        elif kind == "virtual dataset":
+            layout = h5py.VirtualLayout(shape=(1, 400), dtype="f8")
+            layout[0, :] = h5py.VirtualSource(str(foreign["h5"]), "vx", shape=(1, 400))[0, :]
+            group.create_virtual_dataset("vx", layout)
+            group["vx"].attrs["MATLAB_class"] = np.bytes_("double")
+        elif kind == "external storage":
+            group.create_dataset("vx", shape=(1, 400), dtype="f8",
+                                 external=[(str(foreign["text"]), 0, 400 * 8)])  # fmt: skip
+            group["vx"].attrs["MATLAB_class"] = np.bytes_("double")
+
+    return extra
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("external link", "external link to another file"),
+        ("external link to text", "external link to another file"),
+        ("soft link loop", "does not resolve"),
+        ("dangling soft link", "which does not exist in the file"),
+        ("soft link through an external link", "external link to another file"),
+        ("virtual dataset", "virtual dataset"),
+        ("external storage", "external storage"),
+    ],
+)
+def test_a_v73_variable_that_leads_out_of_the_file_is_refused(
+    tmp_path: Path, foreign: dict[str, Path], kind: str, message: str
+):
+    src = savemat73(tmp_path / "rec.mat", synthetic_channels(n=400), _replace_vx(kind, foreign))
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "rec"}))
+    assert_refused(res, out, str(src), "'vx'", message)
+
+
+def test_a_v73_struct_behind_an_external_link_is_refused(tmp_path: Path, foreign):
+    def extra(h5py, group) -> None:
+        group.file["outside"] = h5py.ExternalLink(str(foreign["h5"]), "/")
+
+    src = savemat73(tmp_path / "rec.mat", synthetic_channels(n=400), extra)
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "outside"}))
+    assert_refused(res, out, str(src), "'outside'", "external link to another file")
+
+
+def test_a_v73_soft_link_inside_the_file_is_read(tmp_path: Path):
+    c = synthetic_channels(n=400)
+
+    def extra(h5py, group) -> None:
+        group.file["speeds/vx"] = group["vx"][()]
+        group.file["speeds/vx"].attrs["MATLAB_class"] = np.bytes_("double")
+        del group["vx"]
+        group["vx"] = h5py.SoftLink("/speeds/vx")
+
+    src = savemat73(tmp_path / "rec.mat", c, extra)
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "rec"}))
+    assert res.returncode == 0, res.stderr
+    np.testing.assert_allclose(load_dataset(out).manoeuvres[0].vx, c["vx"], rtol=1e-12)
+
+
+# =========================================================================== time backwards
+def _backwards(n: int = 400, at: int = 250) -> dict[str, np.ndarray]:
+    """Channels whose time steps back by 0.5 s at sample ``at`` (0-based): a logger clock
+    reset."""
+    c = synthetic_channels(n=n)
+    c["t"] = c["t"].copy()
+    c["t"][at:] -= 0.5
+    return c
+
+
+def _write(fmt: str, path: Path, c: dict[str, np.ndarray]) -> Path:
+    if fmt == "csv":
+        rows = [",".join(c)] + [",".join(repr(float(v)) for v in row) for row in zip(*c.values())]
+        path.write_text("\n".join(rows) + "\n")
+    elif fmt == "parquet":
+        pa = pytest.importorskip("pyarrow")
+        pq = pytest.importorskip("pyarrow.parquet")
+        pq.write_table(pa.table({k: pa.array(v) for k, v in c.items()}), path)
+    elif fmt == "mat":
+        scipy.io.savemat(path, c)
+    else:
+        savemat73(path, c)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("fmt", "name", "source", "row"),
+    [
+        ("csv", "rec.csv", None, 252),  # the header is row 1: sample 250 is line 252
+        ("parquet", "rec.parquet", None, 251),
+        ("mat", "rec.mat", None, 251),
+        ("mat73", "rec.mat", {"struct": "rec"}, 251),
+    ],
+)
+def test_time_running_backwards_is_refused_in_every_format(tmp_path, fmt, name, source, row):
+    src = _write(fmt, tmp_path / name, _backwards())
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, source, min_speed=1.0))
+    assert_refused(res, out, str(src), "column 't'", f"row {row}", "decreasing")
+
+
+def test_an_mdf_signal_whose_timestamps_run_backwards_is_refused(tmp_path: Path):
+    asammdf = pytest.importorskip("asammdf")
+    c = synthetic_channels(n=400)
+    back = _backwards()["t"]
+    mdf = asammdf.MDF(version="4.10")
+    for name in CHANNELS:
+        if name != "t":  # each signal in its own group, with its own time; r's runs back
+            stamps = back if name == "r" else c["t"]
+            mdf.append([asammdf.Signal(c[name], stamps, name=f"S_{name}")])
+    mdf.save(tmp_path / "rec.mf4", overwrite=True)
+    mdf.close()
+    lines = ['vehicle = "bmw-320i"', "[channels]"]
+    lines += [f'{k} = "S_{k}"' for k in CHANNELS if k != "t"]
+    (tmp_path / "map.toml").write_text("\n".join(lines) + "\n")
+    res, out = run_import(tmp_path, tmp_path / "rec.mf4", tmp_path / "map.toml")
+    assert_refused(res, out, str(tmp_path / "rec.mf4"), "'S_r'", "row 251", "decreasing")
+
+
+def test_time_running_backwards_where_min_speed_drops_the_rows_is_still_refused(tmp_path):
+    c = _backwards(at=120)
+    c["vx"][100:150] = 0.0  # standing still where the clock steps back
+    src = _write("csv", tmp_path / "rec.csv", c)
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, min_speed=1.0))
+    assert_refused(res, out, str(src), "column 't'", "row 122", "decreasing")
