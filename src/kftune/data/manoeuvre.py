@@ -20,7 +20,7 @@ from kftune.data.noise import estimate_measurement_noise
 from kftune.data.validate import (
     SIDESLIP_CHANNELS,
     SIDESLIP_MEASURED,
-    plausibility_warnings,
+    plausibility_findings,
     sample_time,
     validate_channels,
 )
@@ -309,7 +309,9 @@ class Dataset:
 
     Built, it warns (:class:`~kftune.errors.DataWarning`, naming the manoeuvre and the share
     of samples) about data that load but look implausible
-    (:func:`~kftune.data.validate.plausibility_warnings`).
+    (:func:`~kftune.data.validate.plausibility_findings`): once per kind of finding, naming
+    the first manoeuvre with it and the others (a recording cut into segments is one
+    finding, not one per segment).
 
     Attributes:
         name: a label. vehicle: the single-track model parameters of the car, or None for
@@ -357,13 +359,17 @@ class Dataset:
         object.__setattr__(self, "units", MappingProxyType(dict(self.units)))
         object.__setattr__(self, "_noise", {})
         mu = None if self.vehicle is None else self.vehicle.mu
+        found: dict[str, list[tuple[str, str]]] = {}  # kind → [(manoeuvre, message)]
         for m in self.manoeuvres:
-            for text in plausibility_warnings({"t": m.t, **m.channels}, mu):
-                warnings.warn(
-                    f"dataset {self.name!r}, manoeuvre {m.name!r}: {text}",
-                    DataWarning,
-                    stacklevel=2,
-                )
+            for kind, text in plausibility_findings({"t": m.t, **m.channels}, mu).items():
+                found.setdefault(kind, []).append((m.name, text))
+        for hits in found.values():  # each kind once: a recording cut in 24 segments
+            (name, text), more = hits[0], len(hits) - 1  # is one finding, not 24
+            where = f"manoeuvre {name!r}"
+            if more:
+                others = excerpt([n for n, _ in hits[1:]], 200)
+                where += f" (and {more} more with the same finding: {others})"
+            warnings.warn(f"dataset {self.name!r}, {where}: {text}", DataWarning, stacklevel=2)
 
     def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
         # the read-only ``meta`` view cannot be pickled; rebuild from plain fields
