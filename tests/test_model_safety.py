@@ -108,3 +108,20 @@ def test_a_dataset_mapping_names_built_in_models_only(tmp_path):
     with pytest.raises(DataError, match="key 'model'"):
         read_mapping({"channels": {"t": "time"}, "model": str(tmp_path / "evil.py")})
     assert not (tmp_path / "MARKER").exists()
+
+
+@pytest.mark.parametrize(("signal_name", "code"), [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_real_interrupt_while_a_model_file_loads_is_still_an_interrupt(
+    tmp_path, signal_name, code
+):
+    """Only a KeyboardInterrupt that the file raises itself is its failure: a Ctrl-C (or a
+    SIGTERM) that arrives while it loads ends the command as an interrupt."""
+    model = tmp_path / "slow.py"
+    model.write_text(
+        f"import os, signal\nos.kill(os.getpid(), signal.{signal_name})\n"
+        "for _ in range(10**8):\n    pass\n"
+    )
+    res = kftune("tune", "--model", model, "-n", "2", "-o", tmp_path / "t.json")
+    assert res.returncode == code, res.stderr
+    assert "interrupted" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "t.json").exists()

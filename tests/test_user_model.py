@@ -115,6 +115,11 @@ def test_the_tuned_file_says_where_its_model_file_lies_from_any_working_director
         ("import numpy as np\nx = (\n", "failed to run (line 2): SyntaxError"),
         ("raise RuntimeError('no licence')\n", "failed to run (line 1): RuntimeError: no licence"),
         ("X = 1\n", "defines 0 StateSpaceModel objects"),
+        # the module's own exit or interrupt is its failure, not a finished run (exit 0)
+        # or the user's Ctrl-C (130)
+        ("import sys\nsys.exit(0)\n", "raised SystemExit while loading (line 2)"),
+        ("raise KeyboardInterrupt\n", "raised KeyboardInterrupt while loading (line 1)"),
+        ("def g():\n    yield\nraise GeneratorExit\n", "raised GeneratorExit while loading"),
     ],
 )
 def test_a_broken_model_file_is_a_clear_error(tmp_path, text, expected):

@@ -15,10 +15,17 @@ processes (``--workers``) load the same file again from the spec string.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
+import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
+from types import FrameType
+from typing import Any
 
 from kftune.errors import ConfigError
 from kftune.models.base import StateSpaceModel
@@ -119,17 +126,58 @@ def _run(path: Path, shown: str) -> object:
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # numba and pickle look functions up by module
     try:
-        spec.loader.exec_module(module)
-    except Exception as exc:  # any failure of the user's code is reported
+        with _signals_seen() as seen:
+            spec.loader.exec_module(module)
+    except BaseException as exc:  # any failure of the user's code is reported
         del sys.modules[name]
+        if isinstance(exc, KeyboardInterrupt) and seen:
+            raise  # a real Ctrl-C or SIGTERM while loading: the user's interrupt
         where = f" (line {exc.lineno})" if isinstance(exc, SyntaxError) else ""
         tb = exc.__traceback__
         while tb is not None:
             if Path(tb.tb_frame.f_code.co_filename) == path:
                 where = f" (line {tb.tb_lineno})"
             tb = tb.tb_next
+        if not isinstance(exc, Exception):  # SystemExit, KeyboardInterrupt, GeneratorExit
+            raise ConfigError(
+                f"model file {shown} raised {type(exc).__name__} while loading{where}: a "
+                "model file must define its model, not end or interrupt the program"
+            ) from None
         text = exc.msg if isinstance(exc, SyntaxError) else str(exc)  # not the source line
         raise ConfigError(
             f"model file {shown} failed to run{where}: {type(exc).__name__}: {text[:200]}"
         ) from None
     return module
+
+
+@contextlib.contextmanager
+def _signals_seen() -> Iterator[list[int]]:
+    """Note SIGINT and SIGTERM arriving while the body runs (each then handled as before),
+    so that a KeyboardInterrupt that a model file raises itself is told from the user's
+    Ctrl-C (or a SIGTERM that the command line turns into one). Outside the main thread,
+    where no signal handler runs, nothing is noted."""
+    seen: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield seen
+        return
+    previous: dict[int, Any] = {}
+
+    def note(signum: int, frame: FrameType | None) -> None:
+        seen.append(signum)
+        before = previous[signum]
+        if callable(before):
+            before(signum, frame)
+        elif before == signal.SIG_DFL:  # what it would have done: end the process
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        before = signal.getsignal(signum)
+        if before is not None and before != signal.SIG_IGN:  # None: set outside Python
+            previous[signum] = before
+            signal.signal(signum, note)
+    try:
+        yield seen
+    finally:
+        for signum, before in previous.items():
+            signal.signal(signum, before)
