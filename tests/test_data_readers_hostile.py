@@ -7,6 +7,10 @@ row or limit, no traceback, no foreign content quoted, nothing written."""
 
 from __future__ import annotations
 
+import gzip
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +18,9 @@ import pytest
 import scipy.io
 
 from conftest import run_cli
-from kftune.data import load_dataset
+from kftune.data import load_dataset, textfile
+from kftune.data.textfile import ReadLimits
+from kftune.errors import ConfigError
 from test_data_helpers import synthetic_channels
 
 SECRET = "SECRET-content-of-a-foreign-file"
@@ -225,3 +231,80 @@ def test_time_running_backwards_where_min_speed_drops_the_rows_is_still_refused(
     src = _write("csv", tmp_path / "rec.csv", c)
     res, out = run_import(tmp_path, src, mapping_file(tmp_path, min_speed=1.0))
     assert_refused(res, out, str(src), "column 't'", "row 122", "decreasing")
+
+
+# =========================================================================== bombs
+HEADER = ",".join(CHANNELS).encode() + b"\n"
+
+
+def gzip_file(path: Path, body: bytes, repeat: int) -> Path:
+    """``HEADER`` then ``body`` ``repeat`` times, gzipped."""
+    with gzip.open(path, "wb", compresslevel=9) as fh:
+        fh.write(HEADER)
+        for _ in range(repeat):
+            fh.write(body)
+    return path
+
+
+def test_a_gzip_file_that_unpacks_to_many_times_its_size_stops_early(tmp_path, monkeypatch):
+    monkeypatch.setattr(textfile, "RATIO_FREE_BYTES", 2**20)  # a bomb of a few MiB is enough
+    row = b"0.01,20,0,0,0,0,0\n"
+    src = gzip_file(tmp_path / "rec.csv.gz", row * 2**16, 8)  # 9.4 MB of rows in 10 kB
+    size = src.stat().st_size
+    res, out = run_import(tmp_path, src)
+    assert_refused(res, out, str(src), f"20 times its {size:,} bytes", "KFTUNE_MAX_RATIO")
+    monkeypatch.setenv("KFTUNE_MAX_RATIO", "2000")  # a genuine file of constant rows
+    res, out = run_import(tmp_path, src)
+    assert_refused(res, out, str(src), "time is duplicated")  # read to the end, then checked
+    with pytest.raises(ConfigError, match="KFTUNE_MAX_RATIO must be a whole number"):
+        monkeypatch.setenv("KFTUNE_MAX_RATIO", "0")
+        ReadLimits.from_env()
+
+
+def test_a_compressed_recording_loads_within_the_ratio(tmp_path):
+    c = synthetic_channels(n=400)
+    rows = [",".join(repr(float(v)) for v in row) for row in zip(*(c[k] for k in CHANNELS))]
+    src = gzip_file(tmp_path / "rec.csv.gz", ("\n".join(rows) + "\n").encode(), 1)
+    res, out = run_import(tmp_path, src)
+    assert res.returncode == 0, res.stderr
+    np.testing.assert_allclose(load_dataset(out).manoeuvres[0].ay, c["ay"], rtol=1e-12)
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_blank_lines_stop_after_a_thousand(tmp_path, compress: bool):
+    c = synthetic_channels(n=400)
+    rows = [",".join(repr(float(v)) for v in row) for row in zip(*(c[k] for k in CHANNELS))]
+    text = ("\n".join(rows) + "\n").encode()
+    if compress:  # 200 MiB of line feeds in 200 kB: stops within the first block
+        src = gzip_file(tmp_path / "rec.csv.gz", text, 1)
+        with gzip.open(src, "ab", compresslevel=9) as fh:
+            for _ in range(200):
+                fh.write(b"\n" * 2**20)
+    else:
+        src = tmp_path / "rec.csv"
+        src.write_bytes(HEADER + text + b"\r\n" * 5000)
+    res, out = run_import(tmp_path, src)
+    assert_refused(res, out, str(src), "row 402", "more than 1,000 empty lines in a row")
+    src.write_bytes(HEADER + text + b"\n" * 10)  # a few at the end are fine
+    src = src.rename(tmp_path / "rec.csv")
+    res, out = run_import(tmp_path, src)
+    assert res.returncode == 0, res.stderr
+
+
+# =========================================================================== not a file
+def test_a_device_or_a_fifo_is_not_a_regular_file(tmp_path: Path):
+    """Refused before it is opened: a FIFO with no writer would block the open for ever
+    (the subprocess's timeout only guards against that hang)."""
+    fifo = tmp_path / "fifo.csv"
+    os.mkfifo(fifo)
+    zero = tmp_path / "zero.csv"
+    zero.symlink_to("/dev/zero")
+    mapping = mapping_file(tmp_path)
+    for src in (fifo, zero, tmp_path):
+        res = subprocess.run(
+            [sys.executable, "-m", "kftune", "dataset", "import", str(src), "--mapping",
+             str(mapping), "-o", str(tmp_path / "out")],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        what = "is a folder" if src == tmp_path else "not a regular file"
+        assert_refused(res, tmp_path / "out", str(src), what)

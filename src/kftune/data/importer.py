@@ -84,7 +84,7 @@ import numpy as np
 from kftune.data.io import _vehicle_from, file_stem, save_dataset, segment_bounds
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.readers import FORMATS, READER_OPTIONS, Format, Table, format_named, format_of
-from kftune.data.textfile import ReadLimits
+from kftune.data.textfile import ReadLimits, check_regular_file
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
     GAP_STEPS,
@@ -683,10 +683,9 @@ def _check_stretches(
 
 
 def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
+    check_regular_file(path)  # before any reader opens it: a FIFO would block the open
     fmt = m.format or format_of(path)
     file = str(path)
-    if not path.is_file():
-        raise DataError("file not found", file=file)
     names = list(dict.fromkeys(s for spec in m.channels.values() for s in spec.sources))
     options = {k: v for k, v in m.options.items() if k in fmt.options}
     if isinstance(m.options.get("raster"), str) and "raster" not in fmt.options:

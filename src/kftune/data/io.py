@@ -50,6 +50,7 @@ from kftune.data.textfile import (
     SEPARATORS,
     NumericRows,
     ReadLimits,
+    check_regular_file,
     line_blocks,
     read_values,
 )
@@ -738,8 +739,7 @@ def read_mat(
     """
     path = Path(path)
     file = str(path)
-    if not path.is_file():
-        raise DataError("file not found", file=file)
+    check_regular_file(path)
     sources = _normalise_mapping(mapping, file)
     lim = ReadLimits.from_env() if limits is None else limits
     try:

@@ -18,8 +18,18 @@ limit and how to raise it:
 * ``max_rows``: rows (samples) of one file or signal, which fix the memory the kept arrays
   take (8 bytes per value); ``KFTUNE_MAX_ROWS``, default :data:`DEFAULT_MAX_ROWS`
   (40 million: 100 hours at 100 Hz, and some);
+* ``max_ratio``: bytes a gzipped file decompresses to, per byte of the file (beyond the
+  first :data:`RATIO_FREE_BYTES`), checked while reading: a small file that unpacks to
+  millions of rows or to blank lines stops after a few blocks, long before the other two
+  limits (numeric CSV text compresses 3 to 12 times); ``KFTUNE_MAX_RATIO``, default
+  :data:`DEFAULT_MAX_RATIO`;
 * :data:`MAX_LINE_BYTES`: one line; a binary or sparse file without line breaks is refused
-  after its first block.
+  after its first block;
+* :data:`MAX_BLANK_LINES`: empty lines in a row (only allowed at the end of a file).
+
+A source must be a regular file (:func:`check_regular_file`): a device such as
+``/dev/zero`` or a FIFO is refused before it is opened, so that reading never blocks or
+runs for ever.
 
 Text is UTF-8 unless the caller names another encoding that keeps ASCII as it is (cp1252,
 latin-1, …). Line ends LF or CRLF, a UTF-8 byte-order mark, and (in a CSV) a ``;`` or tab separator
@@ -35,6 +45,7 @@ import contextlib
 import gzip
 import os
 import re
+import stat
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -49,9 +60,16 @@ from kftune.errors import ConfigError, DataError, excerpt
 DEFAULT_MAX_BYTES = 8 * 2**30
 #: Default of ``max_rows``: the most rows (samples) of one file or signal.
 DEFAULT_MAX_ROWS = 40_000_000
-#: Environment variables that override the two defaults (integers, ``4e9`` allowed).
+#: Default of ``max_ratio``: the most bytes a gzipped file decompresses to per byte of it.
+DEFAULT_MAX_RATIO = 20
+#: Decompressed bytes that ``max_ratio`` does not count (a small file of constant rows).
+RATIO_FREE_BYTES = 8 * 2**20
+#: Environment variables that override the defaults (integers, ``4e9`` allowed).
 ENV_MAX_BYTES = "KFTUNE_MAX_BYTES"
 ENV_MAX_ROWS = "KFTUNE_MAX_ROWS"
+ENV_MAX_RATIO = "KFTUNE_MAX_RATIO"
+#: Most empty lines in a row (only allowed at the end of a file).
+MAX_BLANK_LINES = 1000
 #: Longest line accepted [bytes] (a CSV row of the kftune format is about 100 bytes).
 MAX_LINE_BYTES = 64 * 2**10
 #: Bytes read (and lines parsed) at a time.
@@ -68,20 +86,23 @@ class ReadLimits:
     Attributes:
         max_bytes: bytes read from one file, after decompression.
         max_rows: rows (samples) of one file or signal.
+        max_ratio: bytes a gzipped file decompresses to, per byte of the file.
     """
 
     max_bytes: int = DEFAULT_MAX_BYTES
     max_rows: int = DEFAULT_MAX_ROWS
+    max_ratio: int = DEFAULT_MAX_RATIO
 
     def __post_init__(self) -> None:
-        for name in ("max_bytes", "max_rows"):
+        for name in ("max_bytes", "max_rows", "max_ratio"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"ReadLimits.{name} must be an integer >= 1, got {value!r}")
 
     @classmethod
     def from_env(cls) -> ReadLimits:
-        """The defaults, overridden by ``KFTUNE_MAX_BYTES`` / ``KFTUNE_MAX_ROWS`` when set.
+        """The defaults, overridden by ``KFTUNE_MAX_BYTES`` / ``KFTUNE_MAX_ROWS`` /
+        ``KFTUNE_MAX_RATIO`` when set.
 
         Raises:
             ConfigError: a variable that is not a whole number >= 1 (names it).
@@ -89,6 +110,7 @@ class ReadLimits:
         return cls(
             max_bytes=_env_int(ENV_MAX_BYTES, DEFAULT_MAX_BYTES),
             max_rows=_env_int(ENV_MAX_ROWS, DEFAULT_MAX_ROWS),
+            max_ratio=_env_int(ENV_MAX_RATIO, DEFAULT_MAX_RATIO),
         )
 
 
@@ -112,6 +134,32 @@ def _limits(limits: ReadLimits | None) -> ReadLimits:
 
 
 # ----------------------------------------------------------------------------- lines
+def check_regular_file(path: str | Path) -> int:
+    """Refuse a source that is not a regular file, before opening it (a FIFO would block
+    the open, ``/dev/zero`` would never end).
+
+    Returns:
+        The file's size in bytes.
+
+    Raises:
+        DataError: naming the file: not found, a folder, a device, FIFO or socket.
+    """
+    file = str(path)
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise DataError("file not found", file=file) from None
+    except OSError as exc:
+        raise DataError(f"cannot read: {exc.strerror or type(exc).__name__}", file=file) from None
+    if stat.S_ISDIR(info.st_mode):
+        raise DataError("is a folder; expected a file", file=file)
+    if not stat.S_ISREG(info.st_mode):
+        raise DataError(
+            "not a regular file (a device, FIFO or socket); expected a file on disk", file=file
+        )
+    return info.st_size
+
+
 def _open(path: Path) -> BinaryIO:
     if path.name.endswith(".gz"):
         return gzip.open(path, "rb")  # decompresses at most what each read asks for
@@ -172,6 +220,9 @@ def line_blocks(
     path = Path(path)
     file = str(path)
     lim = _limits(limits)
+    size = check_regular_file(path)
+    # a gzipped file may unpack to max_ratio times its size (beyond a small allowance)
+    unpacked = RATIO_FREE_BYTES + lim.max_ratio * size if path.name.endswith(".gz") else None
     total = 0
     row = 1
     carry = b""
@@ -188,6 +239,14 @@ def line_blocks(
                         f"more than {lim.max_bytes:,} bytes (after decompression); reading "
                         f"stopped at this limit: raise it with the environment variable "
                         f"{ENV_MAX_BYTES} (or ReadLimits(max_bytes=...)) if the file is genuine",
+                        file=file,
+                    )
+                if unpacked is not None and total > unpacked:
+                    raise DataError(
+                        f"decompresses to more than {lim.max_ratio} times its {size:,} bytes "
+                        f"(reading stopped after {total:,} bytes: a decompression bomb?): "
+                        f"raise the limit with the environment variable {ENV_MAX_RATIO} (or "
+                        "ReadLimits(max_ratio=...)) if the file is genuine",
                         file=file,
                     )
                 data = carry + chunk
@@ -292,6 +351,13 @@ class NumericRows:
                 raise DataError("empty line inside the data", file=self.file, row=rows[blank[0]])
             if self._blank_row is None:
                 self._blank_row = rows[blank[0]]
+            if rows[blank[-1]] - self._blank_row >= MAX_BLANK_LINES:
+                raise DataError(
+                    f"more than {MAX_BLANK_LINES:,} empty lines in a row; reading stopped: "
+                    "expected rows of data, or the end of the file",
+                    file=self.file,
+                    row=self._blank_row,
+                )
             lines, rows = lines[: blank[0]], rows[: blank[0]]
         if not lines:
             return
