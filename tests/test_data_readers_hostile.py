@@ -7,6 +7,7 @@ row or limit, no traceback, no foreign content quoted, nothing written."""
 
 from __future__ import annotations
 
+import errno
 import gzip
 import os
 import subprocess
@@ -308,3 +309,65 @@ def test_a_device_or_a_fifo_is_not_a_regular_file(tmp_path: Path):
         )  # fmt: skip
         what = "is a folder" if src == tmp_path else "not a regular file"
         assert_refused(res, tmp_path / "out", str(src), what)
+
+
+# =========================================================================== disk full
+def _two_recordings(tmp_path: Path) -> list[Path]:
+    paths = []
+    for i in range(2):
+        c = synthetic_channels(n=400, seed=i)
+        paths.append(_write("csv", tmp_path / f"rec{i}.csv", c))
+    return paths
+
+
+def _disk_full_after(monkeypatch, files: int) -> None:
+    """Make every write of a file into a folder after the first ``files`` fail as a full
+    disk does (``OSError(ENOSPC)`` from ``write``, which names no file)."""
+    written = []
+    real = Path.write_bytes
+
+    def write_bytes(self: Path, data: bytes) -> int:
+        if len(written) >= files:
+            real(self, data[: len(data) // 2])  # a partial file, as a full disk leaves
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        written.append(self)
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", write_bytes)
+
+
+def test_a_full_disk_while_importing_leaves_nothing_and_a_rerun_works(tmp_path, monkeypatch):
+    sources = _two_recordings(tmp_path)
+    args = ("dataset", "import", *sources, "--mapping", mapping_file(tmp_path), "-o")
+    out = tmp_path / "out"
+    before = set(tmp_path.iterdir())
+    _disk_full_after(monkeypatch, 1)
+    res = run_cli(*args, out)
+    assert res.returncode == 1, res.stderr
+    assert "Traceback" not in res.stderr and "standard output" not in res.stderr
+    assert str(out / "rec1.csv.gz") in res.stderr and "No space left on device" in res.stderr
+    assert set(tmp_path.iterdir()) == before  # no partial dataset, no temporary folder
+    monkeypatch.undo()
+    res = run_cli(*args, out)
+    assert res.returncode == 0, res.stderr
+    assert [m.name for m in load_dataset(out).manoeuvres] == ["rec0", "rec1"]
+
+
+def test_a_full_disk_while_replacing_a_dataset_keeps_the_old_one(tmp_path, monkeypatch):
+    sources = _two_recordings(tmp_path)
+    mapping = mapping_file(tmp_path)
+    out = tmp_path / "out"
+    assert run_cli("dataset", "import", sources[0], "--mapping", mapping, "-o", out).returncode == 0
+    (out / "notes.txt").write_text("mine")
+    old = {p.name: p.read_bytes() for p in out.iterdir()}
+    _disk_full_after(monkeypatch, 0)
+    res = run_cli("dataset", "import", *sources, "--mapping", mapping, "-o", out, "--force")
+    assert res.returncode == 1 and "No space left on device" in res.stderr, res.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == old
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    monkeypatch.undo()
+    res = run_cli("dataset", "import", *sources, "--mapping", mapping, "-o", out, "--force")
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in out.iterdir()) == [
+        "manifest.toml", "notes.txt", "rec0.csv.gz", "rec1.csv.gz"
+    ]  # fmt: skip

@@ -172,6 +172,55 @@ def _remove(files: list[Path], out: Path) -> None:
             raise ConfigError(f"OUT {out}: cannot remove the old file {f}: {exc}") from None
 
 
+def _save_in_place(dataset: Dataset, out: Path, old_files: list[Path]) -> Path:
+    """Write ``dataset`` into a temporary folder beside ``out``, then move it into place: a
+    new ``out`` by one rename, else file by file with the manifest renamed over the old
+    one last, and only then the old dataset's other files deleted. A failed write (a full
+    disk) leaves ``out`` as it was and removes the temporary folder, so the import can
+    simply be run again.
+
+    Returns:
+        The manifest's path in ``out``.
+
+    Raises:
+        RunFailedError: (exit 1) naming the file of ``out`` that could not be written and
+            why.
+    """
+    import os
+    import shutil
+    import tempfile
+
+    from kftune.data import save_dataset
+    from kftune.errors import RunFailedError
+
+    tmp: Path | None = None
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp"))
+        manifest = save_dataset(dataset, tmp)
+        if not out.exists():
+            os.rename(tmp, out)
+            tmp = None
+        else:  # an empty folder, or the dataset --force replaces
+            new = sorted(p for p in tmp.iterdir() if p != manifest)
+            for f in [*new, manifest]:
+                os.replace(f, out / f.name)
+            kept = {f.name for f in new} | {manifest.name}
+            _remove([f for f in old_files if f.name not in kept or f.parent != out], out)
+    except OSError as exc:
+        name = Path(exc.filename).name if exc.filename else ""
+        what = out / name if tmp is not None and Path(exc.filename or "").parent == tmp else None
+        raise RunFailedError(
+            f"--out {out}: cannot write {what or exc.filename or 'the dataset'} "
+            f"({exc.strerror or exc}); {out} was left as it was: free some space (or fix "
+            "the cause) and run the import again"
+        ) from None
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out / manifest.name
+
+
 # ------------------------------------------------------------------------------ import
 def run_import(args: argparse.Namespace) -> int:
     """Import recordings into a dataset folder."""
@@ -181,10 +230,7 @@ def run_import(args: argparse.Namespace) -> int:
     output_dir(args.out, "--out")
     old_files = _files_to_replace(args.out, args.force)  # checked before reading anything
     dataset = import_recordings(args.sources, args.mapping, name=args.name or None)
-    _remove(old_files, args.out)  # only now that the new dataset exists
-    from kftune.data import save_dataset
-
-    manifest = save_dataset(dataset, args.out)
+    manifest = _save_in_place(dataset, args.out, old_files)
     meta = dataset.meta
     for file, kept, total in zip(meta["imported_from"], meta["kept_s"], meta["recorded_s"]):
         print(f"{file}: kept {kept:.1f} s of {total:.1f} s")

@@ -210,7 +210,7 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
             with gzip.GzipFile(filename="", mode="wb", fileobj=buf, mtime=0, compresslevel=9) as gz:
                 gz.write(data)
             data = buf.getvalue()
-        (directory / file).write_bytes(data)
+        _write_file(directory / file, data)
         entry = {"name": m.name, "kind": m.kind, "split": m.split, "file": file}
         if m.description:
             entry["description"] = m.description
@@ -233,8 +233,19 @@ def save_dataset(dataset: Dataset, directory: str | Path, compress: bool = True)
         lines.append("[[manoeuvres]]")
         _toml_table(entry, "", lines)
     manifest = directory / "manifest.toml"
-    manifest.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    _write_file(manifest, ("\n".join(lines) + "\n").encode("utf-8"))
     return manifest
+
+
+def _write_file(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path``; an ``OSError`` (a full disk) names the file, which a
+    failed ``write`` alone does not."""
+    try:
+        path.write_bytes(data)
+    except OSError as exc:
+        if exc.filename is None:
+            exc.filename = str(path)
+        raise
 
 
 def _plain(value: Any) -> Any:
