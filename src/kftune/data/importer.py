@@ -94,6 +94,7 @@ from kftune.data.validate import (
     channel_problems,
     check_channel_name,
     check_increasing,
+    plausibility_findings,
     sample_time,
     unit_factor,
     validate_channels,
@@ -133,6 +134,8 @@ DEFAULT_TRAIN_EVERY = 3
 RASTER_OPTION = "[source] raster"
 #: What ``split_at_gaps`` is called in messages that suggest it.
 GAP_OPTION = "split_at_gaps = true"
+#: What keeps the stretches above a speed, in messages that suggest it.
+SPEED_OPTION = "min_speed"
 #: Text that every ASCII-compatible encoding writes as ASCII (a CSV's separators, numbers).
 _ASCII_PROBE = "time,1.5;-2e+3\t|[m/s]\n"
 
@@ -661,10 +664,13 @@ def _check_stretches(
     m: Mapping_, file: str, starts: list[int], stretches: list[dict[str, np.ndarray]], offset: int
 ) -> None:
     """Validate every kept stretch (all bad channels at once, then each stretch and the
-    model's own check), naming rows as ``start + offset + index``."""
+    model's own check), naming rows as ``start + offset + index``; warn about a stretch
+    whose ay/(vx·r) is off but not certainly wrong (the whole recording is judged before
+    it is cut into segments, and each segment again when it becomes a manoeuvre)."""
     problems: dict[str, str] = {}
     for a, part in zip(starts, stretches):
-        for channel, text in channel_problems(part, row_offset=a + offset).items():
+        found = channel_problems(part, row_offset=a + offset, speed_option=SPEED_OPTION)
+        for channel, text in found.items():
             problems.setdefault(channel, text)
     if problems:
         label_of = {c: s.label for c, s in m.channels.items()}
@@ -677,9 +683,18 @@ def _check_stretches(
     for a, part in zip(starts, stretches):
         row = a + offset
         validate_channels(
-            part, file=file, row_offset=row, resample_option=RASTER_OPTION, gap_option=GAP_OPTION
+            part,
+            file=file,
+            row_offset=row,
+            resample_option=RASTER_OPTION,
+            gap_option=GAP_OPTION,
+            speed_option=SPEED_OPTION,
         )
         _check_model_data(m, part, file, row)
+        doubt = plausibility_findings(part, None).get("kinematic")
+        if doubt:
+            where = f"file {file}, rows {row}–{row + part['t'].size - 1}"
+            warnings.warn(f"{where}: {doubt}", DataWarning, stacklevel=2)
 
 
 def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
@@ -806,6 +821,7 @@ def import_recordings(
                 file=str(r.file),
             )
     pieces = []  # (recording, label, channels, description)
+    first_rows = []  # the row of each piece's first sample in its file
     for r in recordings:
         parts = []
         for row, part in zip(r.starts, r.stretches):
@@ -822,19 +838,13 @@ def import_recordings(
             label = r.label if len(parts) == 1 else f"{r.label}-s{i + 1:0{width}d}"
             where = f"{r.file.name}, rows {row}–{row + seg['t'].size - 1}"
             pieces.append((r, label, seg, f"{where}, t = {seg['t'][0]:.2f} … {seg['t'][-1]:.2f} s"))
+            first_rows.append(row)
     splits = _splits(m, pieces)
     for text in _split_warnings(m, recordings, splits):
         warnings.warn(text, DataWarning, stacklevel=2)
     manoeuvres = [
-        Manoeuvre(
-            label,
-            "segment",
-            split,
-            seg["t"],
-            channels={c: v for c, v in seg.items() if c != "t"},
-            description=desc,
-        )
-        for (_, label, seg, desc), split in zip(pieces, splits)
+        _segment(m, r, label, split, seg, desc, row)
+        for (r, label, seg, desc), split, row in zip(pieces, splits, first_rows)
     ]
     units = {c: u for r in recordings for c, u in r.units.items()}
     dataset_name = name or m.name or (Path(out).name if out is not None else "imported")
@@ -861,6 +871,42 @@ def import_recordings(
     if out is not None:
         save_dataset(dataset, out)
     return dataset
+
+
+def _segment(
+    m: Mapping_,
+    r: _Recording,
+    label: str,
+    split: str,
+    seg: dict[str, np.ndarray],
+    desc: str,
+    row: int,
+) -> Manoeuvre:
+    """A segment of a recording as a manoeuvre. Its own checks (the kinematic ones judge
+    the segment alone) name the recording's file and a row of it (``row``: the segment's
+    first), with the segment's name, not the manoeuvre's name and an index inside it."""
+    try:
+        return Manoeuvre(
+            label,
+            "segment",
+            split,
+            seg["t"],
+            channels={c: v for c, v in seg.items() if c != "t"},
+            description=desc,
+        )
+    except DataError as exc:
+        note = f"segment {label!r}"
+        if m.raster_step is not None and not (m.format or format_of(r.file)).own_time:
+            note += (
+                f"; resampled: a row counts {m.raster_step:g} s raster samples from the first "
+                "row of its stretch"
+            )
+        raise DataError(
+            f"{exc.message} ({note})",
+            file=str(r.file),
+            column=exc.column,
+            row=None if exc.row is None else row + exc.row,
+        ) from None
 
 
 def _matches(r: _Recording, glob: str) -> bool:

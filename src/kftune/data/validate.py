@@ -153,6 +153,11 @@ _LIMITS: dict[str, tuple[float, float, str]] = {
     "vx": (-math.inf, 100.0, "a speed beyond 100 m/s (360 km/h): km/h declared as m/s?"),
 }
 
+#: Below this |vx| [m/s] a sideslip angle atan2(vy, vx) is the angle of vy's noise, and at
+#: standstill it is undefined: an implausible beta_ref only at such speeds is blamed on the
+#: speed (keep the stretches above one), not on its unit.
+SLOW_SPEED = 2.0
+
 #: Kinematic check ay ≈ vx·r (steady state; v̇y is small on average). The ratio is fitted
 #: through the origin over the cornering samples, chosen by the regressor alone: |vx·r| at
 #: least CORNERING [m/s²] (never by |ay|: on a straight, a noisy accelerometer's own noise
@@ -176,6 +181,9 @@ KINEMATIC_RATIO = (0.5, 2.0)
 KINEMATIC_SMOOTHING = 1.0
 KINEMATIC_HUBER = 1.345
 KINEMATIC_Z = 4.0
+#: Most samples the fit uses, spread evenly over those chosen (its temporaries stay small
+#: whatever the recording's length; the standard error is that of the samples used).
+KINEMATIC_MAX_FITTED = 20_000
 #: Largest lag-1 autocorrelation of the residuals the standard error allows for (an
 #: inflation of the variance by at most 99).
 KINEMATIC_MAX_RHO = 0.98
@@ -316,6 +324,7 @@ def validate_channels(
     files: Mapping[str, str] | None = None,
     resample_option: str | None = None,
     gap_option: str | None = None,
+    speed_option: str | None = None,
 ) -> float:
     """Check one manoeuvre's channels (already in SI units) before anything uses them.
 
@@ -340,6 +349,9 @@ def validate_channels(
             gap_option: the option that splits a recording at its gaps (the importer's
             ``split_at_gaps = true``), suggested for a step over :data:`GAP_STEPS` median
             steps.
+            speed_option: the option that keeps only the stretches above a speed (the
+            importer's ``min_speed``), suggested when beta_ref is implausible only below
+            :data:`SLOW_SPEED`.
 
     Returns:
         The sample time dt [s] (median step, :func:`sample_time`).
@@ -429,12 +441,18 @@ def validate_channels(
             row=k + row_offset,
         )
     if check_units:
-        _check_magnitudes(arrays, file=file, row_offset=row_offset, files=files)
+        _check_magnitudes(
+            arrays, file=file, row_offset=row_offset, files=files, speed_option=speed_option
+        )
     return dt
 
 
 def channel_problems(
-    channels: Mapping[str, np.ndarray], *, row_offset: int = 0, rows_shown: int = 3
+    channels: Mapping[str, np.ndarray],
+    *,
+    row_offset: int = 0,
+    rows_shown: int = 3,
+    speed_option: str | None = None,
 ) -> dict[str, str]:
     """Every channel's own problems at once, where :func:`validate_channels` stops at the
     first: values that are not finite numbers, and values outside the plausible range of a
@@ -455,8 +473,8 @@ def channel_problems(
             )
             continue
         if name in _LIMITS:
-            lo, hi, hint = _LIMITS[name]
-            bad = np.flatnonzero((a < lo) | (a > hi))
+            lo, hi, _ = _LIMITS[name]
+            bad, hint = _implausible(name, a, channels, speed_option)
             if bad.size:
                 problems[name] = (
                     f"{bad.size} implausible value(s) at row(s) "
@@ -475,18 +493,42 @@ def _file_of(column: str, file: str | None, files: Mapping[str, str] | None) -> 
     return files.get(column, file) if files else file
 
 
+def _implausible(
+    name: str, a: np.ndarray, channels: Mapping[str, np.ndarray], speed_option: str | None
+) -> tuple[np.ndarray, str]:
+    """The indices of a known channel's values outside its plausible range, and why.
+
+    A sideslip angle beyond its bound only where |vx| < :data:`SLOW_SPEED` (a car standing
+    or crawling: atan2(vy, vx) of vy's noise) is blamed on the speed; where it is beyond at
+    speed too, those samples are reported, with the hint about degrees."""
+    lo, hi, hint = _LIMITS[name]
+    bad = np.flatnonzero((a < lo) | (a > hi))
+    if name != "beta_ref" or not bad.size or "vx" not in channels:
+        return bad, hint
+    vx = np.abs(np.asarray(channels["vx"], dtype=np.float64)[bad])
+    if np.any(vx >= SLOW_SPEED):
+        return bad[vx >= SLOW_SPEED], hint
+    fix = f' (set {speed_option}, e.g. {speed_option} = "3 km/h")' if speed_option else ""
+    return bad, (
+        f"the car stands or crawls at these rows (|vx| below {SLOW_SPEED:g} m/s at each; "
+        f"{float(vx[0]):.3g} m/s at the first): a sideslip angle is undefined at standstill, "
+        f"not in degrees; keep only the stretches above a speed{fix}"
+    )
+
+
 def _check_magnitudes(
     arrays: Mapping[str, np.ndarray],
     *,
     file: str | None,
     row_offset: int,
     files: Mapping[str, str] | None = None,
+    speed_option: str | None = None,
 ) -> None:
-    for name, (lo, hi, hint) in _LIMITS.items():
+    for name, (lo, hi, _) in _LIMITS.items():
         if name not in arrays:
             continue
         a = arrays[name]
-        bad = np.flatnonzero((a < lo) | (a > hi))
+        bad, hint = _implausible(name, a, arrays, speed_option)
         if bad.size:
             raise DataError(
                 f"implausible value {a[bad[0]]:g} (expected within [{lo:g}, {hi:g}] in SI "
@@ -545,14 +587,17 @@ class KinematicRatio:
 
     Attributes:
         ratio: the robust fit of ay against vx·r through the origin. stderr: its standard
-            error (allowing for autocorrelated residuals). samples: how many samples the fit
-            used. threshold: the |vx·r| [m/s²] from which they were used. row: 0-based index
+            error (allowing for autocorrelated residuals). samples: how many samples were
+            chosen. fitted: how many of them the fit used (all, or
+            :data:`KINEMATIC_MAX_FITTED` spread evenly over them). threshold: the |vx·r|
+            [m/s²] from which samples were chosen. row: 0-based index
             of the sample with the largest |vx·r| (the one a message quotes).
     """
 
     ratio: float
     stderr: float
     samples: int
+    fitted: int
     threshold: float
     row: int
 
@@ -577,9 +622,10 @@ class KinematicRatio:
     def describe(self) -> str:
         """How the ratio was found, for messages."""
         lo, hi = self.interval
+        some = f" (an even {self.fitted} of them)" if self.fitted < self.samples else ""
         return (
             f"robust fit over the {self.samples} samples with |vx·r| ≥ {self.threshold:.3g} "
-            f"m/s²; {lo:.3g} to {hi:.3g} within {KINEMATIC_Z:g} standard errors"
+            f"m/s²{some}; {lo:.3g} to {hi:.3g} within {KINEMATIC_Z:g} standard errors"
         )
 
 
@@ -605,9 +651,8 @@ def kinematic_ratio(channels: Mapping[str, np.ndarray]) -> KinematicRatio | None
         return None
     ay = np.asarray(channels["ay"], dtype=np.float64)
     vxr = np.asarray(channels["vx"], dtype=np.float64) * np.asarray(channels["r"], np.float64)
-    size = np.abs(vxr)
     threshold = CORNERING
-    if np.count_nonzero(size >= threshold) < KINEMATIC_MIN_SAMPLES:
+    if np.count_nonzero(np.abs(vxr) >= threshold) < KINEMATIC_MIN_SAMPLES:
         from scipy.ndimage import uniform_filter1d
 
         t = np.asarray(channels["t"], dtype=np.float64)
@@ -616,19 +661,26 @@ def kinematic_ratio(channels: Mapping[str, np.ndarray]) -> KinematicRatio | None
         smooth = uniform_filter1d(ay, min(window, ay.size))
         if np.count_nonzero(np.abs(smooth) >= CORNERING) < KINEMATIC_MIN_SAMPLES:
             return None  # no cornering in ay either
-        threshold = 0.5 * float(np.quantile(size, 0.99))
-    chosen = size >= threshold
+        threshold = 0.5 * float(np.quantile(np.abs(vxr), 0.99))
+    chosen = np.flatnonzero(np.abs(vxr) >= threshold)
+    samples = int(chosen.size)
+    if samples > KINEMATIC_MAX_FITTED:  # evenly over the recording: bounded memory
+        chosen = chosen[np.linspace(0, samples - 1, KINEMATIC_MAX_FITTED).astype(np.intp)]
     x, y = vxr[chosen], ay[chosen]
     sxx = float(x @ x)
-    if not (sxx > 0.0 and x.size >= KINEMATIC_MIN_SAMPLES):
+    if not (sxx > 0.0 and samples >= KINEMATIC_MIN_SAMPLES):
         return None  # a yaw rate of zero: nothing to fit
-    row = int(np.argmax(size))
+    row = int(np.argmax(np.abs(vxr)))
+
+    def result(ratio: float, stderr: float) -> KinematicRatio:
+        return KinematicRatio(ratio, stderr, samples, int(x.size), threshold, row)
+
     k = float(x @ y) / sxx  # least squares: the start
     scale = 1.4826 * float(np.median(np.abs(y - k * x - np.median(y - k * x))))
     if scale == 0.0:  # over half the residuals equal (quantised data)
         scale = float(np.std(y - k * x))
     if scale == 0.0:  # an exact fit
-        return KinematicRatio(k, 0.0, int(x.size), threshold, row)
+        return result(k, 0.0)
     from scipy.optimize import least_squares
 
     fit = least_squares(
@@ -643,14 +695,14 @@ def kinematic_ratio(channels: Mapping[str, np.ndarray]) -> KinematicRatio | None
     u = e / scale
     inside = float(np.mean(np.abs(u) <= KINEMATIC_HUBER))
     if inside == 0.0:
-        return KinematicRatio(k, math.inf, int(x.size), threshold, row)
+        return result(k, math.inf)
     psi2 = float(np.mean(np.clip(u, -KINEMATIC_HUBER, KINEMATIC_HUBER) ** 2))
     var = scale**2 * psi2 / inside**2 / sxx
     with np.errstate(invalid="ignore", divide="ignore"):  # constant residuals: nan
         rho = float(np.corrcoef(e[:-1], e[1:])[0, 1]) if e.size > 2 else 0.0
     rho = KINEMATIC_MAX_RHO if not math.isfinite(rho) else min(max(rho, 0.0), KINEMATIC_MAX_RHO)
     var *= (1.0 + rho) / (1.0 - rho)
-    return KinematicRatio(k, math.sqrt(var), int(x.size), threshold, row)
+    return result(k, math.sqrt(var))
 
 
 def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float | None) -> list[str]:
