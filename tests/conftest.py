@@ -98,3 +98,23 @@ def run_cli(*args: str, cwd: Path | None = None) -> Ran:
         os.chdir(here)
         signal.signal(signal.SIGINT, handler)
     return Ran(int(code), out.getvalue(), err.getvalue())
+
+
+#: [s] how long a test waits for evidence (a study's first results, a process's exit) before
+#: it gives up: a guard against a hang, never a measure of speed. A shared machine under load
+#: (load average 10–19 on 2 cores) stretches a command of 5 s beyond a minute.
+HANG_GUARD = 600.0
+
+
+def wait_until(ready, proc=None, what: str = "the condition", limit: float = HANG_GUARD) -> None:
+    """Poll ``ready()`` until it holds. Fails naming ``what`` when the process ``proc`` ends
+    first, or when ``limit`` seconds pass (a hang guard, see :data:`HANG_GUARD`)."""
+    import time
+
+    deadline = time.monotonic() + limit
+    while not ready():
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(f"waiting for {what}: the process ended (exit {proc.returncode})")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"waiting for {what}: not seen within {limit:g} s (a hang guard)")
+        time.sleep(0.05)

@@ -3,7 +3,7 @@
 Exit codes:
     0  success
     1  the job ran but failed (e.g. every evaluation failed, a filter diverged, a study or
-       output file could not be written while it ran)
+       output file could not be written while it ran, the Dask scheduler was lost)
     2  usage error: bad command-line options (argparse's convention), or ``--json`` with
        standard output closed
     3  bad input: a data file, manifest, configuration or study file is unusable, or an

@@ -62,7 +62,7 @@ from kftune.cli._common import (
     split_model_file,
     write_output,
 )
-from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
+from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from kftune.errors import ConfigError, RunFailedError, UsageError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
@@ -175,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
         from kftune.data import open_dataset
         from kftune.experiment import require_success, tune
         from kftune.optim import OptimizationInterrupted
+        from kftune.optim.engine import EngineLostError
         from kftune.tuning.problem import TuningProblem, check_units, default_r0
 
         dataset = open_dataset(pick(args, config, "dataset", None))
@@ -218,6 +219,9 @@ def run(args: argparse.Namespace) -> int:
             except OptimizationInterrupted as stop:
                 _interrupted(args, stop.result, problem, dataset)
                 return EXIT_INTERRUPTED
+            except EngineLostError as lost:  # the Dask scheduler went away
+                _interrupted(args, lost.result, problem, dataset, failure=str(lost))
+                return EXIT_FAILURE
     except KeyboardInterrupt:  # loading, starting or stopping workers: keep what there is
         _interrupted(args, result, problem, dataset)
         return EXIT_INTERRUPTED
@@ -385,13 +389,16 @@ def _interrupted(
     result: OptimizeResult | None = None,
     problem: TuningProblem | None = None,
     dataset: Dataset | None = None,
+    failure: str | None = None,
 ) -> None:
-    """Ctrl-C: say what was kept, save the best point so far, and how to go on."""
-    lines = [
-        "kftune: interrupted"  # how many ran is the study's to say
-        if result is None
-        else f"kftune: interrupted after {result.n_evals} evaluations"
-    ]
+    """Ctrl-C, or a run that cannot go on (``failure`` says why: a lost Dask scheduler):
+    say what was kept, save the best point so far, and how to go on."""
+    if failure is not None:
+        lines = [f"kftune: failed: {failure}"]
+    elif result is None:
+        lines = ["kftune: interrupted"]  # how many ran is the study's to say
+    else:
+        lines = [f"kftune: interrupted after {result.n_evals} evaluations"]
     if result is not None and result.x is not None and problem is not None and dataset is not None:
         partial = _partial(args.out)
         doc = tuned_document(result, problem, dataset, partial)
@@ -403,9 +410,13 @@ def _interrupted(
     if args.storage is not None and not args.storage.exists():
         lines.append(f"no study was started in {args.storage}; run the same command again")
     elif args.storage is not None:
+        again = ["kftune", *getattr(args, "argv", ["tune"]), *([] if args.resume else ["--resume"])]
         lines.append(
-            f"every finished evaluation is saved in {args.storage}; continue with the same "
-            "command" + ("" if args.resume else " plus --resume")
+            "every finished evaluation"
+            + ("" if result is None else f" ({result.n_evals})")
+            + f" is saved in {args.storage}; continue with the same command"
+            + ("" if args.resume else " plus --resume")
+            + f": {shlex.join(again)}"
         )
     else:
         lines.append("nothing else was saved (run with --storage FILE to be able to resume)")

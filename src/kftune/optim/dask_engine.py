@@ -26,13 +26,28 @@ Workers that die
     such a task back at the first death (``allowed-failures = 0``) so that ``retries`` is the
     whole bound; an external scheduler first applies its own ``allowed-failures`` (Dask's
     default: 3 further attempts) before this engine's retries.
+
+A scheduler that is lost
+    A run whose scheduler goes away (killed, its machine gone) and is not back within
+    distributed's reconnect window raises :class:`SchedulerLostError`; every evaluation
+    finished before is in the study, which a later run resumes.
+
+What is trusted
+    distributed's client allocates whatever length the first 8 bytes from the scheduler
+    announce (junk on the port asked for 3 EiB). Before a ``tcp://`` address is handed to
+    it, the engine reads the scheduler's first message itself, with a bound
+    (:func:`_preflight`). distributed's log lines are silenced while the engine runs: what
+    matters reaches the caller as an error or as a failed evaluation's reason.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import signal
+import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -41,7 +56,7 @@ from typing import Any
 import numpy as np
 
 from kftune.errors import ConfigError
-from kftune.optim.engine import Engine, Outcome, describe, evaluate_point
+from kftune.optim.engine import Engine, EngineLostError, Outcome, describe, evaluate_point
 
 #: [s] how long connecting to a scheduler, and waiting for its first worker, may take.
 CONNECT_TIMEOUT = 10.0
@@ -55,6 +70,19 @@ MISSING_EXTRA = (
 
 class DaskMissingError(ConfigError):
     """The ``dask`` extra is not installed (a configuration problem: exit code 3)."""
+
+
+class SchedulerLostError(EngineLostError):
+    """The scheduler went away during a run (a run-time failure: exit code 1); what was
+    finished before is in the study.
+
+    Attributes:
+        scheduler: the scheduler's address.
+    """
+
+    def __init__(self, message: str, *, scheduler: str) -> None:
+        super().__init__(message)
+        self.scheduler = scheduler
 
 
 def _distributed() -> Any:
@@ -98,20 +126,113 @@ def _sigint_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
+@contextlib.contextmanager
+def _silenced_logs() -> Iterator[None]:
+    """distributed's log lines to standard error silenced but for critical ones (its own
+    facility, as :class:`distributed.LocalCluster` uses): a lost scheduler printed 30 lines
+    of tracebacks before the engine could say what happened."""
+    from distributed.utils import silence_logging_cmgr
+
+    with silence_logging_cmgr(logging.CRITICAL):
+        yield
+
+
 #: How long past the connect timeout a handshake may take before the address is given up
 #: on (something that is not a Dask scheduler accepts the connection and never answers).
 HANDSHAKE_GRACE = 5.0
 
 
+#: [bytes] the most a scheduler's first message may announce: its handshake (a few
+#: Python and pickle versions) takes under 100 bytes.
+HANDSHAKE_MAX_BYTES = 64 * 1024
+#: The most frames a handshake may announce (it has one).
+HANDSHAKE_MAX_FRAMES = 16
+
+
+class NotDaskError(ConfigError):
+    """The service at the address does not answer in Dask's protocol (exit code 3)."""
+
+
+def _recv_exactly(sock: socket.socket, n: int) -> bytes:
+    """``n`` bytes from ``sock`` (``n`` bounded by the caller), or ConnectionError when
+    the peer closes first."""
+    data = bytearray()
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("the connection was closed before the handshake")
+        data += chunk
+    return bytes(data)
+
+
+def _preflight(scheduler: str, timeout: float) -> None:
+    """Read the first message of the scheduler at ``scheduler`` (a ``tcp://`` address)
+    with a bound, before distributed does: its client allocates whatever the 8-byte length
+    prefix of distributed's framing announces. A Dask scheduler sends its handshake as
+    soon as a connection is accepted: one frame of a few dozen bytes. A refused connection
+    is tried again until ``timeout`` (a scheduler that is still starting); the handshake
+    may take ``timeout`` + :data:`HANDSHAKE_GRACE` seconds from the start. Other protocols
+    (``tls://``: the client speaks first) are left to distributed.
+
+    Raises:
+        OSError: nothing accepts a connection there within ``timeout``.
+        TimeoutError: something accepts it and sends nothing.
+        NotDaskError: what it sends is not a Dask handshake.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    protocol, location = parse_address(scheduler)
+    if protocol != "tcp":
+        return
+    host, port = parse_host_port(location)
+    start = time.monotonic()
+    while True:
+        left = timeout - (time.monotonic() - start)
+        try:
+            sock = socket.create_connection((host, port), timeout=max(left, 0.1))
+            break
+        except ConnectionRefusedError:
+            if left <= 0:
+                raise
+            time.sleep(min(0.2, max(left, 0.0)))
+    with sock:
+        sock.settimeout(max(timeout + HANDSHAKE_GRACE - (time.monotonic() - start), 0.1))
+        try:
+            (n,) = struct.unpack("Q", _recv_exactly(sock, 8))  # distributed.comm.tcp's
+            if not 16 <= n <= HANDSHAKE_MAX_BYTES:
+                raise NotDaskError(
+                    f"its first message announces {n} bytes; a Dask scheduler's handshake "
+                    f"takes 16 to {HANDSHAKE_MAX_BYTES}"
+                )
+            body = _recv_exactly(sock, n)
+        except TimeoutError:
+            raise TimeoutError("no answer in Dask's protocol: is it a Dask scheduler?") from None
+        (frames,) = struct.unpack_from("Q", body)
+        if not (1 <= frames <= HANDSHAKE_MAX_FRAMES and 8 * (1 + frames) <= n):
+            raise NotDaskError(
+                f"its first message announces {frames} frames in {n} bytes, not a handshake"
+            )
+
+
 def _connect(distributed: Any, scheduler: str, timeout: float) -> Any:
     """A client of the scheduler at ``scheduler``, or TimeoutError when none answers
     within ``timeout`` + :data:`HANDSHAKE_GRACE` seconds (distributed's own timeout does
-    not cover a handshake with a service that is not Dask's: it waited for ever)."""
+    not cover a handshake with a service that is not Dask's: it waited for ever).
+
+    Raises:
+        OSError, TimeoutError: nothing answers there.
+        NotDaskError: something answers, not in Dask's protocol — also when distributed
+            fails on what it read (an allocation of an announced length that passed
+            :func:`_preflight` on its own connection and not on distributed's).
+    """
+    _preflight(scheduler, timeout)
     box: dict[str, Any] = {}
 
     def connect() -> None:
         try:
             box["client"] = distributed.Client(scheduler, timeout=timeout)
+        except (MemoryError, OverflowError, ValueError, struct.error) as exc:
+            box["error"] = NotDaskError(f"its answer could not be read: {describe(exc)}")
         except BaseException as exc:  # handed to the caller
             box["error"] = exc
 
@@ -181,6 +302,23 @@ class DaskEngine(Engine):
         self.retries = int(retries)
         self._cluster: Any = None
         self.client: Any = None
+        self._quiet = contextlib.ExitStack()  # distributed's log lines, while the engine runs
+        self._quiet.enter_context(_silenced_logs())
+        try:
+            self._start(distributed, dask, scheduler, workers, connect_timeout)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(
+        self,
+        distributed: Any,
+        dask: Any,
+        scheduler: str | None,
+        workers: int,
+        connect_timeout: float,
+    ) -> None:
+        """Start or reach the cluster, then ship the objective (see the class)."""
         if isinstance(scheduler, str) and scheduler.strip().lower() == "local":
             scheduler = "local"
         elif scheduler is not None:
@@ -195,12 +333,18 @@ class DaskEngine(Engine):
                     processes=True,
                     threads_per_worker=1,
                     dashboard_address=None,
-                    silence_logs=logging.ERROR,
+                    silence_logs=logging.CRITICAL,  # in the worker processes too
                 )
             self.client = distributed.Client(self._cluster)
         else:
             try:
                 self.client = _connect(distributed, scheduler, connect_timeout)
+            except NotDaskError as exc:
+                raise NotDaskError(
+                    f"the service at {scheduler!r} does not answer in Dask's protocol ({exc}): "
+                    "is it a Dask scheduler? Start one with 'dask scheduler' and give its "
+                    "tcp:// address"
+                ) from None
             except (OSError, TimeoutError) as exc:
                 raise ConfigError(
                     f"cannot reach the Dask scheduler at {scheduler!r} within "
@@ -210,7 +354,6 @@ class DaskEngine(Engine):
             try:
                 self.client.wait_for_workers(1, timeout=connect_timeout)
             except (OSError, TimeoutError):
-                self.close()
                 raise ConfigError(
                     f"the Dask scheduler at {scheduler!r} has no worker (none joined within "
                     f"{connect_timeout:g} s); start some with 'dask worker {scheduler}'"
@@ -235,6 +378,36 @@ class DaskEngine(Engine):
 
     # ------------------------------------------------------------------ running
     def run(self, points: Sequence[np.ndarray]) -> Iterator[tuple[int, Outcome]]:
+        """See :meth:`Engine.run`.
+
+        Raises:
+            SchedulerLostError: the scheduler went away (and did not come back within
+                distributed's reconnect window); the points not yielded yet are not
+                evaluated.
+        """
+        try:
+            yield from self._run(points)
+        except SchedulerLostError:
+            raise
+        except (Exception, asyncio.CancelledError) as exc:
+            if self._connected():
+                raise
+            raise self._lost(describe(exc)) from None
+
+    def _connected(self) -> bool:
+        """Whether the client is connected to its scheduler."""
+        return self.client is not None and self.client.status == "running"
+
+    def _lost(self, how: str) -> SchedulerLostError:
+        """The error saying that the scheduler was lost (``how``: how it showed)."""
+        return SchedulerLostError(
+            f"lost the Dask scheduler at {self.scheduler!r} during the run ({how}); the "
+            "run can go on when a scheduler with workers runs there again, or on another "
+            "one (--scheduler)",
+            scheduler=self.scheduler,
+        )
+
+    def _run(self, points: Sequence[np.ndarray]) -> Iterator[tuple[int, Outcome]]:
         distributed = _distributed()
         points = [np.asarray(x, dtype=float) for x in points]
         if not points:
@@ -260,6 +433,10 @@ class DaskEngine(Engine):
                 if fut.status == "finished":
                     out = fut.result()
                 else:
+                    if fut.status == "cancelled" or not self._connected():
+                        # the client cancels every task when it loses the scheduler: a
+                        # point lost so is not a failed evaluation
+                        raise self._lost("the connection to it closed")
                     exc = fut.exception()
                     if attempt < self.retries:
                         if self._data.status != "finished":  # every copy of it was lost
@@ -306,9 +483,15 @@ class DaskEngine(Engine):
         return float(self.fun._pool_scores(scores).cost), None, t  # type: ignore[attr-defined]
 
     def close(self) -> None:
-        if self.client is not None:
-            self.client.close()
-            self.client = None
-        if self._cluster is not None:
-            self._cluster.close()
-            self._cluster = None
+        """Close the client, and the local cluster this engine started. Nothing of it is
+        needed any more: a failure to close (a scheduler already gone, a cluster slow to
+        stop on a loaded machine) is not an error of the run."""
+        client, self.client = self.client, None
+        cluster, self._cluster = self._cluster, None
+        with contextlib.suppress(Exception, asyncio.CancelledError):
+            if client is not None:
+                client.close()
+        with contextlib.suppress(Exception, asyncio.CancelledError):
+            if cluster is not None:
+                cluster.close()
+        self._quiet.close()

@@ -26,8 +26,19 @@ from typing import Any
 
 import numpy as np
 
+from kftune.errors import RunFailedError
+
 #: What an engine reports for one point: (value or None, failure reason or None, t_eval [s]).
 Outcome = tuple[Any, str | None, float]
+
+
+class EngineLostError(RunFailedError):
+    """The engine can evaluate no more (a Dask scheduler went away): a run-time failure,
+    exit code 1. Every evaluation finished before is stored; :func:`kftune.minimize` sets
+    ``.result`` to the partial run (as for Ctrl-C), so that a caller can say what was kept.
+    """
+
+    result: Any = None
 
 
 class Engine(ABC):

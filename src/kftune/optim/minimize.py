@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 
 from kftune.optim.base import ExhaustedError, Optimizer
-from kftune.optim.engine import Engine, SerialEngine
+from kftune.optim.engine import Engine, EngineLostError, SerialEngine
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
 from kftune.optim.study import Study, StudyError
 from kftune.processes import watch_parent
@@ -200,6 +200,8 @@ def minimize(
 
     Raises:
         OptimizationInterrupted: on Ctrl-C, after saving (``.result`` has the partial run).
+        kftune.optim.engine.EngineLostError: the engine can evaluate no more (``.result``
+            as for Ctrl-C).
         kftune.optim.study.StudyInUseError: the study is open in another process.
         kftune.optim.study.StudyError, kftune.errors.ConfigError: unusable study / settings.
         ValueError: bad arguments.
@@ -295,6 +297,9 @@ def minimize(
     except KeyboardInterrupt:
         # ``finally`` below closes the study (releasing its lock) before this propagates.
         raise OptimizationInterrupted(result("interrupted")) from None
+    except EngineLostError as lost:
+        lost.result = result("interrupted")
+        raise
     finally:
         evaluator.close()
         if study is not None:

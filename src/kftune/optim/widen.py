@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from kftune.optim.engine import EngineLostError
 from kftune.optim.minimize import OptimizationInterrupted
 from kftune.optim.result import OptimizeResult
 from kftune.space import Space
@@ -69,6 +70,7 @@ def minimize_widening(
 
     Raises:
         OptimizationInterrupted: Ctrl-C in any round; ``.result`` merges what finished.
+        EngineLostError: the engine was lost in any round; ``.result`` as for Ctrl-C.
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
         raise ValueError(f"rounds must be a non-negative integer, got {rounds!r}")
@@ -88,6 +90,9 @@ def minimize_widening(
         except OptimizationInterrupted as stop:
             partial = merge([*results, stop.result], sp, "interrupted")
             raise OptimizationInterrupted(partial) from None
+        except EngineLostError as lost:
+            lost.result = merge([*results, lost.result], sp, "interrupted")
+            raise
     return merge(results, sp, results[-1].status)
 
 
