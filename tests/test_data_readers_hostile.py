@@ -12,6 +12,7 @@ import gzip
 import os
 import subprocess
 import sys
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ import scipy.io
 
 from conftest import run_cli
 from kftune.data import load_dataset, textfile
+from kftune.data.readers import mat_variables
 from kftune.data.textfile import ReadLimits
 from kftune.errors import ConfigError
 from test_data_helpers import synthetic_channels
@@ -371,3 +373,70 @@ def test_a_full_disk_while_replacing_a_dataset_keeps_the_old_one(tmp_path, monke
     assert sorted(p.name for p in out.iterdir()) == [
         "manifest.toml", "notes.txt", "rec0.csv.gz", "rec1.csv.gz"
     ]  # fmt: skip
+
+
+# =========================================================================== MATLAB sizes
+def _peak_of_import(tmp_path: Path, src: Path, source: dict | None = None) -> tuple:
+    """Import ``src`` in this process under tracemalloc: (result, out, peak bytes)."""
+    mapping = mapping_file(tmp_path, source)
+    tracemalloc.start()
+    try:
+        res, out = run_import(tmp_path, src, mapping)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    return res, out, peak
+
+
+def test_an_unmapped_struct_field_is_never_loaded(tmp_path: Path):
+    """A 64 MB field of zeros beside the mapped ones (a file of 70 kB) is skipped in 1 MiB
+    blocks: loadmat loaded the whole struct to reach the fields asked for."""
+    c = synthetic_channels(n=400)
+    src = tmp_path / "rec.mat"
+    scipy.io.savemat(src, {"rec": {**c, "unused": np.zeros((8, 10**6))}}, do_compression=True)
+    assert src.stat().st_size < 2**20
+    res, out, peak = _peak_of_import(tmp_path, src, {"struct": "rec"})
+    assert res.returncode == 0, res.stderr
+    assert peak < 16 * 2**20, f"peak {peak / 2**20:.1f} MiB"
+    np.testing.assert_allclose(load_dataset(out).manoeuvres[0].vx, c["vx"], rtol=1e-12)
+
+
+@pytest.mark.parametrize("struct", [None, "rec"])
+def test_a_mapped_matlab_variable_beyond_the_row_limit_is_refused_from_its_header(
+    tmp_path: Path, monkeypatch, struct: str | None
+):
+    c = synthetic_channels(n=400)
+    c["vx"] = np.full(4 * 10**6, 20.0)  # 32 MB of one value, beyond a limit of 1 M rows
+    src = tmp_path / "rec.mat"
+    scipy.io.savemat(src, {"rec": c} if struct else c, do_compression=True)
+    monkeypatch.setenv("KFTUNE_MAX_ROWS", "1e6")
+    res, out, peak = _peak_of_import(tmp_path, src, {"struct": struct} if struct else None)
+    assert_refused(res, out, str(src), "'vx'", "4,000,000 elements", "KFTUNE_MAX_ROWS")
+    assert peak < 16 * 2**20, f"peak {peak / 2**20:.1f} MiB"
+
+
+def test_a_matlab_file_that_inflates_beyond_the_byte_limit_stops(tmp_path, monkeypatch):
+    c = synthetic_channels(n=400)
+    src = tmp_path / "rec.mat"
+    # a field is inflated to be skipped (a variable at the top level is skipped unread)
+    scipy.io.savemat(src, {"rec": {"unused": np.zeros((8, 10**6)), **c}}, do_compression=True)
+    monkeypatch.setenv("KFTUNE_MAX_BYTES", "2e7")
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "rec"}))
+    assert_refused(res, out, str(src), "20,000,000 bytes", "KFTUNE_MAX_BYTES")
+
+
+def test_a_compressed_matlab_recording_takes_little_more_memory_than_its_arrays(tmp_path):
+    """Each variable is read, checked and converted before the next (loadmat read them
+    all, and a float64 copy of each followed: twice the arrays kept)."""
+    c = synthetic_channels(n=200_000)
+    src = tmp_path / "rec.mat"
+    scipy.io.savemat(src, c, do_compression=True)
+    tracemalloc.start()
+    try:
+        values = mat_variables(src, list(c), None, ReadLimits())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    kept = sum(v.nbytes for v in values.values())
+    assert kept == 200_000 * len(c) * 8
+    assert peak < 1.5 * kept, f"peak {peak / 2**20:.1f} MiB for {kept / 2**20:.1f} MiB kept"

@@ -39,6 +39,7 @@ import codecs
 import contextlib
 import importlib
 import math
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +48,8 @@ from typing import Any
 import numpy as np
 
 from kftune.data.textfile import (
+    BLOCK_BYTES,
+    ENV_MAX_BYTES,
     ENV_MAX_ROWS,
     NumericRows,
     ReadLimits,
@@ -280,6 +283,10 @@ def mat_variables(
         )
     if major == 2:
         values = _mat73_variables(path, names, struct, limits)
+    elif major == 0:
+        if struct:
+            raise DataError(f"struct {excerpt(struct)} not found (a v4 file has none)", file=file)
+        values = _mat4_variables(path, names, limits)
     else:
         values = _mat5_variables(path, names, struct, limits)
     out = {}
@@ -300,7 +307,7 @@ def mat_variables(
                 file=file,
                 column=name,
             )
-        out[name] = a.astype(np.float64)
+        out[name] = a.astype(np.float64, copy=False)
     return out
 
 
@@ -314,50 +321,199 @@ def _too_many(name: str, size: int, limits: ReadLimits, file: str) -> DataError:
     )
 
 
-def _mat5_variables(
-    path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
-) -> dict[str, Any]:
+def _unreadable(exc: Exception, file: str) -> DataError:
+    # SciPy's reader fails on a damaged or foreign file with any of a dozen exception types
+    # (MatReadError, ValueError, zlib.error, IndexError, even UnboundLocalError, found by
+    # fuzzing): each is bad input, reported without a traceback
+    return DataError(
+        f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
+        file=file,
+    )
+
+
+def _mat4_variables(path: Path, names: Sequence[str], limits: ReadLimits) -> dict[str, Any]:
+    """MATLAB v4 (no structs): the named variables through ``scipy.io.loadmat``, each
+    sized from its header (``whosmat``) before anything is loaded."""
     from scipy import io as sio
 
     file = str(path)
-    wanted = [struct.split(".")[0]] if struct else list(names)
     try:
         sizes = {name: math.prod(shape) for name, shape, _ in sio.whosmat(file)}
-        big = [n for n in wanted if sizes.get(n, 0) > limits.max_rows]
-        if big and not struct:
-            raise _too_many(big[0], sizes[big[0]], limits, file)
-        data = sio.loadmat(file, simplify_cells=True, variable_names=wanted)
+        for name in names:
+            if name not in sizes:
+                raise _not_found("variable", name, sizes, file)
+            if sizes[name] > limits.max_rows:
+                raise _too_many(name, sizes[name], limits, file)
+        return sio.loadmat(file, variable_names=list(names))
     except DataError:
         raise
     except Exception as exc:
-        # SciPy's reader fails on a damaged or foreign file with any of a dozen exception
-        # types (MatReadError, ValueError, zlib.error, IndexError, even UnboundLocalError,
-        # found by fuzzing): each is bad input, reported without a traceback
-        raise DataError(
-            f"not a readable MATLAB file ({type(exc).__name__}: {excerpt(str(exc), 120)})",
-            file=file,
-        ) from None
-    container: Any = data
-    known = sorted(sizes)
-    if struct:
-        for part in struct.split("."):
-            if not isinstance(container, dict) or part not in container:
+        raise _unreadable(exc, file) from None
+
+
+class _Inflated:
+    """One compressed element of a MAT file as a stream SciPy's reader can read: inflated
+    in blocks of at most :data:`~kftune.data.textfile.BLOCK_BYTES` as they are asked for
+    (SciPy's own stream inflates each 256 kB of input whole: a field of zeros skipped took
+    its full size in memory), counting the bytes inflated in ``budget`` (``[bytes left]``,
+    shared by the file's elements: ``limits.max_bytes``)."""
+
+    def __init__(self, fh: Any, nbytes: int, budget: list[int], limit: int, file: str) -> None:
+        self._fh, self._left, self._budget = fh, nbytes, budget
+        self._limit, self._file = limit, file
+        self._z = zlib.decompressobj()
+        self._pos = 0
+
+    def _chunk(self, want: int) -> bytes:
+        """Up to ``want`` inflated bytes; ``b""`` at the end of the element."""
+        while True:
+            data = self._z.unconsumed_tail
+            if not data:
+                data = self._fh.read(min(self._left, 2**16)) if self._left > 0 else b""
+                self._left -= len(data)
+                if not data:
+                    return b""
+            out = self._z.decompress(data, want)
+            if out:
+                self._pos += len(out)
+                self._budget[0] -= len(out)
+                if self._budget[0] < 0:
+                    raise DataError(
+                        f"more than {self._limit:,} bytes after decompression; reading stopped "
+                        f"at this limit: raise it with the environment variable {ENV_MAX_BYTES} "
+                        "(or ReadLimits(max_bytes=...)) if the file is genuine",
+                        file=self._file,
+                    )
+                return out
+            if self._z.eof:
+                return b""
+
+    def read(self, n: int) -> bytes:
+        parts = []
+        while n > 0:
+            data = self._chunk(min(n, BLOCK_BYTES))
+            if not data:
+                break
+            parts.append(data)
+            n -= len(data)
+        return b"".join(parts)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        target = offset if whence == 0 else self._pos + offset
+        if target < self._pos:
+            raise OSError("cannot seek backwards in a compressed element")
+        while self._pos < target and self._chunk(min(target - self._pos, BLOCK_BYTES)):
+            pass
+        return self._pos
+
+
+def _mat5_variables(
+    path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
+) -> dict[str, Any]:
+    """MATLAB v5 to v7.2, walked element by element with SciPy's own reader: only the named
+    vectors (at the top level, or fields of the struct at the dotted path ``struct``) are
+    read, each checked from its header (class, complex, number of elements) before its data
+    are loaded; every other variable and field is skipped unread (a compressed one is
+    decompressed in blocks and dropped). Memory therefore follows the arrays kept, whatever
+    else the file holds — ``loadmat`` would load a whole struct to reach one field."""
+    from scipy.io.matlab import _mio5, _mio5_params
+
+    file = str(path)
+    parts = struct.split(".") if struct else []
+    out: dict[str, Any] = {}
+    known: list[str] = []  # the names where the variables are looked for
+    reached = not parts  # the struct was found (the top level: no struct asked for)
+    budget = [limits.max_bytes]  # bytes inflated from compressed elements, at most
+
+    def element(reader: Any, stream: Any, header: Any, name: str, rest: list[str]) -> None:
+        """Read what is wanted of the element ``name`` (a variable or a field) whose header
+        was read: the struct ``rest[0]`` of the path (its fields, recursively), or a named
+        vector when ``rest`` is empty."""
+        nonlocal reached, known
+        if rest:
+            if header.mclass != _mio5_params.mxSTRUCT_CLASS:
+                raise DataError(f"{excerpt(struct)} is not a struct", file=file)
+            shape = reader.shape_from_header(header)
+            if math.prod(shape) != 1:
                 raise DataError(
-                    f"struct {excerpt(struct)} not found (no field {excerpt(part)})", file=file
+                    f"{excerpt(struct)} is a struct array of shape {shape}; expected one struct",
+                    file=file,
                 )
-            container = container[part]
-        if not isinstance(container, dict):
-            raise DataError(f"{excerpt(struct)} is not a struct", file=file)
-        known = sorted(container)
-    out = {}
+            fields = list(reader.read_fieldnames())
+            if len(rest) == 1:
+                reached, known = True, fields
+            for field in fields:
+                mdtype, nbytes = reader.read_full_tag()
+                start = stream.tell()
+                if mdtype != _mio5_params.miMATRIX:
+                    raise DataError(
+                        f"not a readable MATLAB file (field {excerpt(field)} of "
+                        f"{excerpt(struct)} is not a matrix element)",
+                        file=file,
+                    )
+                if nbytes and (field == rest[1] if len(rest) > 1 else field in names):
+                    element(reader, stream, reader.read_header(False), field, rest[1:])
+                stream.seek(start + nbytes)
+            return
+        if name in names:
+            out[name] = _mat5_array(reader, header, name, limits, file)
+
+    try:
+        with open(path, "rb") as fh:
+            top = _mio5.MatFile5Reader(fh)
+            top.initialize_read()
+            top.read_file_header()
+            reader = top._matrix_reader
+            while not top.end_of_stream():
+                mdtype, nbytes = top._file_reader.read_full_tag()
+                end = fh.tell() + nbytes
+                stream: Any = fh
+                if mdtype == _mio5_params.miCOMPRESSED:
+                    stream = _Inflated(fh, nbytes, budget, limits.max_bytes, file)
+                reader.set_stream(stream)
+                if stream is not fh:
+                    mdtype, nbytes = reader.read_full_tag()
+                if mdtype != _mio5_params.miMATRIX:
+                    raise ValueError(f"expected a matrix element, got type {mdtype}")
+                header = reader.read_header(False)
+                name = header.name.decode("latin1")
+                if not parts:
+                    known.append(name)
+                if (name == parts[0]) if parts else (name in names):
+                    element(reader, stream, header, name, parts)
+                fh.seek(end)
+    except DataError:
+        raise
+    except Exception as exc:
+        raise _unreadable(exc, file) from None
+    if not reached:
+        raise DataError(f"struct {excerpt(struct)} not found", file=file)
     for name in names:
-        if name not in container:
+        if name not in out:
             raise _not_found("variable", name, known, file)
-        value = container[name]
-        if struct and np.size(value) > limits.max_rows:
-            raise _too_many(name, int(np.size(value)), limits, file)
-        out[name] = value
     return out
+
+
+def _mat5_array(reader: Any, header: Any, name: str, limits: ReadLimits, file: str) -> Any:
+    """The array of one element whose header was read, after checking from the header
+    that it is numeric and within ``limits.max_rows`` elements (:func:`mat_variables`
+    refuses a complex one: the header SciPy reads does not say)."""
+    from scipy.io.matlab import _mio5_params
+
+    cls = _mio5_params.mclass_info.get(header.mclass, "unknown")
+    if cls not in MATLAB_NUMERIC:
+        raise DataError(
+            f"variable {excerpt(name)} is a MATLAB {cls}; expected a real numeric vector",
+            file=file,
+            column=name,
+        )
+    size = math.prod(reader.shape_from_header(header))
+    if size > limits.max_rows:
+        raise _too_many(name, size, limits, file)
+    return reader.array_from_header(header, False)
 
 
 def _mat73_variables(
