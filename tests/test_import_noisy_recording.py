@@ -23,6 +23,7 @@ from kftune.data.validate import (
     KINEMATIC_RATIO,
     SLOW_SPEED,
     kinematic_ratio,
+    plausibility_warnings,
 )
 from kftune.errors import DataError, DataWarning
 
@@ -155,6 +156,14 @@ def test_a_noisy_recording_with_a_straight_and_held_samples_imports(tmp_path):
     assert all(line.startswith("kftune: warning: ") for line in res.stderr.splitlines())
     assert "ay/(vx·r)" not in res.stderr  # no doubt about units that are right
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "map.toml", "rec.mat"]
+
+
+def test_a_recording_held_in_part_is_told_its_recorded_rate():
+    """A third of the recording held at 40 Hz: 4 of 5 samples of that third repeat (27 %),
+    and the rate is the held part's (from the runs of repeats), not 73 % of 200 Hz."""
+    (text,) = plausibility_warnings(drive(), mu=1.0)
+    assert text.startswith("27% of the samples repeat the previous one in ax, ay, r at once")
+    assert "recorded at about 40 Hz and held up to 200 Hz" in text
 
 
 def test_a_yaw_rate_in_rad_per_s_declared_deg_per_s_is_still_refused(tmp_path):
