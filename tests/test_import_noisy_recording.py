@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import run_cli
-from kftune.data import load_dataset, validate_channels
+from kftune.data import load_dataset, load_mat, validate_channels
 from kftune.data.validate import (
     CORNERING,
     KINEMATIC_RATIO,
@@ -26,6 +26,7 @@ from kftune.data.validate import (
     plausibility_warnings,
 )
 from kftune.errors import DataError, DataWarning
+from kftune.vehicle import preset
 
 RATE = 200.0  # Hz
 DURATION = 120.0  # s: six 20 s segments
@@ -194,6 +195,24 @@ def test_a_segment_refused_alone_names_the_file_and_its_row(tmp_path):
     assert re.search(r"ay/\(vx·r\) = -(0\.9\d+|1\.0\d*) in cornering", text), text
     assert text.endswith("(segment 'rec-s04')\n")
     assert "manoeuvre" not in text
+
+
+def test_a_segment_refused_by_load_mat_names_the_file_and_its_row(tmp_path):
+    """The same for the Python loaders that cut a recording (load_mat, load_columns,
+    load_revs): one implementation locates a segment's error in its recording."""
+    c = drive()
+    first = round(FLIPPED[0] * RATE)
+    c["ay"] = c["ay"].copy()
+    c["ay"][first : first + round((FLIPPED[1] - FLIPPED[0]) * RATE)] *= -1.0
+    write(tmp_path, c)
+    mapping = {"t": "time", "vx": "Speed", "ax": "AccX", "ay": "AccY", "r": "YawRate"}
+    with pytest.raises(DataError) as info:
+        load_mat(tmp_path / "rec.mat", mapping, preset("bmw-320i"), segment_length=20.0)
+    e = info.value
+    flipped = segment(c, FLIPPED)
+    peak = first + int(np.argmax(np.abs(flipped["vx"] * flipped["r"])))
+    assert (e.file, e.column, e.row) == (str(tmp_path / "rec.mat"), "ay", peak + 1)
+    assert str(e).endswith("(segment 'rec-s04')")
 
 
 def test_standstill_without_min_speed_is_blamed_on_the_speed(tmp_path):

@@ -81,7 +81,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from kftune.data.io import _vehicle_from, file_stem, save_dataset, segment_bounds
+from kftune.data.io import (
+    _vehicle_from,
+    file_stem,
+    save_dataset,
+    segment_bounds,
+    segment_manoeuvre,
+)
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.readers import FORMATS, READER_OPTIONS, Format, Table, format_named, format_of
 from kftune.data.textfile import ReadLimits, check_regular_file
@@ -882,31 +888,15 @@ def _segment(
     desc: str,
     row: int,
 ) -> Manoeuvre:
-    """A segment of a recording as a manoeuvre. Its own checks (the kinematic ones judge
-    the segment alone) name the recording's file and a row of it (``row``: the segment's
-    first), with the segment's name, not the manoeuvre's name and an index inside it."""
-    try:
-        return Manoeuvre(
-            label,
-            "segment",
-            split,
-            seg["t"],
-            channels={c: v for c, v in seg.items() if c != "t"},
-            description=desc,
+    """A segment of a recording as a manoeuvre (:func:`~kftune.data.io.segment_manoeuvre`:
+    its errors name the recording's file and row, ``row`` the segment's first)."""
+    note = ""
+    if m.raster_step is not None and not (m.format or format_of(r.file)).own_time:
+        note = (
+            f"; resampled: a row counts {m.raster_step:g} s raster samples from the first row "
+            "of its stretch"
         )
-    except DataError as exc:
-        note = f"segment {label!r}"
-        if m.raster_step is not None and not (m.format or format_of(r.file)).own_time:
-            note += (
-                f"; resampled: a row counts {m.raster_step:g} s raster samples from the first "
-                "row of its stretch"
-            )
-        raise DataError(
-            f"{exc.message} ({note})",
-            file=str(r.file),
-            column=exc.column,
-            row=None if exc.row is None else row + exc.row,
-        ) from None
+    return segment_manoeuvre(label, split, seg, desc, file=str(r.file), row=row, note=note)
 
 
 def _matches(r: _Recording, glob: str) -> bool:

@@ -794,6 +794,44 @@ def segment_bounds(t: np.ndarray, segment_length: float | None, name: str) -> li
     return bounds
 
 
+def segment_manoeuvre(
+    label: str,
+    split: str,
+    seg: Mapping[str, np.ndarray],
+    description: str,
+    *,
+    file: str | None,
+    row: int,
+    note: str = "",
+) -> Manoeuvre:
+    """A segment of a recording as a manoeuvre of kind ``"segment"``. Its own checks (the
+    kinematic ones judge the segment alone) name the recording's ``file`` and a row of it
+    (``row``: the segment's first sample's), with the segment's name and ``note`` — not the
+    manoeuvre as the file and an index inside the segment as the row.
+
+    Raises:
+        DataError: a check refuses the segment (located in ``file`` when given).
+    """
+    try:
+        return Manoeuvre(
+            label,
+            "segment",
+            split,
+            seg["t"],
+            channels={c: v for c, v in seg.items() if c != "t"},
+            description=description,
+        )
+    except DataError as exc:
+        if file is None:
+            raise
+        raise DataError(
+            f"{exc.message} (segment {label!r}{note})",
+            file=file,
+            column=exc.column,
+            row=None if exc.row is None else row + exc.row,
+        ) from None
+
+
 def recording_to_dataset(
     channels: Mapping[str, np.ndarray],
     *,
@@ -804,6 +842,8 @@ def recording_to_dataset(
     description: str = "",
     meta: Mapping[str, Any] | None = None,
     units: Mapping[str, str] | None = None,
+    file: str | None = None,
+    row_offset: int = 0,
 ) -> Dataset:
     """Turn one validated recording into a dataset, cut into segments.
 
@@ -812,7 +852,8 @@ def recording_to_dataset(
     (0-based) is *training* when ``i % train_every == 0`` and *test* otherwise — training
     segments are spread over the whole recording (different laps, tyre temperatures) and
     the split is a pure function of the recording's length. With ``segment_length=None``
-    the whole recording is one training manoeuvre.
+    the whole recording is one training manoeuvre. ``file`` and ``row_offset`` (the row of
+    sample 0 in it) locate a segment's errors in the recording (:func:`segment_manoeuvre`).
     """
     t = np.asarray(channels["t"])
     if train_every < 1:
@@ -824,13 +865,13 @@ def recording_to_dataset(
         seg = {c: np.asarray(v)[a:b] for c, v in channels.items()}
         label = name if len(bounds) == 2 else f"{name}-s{i + 1:0{width}d}"
         manoeuvres.append(
-            Manoeuvre(
+            segment_manoeuvre(
                 label,
-                "segment",
                 "train" if i % train_every == 0 else "test",
-                seg["t"],
-                channels={c: v for c, v in seg.items() if c != "t"},
-                description=f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
+                seg,
+                f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
+                file=file,
+                row=a + row_offset,
             )
         )
     dt = sample_time(t)
@@ -862,6 +903,8 @@ def load_columns(
         train_every=train_every,
         meta={"source": directory.name},
         units=_mapped_units(mapping, str(directory)),
+        file=str(directory),
+        row_offset=1,
     )
 
 
@@ -888,6 +931,8 @@ def load_mat(
         train_every=train_every,
         meta={"source": path.name},
         units=_mapped_units(mapping, str(path)),
+        file=str(path),
+        row_offset=1,
     )
 
 
@@ -964,6 +1009,8 @@ def load_revs(
             "seed": seed,
             "units": {"vx_ins": "m/s", "vy_ins": "m/s"},
         },
+        file=str(directory),
+        row_offset=1,
     )
 
 

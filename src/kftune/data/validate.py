@@ -23,8 +23,10 @@ and ``<output>_ref`` references for costs that score an output; see
 true states of a simulation) may ride along; its name must be an identifier.
 
 Data that load can still be implausible in ways that do not make them unusable:
-:func:`plausibility_warnings` finds samples held at a lower rate and lateral accelerations
-beyond what the tyres can give; :class:`~kftune.data.manoeuvre.Dataset` issues them as
+:func:`plausibility_findings` finds samples held at a lower rate, lateral accelerations
+beyond what the tyres can give and an ay/(vx·r) that is off but not certainly wrong (a
+physical check on real, noisy data warns when it is unsure; it refuses only what is
+certain); :class:`~kftune.data.manoeuvre.Dataset` issues them as
 :class:`~kftune.errors.DataWarning`.
 
 Row numbers in messages are what the caller's file shows: :func:`validate_channels` adds
@@ -332,8 +334,9 @@ def validate_channels(
     ``min_samples`` samples; every value finite; time strictly increasing (no duplicates);
     regular sample time within ``dt_tolerance``; plausible magnitudes of the known channels
     present (a yaw rate that looks like deg/s, an angle that looks like degrees, km/h as
-    m/s); when ay, vx and r are present, the kinematic consistency ay ≈ vx·r in cornering,
-    which catches ay in g or r in the wrong one of deg/s and rad/s; and when δ is present
+    m/s); when ay, vx and r are present, the kinematic consistency ay ≈ vx·r in cornering
+    (:func:`kinematic_ratio`; refused when certainly wrong), which catches ay in g or r in
+    the wrong one of deg/s and rad/s; and when δ is present
     too, the steering consistency r ≈ vx·δ/L_eff, which catches δ in rad declared as deg
     (constants and evidence at :data:`CORNERING` and :data:`STEER_L_EFF`). Which channels a
     model needs, and what it refuses (the single-track models: vx ≤ 0), is checked by the
