@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import gzip
 import os
+import struct
 import subprocess
 import sys
 import tracemalloc
@@ -440,3 +441,22 @@ def test_a_compressed_matlab_recording_takes_little_more_memory_than_its_arrays(
     kept = sum(v.nbytes for v in values.values())
     assert kept == 200_000 * len(c) * 8
     assert peak < 1.5 * kept, f"peak {peak / 2**20:.1f} MiB for {kept / 2**20:.1f} MiB kept"
+
+
+def test_a_damaged_data_type_in_a_matlab_file_is_refused_not_a_crash(tmp_path: Path):
+    """SciPy's reader indexes a table by a data element's type unchecked: a damaged type
+    byte crashed the process (SIGSEGV or SIGBUS). In a subprocess, so that a crash is a
+    failure of this test only."""
+    src = tmp_path / "rec.mat"
+    scipy.io.savemat(src, synthetic_channels(n=400), do_compression=False)
+    data = bytearray(src.read_bytes())
+    tag = data.index(struct.pack("<II", 9, 400 * 8))  # the first variable's doubles
+    data[tag + 1] = 0xE0  # miDOUBLE (9) becomes type 0xE009
+    src.write_bytes(bytes(data))
+    out = tmp_path / "out"
+    res = subprocess.run(
+        [sys.executable, "-m", "kftune", "dataset", "import", str(src), "--mapping",
+         str(mapping_file(tmp_path)), "-o", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert_refused(res, out, str(src), "not a readable MATLAB file", "type 57353")

@@ -415,8 +415,8 @@ def _mat5_variables(
 ) -> dict[str, Any]:
     """MATLAB v5 to v7.2, walked element by element with SciPy's own reader: only the named
     vectors (at the top level, or fields of the struct at the dotted path ``struct``) are
-    read, each checked from its header (class, complex, number of elements) before its data
-    are loaded; every other variable and field is skipped unread (a compressed one is
+    read, each checked from its header (class, number of elements) before its data are
+    loaded; every other variable and field is skipped unread (a compressed one is
     decompressed in blocks and dropped). Memory therefore follows the arrays kept, whatever
     else the file holds — ``loadmat`` would load a whole struct to reach one field."""
     from scipy.io.matlab import _mio5, _mio5_params
@@ -428,10 +428,12 @@ def _mat5_variables(
     reached = not parts  # the struct was found (the top level: no struct asked for)
     budget = [limits.max_bytes]  # bytes inflated from compressed elements, at most
 
-    def element(reader: Any, stream: Any, header: Any, name: str, rest: list[str]) -> None:
-        """Read what is wanted of the element ``name`` (a variable or a field) whose header
-        was read: the struct ``rest[0]`` of the path (its fields, recursively), or a named
-        vector when ``rest`` is empty."""
+    def element(
+        reader: Any, stream: Any, header: Any, name: str, rest: list[str], end: int
+    ) -> None:
+        """Read what is wanted of the element ``name`` (a variable or a field, ending at
+        ``end`` in ``stream``) whose header was read: the struct ``rest[0]`` of the path
+        (its fields, recursively), or a named vector when ``rest`` is empty."""
         nonlocal reached, known
         if rest:
             if header.mclass != _mio5_params.mxSTRUCT_CLASS:
@@ -455,11 +457,13 @@ def _mat5_variables(
                         file=file,
                     )
                 if nbytes and (field == rest[1] if len(rest) > 1 else field in names):
-                    element(reader, stream, reader.read_header(False), field, rest[1:])
+                    sub = reader.read_header(False)
+                    element(reader, stream, sub, field, rest[1:], start + nbytes)
                 stream.seek(start + nbytes)
             return
         if name in names:
-            out[name] = _mat5_array(reader, header, name, limits, file)
+            shape = reader.shape_from_header(header)
+            out[name] = _mat5_numeric(stream, order, header.mclass, shape, end, name, limits, file)
 
     try:
         with open(path, "rb") as fh:
@@ -467,6 +471,7 @@ def _mat5_variables(
             top.initialize_read()
             top.read_file_header()
             reader = top._matrix_reader
+            order = top.byte_order
             while not top.end_of_stream():
                 mdtype, nbytes = top._file_reader.read_full_tag()
                 end = fh.tell() + nbytes
@@ -478,12 +483,13 @@ def _mat5_variables(
                     mdtype, nbytes = reader.read_full_tag()
                 if mdtype != _mio5_params.miMATRIX:
                     raise ValueError(f"expected a matrix element, got type {mdtype}")
+                inner_end = stream.tell() + nbytes
                 header = reader.read_header(False)
                 name = header.name.decode("latin1")
                 if not parts:
                     known.append(name)
                 if (name == parts[0]) if parts else (name in names):
-                    element(reader, stream, header, name, parts)
+                    element(reader, stream, header, name, parts, inner_end)
                 fh.seek(end)
     except DataError:
         raise
@@ -497,23 +503,83 @@ def _mat5_variables(
     return out
 
 
-def _mat5_array(reader: Any, header: Any, name: str, limits: ReadLimits, file: str) -> Any:
-    """The array of one element whose header was read, after checking from the header
-    that it is numeric and within ``limits.max_rows`` elements (:func:`mat_variables`
-    refuses a complex one: the header SciPy reads does not say)."""
+#: MAT-file data types of numbers (miINT8 … miUINT64, by the format's codes) → NumPy type.
+MAT5_NUMBERS = {
+    1: "i1",
+    2: "u1",
+    3: "i2",
+    4: "u2",
+    5: "i4",
+    6: "u4",
+    7: "f4",
+    9: "f8",
+    12: "i8",
+    13: "u8",
+}
+
+
+def _read_exactly(stream: Any, n: int, file: str) -> bytes:
+    data = stream.read(n)
+    if len(data) != n:
+        raise DataError("not a readable MATLAB file (it ends inside a variable)", file=file)
+    return data
+
+
+def _mat5_numeric(
+    stream: Any,
+    order: str,
+    mclass: int,
+    shape: tuple[int, ...],
+    end: int,
+    name: str,
+    limits: ReadLimits,
+    file: str,
+) -> np.ndarray:
+    """The numbers of the element ``name`` (class ``mclass``, ``shape``), whose header was
+    read and whose data element follows in ``stream``, up to ``end``: checked from the
+    header (a numeric class, at most ``limits.max_rows`` elements) before anything is
+    loaded, then read here (SciPy's reader indexes a table by the data element's type
+    unchecked: a damaged type crashed the process).
+
+    Raises:
+        DataError: naming the file and the variable: not numbers, too many, complex (an
+            imaginary part follows the real one), or a data element that does not fit.
+    """
     from scipy.io.matlab import _mio5_params
 
-    cls = _mio5_params.mclass_info.get(header.mclass, "unknown")
+    cls = _mio5_params.mclass_info.get(mclass, "unknown")
     if cls not in MATLAB_NUMERIC:
         raise DataError(
             f"variable {excerpt(name)} is a MATLAB {cls}; expected a real numeric vector",
             file=file,
             column=name,
         )
-    size = math.prod(reader.shape_from_header(header))
+    size = math.prod(shape)
     if size > limits.max_rows:
         raise _too_many(name, size, limits, file)
-    return reader.array_from_header(header, False)
+    tag = _read_exactly(stream, 8, file)
+    mdtype, nbytes = np.frombuffer(tag, dtype=f"{order}u4").tolist()
+    small = mdtype >> 16  # a small data element: its size, then its type, in 4 bytes
+    if small:
+        mdtype, nbytes = mdtype & 0xFFFF, small
+    dtype = np.dtype(MAT5_NUMBERS.get(mdtype, "V")).newbyteorder(order)
+    if dtype.kind == "V" or nbytes != size * dtype.itemsize or (small and nbytes > 4):
+        raise DataError(
+            f"not a readable MATLAB file (variable {excerpt(name)}: {nbytes} bytes of data "
+            f"type {mdtype} for {size:,} elements)",
+            file=file,
+            column=name,
+        )
+    if small:
+        data = tag[4 : 4 + nbytes]
+    else:
+        data = _read_exactly(stream, nbytes, file)
+        stream.read(-nbytes % 8)  # padding to 8 bytes
+    if stream.tell() < end:  # an imaginary part follows the real one
+        raise DataError(
+            f"variable {excerpt(name)} is complex; expected real numbers", file=file, column=name
+        )
+    return np.frombuffer(data, dtype=dtype).reshape(shape, order="F")
 
 
 def _mat73_variables(
