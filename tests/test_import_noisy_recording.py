@@ -143,6 +143,22 @@ def test_what_ay_reads_outside_cornering_does_not_move_the_ratio(seed, loud):
     assert again.stderr == pytest.approx(fit.stderr, rel=1e-9)
 
 
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_spikes_in_ay_barely_move_the_ratio(seed):
+    """Kerb strikes: 5 % of the cornering samples of ay jump by 25 m/s² outwards. The
+    robust fit moves by less than 0.1 (least squares: by about 0.27)."""
+    c = segment(drive(seed=seed, held=None), (0.0, 20.0))
+    clean = kinematic_ratio(c)
+    vxr = c["vx"] * c["r"]
+    rng = np.random.default_rng(seed)
+    spikes = (rng.random(vxr.size) < 0.05) & (np.abs(vxr) >= CORNERING)
+    c["ay"] = c["ay"] + np.where(spikes, 25.0 * np.sign(vxr), 0.0)
+    spiky = kinematic_ratio(c)
+    assert clean is not None and spiky is not None
+    assert abs(spiky.ratio - clean.ratio) < 0.1
+
+
 def test_a_noisy_recording_with_a_straight_and_held_samples_imports(tmp_path):
     res = run_cli(*write(tmp_path, drive()))
     assert res.returncode == 0, res.stderr
