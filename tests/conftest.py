@@ -106,9 +106,12 @@ def run_cli(*args: str, cwd: Path | None = None) -> Ran:
 HANG_GUARD = 600.0
 
 
-def wait_until(ready, proc=None, what: str = "the condition", limit: float = HANG_GUARD) -> None:
-    """Poll ``ready()`` until it holds. Fails naming ``what`` when the process ``proc`` ends
-    first, or when ``limit`` seconds pass (a hang guard, see :data:`HANG_GUARD`)."""
+def wait_until(
+    ready, proc=None, what: str = "the condition", limit: float = HANG_GUARD, every: float = 0.05
+) -> None:
+    """Poll ``ready()`` every ``every`` seconds until it holds. Fails naming ``what`` when
+    the process ``proc`` ends first, or when ``limit`` seconds pass (a hang guard, see
+    :data:`HANG_GUARD`)."""
     import time
 
     deadline = time.monotonic() + limit
@@ -117,4 +120,4 @@ def wait_until(ready, proc=None, what: str = "the condition", limit: float = HAN
             raise AssertionError(f"waiting for {what}: the process ended (exit {proc.returncode})")
         if time.monotonic() > deadline:
             raise AssertionError(f"waiting for {what}: not seen within {limit:g} s (a hang guard)")
-        time.sleep(0.05)
+        time.sleep(every)

@@ -7,6 +7,7 @@ connects its engine to it by address, which is also how ``kftune tune --schedule
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import shlex
@@ -63,8 +64,13 @@ def problem():
     return TuningProblem(ds.train, ds.vehicle, ds.r_default)
 
 
-def _slow(x):
-    time.sleep(0.4)
+def _held(go, x):
+    """An objective that waits until the file ``go`` exists (HANG_GUARD at most): an
+    evaluation is in flight for as long as the test needs it to be, however loaded the
+    machine."""
+    deadline = time.monotonic() + HANG_GUARD
+    while not os.path.exists(go) and time.monotonic() < deadline:
+        time.sleep(0.01)
     return float(np.sum((np.asarray(x) - 0.3) ** 2))
 
 
@@ -101,29 +107,39 @@ def test_results_equal_the_sequential_run_bit_for_bit(cluster, problem):
         _same(one_by_one, minimize(problem, problem.space, "trbo", budget=3))
 
 
-def test_a_worker_killed_mid_evaluation_loses_nothing(cluster):
+def test_a_worker_killed_mid_evaluation_loses_nothing(cluster, tmp_path):
+    """SIGKILL of a worker holding an evaluation: it is sent again and the run ends as the
+    sequential one does. The evaluations wait for the kill (they used to sleep 0.4 s, and a
+    loaded machine could let the whole run pass before the killer saw a busy worker)."""
     space = [(0.0, 1.0), (0.0, 1.0)]
+    go = tmp_path / "go"
+    fun = functools.partial(_held, str(go))
     killed: list[int] = []
-    with DaskEngine(_slow, scheduler=cluster.scheduler_address) as engine:
+    errors: list[BaseException] = []
+    with DaskEngine(fun, scheduler=cluster.scheduler_address) as engine:
         pids = engine.worker_pids()
 
-        def killer():  # SIGKILL the first worker seen running an evaluation
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline and not killed:
-                busy = [a for a, keys in engine.client.processing().items() if keys]
-                if busy and busy[0] in pids:
-                    time.sleep(0.1)  # well inside the 0.4 s evaluation
-                    os.kill(pids[busy[0]], signal.SIGKILL)
-                    killed.append(pids[busy[0]])
-                time.sleep(0.01)
+        def busy() -> list[str]:
+            return [a for a, keys in engine.client.processing().items() if keys and a in pids]
+
+        def killer() -> None:  # SIGKILL the first worker seen holding an evaluation
+            try:
+                wait_until(lambda: busy(), what="a worker holding an evaluation")
+                pid = pids[busy()[0]]
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+            except BaseException as exc:
+                errors.append(exc)
+            finally:
+                go.touch()  # the evaluations go on, the re-sent one included
 
         thread = threading.Thread(target=killer, daemon=True)
         thread.start()
-        result = minimize(_slow, space, "random", budget=4, batch=2, engine=engine)
-        thread.join()
-    assert killed, "no worker was seen evaluating"
+        result = minimize(fun, space, "random", budget=4, batch=2, engine=engine)
+        thread.join(HANG_GUARD)
+    assert not errors and killed, errors
     assert result.n_failed == 0 and result.n_evals == 4
-    _same(result, minimize(_slow, space, "random", budget=4, batch=2))
+    _same(result, minimize(fun, space, "random", budget=4, batch=2))
 
 
 def test_a_run_killed_during_a_batch_resumes_exactly(cluster, problem, tmp_path):
@@ -135,21 +151,22 @@ def test_a_run_killed_during_a_batch_resumes_exactly(cluster, problem, tmp_path)
     cmd += ["--config", str(config)]
     proc = subprocess.Popen([*cmd, "-q"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     states: list[str] = []
+
+    def batch_in_flight() -> bool:
+        try:
+            with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as conn:
+                states[:] = [s for (s,) in conn.execute("SELECT state FROM trials")]
+        except sqlite3.Error:
+            states.clear()
+        return states.count(COMPLETE) >= 2 and "running" in states
+
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
-                    states = [s for (s,) in conn.execute("SELECT state FROM trials")]
-            except sqlite3.Error:
-                states = []
-            if states.count(COMPLETE) >= 2 and "running" in states:
-                proc.send_signal(signal.SIGKILL)  # with a batch in flight
-                break
-            time.sleep(0.005)
+        wait_until(batch_in_flight, proc, "a batch in flight after 2 results", every=0.005)
+        proc.send_signal(signal.SIGKILL)
     finally:
         if proc.poll() is None:
-            proc.wait(timeout=60)
+            proc.kill()
+        proc.wait()
     assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()[-2000:]
     assert "running" in states and len(states) < 6
     with sqlite3.connect(db) as conn:

@@ -25,7 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import default_sigint
+from conftest import HANG_GUARD, default_sigint, wait_until
 from kftune.cli import main
 from kftune.errors import DataError, RunFailedError
 from kftune.optim import StudyError, StudyInUseError, minimize
@@ -93,7 +93,7 @@ def test_a_copy_of_the_study_file_alone_keeps_every_finished_evaluation(tmp_path
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    _wait_for(lambda: len(_complete_u(db)) >= 4, proc, limit=60)
+    _wait_for(lambda: len(_complete_u(db)) >= 4, proc)
     # stop reading (a reader may hold back a checkpoint), let a few evaluations pass, kill
     time.sleep(float(np.random.default_rng().uniform(0.2, 0.4)))
     proc.kill()
@@ -106,7 +106,8 @@ def test_a_copy_of_the_study_file_alone_keeps_every_finished_evaluation(tmp_path
         in_copy = conn.execute(query + " ORDER BY number").fetchall()
     with contextlib.closing(sqlite3.connect(db)) as conn:
         in_original = conn.execute(query + " ORDER BY number").fetchall()
-    assert len(in_original) >= 5 and len(in_original) < budget, "not killed mid-run"
+    # at least the 4 seen (a loaded machine may starve the run through the short sleep)
+    assert len(in_original) >= 4 and len(in_original) < budget, "not killed mid-run"
     assert in_copy in (in_original, in_original[:-1])
     res = minimize(objective, SPACE, "random", budget=budget, seed=5, storage=copy, resume=True)
     ref = minimize(objective, SPACE, "random", budget=budget, seed=5)
@@ -123,7 +124,7 @@ def test_deleting_files_beside_a_study_cannot_let_a_second_run_in(tmp_path):
         stderr=subprocess.PIPE,
     )
     try:
-        _wait_for(lambda: len(_complete_u(db)) >= 2, proc, limit=60)
+        _wait_for(lambda: len(_complete_u(db)) >= 2, proc)
         for p in tmp_path.iterdir():
             if p.name.startswith("s.db") and p.name not in ("s.db", "s.db-wal", "s.db-shm"):
                 p.unlink()
@@ -207,7 +208,7 @@ def test_an_output_that_is_a_pipe_or_a_dangling_link_is_refused_at_once(tmp_path
     dangling = tmp_path / "link.json"
     dangling.symlink_to(tmp_path / "gone" / "t.json")
     for out, expected in [(fifo, "not a regular file"), (dangling, "does not exist")]:
-        res = kftune_process("tune", "-q", "-n", "1000", "-o", str(out), timeout=120)
+        res = kftune_process("tune", "-q", "-n", "1000", "-o", str(out), timeout=HANG_GUARD)
         assert res.returncode == 3, res.stderr
         assert "--out" in res.stderr and expected in res.stderr and "Traceback" not in res.stderr
 
@@ -319,7 +320,7 @@ def test_closed_standard_output(tmp_path):
         preexec_fn=close_stdout,
         stderr=subprocess.PIPE,
         text=True,
-        timeout=120,
+        timeout=HANG_GUARD,
     )
     assert (
         res.returncode == 2
@@ -332,7 +333,7 @@ def test_closed_standard_output(tmp_path):
         preexec_fn=close_stdout,
         stderr=subprocess.PIPE,
         text=True,
-        timeout=120,
+        timeout=HANG_GUARD,
     )
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
 
@@ -349,14 +350,12 @@ def test_killing_the_parent_of_a_workers_run_takes_its_workers_along(small, tmp_
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )  # fmt: skip
-    deadline = time.monotonic() + 120
-    while _completed(db) < 2 and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_until(lambda: _completed(db) >= 2, proc, "2 finished evaluations in the study")
     kids = _children(proc.pid)
     proc.kill()
     proc.wait()
     assert len(kids) >= 2, "the pool's workers were not running"
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 120  # a hang guard: load stretches the workers' notice
     while any(_alive(k) for k in kids) and time.monotonic() < deadline:
         time.sleep(0.1)
     left = [k for k in kids if _alive(k)]
@@ -365,7 +364,7 @@ def test_killing_the_parent_of_a_workers_run_takes_its_workers_along(small, tmp_
     assert not left, "pool workers outlived their killed parent"
 
 
-def _ctrl_c(args: list[str], ready, limit: float = 120) -> subprocess.CompletedProcess:
+def _ctrl_c(args: list[str], ready) -> subprocess.CompletedProcess:
     """Start ``kftune ARGS`` in its own process group, wait for ``ready()``, then send
     SIGINT to the whole group, as a terminal's Ctrl-C does."""
     proc = subprocess.Popen(
@@ -376,12 +375,14 @@ def _ctrl_c(args: list[str], ready, limit: float = 120) -> subprocess.CompletedP
         start_new_session=True,
         preexec_fn=default_sigint,
     )
-    deadline = time.monotonic() + limit
-    while not ready() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert proc.poll() is None, "finished before it could be interrupted"
-    os.killpg(proc.pid, signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    try:
+        wait_until(ready, proc, "the moment to interrupt it")
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=HANG_GUARD)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import HANG_GUARD
 from kftune.errors import ConfigError
 from kftune.optim import (
     OptimizationInterrupted,
@@ -215,7 +216,7 @@ def test_killed_parent_leaves_no_worker_holding_the_study(tmp_path):
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    _wait_for(lambda: pids.exists() and pids.read_text().strip(), proc, limit=60)
+    _wait_for(lambda: pids.exists() and pids.read_text().strip(), proc)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     worker = int(pids.read_text().split()[0])
@@ -223,8 +224,10 @@ def test_killed_parent_leaves_no_worker_holding_the_study(tmp_path):
     res = minimize(lambda x: float(x[0]), {"a": (0.0, 1.0)}, "random", budget=5, seed=0,
                    storage=str(db), resume=True)  # fmt: skip
     assert res.n_evals == 5
-    deadline = time.time() + 15  # far less than the hung evaluation's 600 s
-    while _alive(worker) and time.time() < deadline:
+    # a hang guard far below the hung evaluation's 600 s (a loaded machine can stretch the
+    # worker's notice of its orphaning to many seconds)
+    deadline = time.monotonic() + 120
+    while _alive(worker) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not _alive(worker), "the orphaned evaluation worker is still running"
 
@@ -267,15 +270,17 @@ def test_a_study_dropped_without_close_frees_its_lock(tmp_path):
     Study.open(tmp_path / "s.db", settings, resume=True).close()
 
 
-def _wait_for(cond, proc, limit=30.0, exit_ok=False):
-    t0 = time.time()
+def _wait_for(cond, proc, limit=HANG_GUARD, exit_ok=False):
+    """Poll ``cond()`` until it holds; ``limit`` [s] is a hang guard only (a loaded machine
+    stretches a worker's start-up from a second to a minute)."""
+    t0 = time.monotonic()
     while not cond():
         if proc.poll() is not None:
             if exit_ok and proc.returncode == 0:
                 return
             raise AssertionError(f"worker exited early: {proc.stderr.read().decode()}")
-        if time.time() - t0 > limit:
-            raise AssertionError("worker did not start")
+        if time.monotonic() - t0 > limit:
+            raise AssertionError(f"worker did not start within {limit:g} s (a hang guard)")
         time.sleep(0.02)
 
 
@@ -311,14 +316,12 @@ def test_sigkill_at_random_moments_then_resume(tmp_path, method, budget):
         if kills < 4:
             # Wait for progress (imports take a while), then kill at a random moment.
             n0 = n_done_before[-1]
-            _wait_for(
-                lambda n0=n0: db.exists() and len(_complete_u(db)) > n0, proc, 60, exit_ok=True
-            )
+            _wait_for(lambda n0=n0: db.exists() and len(_complete_u(db)) > n0, proc, exit_ok=True)
             time.sleep(float(rng.uniform(0.0, 0.3)))
             if proc.poll() is None:
                 proc.send_signal(signal.SIGKILL)
                 kills += 1
-        proc.wait(timeout=120)
+        proc.wait(timeout=HANG_GUARD)
         if proc.returncode == 0:
             break
         assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import signal
 import socket
@@ -233,8 +234,15 @@ def _connect(distributed: Any, scheduler: str, timeout: float) -> Any:
             box["client"] = distributed.Client(scheduler, timeout=timeout)
         except (MemoryError, OverflowError, ValueError, struct.error) as exc:
             box["error"] = NotDaskError(f"its answer could not be read: {describe(exc)}")
+        except OSError as exc:  # TimeoutError included; its message is all the caller uses
+            box["error"] = OSError(str(exc))
         except BaseException as exc:  # handed to the caller
             box["error"] = exc
+        if "error" in box:
+            # The half-made client is garbage in a reference cycle: collected here, its
+            # __del__ closes it; collected later on distributed's event-loop thread, it
+            # waited for a lock the next client's start held (10 s, then a wrong error).
+            gc.collect()
 
     thread = threading.Thread(target=connect, name="kftune-dask-connect", daemon=True)
     thread.start()
