@@ -211,22 +211,43 @@ def test_time_running_backwards_is_refused_in_every_format(tmp_path, fmt, name, 
     assert_refused(res, out, str(src), "column 't'", f"row {row}", "decreasing")
 
 
-def test_an_mdf_signal_whose_timestamps_run_backwards_is_refused(tmp_path: Path):
+def write_mdf(tmp_path: Path, signals: dict[str, tuple[np.ndarray, np.ndarray]]) -> Path:
+    """An MDF4 file of ``name → (samples, timestamps)``, each signal in a group of its own
+    (asammdf resamples signals appended together onto the first one's timestamps), and the
+    mapping ``map.toml`` of :data:`CHANNELS` but t onto the signals ``S_<channel>``."""
     asammdf = pytest.importorskip("asammdf")
-    c = synthetic_channels(n=400)
-    back = _backwards()["t"]
     mdf = asammdf.MDF(version="4.10")
-    for name in CHANNELS:
-        if name != "t":  # each signal in its own group, with its own time; r's runs back
-            stamps = back if name == "r" else c["t"]
-            mdf.append([asammdf.Signal(c[name], stamps, name=f"S_{name}")])
+    for name, (samples, stamps) in signals.items():
+        mdf.append([asammdf.Signal(samples, stamps, name=name)])
     mdf.save(tmp_path / "rec.mf4", overwrite=True)
     mdf.close()
     lines = ['vehicle = "bmw-320i"', "[channels]"]
     lines += [f'{k} = "S_{k}"' for k in CHANNELS if k != "t"]
     (tmp_path / "map.toml").write_text("\n".join(lines) + "\n")
-    res, out = run_import(tmp_path, tmp_path / "rec.mf4", tmp_path / "map.toml")
-    assert_refused(res, out, str(tmp_path / "rec.mf4"), "'S_r'", "row 251", "decreasing")
+    return tmp_path / "rec.mf4"
+
+
+def test_an_mdf_signal_whose_timestamps_run_backwards_is_refused(tmp_path: Path):
+    c = synthetic_channels(n=400)
+    back = _backwards()["t"]  # r's clock steps back
+    src = write_mdf(
+        tmp_path,
+        {f"S_{k}": (c[k], back if k == "r" else c["t"]) for k in CHANNELS if k != "t"},
+    )
+    res, out = run_import(tmp_path, src, tmp_path / "map.toml")
+    assert_refused(res, out, str(src), "'S_r'", "row 251", "decreasing")
+
+
+def test_an_mdf_signal_beyond_the_row_limit_is_refused_before_it_is_loaded(tmp_path, monkeypatch):
+    c = synthetic_channels(n=400)
+    signals = {f"S_{k}": (c[k], c["t"]) for k in CHANNELS if k != "t"}
+    long = np.arange(2 * 10**6) * 1e-3  # 2 M samples, 16 MB each of time and values
+    signals["S_vx"] = (np.full(long.size, 20.0), long)
+    src = write_mdf(tmp_path, signals)
+    monkeypatch.setenv("KFTUNE_MAX_ROWS", "5e5")
+    res, out, peak = _peak_of_import(tmp_path, src, mapping=tmp_path / "map.toml")
+    assert_refused(res, out, str(src), "'S_vx'", "2,000,000 samples", "KFTUNE_MAX_ROWS")
+    assert peak < 8 * 2**20, f"peak {peak / 2**20:.1f} MiB"
 
 
 def test_time_running_backwards_where_min_speed_drops_the_rows_is_still_refused(tmp_path):
@@ -377,9 +398,12 @@ def test_a_full_disk_while_replacing_a_dataset_keeps_the_old_one(tmp_path, monke
 
 
 # =========================================================================== MATLAB sizes
-def _peak_of_import(tmp_path: Path, src: Path, source: dict | None = None) -> tuple:
+def _peak_of_import(
+    tmp_path: Path, src: Path, source: dict | None = None, mapping: Path | None = None
+) -> tuple:
     """Import ``src`` in this process under tracemalloc: (result, out, peak bytes)."""
-    mapping = mapping_file(tmp_path, source)
+    mapping = mapping or mapping_file(tmp_path, source)
+    run_cli("dataset", "import", "--help")  # the modules the command imports, not counted
     tracemalloc.start()
     try:
         res, out = run_import(tmp_path, src, mapping)

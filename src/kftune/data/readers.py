@@ -742,7 +742,21 @@ def read_mdf(
             if name not in mdf.channels_db:
                 raise _not_found("signal", name, known, file)
             try:
+                # the samples its group's header records, checked before any is loaded
+                cycles = max(
+                    mdf.groups[g].channel_group.cycles_nr for g, _ in mdf.channels_db[name]
+                )
+                if cycles > limits.max_rows:
+                    raise DataError(
+                        f"signal has {cycles:,} samples, more than the limit of "
+                        f"{limits.max_rows:,} rows: raise it with the environment variable "
+                        f"{ENV_MAX_ROWS} (or ReadLimits(max_rows=...)) if the file is genuine",
+                        file=file,
+                        column=name,
+                    )
                 sig = mdf.get(name)
+            except DataError:
+                raise
             except Exception as exc:  # several channels of this name, a damaged block
                 raise DataError(
                     f"cannot read the signal ({type(exc).__name__}: {excerpt(str(exc), 160)})",
