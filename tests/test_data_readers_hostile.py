@@ -9,22 +9,26 @@ from __future__ import annotations
 
 import errno
 import gzip
+import io
 import os
 import struct
 import subprocess
 import sys
+import tempfile
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.io
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from conftest import run_cli
 from kftune.data import load_dataset, textfile
 from kftune.data.readers import mat_variables
 from kftune.data.textfile import ReadLimits
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, DataError
 from test_data_helpers import synthetic_channels
 
 SECRET = "SECRET-content-of-a-foreign-file"
@@ -484,3 +488,29 @@ def test_a_damaged_data_type_in_a_matlab_file_is_refused_not_a_crash(tmp_path: P
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert_refused(res, out, str(src), "not a readable MATLAB file", "type 57353")
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), min_size=1, max_size=12),
+    cut=st.integers(0, 10**6),
+    compress=st.booleans(),
+)
+def test_damaged_matlab_structs_give_data_or_a_short_data_error(flips, cut, compress):
+    """Any damage to a file of a struct (skipped fields, nested ones, the mapped ones)
+    gives the data or a DataError naming the file: never another exception or a crash."""
+    buf = io.BytesIO()
+    c = synthetic_channels(n=50)
+    scipy.io.savemat(buf, {"log": {"note": "x", "rec": c, "more": np.ones((3, 40))}},
+                     do_compression=compress)  # fmt: skip
+    data = bytearray(buf.getvalue())
+    for pos, value in flips:
+        data[pos % len(data)] = value
+    with tempfile.TemporaryDirectory() as folder:
+        f = Path(folder) / "rec.mat"
+        f.write_bytes(bytes(data[: max(1, cut % (len(data) + 1))]))
+        try:
+            values = mat_variables(f, list(c), "log.rec", ReadLimits(max_bytes=2**24))
+            assert all(v.shape == (50,) for v in values.values())
+        except DataError as exc:
+            assert exc.file == str(f) and len(str(exc)) < 600
