@@ -7,13 +7,22 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from conftest import default_sigint
 from conftest import run_cli as kftune
 from kftune.cli import EXIT_BAD_INPUT, EXIT_OK
 
+#: [s] how long a test waits for a command before it counts as hung (load can stretch any
+#: wait; only a hang should reach this).
+HANG_GUARD = 300
 #: A "model" that records being imported (and then defines no model).
 MARKING = "from pathlib import Path\nPath(__file__).with_name('MARKER').write_text('ran')\n"
 
@@ -125,3 +134,82 @@ def test_a_real_interrupt_while_a_model_file_loads_is_still_an_interrupt(
     assert res.returncode == code, res.stderr
     assert "interrupted" in res.stderr and "Traceback" not in res.stderr
     assert not (tmp_path / "t.json").exists()
+
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "linear_bicycle.py"
+#: The example's last line of f, to which a fault is added in some states only.
+LAST_OF_F = "    out[2] = x[2] + dt * ((p[2] * fyf * cd - p[3] * fyr) / p[1])\n"
+
+
+def faulty(folder: Path, fault: str, marker: bool = False) -> Path:
+    """The README's example model with ``fault`` at the end of f (indented), and, with
+    ``marker``, a line per process that imports it (its pid) in ``folder/imported``."""
+    text = EXAMPLE.read_text()
+    assert LAST_OF_F in text
+    added = "".join(f"    {line}\n" for line in fault.split("\n"))
+    text = text.replace(LAST_OF_F, LAST_OF_F + added)
+    if marker:
+        text += (
+            "\nimport os\nwith open(os.path.join(os.path.dirname(__file__), 'imported'), 'a') "
+            "as _f:\n    _f.write(f'{os.getpid()}\\n')\n"
+        )
+    path = folder / "faulty.py"
+    path.write_text(text)
+    return path
+
+
+def test_a_hook_that_writes_out_of_bounds_in_some_states_is_named(small, tmp_path):
+    """f writes beyond out only once the yaw rate exceeds 0.2 rad/s, not at the prior mean
+    where the first-sample probe looks: compiled code does not check bounds, so a tuning
+    run corrupted memory silently or aborted (glibc). A bounds-checked run of the filter
+    over each manoeuvre, in a child process, names the hook, the file and the manoeuvre."""
+    model = faulty(tmp_path, "if abs(x[2]) > 0.2:\n    out[3 + int(abs(x[2]) * 1000)] = 0.0")
+    out = tmp_path / "t.json"
+    res = kftune("tune", small, "--model", model, "-n", "2", "-o", out)
+    assert res.returncode == EXIT_BAD_INPUT, res.stderr
+    assert f"model {model}, on manoeuvre 'train-03-j-turn': f(x, u, p, dt, out)" in res.stderr
+    assert "indexes beyond an array" in res.stderr and "Traceback" not in res.stderr
+    assert not out.exists()
+
+
+def test_a_hook_that_crashes_its_process_is_named(small, tmp_path):
+    model = faulty(tmp_path, "out[10**9] = 1.0")  # far beyond: a segmentation fault
+    res = kftune("tune", small, "--model", model, "-n", "2", "-o", tmp_path / "t.json")
+    assert res.returncode == EXIT_BAD_INPUT, res.stderr
+    assert f"model {model}, on manoeuvre 'train-03-j-turn'" in res.stderr
+    assert "killed by SIGSEGV" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_hook_that_never_returns_is_stopped_by_a_signal(small, tmp_path, signum, code):
+    """f loops for ever once the yaw rate exceeds 0.2 rad/s: a compiled loop does not see
+    signals, so a probe in the command's own process could only be SIGKILLed. The hooks
+    run first in a child process, which the command kills when it is told to stop."""
+    faulty(tmp_path, "if abs(x[2]) > 0.2:\n    while True:\n        out[0] += 1.0", marker=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kftune", "tune", str(small), "--model", "faulty.py", "-n", "2",
+         "-o", "t.json"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=default_sigint,
+    )  # fmt: skip
+    imported = tmp_path / "imported"
+    try:
+        # the command loaded the model, then the child that runs its hooks did: wait for
+        # both lines (a hang guard, not a timing assumption)
+        for _ in range(HANG_GUARD * 10):
+            if imported.exists() and len(imported.read_text().split()) >= 2:
+                break
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.1)
+        else:
+            pytest.fail("the hooks were not run in a child process")
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=HANG_GUARD)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == code, err
+    assert "Traceback" not in err and not (tmp_path / "t.json").exists()
+    child = int(imported.read_text().split()[1])
+    with pytest.raises(ProcessLookupError):  # killed with the command, not left looping
+        os.kill(child, 0)

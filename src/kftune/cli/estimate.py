@@ -158,7 +158,9 @@ def run(args: argparse.Namespace) -> int:
         manoeuvres = list(dataset.manoeuvres)
     vehicle, notes = check_recordings(tuned.document, args.params, dataset, manoeuvres, args.force)
     # the model it was tuned with, loaded once before any output (a lost one is named)
-    check_units(filter_spec_of(args, {}, vehicle, (args.params, tuned.document)).model, dataset)
+    fs = filter_spec_of(args, {}, vehicle, (args.params, tuned.document))
+    check_units(fs.model, dataset)
+    fs.probe(manoeuvres, tuned.r, tuned.q)  # its hooks on every manoeuvre, before any output
     out: dict[str, Any] = {
         "params": str(args.params),
         "dataset": dataset.name,
@@ -173,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
     diverged: list[str] = []
     keep = "nothing else is lost; fix it and run the command again"
     for m in manoeuvres:
-        est = estimate(tuned, m, vehicle)
+        est = estimate(tuned, m, vehicle, probe=False)
         stem = file_stem(m.name)
         while stem in stems:  # two names reduced to the same stem
             stem += "_"

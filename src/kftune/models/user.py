@@ -16,24 +16,30 @@ processes (``--workers``) load the same file again from the spec string.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import importlib.util
 import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from numba import njit
+from numba.core.dispatcher import Dispatcher
+
 from kftune.errors import ConfigError
-from kftune.models.base import StateSpaceModel
+from kftune.models.base import HOOK_ARGUMENTS, StateSpaceModel
 from kftune.models.registry import get_model, model_names, register_model
 
-__all__ = ["is_model_file", "load_model", "model_file_sha256"]
+__all__ = ["checked_model", "is_model_file", "load_model", "model_file_sha256"]
 
 _LOADED: dict[tuple[str, str], StateSpaceModel] = {}
+#: The start of the module name a model file is run under (one per path).
+_MODULE_PREFIX = "kftune_user_model_"
 
 
 def is_model_file(spec: str) -> bool:
@@ -117,9 +123,35 @@ def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:
     return model
 
 
+def checked_model(model: StateSpaceModel, hooks: Iterable[str] = HOOK_ARGUMENTS) -> StateSpaceModel:
+    """A copy of ``model`` whose compiled ``hooks`` check every index (numba's
+    ``boundscheck``): an index beyond an array raises IndexError instead of reading or
+    writing other memory. The compiled functions that the hooks' own module defines (the
+    helpers they call by name) are recompiled with the check too, by rebinding them in
+    that module: only for a process that runs the model to check it (a child process),
+    as the module's other users get the checked helpers as well. Nothing is cached."""
+    done: dict[int, Dispatcher] = {}
+
+    def checked(fn: Dispatcher) -> Dispatcher:
+        if id(fn) not in done:
+            options = {k: v for k, v in fn.targetoptions.items() if k not in ("nopython", "cache")}
+            done[id(fn)] = njit(**{**options, "boundscheck": True})(fn.py_func)
+        return done[id(fn)]
+
+    for fn in (getattr(model, hook) for hook in HOOK_ARGUMENTS):
+        module = sys.modules.get(getattr(getattr(fn, "py_func", None), "__module__", ""))
+        if module is None or not module.__name__.startswith(_MODULE_PREFIX):
+            continue  # only a model file's own functions (kftune's are its own business)
+        for name, value in list(vars(module).items()):
+            if isinstance(value, Dispatcher) and value.py_func.__module__ == module.__name__:
+                setattr(module, name, checked(value))
+    changed = {h: checked(getattr(model, h)) for h in hooks if getattr(model, h) is not None}
+    return dataclasses.replace(model, **changed)
+
+
 def _run(path: Path, shown: str) -> object:
     """Import the file as a module of its own (a name unique to its path)."""
-    name = "kftune_user_model_" + hashlib.sha256(str(path).encode()).hexdigest()[:16]
+    name = _MODULE_PREFIX + hashlib.sha256(str(path).encode()).hexdigest()[:16]
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
         raise ConfigError(f"model file {shown} cannot be loaded as Python")

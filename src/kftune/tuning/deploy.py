@@ -369,12 +369,17 @@ def reference(m: Manoeuvre, channel: str = "beta_ref") -> np.ndarray | None:
     return ref if ref.shape == (m.n,) and np.isfinite(ref).any() else None
 
 
-def estimate(tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams) -> Estimates:
+def estimate(
+    tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams, *, probe: bool = True
+) -> Estimates:
     """Run ``tuned`` (its Q and R, not re-estimated) over ``m`` with ``vehicle``'s
-    parameters, at the manoeuvre's own sample time."""
+    parameters, at the manoeuvre's own sample time; ``probe``: run the model's hooks
+    first (:meth:`~kftune.tuning.problem.FilterSpec.probe`; False: the caller did, on
+    every manoeuvre at once)."""
     fs = filter_spec(tuned.model, tuned.filter, vehicle)
     model = fs.model
-    fs.probe(m, tuned.r)
+    if probe:
+        fs.probe([m], tuned.r, tuned.q)
     res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings)
     cols: dict[str, np.ndarray] = {"t": m.t}
     units: dict[str, str] = {"t": "s"}

@@ -29,7 +29,7 @@ from kftune.errors import ConfigError, DataError
 from kftune.filters import UKFResult, UKFSettings, run_ukf, run_ukf_simd
 from kftune.filters.generic import FilterResult, ModelFilter, get_filter
 from kftune.models import DataRefused, StateSpaceModel, model_names
-from kftune.models.user import load_model, model_file_sha256
+from kftune.models.user import is_model_file, load_model, model_file_sha256
 from kftune.processes import sigint_blocked, watch_parent
 from kftune.space import Param, Space
 from kftune.tuning.cost import (
@@ -42,6 +42,7 @@ from kftune.tuning.cost import (
     nrmse,
     weighted_cost,
 )
+from kftune.tuning.hookcheck import check_model_file
 from kftune.tuning.kpi import sideslip_kpis
 from kftune.vehicle.params import VehicleParams
 from kftune.vehicle.single_track import measure, step_rk4
@@ -365,16 +366,32 @@ class FilterSpec:
         u = np.column_stack([m.channel(c) for c in names]) if names else None
         return u, np.column_stack([m.channel(c) for c in self.model.measurement_names])
 
-    def probe(self, m: Manoeuvre, r: np.ndarray) -> None:
-        """Run the model's hooks once on ``m``'s first sample with measurement variances
-        ``r`` (:meth:`~kftune.models.StateSpaceModel.probe`; the paper's kernel is not
-        probed: its model is kftune's own).
+    def probe(
+        self, manoeuvres: Sequence[Manoeuvre], r: np.ndarray, q: np.ndarray | None = None
+    ) -> None:
+        """Run the model's hooks before a filter relies on them, with measurement variances
+        ``r``: once on the first sample of the first manoeuvre
+        (:meth:`~kftune.models.StateSpaceModel.probe`). A model file's hooks run in a
+        child process instead, where a hook that never returns can be stopped (Ctrl-C,
+        SIGTERM), on every manoeuvre, and then through the filter with bounds checked
+        (process-noise variances ``q``, default 1e-4 each):
+        :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models are not
+        probed in a child (nor the paper's kernel at all).
 
         Raises:
             ConfigError: naming the model (its file), the manoeuvre and the hook.
         """
-        if self.fast:
+        if self.fast or not manoeuvres:
             return
+        if is_model_file(self.spec):
+            runs = [(m.name, *self.inputs(m), m.dt) for m in manoeuvres]
+            qs = np.full(self.model.n_states, 1e-4) if q is None else np.asarray(q, float)
+            try:
+                check_model_file(self.spec, self.filter, runs, self.params, qs, np.asarray(r))
+            except ValueError as exc:
+                raise ConfigError(f"model {self.spec}, {exc}") from None
+            return
+        m = manoeuvres[0]
         u, z = self.inputs(m)
         try:
             self.model.probe(u, z, r, self.params, m.dt)
@@ -669,7 +686,7 @@ class TuningProblem:
                 f"r0 must be {k} positive finite variances {list(mod.measurement_names)}, "
                 f"got {r0!r}"
             )
-        self._fs.probe(self.manoeuvres[0], self.r0)  # before a budget is spent on the model
+        self._fs.probe(self.manoeuvres, self.r0)  # before a budget is spent on the model
         self.parameterization = parameterization or NoiseParameterization(
             states=mod.state_names, measurements=mod.measurement_names
         )
