@@ -158,6 +158,9 @@ def test_a_v73_struct_behind_an_external_link_is_refused(tmp_path: Path, foreign
     src = savemat73(tmp_path / "rec.mat", synthetic_channels(n=400), extra)
     res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "outside"}))
     assert_refused(res, out, str(src), "'outside'", "external link to another file")
+    # a path inside the name would be followed through the link: not a name of the file
+    res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "outside/vx"}))
+    assert_refused(res, out, str(src), "struct 'outside/vx' not found")
 
 
 def test_a_v73_soft_link_inside_the_file_is_read(tmp_path: Path):

@@ -662,6 +662,8 @@ def _h5_member(root: Any, group: Any, name: str, label: str, file: str, hops: in
     """
     import h5py
 
+    if "/" in name or name in ("", "."):  # a path: its steps are links too, unchecked
+        return None
     link = group.get(name, getlink=True)
     if link is None:
         return None
