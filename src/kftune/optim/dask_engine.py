@@ -28,9 +28,10 @@ Workers that die
     default: 3 further attempts) before this engine's retries.
 
 A scheduler that is lost
-    A run whose scheduler goes away (killed, its machine gone) and is not back within
-    distributed's reconnect window raises :class:`SchedulerLostError`; every evaluation
-    finished before is in the study, which a later run resumes.
+    A run whose scheduler goes away (killed, its machine gone) raises
+    :class:`SchedulerLostError` as soon as the client sees the connection close (it
+    cancels every task in flight then: those points are not failed evaluations); every
+    evaluation finished before is in the study, which a later run resumes.
 
 What is trusted
     distributed's client allocates whatever length the first 8 bytes from the scheduler
@@ -389,9 +390,8 @@ class DaskEngine(Engine):
         """See :meth:`Engine.run`.
 
         Raises:
-            SchedulerLostError: the scheduler went away (and did not come back within
-                distributed's reconnect window); the points not yielded yet are not
-                evaluated.
+            SchedulerLostError: the scheduler went away; the points not yielded yet are
+                not evaluated.
         """
         try:
             yield from self._run(points)
