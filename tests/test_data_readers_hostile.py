@@ -279,12 +279,18 @@ def gzip_file(path: Path, body: bytes, repeat: int) -> Path:
 
 
 def test_a_gzip_file_that_unpacks_to_many_times_its_size_stops_early(tmp_path, monkeypatch):
-    monkeypatch.setattr(textfile, "RATIO_FREE_BYTES", 2**20)  # a bomb of a few MiB is enough
+    """64 MiB of rows in 160 kB are refused by a first pass that keeps nothing: parsing up
+    to the limit (8 MiB and 20 times the file) would have made 37 MB of arrays first."""
     row = b"0.01,20,0,0,0,0,0\n"
-    src = gzip_file(tmp_path / "rec.csv.gz", row * 2**16, 8)  # 9.4 MB of rows in 10 kB
+    src = gzip_file(tmp_path / "rec.csv.gz", row * 2**16, 56)
     size = src.stat().st_size
-    res, out = run_import(tmp_path, src)
+    assert size < 2**18
+    res, out, peak = _peak_of_import(tmp_path, src)
     assert_refused(res, out, str(src), f"20 times its {size:,} bytes", "KFTUNE_MAX_RATIO")
+    assert peak < 8 * 2**20, f"peak {peak / 2**20:.1f} MiB"
+    monkeypatch.setattr(textfile, "RATIO_FREE_BYTES", 2**20)  # a smaller file is enough
+    src = gzip_file(tmp_path / "rec.csv.gz", row * 2**16, 8)  # 9.4 MB of rows in 20 kB
+    assert_refused(*run_import(tmp_path, src), str(src), "KFTUNE_MAX_RATIO")
     monkeypatch.setenv("KFTUNE_MAX_RATIO", "2000")  # a genuine file of constant rows
     res, out = run_import(tmp_path, src)
     assert_refused(res, out, str(src), "time is duplicated")  # read to the end, then checked
@@ -303,11 +309,12 @@ def test_a_compressed_recording_loads_within_the_ratio(tmp_path):
 
 
 @pytest.mark.parametrize("compress", [False, True])
-def test_blank_lines_stop_after_a_thousand(tmp_path, compress: bool):
+def test_blank_lines_stop_after_a_thousand(tmp_path, monkeypatch, compress: bool):
     c = synthetic_channels(n=400)
     rows = [",".join(repr(float(v)) for v in row) for row in zip(*(c[k] for k in CHANNELS))]
     text = ("\n".join(rows) + "\n").encode()
-    if compress:  # 200 MiB of line feeds in 200 kB: stops within the first block
+    if compress:  # 200 MiB of line feeds in 200 kB: the ratio refuses it first, else this
+        monkeypatch.setenv("KFTUNE_MAX_RATIO", "1e6")
         src = gzip_file(tmp_path / "rec.csv.gz", text, 1)
         with gzip.open(src, "ab", compresslevel=9) as fh:
             for _ in range(200):

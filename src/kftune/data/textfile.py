@@ -19,10 +19,10 @@ limit and how to raise it:
   take (8 bytes per value); ``KFTUNE_MAX_ROWS``, default :data:`DEFAULT_MAX_ROWS`
   (40 million: 100 hours at 100 Hz, and some);
 * ``max_ratio``: bytes a gzipped file decompresses to, per byte of the file (beyond the
-  first :data:`RATIO_FREE_BYTES`), checked while reading: a small file that unpacks to
-  millions of rows or to blank lines stops after a few blocks, long before the other two
-  limits (numeric CSV text compresses 3 to 12 times); ``KFTUNE_MAX_RATIO``, default
-  :data:`DEFAULT_MAX_RATIO`;
+  first :data:`RATIO_FREE_BYTES`), checked (with ``max_bytes``) in a first pass that
+  decompresses the file block by block and keeps nothing: a small file that unpacks to
+  millions of rows is refused before a row of it is parsed (numeric CSV text compresses 3
+  to 12 times); ``KFTUNE_MAX_RATIO``, default :data:`DEFAULT_MAX_RATIO`;
 * :data:`MAX_LINE_BYTES`: one line; a binary or sparse file without line breaks is refused
   after its first block;
 * :data:`MAX_BLANK_LINES`: empty lines in a row (only allowed at the end of a file).
@@ -221,34 +221,25 @@ def line_blocks(
     file = str(path)
     lim = _limits(limits)
     size = check_regular_file(path)
-    # a gzipped file may unpack to max_ratio times its size (beyond a small allowance)
-    unpacked = RATIO_FREE_BYTES + lim.max_ratio * size if path.name.endswith(".gz") else None
+    gz = path.name.endswith(".gz")
     total = 0
     row = 1
     carry = b""
     first = True
     try:
+        if gz:  # a first pass that keeps nothing: a bomb is refused before any parsing
+            with _open(path) as fh:
+                unpacked = 0
+                while chunk := fh.read(BLOCK_BYTES):
+                    unpacked += len(chunk)
+                    _check_size(unpacked, lim, size, file)
         with _open(path) as fh:
             while True:
                 chunk = fh.read(BLOCK_BYTES)
                 if not chunk:
                     break
                 total += len(chunk)
-                if total > lim.max_bytes:
-                    raise DataError(
-                        f"more than {lim.max_bytes:,} bytes (after decompression); reading "
-                        f"stopped at this limit: raise it with the environment variable "
-                        f"{ENV_MAX_BYTES} (or ReadLimits(max_bytes=...)) if the file is genuine",
-                        file=file,
-                    )
-                if unpacked is not None and total > unpacked:
-                    raise DataError(
-                        f"decompresses to more than {lim.max_ratio} times its {size:,} bytes "
-                        f"(reading stopped after {total:,} bytes: a decompression bomb?): "
-                        f"raise the limit with the environment variable {ENV_MAX_RATIO} (or "
-                        "ReadLimits(max_ratio=...)) if the file is genuine",
-                        file=file,
-                    )
+                _check_size(total, lim, size if gz else None, file)
                 data = carry + chunk
                 if first and data.startswith(codecs.BOM_UTF8):
                     encoding = "utf-8"  # the file says it is UTF-8, whatever was assumed
@@ -275,6 +266,27 @@ def line_blocks(
         if first:
             text = _start(text, file)
         yield row, [text]
+
+
+def _check_size(total: int, lim: ReadLimits, packed: int | None, file: str) -> None:
+    """Refuse a file once ``total`` bytes of it were read (after decompression) beyond
+    ``lim.max_bytes``, or beyond ``lim.max_ratio`` times its size ``packed`` (a gzipped
+    file; plus :data:`RATIO_FREE_BYTES`)."""
+    if total > lim.max_bytes:
+        raise DataError(
+            f"more than {lim.max_bytes:,} bytes (after decompression); reading stopped at this "
+            f"limit: raise it with the environment variable {ENV_MAX_BYTES} (or "
+            "ReadLimits(max_bytes=...)) if the file is genuine",
+            file=file,
+        )
+    if packed is not None and total > RATIO_FREE_BYTES + lim.max_ratio * packed:
+        raise DataError(
+            f"decompresses to more than {lim.max_ratio} times its {packed:,} bytes (reading "
+            f"stopped after {total:,} bytes: a decompression bomb?): raise the limit with the "
+            f"environment variable {ENV_MAX_RATIO} (or ReadLimits(max_ratio=...)) if the file "
+            "is genuine",
+            file=file,
+        )
 
 
 def _check_line_length(pending: bytes, file: str, row: int) -> None:
