@@ -160,6 +160,7 @@ def test_a_study_that_cannot_grow_fails_cleanly_keeps_everything_and_resumes(sma
     )
     assert res.returncode == 1, res.stderr
     assert "Traceback" not in res.stderr and str(db) in res.stderr and "--resume" in res.stderr
+    assert "resume=True" not in res.stderr  # the command's option, not the library's argument
     with contextlib.closing(sqlite3.connect(db)) as conn:
         kept = conn.execute("SELECT number, value FROM trials WHERE state = 'complete'").fetchall()
     said = re.search(r"keeps the (\d+) evaluations finished so far", res.stderr)

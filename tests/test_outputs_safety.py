@@ -122,3 +122,278 @@ def test_the_json_loader_reads_any_document_or_refuses_it_by_name(doc, digits):
         assert digits > MAX_INT_DIGITS and "f.json" in str(exc)
     else:
         assert digits <= MAX_INT_DIGITS
+
+
+# ------------------------------------------------------------------ outputs that are inputs
+@pytest.fixture(scope="module")
+def plain(tmp_path_factory) -> Path:
+    """A folder with a dataset of plain .csv recordings (``ds``) and a filter tuned on it
+    (``t.json``, 3 evaluations)."""
+    from kftune.data import default_dataset, save_dataset
+
+    root = tmp_path_factory.mktemp("plain")
+    names = ("train-03-j-turn", "test-05-j-turn")
+    save_dataset(default_dataset().subset(names), root / "ds", compress=False)
+    res = run_cli("tune", "ds", "-m", "random", "-n", "3", "-q", "-o", "t.json", cwd=root)
+    assert res.returncode == 0, res.stderr
+    return root
+
+
+def _snapshot(folder: Path) -> dict[Path, bytes]:
+    """Every file below ``folder`` with its content (links read through)."""
+    return {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def work(plain, tmp_path) -> Path:
+    """A copy of :func:`plain` to run a command in."""
+    import shutil
+
+    shutil.copytree(plain, tmp_path / "w")
+    return tmp_path / "w"
+
+
+def _refused(res, *named: str, code: int = 3) -> None:
+    assert res.returncode == code, res.stderr
+    assert all(n in res.stderr for n in named), res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_estimate_into_the_folder_of_its_plain_csv_dataset_is_refused(work):
+    """Each recording is NAME.csv, as each table of estimates would be."""
+    before = _snapshot(work)
+    res = run_cli("estimate", "ds", "-p", "t.json", "-o", "ds", "--no-plot", cwd=work)
+    _refused(res, "--out", "train-03-j-turn.csv", "a file of the dataset ds")
+    assert _snapshot(work) == before
+
+
+@pytest.mark.parametrize(
+    ("out", "what"),
+    [
+        ("s.db", "the study (--storage)"),
+        ("s.db-wal", "the study (--storage)"),
+        ("s.db-shm", "the study (--storage)"),
+        ("s.db-journal", "the study (--storage)"),
+        ("s.widen1.db", "the study (--storage)"),
+        ("s.widen3.db-wal", "the study (--storage)"),
+        ("ds/manifest.toml", "a file of the dataset ds"),
+        ("ds/test-05-j-turn.csv", "a file of the dataset ds"),
+        ("run.toml", "the configuration (--config)"),
+        ("link.json", "the configuration (--config)"),  # a link to it
+        ("hard.json", "the configuration (--config)"),  # a hard link to it
+    ],
+)
+def test_tune_refuses_an_output_that_is_one_of_its_inputs(work, out, what):
+    """-o onto the study (or a widening round's file or SQLite's side files), a file of the
+    dataset, the configuration, also through a symbolic or hard link: exit 3 before any
+    work, naming --out and the input; every file as it was, no study started."""
+    import os
+
+    (work / "run.toml").write_text("seed = 1\n")
+    (work / "link.json").symlink_to("run.toml")
+    os.link(work / "run.toml", work / "hard.json")
+    if out.startswith("s."):  # an existing study: resumed, so it is not refused as taken
+        res = run_cli("tune", "ds", "-m", "random", "-n", "2", "-q", "--storage", "s.db",
+                      "-o", "first.json", cwd=work)  # fmt: skip
+        assert res.returncode == 0, res.stderr
+    before = _snapshot(work)
+    args = ["tune", "ds", "--config", "run.toml", "-m", "random", "-n", "3", "-q"]
+    res = run_cli(*args, "--storage", "s.db", "--resume", "-o", out, cwd=work)
+    _refused(res, f"--out {out}", what)
+    assert _snapshot(work) == before
+
+
+def test_tune_refuses_a_study_that_is_its_configuration(work):
+    (work / "run.toml").write_text("seed = 1\n")
+    before = _snapshot(work)
+    res = run_cli("tune", "ds", "--config", "run.toml", "--storage", "run.toml", "-o", "t2.json",
+                  cwd=work)  # fmt: skip
+    _refused(res, "--storage run.toml", "the configuration (--config)")
+    assert _snapshot(work) == before
+
+
+@pytest.mark.parametrize("out", ["t.json", "./t.json", "lnk.json", "hard.json"])
+def test_export_refuses_to_replace_its_tuned_file(work, out):
+    import os
+
+    (work / "lnk.json").symlink_to("t.json")
+    os.link(work / "t.json", work / "hard.json")
+    before = _snapshot(work)
+    res = run_cli("export", "t.json", "-f", "json", "-o", out, cwd=work)
+    _refused(res, f"--out {Path(out)}", "the tuned-parameters file")
+    assert _snapshot(work) == before
+
+
+def test_dataset_show_refuses_a_name_that_is_a_file_of_its_dataset(work):
+    (work / "m.png").symlink_to("ds/manifest.toml")
+    before = _snapshot(work)
+    res = run_cli("dataset", "show", "ds", "-o", "m.png", cwd=work)
+    _refused(res, "--out m.png", "a file of the dataset ds")
+    assert _snapshot(work) == before
+
+
+def test_export_to_a_closed_standard_output_fails_with_a_message(work):
+    """``export -o - >&-``: nothing can be written, and the command says so (exit 2)."""
+    import os
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [sys.executable, "-m", "kftune", "export", "t.json", "-o", "-"],
+        preexec_fn=lambda: os.close(1),
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=work,
+        timeout=300,
+    )
+    _refused(res, "--out -", "standard output is closed", code=2)
+
+
+# ------------------------------------------------------------------ checked writes
+def test_dataset_show_says_when_its_figure_cannot_be_written(work):
+    """A name that leads to /dev/full: exit 1 naming the file, no "wrote"; the figure is
+    kept in a fallback file that the message names."""
+    import re
+
+    (work / "full.png").symlink_to(Path("/dev/full"))
+    res = run_cli("dataset", "show", "ds", "-o", "full.png", cwd=work)
+    _refused(res, "cannot write --out full.png", "No space left on device", code=1)
+    assert "wrote" not in res.stdout
+    fallback = Path(re.search(r"written to (\S+) instead", res.stderr).group(1))
+    try:
+        assert fallback.suffix == ".png" and fallback.read_bytes().startswith(b"\x89PNG")
+    finally:
+        fallback.unlink()
+
+
+@pytest.mark.parametrize("out", ["x", "x.pdf", "x.toml"])
+def test_dataset_show_refuses_a_name_that_is_not_a_png(work, out):
+    """It writes a PNG: a name without .png was written as x.png while it said "wrote x"."""
+    before = _snapshot(work)
+    res = run_cli("dataset", "show", "ds", "-o", out, cwd=work)
+    _refused(res, f"--out {out}", ".png")
+    assert _snapshot(work) == before
+
+
+def test_dataset_show_says_the_name_it_wrote(work):
+    res = run_cli("dataset", "show", "ds", "-o", "fig.PNG", cwd=work)
+    assert res.returncode == 0 and res.stdout.strip() == "wrote fig.PNG", res.stderr
+    assert (work / "fig.PNG").read_bytes().startswith(b"\x89PNG")
+
+
+def test_a_figure_that_cannot_be_written_raises():
+    """matplotlib's own writing ignores a failed write (savefig('/dev/full') succeeds)."""
+    import matplotlib.pyplot as plt
+
+    from kftune.report import plots
+
+    fig = plt.figure()
+    with pytest.raises(OSError):
+        plots.save(fig, "/dev/full")
+
+
+# ------------------------------------------------------------------ compare --force
+@pytest.fixture(scope="module")
+def compared(plain, tmp_path_factory) -> Path:
+    """A compare folder (manual and 2 random evaluations) with its studies."""
+    import shutil
+
+    root = tmp_path_factory.mktemp("compared")
+    shutil.copytree(plain / "ds", root / "ds")
+    res = run_cli(*COMPARE, cwd=root)
+    assert res.returncode == 0, res.stderr
+    return root
+
+
+COMPARE = ("compare", "ds", "--methods", "manual", "random", "--budget", "random=2", "-q",
+           "-o", "out")  # fmt: skip
+
+
+def _foreign_sqlite(path: Path) -> None:
+    import contextlib
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(path)) as conn:
+        conn.execute("CREATE TABLE meta (key TEXT, value TEXT)")
+        conn.execute("INSERT INTO meta VALUES ('application', 'something else')")
+        conn.commit()
+
+
+def test_compare_force_deletes_only_the_studies_kftune_made(compared, tmp_path):
+    import shutil
+
+    from kftune.optim import is_study
+
+    work = tmp_path / "w"
+    shutil.copytree(compared, work)
+    studies = work / "out" / "studies"
+    assert is_study(studies / "random.db") and is_study(studies / "manual.db")
+    (studies / "notes.txt").write_text("mine")
+    (studies / "notes.db").write_bytes(b"not even SQLite")
+    _foreign_sqlite(studies / "other.db")
+    (studies / "other.db-wal").write_text("mine too")
+    foreign = {p: p.read_bytes() for p in studies.iterdir() if "other" in p.name or
+               "notes" in p.name}  # fmt: skip
+    res = run_cli(*COMPARE, "--force", cwd=work)
+    assert res.returncode == 0, res.stderr
+    assert {p: p.read_bytes() for p in foreign} == foreign  # untouched
+    assert is_study(studies / "random.db")  # a new one
+
+
+@pytest.mark.parametrize("kind", ["text", "sqlite"])
+def test_compare_force_refuses_a_foreign_file_where_a_study_goes(compared, tmp_path, kind):
+    """A file named like a method's study that kftune did not make: exit 3 naming it,
+    nothing deleted."""
+    import shutil
+
+    work = tmp_path / "w"
+    shutil.copytree(compared, work)
+    studies = work / "out" / "studies"
+    (studies / "random.db").unlink()
+    if kind == "text":
+        (studies / "random.db").write_text("a file of the user's")
+    else:
+        _foreign_sqlite(studies / "random.db")
+    before = _snapshot(work)
+    res = run_cli(*COMPARE, "--force", cwd=work)
+    _refused(res, str(Path("out", "studies", "random.db")), "not a kftune study")
+    assert _snapshot(work) == before
+
+
+def test_is_study_leaves_no_file_behind(compared, tmp_path):
+    import shutil
+
+    from kftune.optim import is_study
+
+    shutil.copy(compared / "out" / "studies" / "manual.db", tmp_path / "s.db")
+    _foreign_sqlite(tmp_path / "f.db")
+    before = sorted(tmp_path.iterdir())
+    assert is_study(tmp_path / "s.db") and not is_study(tmp_path / "f.db")
+    assert not is_study(tmp_path / "missing.db") and not is_study(tmp_path)
+    assert sorted(tmp_path.iterdir()) == before
+
+
+# ------------------------------------------------------------------ closed standard error
+def test_tune_with_standard_error_closed_runs_to_the_end(work):
+    """``tune 2>&-``: the progress bar and messages have nowhere to go; the run must not
+    fail on them (it exited 1 with no message, leaving an empty study)."""
+    import contextlib
+    import os
+    import sqlite3
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [sys.executable, "-m", "kftune", "tune", "ds", "-m", "random", "-n", "3",
+         "--storage", "s.db", "-o", "t2.json"],
+        preexec_fn=lambda: os.close(2),
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=work,
+        timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout
+    assert "tuned parameters written to t2.json" in res.stdout
+    assert (work / "t2.json").is_file()
+    with contextlib.closing(sqlite3.connect(work / "s.db")) as conn:
+        assert conn.execute("SELECT COUNT(*) FROM trials").fetchone()[0] == 3

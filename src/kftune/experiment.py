@@ -33,9 +33,11 @@ from kftune.optim import (
     MAX_TIMEOUT,
     METHODS,
     OptimizeResult,
+    is_study,
     make_optimizer,
     minimize,
     minimize_widening,
+    study_files,
 )
 from kftune.optim.engine import Engine
 from kftune.progress import ProgressBar
@@ -477,12 +479,21 @@ def run_compare(
         if not force:
             raise ConfigError(
                 f"{studies} already holds studies ({', '.join(p.name for p in existing)}); "
-                "continue them with --resume (resume=True), or delete them and start afresh "
-                "with --force (force=True)"
+                "continue them with the option --resume, or delete them and start afresh "
+                "with the option --force"
             )
-        for p in studies.iterdir():
-            if p.suffix in (".db", ".lock") or p.name.endswith(("-wal", "-shm")):
-                p.unlink()
+        # --force deletes the studies kftune made (by content), no other file
+        ours = [p for p in existing if is_study(p)]
+        taken = {f"{file_stem(m)}.db" for m in settings.methods}
+        clash = [p for p in existing if p not in ours and p.name in taken]
+        if clash:
+            raise ConfigError(
+                f"{clash[0]} is not a kftune study, and --force deletes only the studies "
+                f"kftune made; move it elsewhere (a study of that method goes there)"
+            )
+        for study in ours:
+            for p in study_files(study):
+                p.unlink(missing_ok=True)
     studies.mkdir(parents=True, exist_ok=True)
     par = settings.parameterization
     if par.states != fs.model.state_names:

@@ -131,12 +131,17 @@ def _plain_warnings(fallback: Callable[..., None]) -> Callable[..., None]:
 def _occupy_closed_std_streams() -> None:
     """Open the null device on standard descriptors 0–2 that were closed at start
     (``kftune … >&-``): otherwise the next file opened (a study, an output) would get the
-    number 1 or 2, and whatever a worker process prints would land in it."""
+    number 1 or 2, and whatever a worker process prints would land in it. A closed
+    standard error (``2>&-``, where Python sets ``sys.stderr`` to None) becomes the null
+    device too, so that the progress bar and messages are dropped instead of failing the
+    run; a closed standard output stays None (``--json`` and ``export -o -`` refuse it)."""
     for fd in (0, 1, 2):
         try:
             os.fstat(fd)
         except OSError:
             os.open(os.devnull, os.O_RDWR)  # the lowest free number: this one
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - for the whole process
 
 
 def main(argv: Sequence[str] | None = None) -> int:

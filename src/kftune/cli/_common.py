@@ -53,7 +53,7 @@ import os
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -635,18 +635,99 @@ def _ukf_settings(config: dict[str, Any]) -> UKFSettings:
     return s
 
 
-def output_file(path: Path, option: str) -> Path:
+#: A file a command reads, with what it is for messages: ``(path, "the tuned file")``.
+Input = tuple[Path, str]
+
+
+def command_inputs(
+    args: argparse.Namespace, config: Mapping[str, Any], *, study: bool = True
+) -> list[Input]:
+    """Every file the command of ``args`` reads, which none of its outputs may replace:
+    the dataset's files (manifest and recordings), the configuration, a model file, the
+    tuned file (``params``) and, with ``study``, the study (``storage``: every widening
+    round's file with SQLite's side files). What a command lacks is left out; a dataset
+    that cannot be read gives none (the command refuses it before writing anything)."""
+    found: list[Input] = []
+    given = vars(args)
+    if "dataset" in given or "dataset" in config:
+        found += dataset_inputs(pick(args, dict(config), "dataset", None))
+    if given.get("config") is not None:
+        found.append((Path(given["config"]), "the configuration (--config)"))
+    model = pick(args, dict(config), "model", None)
+    mf = split_model_file(model) if isinstance(model, str) else None
+    if mf is not None:
+        found.append((mf[0], "the model file"))
+    if given.get("params") is not None:
+        found.append((Path(given["params"]), "the tuned-parameters file"))
+    if study and given.get("storage") is not None:
+        from kftune.optim import study_files
+        from kftune.optim.widen import WIDEN_ROUNDS, round_storage
+
+        rounds = [round_storage(given["storage"], k) for k in range(WIDEN_ROUNDS + 1)]
+        found += [(f, "a file of the study (--storage)") for r in rounds for f in study_files(r)]
+    return found
+
+
+def dataset_inputs(spec: str | Path | None) -> list[Input]:
+    """The files of the dataset ``spec`` names on a command line (``None``: the bundled
+    one): a kftune dataset's manifest and the recordings it lists, or every file of a
+    folder in the revs-250lm layout; none when it cannot be read."""
+    from kftune.data.io import DEFAULT_DATASET, bundled_dataset_path, dataset_files
+    from kftune.errors import DataError
+
+    path = bundled_dataset_path() if spec is None or str(spec) == DEFAULT_DATASET else Path(spec)
+    what = f"a file of the dataset {spec or DEFAULT_DATASET}"
+    try:
+        return [(f, what) for f in dataset_files(path)]
+    except DataError:
+        pass
+    try:
+        return [(f, what) for f in path.iterdir() if f.is_file()] if path.is_dir() else []
+    except OSError:
+        return []
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file: the same path once ``..`` and links are
+    resolved (also for a file not yet made), or the same device and inode (a hard link)."""
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def refuse_inputs(path: Path, option: str, inputs: Iterable[Input]) -> None:
+    """Refuse to write ``path`` when it is one of the command's ``inputs``
+    (:func:`command_inputs`): an output must never replace what the command reads.
+
+    Raises:
+        ConfigError: naming ``option``, the path and which input it is.
+    """
+    for source, what in inputs:
+        if same_file(path, source):
+            also = "" if str(source) == str(path) else f" ({source})"
+            raise ConfigError(
+                f"{option} {path}: is {what}{also}, which this command reads; writing there "
+                "would replace it: choose another name"
+            )
+
+
+def output_file(path: Path, option: str, inputs: Iterable[Input] = ()) -> Path:
     """``path`` if a file can be written there; checked before any work starts, so that no
     run is spent before a crash at the end.
 
     Raises:
-        ConfigError: naming ``option``, when ``path`` is a folder, a pipe, socket or other
-            non-file, an existing file that cannot be replaced, a link into a missing
-            folder, its folder is missing (or a file) or lets no file be created (tried, not
-            inferred from permission bits, which do not hold for root or read-only mounts).
+        ConfigError: naming ``option``, when ``path`` is one of ``inputs`` (see
+            :func:`refuse_inputs`), a folder, a pipe, socket or other non-file, an existing
+            file that cannot be replaced, a link into a missing folder, its folder is
+            missing (or a file) or lets no file be created (tried, not inferred from
+            permission bits, which do not hold for root or read-only mounts).
     """
     if path.is_dir():
         raise ConfigError(f"{option} {path}: is a folder; expected a file name")
+    refuse_inputs(path, option, inputs)
     real = Path(os.path.realpath(path))  # the file a link points to, also a dangling one
     where = f"{option} {path}" + (f" (a link to {real})" if path.is_symlink() else "")
     if real.exists():
@@ -676,14 +757,18 @@ def _existing_ancestor(path: Path) -> Path:
 REPORT_FILES = ("results.json", "traces.npz", "report.md")
 
 
-def output_dir(path: Path, option: str) -> Path:
+def output_dir(path: Path, option: str, inputs: Iterable[Input] = ()) -> Path:
     """``path`` if it is, or can be created as, a writable folder; checked before any work.
 
     Raises:
         ConfigError: naming ``option``, when ``path`` or one of its ancestors is a file, no
             file can be created in the nearest existing ancestor, or one of the
-            :data:`REPORT_FILES` in it cannot be replaced (see :func:`output_file`).
+            :data:`REPORT_FILES` in it is one of ``inputs`` or cannot be replaced (see
+            :func:`output_file`).
     """
+    inputs = list(inputs)
+    for name in REPORT_FILES:
+        refuse_inputs(path / name, option, inputs)
     existing = _existing_ancestor(path)
     if not existing.is_dir():
         where = "is a file" if existing == path else f"lies below the file {existing}"
@@ -707,11 +792,12 @@ def _check_can_create(folder: Path, where: str) -> None:
         ) from None
 
 
-def write_output(path: Path, text: str, option: str, keep: str = "") -> None:
-    """Write ``text`` to ``path`` (an output checked by :func:`output_file`) atomically:
-    into a temporary file beside the real target, then renamed over it, so a failure
-    (disk full, the file made immutable meanwhile) never leaves a truncated file. A link
-    is written through; a character device (``/dev/null``) is written in place.
+def write_output(path: Path, text: str | bytes, option: str, keep: str = "") -> None:
+    """Write ``text`` (or bytes) to ``path`` (an output checked by :func:`output_file`)
+    atomically: into a temporary file beside the real target, flushed to the disk, then
+    renamed over it, so a failure (disk full, the file made immutable meanwhile) never
+    leaves a truncated file. A link is written through; a character device (``/dev/null``)
+    is written in place, its errors (``/dev/full``) reported as any other's.
 
     Raises:
         RunFailedError: (exit 1) writing failed; ``text`` was saved to a fallback file in
@@ -722,25 +808,29 @@ def write_output(path: Path, text: str, option: str, keep: str = "") -> None:
     real = Path(os.path.realpath(path))
     try:
         if real.exists() and not stat.S_ISREG(real.stat().st_mode):
-            real.write_text(text)
+            with open(real, "wb" if isinstance(text, bytes) else "w") as fh:
+                fh.write(text)
         else:
             _replace(real, text)
         return
     except OSError as exc:
         reason = f"cannot write {option} {path} ({exc.strerror or exc})"
     also = f"; {keep}" if keep else ""
-    fallback = Path(tempfile.gettempdir()) / f"kftune-{real.stem}-{os.getpid()}{real.suffix}"
+    fallback = Path(tempfile.gettempdir()) / f"kftune-{path.stem}-{os.getpid()}{path.suffix}"
     try:
         _replace(fallback, text)
     except OSError:
+        if isinstance(text, bytes):
+            raise RunFailedError(f"{reason}, nor in the temporary folder{also}") from None
         raise RunFailedError(
             f"{reason}, nor in the temporary folder{also}; here it is:\n{text}"
         ) from None
     raise RunFailedError(f"{reason}; it was written to {fallback} instead{also}")
 
 
-def _replace(path: Path, text: str) -> None:
-    """Write ``text`` into a temporary file beside ``path`` and rename it over ``path``
+def _replace(path: Path, text: str | bytes) -> None:
+    """Write ``text`` into a temporary file beside ``path``, flush it to the disk (a
+    deferred write error surfaces here, not after the rename) and rename it over ``path``
     (with the permissions a plain write would give: the old file's, or 0o666 less the
     umask)."""
     if path.exists():
@@ -752,8 +842,10 @@ def _replace(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         os.chmod(tmp, mode)
-        with os.fdopen(fd, "w") as fh:
+        with os.fdopen(fd, "wb" if isinstance(text, bytes) else "w") as fh:
             fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -28,6 +28,7 @@ from kftune.cli._common import (
     add_command,
     add_common,
     burn_in,
+    command_inputs,
     cost_spec,
     emit_json,
     filter_spec_of,
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, "compare")
     if args.methods and len(set(args.methods)) != len(args.methods):
         raise UsageError(f"--methods: a method listed twice: {args.methods}")
-    output_dir(args.out, "--out")
+    output_dir(args.out, "--out", command_inputs(args, config))
     dataset = open_dataset(pick(args, config, "dataset", None))
     filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named
     methods = args.methods or config.get("methods")

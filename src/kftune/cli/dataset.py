@@ -359,8 +359,8 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------ show
-def plot_manoeuvre(m: Manoeuvre, path: Path) -> Path:
-    """Write a PNG with the manoeuvre's signals against time."""
+def plot_manoeuvre(m: Manoeuvre) -> Any:
+    """A figure of the manoeuvre's signals against time (see :func:`kftune.report.plots.render`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -379,9 +379,7 @@ def plot_manoeuvre(m: Manoeuvre, path: Path) -> Path:
         np.atleast_1d(axs)[-1].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
         fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
         fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        return path
+        return fig
     fig, axes = plt.subplots(5, 1, figsize=(9, 10), sharex=True)
     axes[0].plot(t, np.degrees(m.delta), lw=0.8)
     axes[0].set_ylabel("δ road wheel [°]")
@@ -408,9 +406,7 @@ def plot_manoeuvre(m: Manoeuvre, path: Path) -> Path:
         ax.grid(True, lw=0.3)
     fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def run_show(args: argparse.Namespace) -> int:
@@ -425,11 +421,16 @@ def run_show(args: argparse.Namespace) -> int:
             m = dataset[args.manoeuvre]
         except KeyError as exc:  # a name the data do not hold: bad input (3), not usage
             raise ConfigError(f"--manoeuvre: {exc.args[0]}") from None
-    from kftune.cli._common import output_file
+    from kftune.cli._common import command_inputs, output_file, write_output
     from kftune.data.io import file_stem
 
     default = Path(f"{file_stem(m.name)}.png")  # the name comes from a manifest: no path
-    out = output_file(args.out if args.out is not None else default, "--out")
-    plot_manoeuvre(m, out)
+    out = args.out if args.out is not None else default
+    if out.suffix.lower() != ".png":  # a PNG whatever the name says: no name that hides it
+        raise ConfigError(f"--out {out}: expected a file name ending in .png")
+    output_file(out, "--out", command_inputs(args, {}))
+    from kftune.report.plots import render
+
+    write_output(out, render(plot_manoeuvre(m), dpi=110, tight=False), "--out")
     print(f"wrote {out}")
     return 0

@@ -43,9 +43,11 @@ from typing import Any
 
 from kftune.cli._common import (
     add_command,
+    command_inputs,
     emit_json,
     filter_spec_of,
     output_dir,
+    refuse_inputs,
     write_output,
     writing,
 )
@@ -169,17 +171,23 @@ def run(args: argparse.Namespace) -> int:
         "warnings": notes,
         "manoeuvres": {},
     }
+    stems: dict[str, str] = {}  # manoeuvre → the stem of its files
+    for m in manoeuvres:
+        stem = file_stem(m.name)
+        while stem in stems.values():  # two names reduced to the same stem
+            stem += "_"
+        stems[m.name] = stem
+    reads = command_inputs(args, {})  # -o DATASET: a table could replace a recording
+    for stem in stems.values():
+        for suffix in (".parquet" if parquet else ".csv", ".png"):
+            refuse_inputs(args.out / f"{stem}{suffix}", "--out", reads)
     args.out.mkdir(parents=True, exist_ok=True)
-    stems: set[str] = set()
     kpis: list[dict[str, float]] = []
     diverged: list[str] = []
     keep = "nothing else is lost; fix it and run the command again"
     for m in manoeuvres:
         est = estimate(tuned, m, vehicle, probe=False)
-        stem = file_stem(m.name)
-        while stem in stems:  # two names reduced to the same stem
-            stem += "_"
-        stems.add(stem)
+        stem = stems[m.name]
         table = args.out / f"{stem}.{'parquet' if parquet else 'csv'}"
         with writing(f"the estimates to {table}", keep):
             if parquet is not None:

@@ -21,13 +21,14 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
-from kftune.cli._common import add_command, output_file, write_output
+from kftune.cli._common import add_command, command_inputs, output_file, write_output
 from kftune.cli.exit_codes import EXIT_OK
-from kftune.errors import DataWarning
+from kftune.errors import DataWarning, UsageError
 
 FORMATS = ("json", "yaml", "c", "matlab")
 SUFFIXES = {"json": ".json", "yaml": ".yaml", "c": ".h", "matlab": ".m"}
@@ -67,7 +68,9 @@ def run(args: argparse.Namespace) -> int:
         stem = args.params.stem + (".filter" if suffix == ".json" else "")
         out = args.params.with_name(stem + suffix)
     if str(out) != "-":
-        output_file(out, "--out")
+        output_file(out, "--out", command_inputs(args, {}))
+    elif sys.stdout is None:  # closed before Python started (kftune export … >&-)
+        raise UsageError("--out -: standard output is closed; name a file with --out")
     source = args.params.name
     tuned = read_tuned(args.params)
     changed = model_file_changed(tuned)

@@ -51,6 +51,7 @@ from kftune.cli._common import (
     add_command,
     add_common,
     burn_in,
+    command_inputs,
     cost_spec,
     emit_json,
     filter_spec_of,
@@ -153,9 +154,9 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.widen_bounds and args.method == "manual":
         raise UsageError("--widen-bounds needs a search; -m manual evaluates one point")
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", command_inputs(args, config))
     if args.storage is not None:
-        output_file(args.storage, "--storage")
+        output_file(args.storage, "--storage", command_inputs(args, config, study=False))
     widen = bool(pick(args, config, "widen_bounds", False))
     if args.resume and args.storage is not None and not args.storage.exists():
         raise ConfigError(

@@ -27,7 +27,14 @@ from kftune.optim.minimize import (
 )
 from kftune.optim.peers import CMAES, OptunaGP, OptunaTPE, PeerUnavailableError
 from kftune.optim.result import EvalRecord, OptimizeResult
-from kftune.optim.study import Study, StudyError, StudyInUseError, StudyWriteError
+from kftune.optim.study import (
+    Study,
+    StudyError,
+    StudyInUseError,
+    StudyWriteError,
+    is_study,
+    study_files,
+)
 from kftune.optim.trbo import TrustRegionBO
 from kftune.optim.tsbo import TSBO
 from kftune.optim.widen import minimize_widening
@@ -61,7 +68,9 @@ __all__ = [
     "StudyWriteError",
     "Trial",
     "TrustRegionBO",
+    "is_study",
     "make_optimizer",
     "minimize",
     "minimize_widening",
+    "study_files",
 ]

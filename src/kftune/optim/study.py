@@ -66,6 +66,38 @@ _LOCK_THE_DATABASE = sys.platform.startswith("linux")
 _SIDE_FILES = ("-wal", "-shm", "-journal")
 
 
+def study_files(path: str | os.PathLike[str]) -> list[Path]:
+    """The files of the study ``path``: itself, SQLite's side files beside it and the lock
+    file some systems keep there (existing or not)."""
+    p = Path(path)
+    return [p, *(p.with_name(p.name + e) for e in (*_SIDE_FILES, ".lock"))]
+
+
+def is_study(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a study file kftune made: an SQLite database (by its header)
+    whose ``meta`` table names kftune as its application. Read without changing the file
+    or creating any beside it (SQLite's ``immutable`` mode); a study whose creation is
+    still in its write-ahead log only is read through that log."""
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            if fh.read(16) != b"SQLite format 3\x00":
+                return False
+    except OSError:
+        return False
+    wal = p.with_name(p.name + "-wal").exists()
+    for mode in ("immutable=1", *(("mode=ro",) if wal else ())):
+        try:
+            uri = f"{p.resolve().as_uri()}?{mode}"
+            with contextlib.closing(sqlite3.connect(uri, uri=True)) as conn:
+                row = conn.execute("SELECT value FROM meta WHERE key = 'application'").fetchone()
+        except (sqlite3.Error, OSError, ValueError):
+            continue
+        if row is not None and row[0] == _APP:
+            return True
+    return False
+
+
 class StudyError(KftuneError):
     """A study file cannot be used as asked (exists without resume, corrupt, …)."""
 
@@ -427,7 +459,8 @@ class Study:
             kept = "it keeps the evaluations finished so far"
         return (
             f"study {self.path}: cannot {what} ({exc}); {kept}; make room on the disk "
-            "(or make the folder writable), then continue with --resume (resume=True)"
+            "(or make the folder writable), then run the same command again with the option "
+            "--resume to continue the study"
         )
 
     def close(self) -> None:

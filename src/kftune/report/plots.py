@@ -7,6 +7,7 @@ matplotlib ``Figure``; :func:`save` writes it as PNG and closes it.
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 from typing import Any
@@ -49,11 +50,23 @@ def _colour(key: str) -> str | None:
     return COLOURS.get(key)
 
 
+def render(fig: Figure, dpi: int = 130, tight: bool = True) -> bytes:
+    """A figure as PNG bytes; the figure is released. Rendered in memory, so that the
+    file is written by a write that reports its errors: matplotlib's own file writing
+    ignores a failed one (``savefig("/dev/full")`` succeeds)."""
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png", dpi=dpi, **({"bbox_inches": "tight"} if tight else {}))
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
 def save(fig: Figure, path: str | Path, dpi: int = 130) -> Path:
-    """Write a figure as PNG and release it."""
+    """Write a figure as PNG and release it (``OSError`` if the write fails, e.g. a full
+    disk)."""
     path = Path(path)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
+    path.write_bytes(render(fig, dpi))
     return path
 
 
