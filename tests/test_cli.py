@@ -73,7 +73,11 @@ def test_bad_options_exit_2(args):
     ("args", "command", "said"),
     [
         (("tune", "my-car", "--budjet", "12"), "tune", "unrecognized arguments: --budjet 12"),
-        (("tune", "-n", "0"), "tune", "argument --budget/-n: expected an integer >= 1, got '0'"),
+        (
+            ("tune", "-n", "0"),
+            "tune",
+            "argument --budget/-n: expected an integer >= 1 and <= 100000, got '0'",
+        ),
         (("evaluate",), "evaluate", "one of the arguments --params/-p --q --manual is required"),
         (("dataset", "info", "--bogus"), "dataset info", "unrecognized arguments: --bogus"),
     ],

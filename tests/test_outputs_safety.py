@@ -373,6 +373,51 @@ def test_is_study_leaves_no_file_behind(compared, tmp_path):
     assert sorted(tmp_path.iterdir()) == before
 
 
+# ------------------------------------------------------------------ limits of numbers
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [
+        (("tune", "-n", str(10**12)), "--budget/-n"),
+        (("tune", "-n", "100001"), "--budget/-n"),
+        (("tune", "--batch", str(10**12)), "--batch"),
+        (("tune", "--workers", "100000"), "--workers"),
+        (("evaluate", "--manual", "--workers", "100000"), "--workers"),
+        (("compare", "--budget", f"ga={10**12}"), "--budget"),
+    ],
+)
+def test_numbers_beyond_the_documented_limits_are_usage_errors(tmp_path, args, option):
+    """Each command line also holds a later usage error, so that a limit that is lost
+    fails this test instead of starting a run that does not end."""
+    later = {"tune": ("--resume",), "evaluate": ("--force",), "compare": ("--methods", "ga", "ga")}
+    res = run_cli(*args, *later[args[0]], cwd=tmp_path)
+    _refused(res, option, "<= ", code=2)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        (f"budget = {10**12}", "budget"),
+        ("workers = 100000", "workers"),
+        (f"batch = {10**12}", "batch"),
+        (f"budgets = {{ ga = {10**12} }}", "[budgets]"),
+    ],
+)
+def test_numbers_beyond_the_limits_in_a_configuration_are_refused(tmp_path, text, key):
+    (tmp_path / "run.toml").write_text(text + "\n")
+    # --resume without --storage: a later error, should the limit be lost (see above)
+    res = run_cli("tune", "--config", "run.toml", "--resume", "-o", "t.json", cwd=tmp_path)
+    _refused(res, "run.toml", key, "<= ")
+    assert [p.name for p in tmp_path.iterdir()] == ["run.toml"]
+
+
+def test_the_limits_are_in_the_help():
+    from kftune.cli._common import MAX_BUDGET, MAX_WORKERS
+
+    text = " ".join(run_cli("tune", "--help").stdout.split())
+    assert f"at most {MAX_BUDGET}" in text and f"at most {MAX_WORKERS}" in text
+
+
 # ------------------------------------------------------------------ closed standard error
 def test_tune_with_standard_error_closed_runs_to_the_end(work):
     """``tune 2>&-``: the progress bar and messages have nowhere to go; the run must not

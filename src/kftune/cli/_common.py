@@ -57,7 +57,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from kftune.errors import ConfigError, RunFailedError, UsageError
+from kftune.errors import ConfigError, RunFailedError, UsageError, excerpt
 from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
 from kftune.tuning.cost import CHANNELS, NORMALISATIONS
 
@@ -70,6 +70,15 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
+
+#: Most cost evaluations a run may be given (``-n``, ``budget``, ``budgets``): far beyond
+#: any tuning that ends — the Bayesian methods' step grows as n³ — while a typing slip
+#: (``-n 1000000000000``) would run until killed.
+MAX_BUDGET = 100_000
+#: Most worker processes (``--workers``): four per CPU of this machine. More only share the
+#: same CPUs, each holding its own copy of the data (``--workers 100000`` would start a
+#: hundred thousand processes).
+MAX_WORKERS = 4 * (os.cpu_count() or 1)
 
 #: Keys a configuration file may hold, with the TOML type expected.
 CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
@@ -108,10 +117,10 @@ USED_ONLY_BY: dict[str, set[str]] = {
 }
 #: Limits of numeric keys: (lower limit, strict, upper limit or None); every one finite.
 _LIMITS: dict[str, tuple[float, bool, float | None]] = {
-    "budget": (1, False, None),
+    "budget": (1, False, MAX_BUDGET),
     "seed": (0, False, None),
-    "workers": (1, False, None),
-    "batch": (1, False, None),
+    "workers": (1, False, MAX_WORKERS),
+    "batch": (1, False, MAX_BUDGET),
     "timeout": (0, True, MAX_TIMEOUT),
     "burn_in": (0, False, None),
 }
@@ -175,8 +184,10 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     for method, budget in data.get("budgets", {}).items():
         if method not in METHODS or isinstance(budget, bool) or not isinstance(budget, int):
             raise ConfigError(f"{p} [budgets]: expected METHOD = N, got {method} = {budget!r}")
-        if budget < 1:
-            raise ConfigError(f"{p} [budgets]: {method} must be >= 1, got {budget}")
+        if not 1 <= budget <= MAX_BUDGET:
+            raise ConfigError(
+                f"{p} [budgets]: {method} must be >= 1 and <= {MAX_BUDGET}, got {budget}"
+            )
     for section, keys in _SECTION_KEYS.items():
         if section in data:
             _check_keys(data[section], keys, f"{p} [{section}]")
@@ -325,7 +336,7 @@ def _number(kind: type, low: float, strict: bool, high: float | None = None) -> 
             raise argparse.ArgumentTypeError(
                 f"expected {'an integer' if kind is int else 'a number'} "
                 f"{'>' if strict else '>='} {low:g}"
-                f"{'' if high is None else f' and <= {high:g}'}, got {text!r}"
+                f"{'' if high is None else f' and <= {high:g}'}, got {excerpt(text)}"
             )
         return value
 
@@ -333,6 +344,8 @@ def _number(kind: type, low: float, strict: bool, high: float | None = None) -> 
 
 
 POSITIVE_INT = _number(int, 1, strict=False)
+BUDGET = _number(int, 1, strict=False, high=MAX_BUDGET)
+WORKERS = _number(int, 1, strict=False, high=MAX_WORKERS)
 NON_NEGATIVE_INT = _number(int, 0, strict=False)
 POSITIVE_FLOAT = _number(float, 0.0, strict=True)
 NON_NEGATIVE_FLOAT = _number(float, 0.0, strict=False)
@@ -367,8 +380,9 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
         )
     parser.add_argument(
         "--workers",
-        type=POSITIVE_INT,
-        help="processes that run the manoeuvres of one cost evaluation in parallel (default 1)",
+        type=WORKERS,
+        help="processes that run the manoeuvres of one cost evaluation in parallel (default "
+        f"1; at most {MAX_WORKERS}, four per CPU of this machine: more only share the CPUs)",
     )
     cost = parser.add_argument_group("cost")
     cost.add_argument(

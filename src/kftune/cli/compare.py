@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from kftune.cli._common import (
+    MAX_BUDGET,
     add_command,
     add_common,
     burn_in,
@@ -40,7 +41,7 @@ from kftune.cli._common import (
     writing,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
-from kftune.errors import ConfigError, UsageError
+from kftune.errors import ConfigError, UsageError, excerpt
 from kftune.optim import COMPARE_METHODS, DEFAULT_METHOD, METHODS
 
 
@@ -98,11 +99,14 @@ def _budget(item: str) -> tuple[str, int]:
         return int(text) if text.isascii() and text.isdigit() else 0
 
     name, sep, value = item.partition("=")
-    if not sep or name not in METHODS or count(value) < 1:
-        example = f"{name if name in METHODS else DEFAULT_METHOD}={count(value or item) or 12}"
+    if not sep or name not in METHODS or not 1 <= count(value) <= MAX_BUDGET:
+        n = count(value or item)
+        n = n if 1 <= n <= MAX_BUDGET else 12
+        example = f"{name if name in METHODS else DEFAULT_METHOD}={n}"
         raise argparse.ArgumentTypeError(
             f"expected METHOD=N, a budget per method, e.g. --budget {example} (repeat it for "
-            f"more), with N >= 1 and METHOD one of {', '.join(METHODS)}; got {item!r}"
+            f"more), with 1 <= N <= {MAX_BUDGET} and METHOD one of {', '.join(METHODS)}; got "
+            f"{excerpt(item)}"
         )
     return name, count(value)
 

@@ -46,7 +46,8 @@ from typing import TYPE_CHECKING, Any
 
 from kftune import __version__
 from kftune.cli._common import (
-    POSITIVE_INT,
+    BUDGET,
+    MAX_BUDGET,
     TIMEOUT_SECONDS,
     add_command,
     add_common,
@@ -92,9 +93,10 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--budget",
         "-n",
-        type=POSITIVE_INT,
+        type=BUDGET,
         help="cost evaluations (default: the method's own — TR-BO 100, TSBO 40, GA 225, others "
-        "40; an anytime method such as TR-BO never ends at a higher cost with more)",
+        "40; an anytime method such as TR-BO never ends at a higher cost with more; at most "
+        f"{MAX_BUDGET}, beyond any run that ends)",
     )
     p.add_argument("--storage", type=Path, help="SQLite study file saving every evaluation")
     p.add_argument(
@@ -118,7 +120,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--batch",
-        type=POSITIVE_INT,
+        type=BUDGET,
         help="points evaluated at a time (default: the Dask cluster's workers; 1 without "
         "--scheduler)",
     )
