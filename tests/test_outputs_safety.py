@@ -442,3 +442,73 @@ def test_tune_with_standard_error_closed_runs_to_the_end(work):
     assert (work / "t2.json").is_file()
     with contextlib.closing(sqlite3.connect(work / "s.db")) as conn:
         assert conn.execute("SELECT COUNT(*) FROM trials").fetchone()[0] == 3
+
+
+# ------------------------------------------------------------------ C header
+def _header_doc(plain: Path) -> dict:
+    import json
+
+    from kftune.cli.evaluate import read_tuned
+    from kftune.report.export import export_document
+
+    doc = export_document(read_tuned(plain / "t.json"), "t.json")
+    return json.loads(json.dumps(doc))
+
+
+@pytest.mark.parametrize(
+    ("key", "names", "pair", "macro"),
+    [
+        ("states", ["vx", "VX", "r"], ("vx", "VX"), "KFTUNE_STATE_VX"),
+        ("measurements", ["vx", "a-y", "a_y"], ("a-y", "a_y"), "KFTUNE_MEASUREMENT_A_Y"),
+    ],
+)
+def test_c_header_refuses_names_that_become_one_macro(plain, key, names, pair, macro):
+    from kftune.report.export import to_c_header
+
+    doc = _header_doc(plain)
+    doc[key] = names
+    with pytest.raises(DataError, match=macro) as info:
+        to_c_header(doc, "t.json")
+    message = str(info.value)
+    assert "t.json" in message and all(repr(n) in message for n in pair)
+
+
+def _cc() -> str:
+    import shutil
+
+    cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if cc is None:
+        pytest.skip("no C compiler (cc) on this machine")
+    return cc
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        "int main(void) { return 0; }",  # uses nothing
+        "int main(void) { return KFTUNE_R_DIAG[1] > 0.0 ? 0 : 1; }",  # one array of three
+        "static const double q[KFTUNE_N_STATES] = KFTUNE_Q_DIAG_INIT;\n"
+        "int main(void) { return q[2] == KFTUNE_Q_DIAG[2] ? 0 : 1; }",
+    ],
+)
+def test_c_header_compiles_without_warnings_however_little_is_used(plain, tmp_path, body):
+    """Even with -Wunused-const-variable=2, which warns about unused static const arrays
+    defined in headers too."""
+    import subprocess
+
+    from kftune.report.export import to_c_header
+
+    cc = _cc()
+    (tmp_path / "filter.h").write_text(to_c_header(_header_doc(plain), "t.json"))
+    (tmp_path / "main.c").write_text(f'#include "filter.h"\n{body}\n')
+    res = subprocess.run(
+        [cc, "-std=c99", "-Wall", "-Wextra", "-pedantic", "-Werror",
+         "-Wunused-const-variable=2", "main.c", "-o", "main"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )  # fmt: skip
+    if res.returncode != 0 and "unrecognized command-line option" in res.stderr:
+        pytest.skip("the compiler has no -Wunused-const-variable=2")
+    assert res.returncode == 0, res.stderr
+    assert subprocess.run([str(tmp_path / "main")]).returncode == 0

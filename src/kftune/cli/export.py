@@ -8,9 +8,11 @@ dataset name and SHA-256 fingerprint, kftune versions) — as
 
   json    one flat JSON object
   yaml    the same mapping as YAML (written by kftune itself; no PyYAML needed)
-  c       a C header: #define scalars, static const double arrays (KFTUNE_Q_DIAG,
-          KFTUNE_R_DIAG, KFTUNE_MODEL_PARAMS), index macros per state and measurement,
-          units in comments, an include guard named after --out
+  c       a C header of macros only: scalars, arrays as C99 compound literals
+          (KFTUNE_Q_DIAG[i], KFTUNE_R_DIAG, KFTUNE_MODEL_PARAMS) and their initialisers
+          (static const double q[] = KFTUNE_Q_DIAG_INIT;), index macros per state and
+          measurement, units in comments, an include guard named after --out; names
+          that differ only in case or punctuation are refused (they would be one macro)
   matlab  a MATLAB/Octave script that builds the struct kf (kf.Q, kf.R, kf.dt, ...)
 
 Every number is written with the shortest decimal that reads back as the same double.

@@ -173,8 +173,9 @@ def _c_name(text: str) -> str:
 
 
 def _c_comment(text: str) -> str:
-    """Text safe inside a C block comment (no ``*/`` or ``/*``; ASCII)."""
-    text = text.replace("*/", "* /").replace("/*", "/ *")
+    """Text safe inside a C block comment (no ``*/`` or ``/*``; ASCII; one line, so that
+    it can sit in a macro continued over lines)."""
+    text = " ".join(text.splitlines()).replace("*/", "* /").replace("/*", "/ *")
     for char, plain in _ASCII.items():
         text = text.replace(char, plain)
     return text.encode("ascii", "replace").decode()
@@ -202,8 +203,18 @@ def provenance(doc: Mapping[str, Any], source: str) -> str:
 
 
 def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER_H") -> str:
-    """A C header: ``#define`` scalars and ``static const double`` arrays, units in
-    comments, an include guard, the provenance in the opening comment."""
+    """A C header of macros only: ``#define`` scalars, and each array as an initialiser
+    (``KFTUNE_Q_DIAG_INIT``, for ``static const double q[] = KFTUNE_Q_DIAG_INIT;``) and a
+    C99 compound literal of it (``KFTUNE_Q_DIAG[i]``); units in comments, an include
+    guard, the provenance in the opening comment. Macros, not ``static const`` arrays: a
+    translation unit that uses some of the arrays compiles without unused-variable
+    warnings (``-Wunused-const-variable=2 -Werror``).
+
+    Raises:
+        DataError: naming ``source``, when two names of one kind (states, inputs,
+            measurements, model parameters) become the same macro (C names are upper
+            case, with ``_`` for other characters: ``vx`` and ``VX``, ``a-b`` and ``a_b``).
+    """
     p = "KFTUNE_"
     out = ["/*"]
     out += [f" * {_c_comment(line)}".rstrip() for line in provenance(doc, source).splitlines()]
@@ -223,8 +234,19 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
         ("MEASUREMENT", doc["measurements"], doc["measurement_units"]),
         ("MODEL_PARAM", doc["model_param_names"], doc["model_param_units"]),
     ):
+        macros: dict[str, str] = {}
         for i, (name, unit) in enumerate(zip(names, units)):
-            out.append(f"#define {p}{what}_{_c_name(name)} {i} /* {_c_comment(name)} [{unit}] */")
+            macro = f"{p}{what}_{_c_name(name)}"
+            if macro in macros:
+                kind = what.lower().replace("_", " ")
+                raise DataError(
+                    f"no C header: the {kind} names {macros[macro]!r} and {name!r} both "
+                    f"become the macro {macro} (C names are upper case, with '_' for other "
+                    "characters); rename one in the model, or export another --format",
+                    file=source,
+                )
+            macros[macro] = name
+            out.append(f"#define {macro} {i} /* {_c_comment(name)} [{unit}] */")
         out.append("")
 
     def array(name: str, values: list[float], labels: list[str], what: str) -> None:
@@ -232,10 +254,11 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
             out.extend([f"/* {what}: none */", ""])
             return
         out.append(f"/* {what} */")
-        out.append(f"static const double {p}{name}[{len(values)}] = {{")
+        out.append(f"#define {p}{name}_INIT {{ \\")
         for v, label in zip(values, labels):
-            out.append(f"    {_float(v)}, /* {_c_comment(label)} */")
-        out.extend(["};", ""])
+            out.append(f"    {_float(v)}, /* {_c_comment(label)} */ \\")
+        out.append("}")
+        out.extend([f"#define {p}{name} ((const double[{len(values)}]){p}{name}_INIT)", ""])
 
     array(
         "Q_DIAG",
