@@ -24,12 +24,13 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, DataWarning
 from kftune.models.base import HOOK_ARGUMENTS
 from kftune.processes import sigint_blocked, watch_parent
 
@@ -38,6 +39,9 @@ __all__ = ["HookRun", "check_model_file"]
 #: One manoeuvre to check on: (name, u (N, n_u) or None, z (N, m), dt [s]).
 HookRun = tuple[str, "np.ndarray | None", np.ndarray, float]
 
+#: [s] after this long without a word from the checking process, a warning says why the
+#: command waits (a compile takes seconds; a hook that never returns, for ever).
+SLOW_CHECK = 120.0
 #: The order in which the hooks are checked one at a time to name the one at fault.
 _ORDER = ("prepare", "f", "h", "F", "H", "check")
 
@@ -73,7 +77,17 @@ def check_model_file(
     try:
         try:  # Ctrl-C and SIGTERM interrupt the waits
             conn.send(list(runs))
+            slow = False
             while True:
+                if not slow and not conn.poll(SLOW_CHECK):
+                    slow = True  # say why nothing happens (a hook that never returns?)
+                    warnings.warn(
+                        f"model {spec}: its hooks have run for {SLOW_CHECK:g} s on manoeuvre "
+                        f"{at!r} in the process that checks them; a hook that never returns "
+                        "is stopped by Ctrl-C or SIGTERM",
+                        DataWarning,
+                        stacklevel=2,
+                    )
                 kind, payload = conn.recv()
                 if kind == "at":
                     at = payload
