@@ -524,3 +524,16 @@ def test_damaged_matlab_structs_give_data_or_a_short_data_error(flips, cut, comp
             assert all(v.shape == (50,) for v in values.values())
         except DataError as exc:
             assert exc.file == str(f) and len(str(exc)) < 600
+
+
+def test_a_matlab_v4_file_is_read_by_name_and_sized_first(tmp_path: Path, monkeypatch):
+    c = synthetic_channels(n=400)
+    src = tmp_path / "rec.mat"
+    scipy.io.savemat(src, {**c, "unused": np.zeros(10)}, format="4")
+    res, out = run_import(tmp_path, src)
+    assert res.returncode == 0, res.stderr
+    np.testing.assert_allclose(load_dataset(out).manoeuvres[0].ay, c["ay"], rtol=1e-12)
+    monkeypatch.setenv("KFTUNE_MAX_ROWS", "300")
+    (tmp_path / "again").mkdir()
+    res, out = run_import(tmp_path / "again", src)
+    assert_refused(res, out, str(src), "400 elements", "KFTUNE_MAX_ROWS")

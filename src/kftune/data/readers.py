@@ -344,7 +344,8 @@ def _mat4_variables(path: Path, names: Sequence[str], limits: ReadLimits) -> dic
                 raise _not_found("variable", name, sizes, file)
             if sizes[name] > limits.max_rows:
                 raise _too_many(name, sizes[name], limits, file)
-        return sio.loadmat(file, variable_names=list(names))
+        data = sio.loadmat(file, variable_names=list(names))
+        return {name: data[name] for name in names}
     except DataError:
         raise
     except Exception as exc:
