@@ -81,11 +81,18 @@ def test_an_integer_beyond_the_digit_limit_in_any_json_input_is_refused(tmp_path
     assert _files(tmp_path) == before
 
 
-@pytest.mark.parametrize("where", ["config", "manifest"])
+@pytest.mark.parametrize("where", ["config", "manifest", "mapping"])
 def test_an_integer_beyond_the_digit_limit_in_a_toml_input_is_refused(tmp_path, where):
     if where == "config":
         (tmp_path / "run.toml").write_text(f"budget = {LONG}\n")
         args, name = ["tune", "--config", "run.toml", "-o", "t.json"], "run.toml"
+    elif where == "mapping":
+        (tmp_path / "rec.csv").write_text("t,vx\n0,1\n")
+        (tmp_path / "map.toml").write_text(f"[source]\nx = {LONG}\n")
+        args, name = (
+            ["dataset", "import", "rec.csv", "--mapping", "map.toml", "-o", "o"],
+            "map.toml",
+        )
     else:
         (tmp_path / "ds").mkdir()
         (tmp_path / "ds" / "manifest.toml").write_text(f"name = 'x'\nn = {LONG}\n")
@@ -94,6 +101,15 @@ def test_an_integer_beyond_the_digit_limit_in_a_toml_input_is_refused(tmp_path, 
     res = run_cli(*args, cwd=tmp_path)
     assert res.returncode == 3 and name in res.stderr, res.stderr
     assert f"more than {MAX_INT_DIGITS:,} digits" in res.stderr
+    assert "Traceback" not in res.stderr and _files(tmp_path) == before
+
+
+def test_a_deeply_nested_import_mapping_is_refused(tmp_path):
+    (tmp_path / "rec.csv").write_text("t,vx\n0,1\n")
+    (tmp_path / "map.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    before = _files(tmp_path)
+    res = run_cli("dataset", "import", "rec.csv", "--mapping", "map.toml", "-o", "o", cwd=tmp_path)
+    assert res.returncode == 3 and "map.toml" in res.stderr and "too deeply" in res.stderr
     assert "Traceback" not in res.stderr and _files(tmp_path) == before
 
 

@@ -88,6 +88,7 @@ from kftune.data.io import (
     segment_bounds,
     segment_manoeuvre,
 )
+from kftune.data.jsonfile import MAX_INT_DIGITS
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.readers import FORMATS, READER_OPTIONS, Format, Table, format_named, format_of
 from kftune.data.textfile import ReadLimits, check_regular_file
@@ -213,6 +214,13 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
             raise DataError(f"cannot read the mapping: {exc}", file=file) from None
         except tomllib.TOMLDecodeError as exc:
             raise DataError(f"mapping is not valid TOML: {exc}", file=file) from None
+        except RecursionError:
+            raise DataError("mapping nests arrays or tables too deeply", file=file) from None
+        except ValueError:  # tomllib: an integer beyond Python's int-conversion limit
+            raise DataError(
+                f"mapping is not valid TOML: an integer with more than {MAX_INT_DIGITS:,} digits",
+                file=file,
+            ) from None
 
     def bad(key: str, what: str) -> DataError:
         return DataError(f"key {key!r}: {what}", file=file)
