@@ -265,6 +265,36 @@ def test_export_to_a_closed_standard_output_fails_with_a_message(work):
     _refused(res, "--out -", "standard output is closed", code=2)
 
 
+MAPPING = """vehicle = "bmw-320i"
+[channels]
+t = "t"
+vx = "vx"
+ax = "ax"
+ay = "ay"
+r = "r"
+delta = "delta"
+beta_ref = "beta_ref"
+"""
+
+
+@pytest.mark.parametrize("source", ["ds/train-03-j-turn.csv", "ds/map.toml"])
+def test_import_force_refuses_to_delete_a_file_it_imports(work, source):
+    """``dataset import ds/NAME.csv -o ds --force`` would delete the recording it reads
+    (--force replaces the old dataset's files): exit 3 naming it, nothing changed."""
+    (work / "ds" / "map.toml").write_text(MAPPING)
+    recording = "ds/train-03-j-turn.csv"
+    if source.endswith(".toml"):  # the mapping listed as a file of the old dataset
+        manifest = work / "ds" / "manifest.toml"
+        manifest.write_text(manifest.read_text().replace("test-05-j-turn.csv", "map.toml"))
+        recording = "rec.csv"
+        (work / recording).write_bytes((work / "ds" / "train-03-j-turn.csv").read_bytes())
+    before = _snapshot(work)
+    res = run_cli("dataset", "import", recording, "--mapping", "ds/map.toml",
+                  "-o", "ds", "--force", cwd=work)  # fmt: skip
+    _refused(res, f"--out {source}", "--force would delete it")
+    assert _snapshot(work) == before
+
+
 # ------------------------------------------------------------------ checked writes
 def test_dataset_show_says_when_its_figure_cannot_be_written(work):
     """A name that leads to /dev/full: exit 1 naming the file, no "wrote"; the figure is

@@ -712,20 +712,22 @@ def same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def refuse_inputs(path: Path, option: str, inputs: Iterable[Input]) -> None:
-    """Refuse to write ``path`` when it is one of the command's ``inputs``
+def refuse_inputs(
+    path: Path,
+    option: str,
+    inputs: Iterable[Input],
+    why: str = "writing there would replace it: choose another name",
+) -> None:
+    """Refuse to write (or delete) ``path`` when it is one of the command's ``inputs``
     (:func:`command_inputs`): an output must never replace what the command reads.
 
     Raises:
-        ConfigError: naming ``option``, the path and which input it is.
+        ConfigError: naming ``option``, the path, which input it is and ``why`` not.
     """
     for source, what in inputs:
         if same_file(path, source):
             also = "" if str(source) == str(path) else f" ({source})"
-            raise ConfigError(
-                f"{option} {path}: is {what}{also}, which this command reads; writing there "
-                "would replace it: choose another name"
-            )
+            raise ConfigError(f"{option} {path}: is {what}{also}, which this command reads; {why}")
 
 
 def output_file(path: Path, option: str, inputs: Iterable[Input] = ()) -> Path:

@@ -224,11 +224,15 @@ def _save_in_place(dataset: Dataset, out: Path, old_files: list[Path]) -> Path:
 # ------------------------------------------------------------------------------ import
 def run_import(args: argparse.Namespace) -> int:
     """Import recordings into a dataset folder."""
-    from kftune.cli._common import output_dir
+    from kftune.cli._common import output_dir, refuse_inputs
     from kftune.data.importer import import_recordings
 
     output_dir(args.out, "--out")
     old_files = _files_to_replace(args.out, args.force)  # checked before reading anything
+    reads = [(s, "a recording it imports") for s in args.sources]
+    why = "--force would delete it: import from a copy outside the folder"
+    for f in old_files:  # --force: a file of the old dataset that is imported again
+        refuse_inputs(f, "--out", [*reads, (args.mapping, "the mapping (--mapping)")], why)
     dataset = import_recordings(args.sources, args.mapping, name=args.name or None)
     manifest = _save_in_place(dataset, args.out, old_files)
     meta = dataset.meta
