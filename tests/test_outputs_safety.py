@@ -558,3 +558,18 @@ def test_c_header_compiles_without_warnings_however_little_is_used(plain, tmp_pa
         pytest.skip("the compiler has no -Wunused-const-variable=2")
     assert res.returncode == 0, res.stderr
     assert subprocess.run([str(tmp_path / "main")]).returncode == 0
+
+
+def test_export_of_a_header_whose_names_collide_writes_nothing(work):
+    """The CLI's side: exit 3 naming the tuned file and the macro; no header written."""
+    import json
+
+    doc = json.loads((work / "t.json").read_text())
+    dep = doc["deployment"]
+    dep["states"][1]["name"] = "VX"
+    next(q for q in dep["Q"] if q["name"] == "vy")["name"] = "VX"
+    (work / "tc.json").write_text(json.dumps(doc))
+    before = _snapshot(work)
+    res = run_cli("export", "tc.json", "-f", "c", "-o", "tc.h", cwd=work)
+    _refused(res, "tc.json", "KFTUNE_STATE_VX", "'vx'", "'VX'")
+    assert _snapshot(work) == before
