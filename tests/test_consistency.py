@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from filterpy.stats import NEES
 from scipy.signal import lfilter
 from scipy.stats import gamma
 
+from conftest import SMALL_TEST, run_cli
 from kftune.filters import EKF
 from kftune.models.linear import linear_model
 from kftune.tuning.consistency import (
@@ -201,3 +203,71 @@ def test_nees_and_nis_equal_filterpys_on_a_scalar_model():
     want = np.mean(NEES(x[:, None], np.array(est), np.array(cov)))
     assert ours.nees.mean == pytest.approx(want, rel=1e-9)
     assert nis_consistency(res.nis, 1).mean == pytest.approx(np.mean(nis), rel=1e-9)
+
+
+# ------------------------------------------------------------------ the command line
+@pytest.fixture(scope="module")
+def tuned(small: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tuned file of the small dataset (3 evaluations: cheap, not a good filter)."""
+    out = tmp_path_factory.mktemp("tuned") / "t.json"
+    res = run_cli("tune", small, "-n", "3", "-q", "-o", out)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+def check_doc(doc: dict, m: int = 3) -> None:
+    """A consistency document (per manoeuvre or pooled) of the sideslip filter: β measured,
+    coverages ordered in [0, 1], NEES and NIS bands around 1 and m."""
+    beta = doc["channels"]["beta"]
+    assert 0 <= beta["cov68"] <= beta["cov95"] <= 1 and beta["n"] > 100
+    nees = beta["nees"]
+    assert nees["dof"] == 1 and nees["mean"] > 0 and nees["n"] == beta["n"]
+    assert nees["band"][0] < 1 < nees["band"][1] and nees["n_eff"] <= nees["n"]
+    assert nees["band_eff"][0] <= nees["band"][0] and nees["band_eff"][1] >= nees["band"][1]
+    assert nees["inside"] == (nees["band_eff"][0] <= nees["mean"] <= nees["band_eff"][1])
+    nis = doc["nis"]
+    assert nis["dof"] == m and nis["band"][0] < m < nis["band"][1] and nis["mean"] > 0
+
+
+def test_evaluate_reports_consistency_per_manoeuvre_and_pooled(small, tuned):
+    """--json: each manoeuvre and the split carry "consistency" beside the KPIs (kept);
+    the pooled counts are the manoeuvres' summed. The table shows it, m and the bands,
+    in 100 columns."""
+    res = run_cli("evaluate", small, "--params", tuned, "--json")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    rows = doc["manoeuvres"]
+    assert list(rows) == list(SMALL_TEST)
+    for row in rows.values():
+        assert {"rmse", "mae", "rmse_non", "mae_non", "rmse_beta"} <= set(row)
+        check_doc(row["consistency"])
+    check_doc(doc["consistency"])
+    pooled = doc["consistency"]["channels"]["beta"]
+    assert pooled["n"] == sum(r["consistency"]["channels"]["beta"]["n"] for r in rows.values())
+    text = run_cli("evaluate", small, "--params", tuned)
+    assert text.returncode == 0 and "Traceback" not in text.stderr
+    lines = text.stdout.splitlines()
+    head = next(i for i, line in enumerate(lines) if line.startswith("consistency"))
+    assert "NIS (m=3)" in lines[head] and "cov95%" in lines[head]
+    assert [line.split()[0] for line in lines[head + 1 : head + 4]] == [*SMALL_TEST, "test"]
+    assert all(len(line) <= 100 for line in lines)
+
+
+def test_estimate_says_what_its_mean_nis_should_be(small, tuned, tmp_path):
+    """estimate: per manoeuvre and over all of them, the consistency of β and the NIS with
+    m = 3 and its band (JSON and table); "mean_nis" is kept; nothing but its tables and
+    figures is written."""
+    out = tmp_path / "est"
+    res = run_cli("estimate", small, "--params", tuned, "-o", out, "--json")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    for row in doc["manoeuvres"].values():
+        assert row["mean_nis"] > 0
+        check_doc(row["consistency"])
+    check_doc(doc["consistency"])
+    text = run_cli("estimate", small, "--params", tuned, "-o", out, "-m", SMALL_TEST[0])
+    assert text.returncode == 0 and "Traceback" not in text.stderr
+    assert "NIS (m=3)" in text.stdout and "95% band" in text.stdout
+    _kpis, checks = (x for x in text.stdout.splitlines() if x.startswith(SMALL_TEST[0] + " "))
+    assert checks.split()[1] == "beta"  # the consistency row, after the KPI row
+    assert sorted(p.suffix for p in out.iterdir()) == [".csv"] * 4 + [".png"] * 4

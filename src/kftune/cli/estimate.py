@@ -19,11 +19,17 @@ one figure (``--no-plot`` leaves them out):
              reference sideslip — for another model, <name>_ref for each state or output
              the recording has a reference of. SI units throughout.
   NAME.png   β with its ±2σ band, and the reference and the error where there is one (for
-             another model: its first state or output with a reference).
+             another model: its first state or output with a reference); the title says
+             what share of the reference the band covers, and when it is too narrow to see.
 
 With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error, and both
 for |ay| ≥ 4 m/s², in degrees) after the file's burn-in; for another model, the RMSE of
-each referenced state or output in its unit.
+each referenced state or output in its unit. And whether the filter's standard deviations
+can be trusted (consistency, after the burn-in, per manoeuvre and over all of them): for
+each channel with a standard deviation and a reference, the share of samples inside its
+±1σ and ±1.96σ intervals (68.3 % and 95 % when consistent) and the mean NEES (1), and the
+mean NIS of the m measurements (m), each mean with its 95 % χ² band (--json: "consistency";
+"mean_nis" stays the mean over all samples).
 
 It refuses (exit 3) recordings whose sample time differs from the tuned one by more than
 1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones, as
@@ -138,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
 
     from kftune.data import open_dataset
     from kftune.data.io import file_stem
+    from kftune.tuning.consistency import as_doc, of_columns, pool_runs
     from kftune.tuning.deploy import TunedFilter, estimate, referenced
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
     from kftune.tuning.problem import check_units, first_scored, where_diverged
@@ -183,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
             refuse_inputs(args.out / f"{stem}{suffix}", "--out", reads)
     args.out.mkdir(parents=True, exist_ok=True)
     kpis: list[dict[str, float]] = []
+    checks: dict[str, Any] = {}  # manoeuvre → its consistency (of_columns), where it ran
     diverged: list[str] = []
     keep = "nothing else is lost; fix it and run the command again"
     for m in manoeuvres:
@@ -247,8 +255,14 @@ def run(args: argparse.Namespace) -> int:
                 for c in others
             }
             row["units"] = {c: est.units.get(c, "") for c in others}
+        if not est.result.diverged:  # after the burn-in, as the KPIs
+            first = first_scored(m, tuned.burn_in)
+            checks[m.name] = of_columns(est.columns, est.result.innovation.shape[1], first)
+        row["consistency"] = as_doc(*checks[m.name]) if m.name in checks else None
         out["manoeuvres"][m.name] = row
     out["average"] = {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
+    pooled = len(checks) == len(manoeuvres)  # none when it diverged anywhere, as the KPIs
+    out["consistency"] = as_doc(*pool_runs(checks.values())) if pooled else None
     if args.json:
         emit_json(out)
     else:
@@ -285,27 +299,32 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
     rows = doc["manoeuvres"]
     width = max(12, *(len(n) for n in rows))
     with_kpis = any("kpis" in r for r in rows.values())
-    heads = ("mean NIS", "RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°") if with_kpis else ("mean NIS",)
+    heads = ("RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°") if with_kpis else ()
     units = next((r["units"] for r in rows.values() if "units" in r), {})
     heads += tuple(f"RMSE {c} {u}".rstrip() for c, u in units.items())
     widths = [max(10, len(h)) for h in heads]
-    print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
-    for name, row in rows.items():
-        cells = [row.get("mean_nis")]
-        if with_kpis:
+    if heads:  # the accuracy (the NIS is in the consistency table below)
+        print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
+        for name, row in rows.items():
             k = row.get("kpis", {})
-            cells += [k.get(c) for c in ("rmse", "mae", "rmse_non", "mae_non")]
-        cells += [row.get("rmse", {}).get(c) for c in units]
-        print(f"{name:{width}s} " + " ".join(_cell(v, w) for v, w in zip(cells, widths)))
+            cells = [k.get(c) for c in ("rmse", "mae", "rmse_non", "mae_non")] if with_kpis else []
+            cells += [row.get("rmse", {}).get(c) for c in units]
+            print(f"{name:{width}s} " + " ".join(_cell(v, w) for v, w in zip(cells, widths)))
     if doc["average"] is not None:
         avg = doc["average"]
-        cells = [" " * 10] + [_cell(avg.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
+        cells = [_cell(avg.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
         print(f"{'average':{width}s} " + " ".join(cells))
         print(
             "β KPIs in degrees against the reference"
             + (f", after a burn-in of {burn_in:g} s" if burn_in else "")
             + "; MAE = maximum absolute error; _NON: samples with |ay| ≥ 4 m/s²"
         )
+    from kftune.report.tables import consistency_lines
+
+    runs = {name: row["consistency"] for name, row in rows.items()}
+    if len(rows) > 1:
+        runs["all"] = doc["consistency"]  # pooled sample by sample
+    print("\n".join(consistency_lines(runs, width)))
     files = f"{len(rows)} {doc['format']} file{'s' if len(rows) != 1 else ''}"
     print(f"estimates written to {doc['out']} ({files})")
 

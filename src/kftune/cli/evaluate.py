@@ -18,6 +18,12 @@ training ones (not held-out evidence); an explicit --split test is then refused.
 The sideslip KPIs, in degrees: RMSE, MAE — the maximum absolute error, as in the paper,
 not the mean — and both again over the samples with |ay| ≥ 4 m/s² (RMSE_NON, MAE_NON).
 
+And whether the filter's standard deviations can be trusted (consistency, per manoeuvre and
+pooled over the split): for each channel with a standard deviation and a reference (β, a
+state with <state>_ref), the share of samples inside its ±1σ and ±1.96σ intervals (68.3 %
+and 95 % when consistent) and the mean NEES (1 when consistent), and the mean NIS of the m
+measurements (m), each mean with its 95 % χ² band; --json: "consistency".
+
 Exit code 1 (after the KPI table, which shows "–" there) when the filter diverged or ran
 away on any manoeuvre; the message names each, with the step and the cause.
 """
@@ -54,6 +60,7 @@ from kftune.tuning.kpi import KPI_NAMES
 
 if TYPE_CHECKING:
     from kftune.data import Dataset, Manoeuvre
+    from kftune.tuning.problem import RunResult, TuningProblem
     from kftune.vehicle.params import VehicleParams
 
 
@@ -439,6 +446,7 @@ def run(args: argparse.Namespace) -> int:
             cost = None
         metrics, results = assess(problem, x, manoeuvres)
     missing = missing_references(problem, manoeuvres)
+    consistency, pooled = _consistency(problem, manoeuvres, results)
     sideslip = all("rmse" in row for row in metrics.values())
     avg = average_kpis(metrics.values()) if sideslip else _averages(metrics.values())
     where = {
@@ -474,9 +482,11 @@ def run(args: argparse.Namespace) -> int:
                 "kind": dataset[name].kind,
                 **{k: _num(v) for k, v in row.items()},
                 **({"diverged_at": where[name]} if name in where else {}),
+                "consistency": consistency[name],
             }
             for name, row in metrics.items()
         },
+        "consistency": pooled,
     }
     if args.json:
         emit_json(doc)
@@ -492,6 +502,27 @@ def run(args: argparse.Namespace) -> int:
 
 def _num(v: float) -> float | None:
     return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _consistency(
+    problem: TuningProblem, manoeuvres: Sequence[Manoeuvre], results: Mapping[str, RunResult]
+) -> tuple[dict[str, dict[str, Any] | None], dict[str, Any] | None]:
+    """(manoeuvre name → the consistency of the filter's run on it, after the burn-in
+    (:func:`kftune.tuning.consistency.as_doc`; None where it diverged); the same pooled
+    over all of them, None when it diverged on any, as the KPI averages)."""
+    from kftune.tuning.consistency import as_doc, of_columns, pool_runs
+    from kftune.tuning.deploy import estimates_of
+    from kftune.tuning.problem import first_scored
+
+    model, runs = problem.model, {}
+    for m in manoeuvres:
+        res = results[m.name]
+        if not res.diverged:
+            columns = estimates_of(model, res, m).columns
+            first = first_scored(m, problem.burn_in)
+            runs[m.name] = of_columns(columns, model.n_measurements, first)
+    each = {m.name: as_doc(*runs[m.name]) if m.name in runs else None for m in manoeuvres}
+    return each, as_doc(*pool_runs(runs.values())) if len(runs) == len(manoeuvres) else None
 
 
 def _averages(rows: Any) -> dict[str, float]:
@@ -546,6 +577,11 @@ def _print_table(doc: dict[str, Any]) -> None:
         )
     if doc["cost"] is not None:
         print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
+    from kftune.report.tables import consistency_lines
+
+    runs = {name: row["consistency"] for name, row in rows.items()}
+    runs[f"{doc['split']} split"] = doc["consistency"]  # pooled sample by sample
+    print("\n".join(consistency_lines(runs, width)))
     if doc["diverged"] is not None:
         print(f"{doc['diverged']}:")
         for row in doc["manoeuvres"].values():

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from kftune.report.results import ExperimentResults
 from kftune.tuning.kpi import KPI_NAMES
@@ -223,3 +224,57 @@ def relative_improvement(
             b, n = base[name].get(metric, math.nan), new[name].get(metric, math.nan)
             out[name][metric] = 100.0 * (b - n) / b if b > 0 else math.nan
     return out
+
+
+def consistency_lines(runs: Mapping[str, Mapping[str, Any] | None], width: int = 12) -> list[str]:
+    """A plain-text table of consistency (:func:`kftune.tuning.consistency.as_doc` per
+    row: a manoeuvre, or a pooled set), one line per referenced channel, under 100
+    columns: coverage of the ±1σ and ±1.96σ intervals [%], the mean NEES and its 95 % band
+    (effective sample count), the mean NIS and its 95 % band; ``*`` marks a mean outside
+    its band. A row that is None (the filter diverged there) shows "–"; ``width``: of the
+    name column."""
+    width = max(width, *(len(n) for n in runs)) if runs else width
+    dof = next((r["nis"]["dof"] for r in runs.values() if r and r.get("nis")), None)
+    nis_head = f"NIS (m={dof})" if dof is not None else "NIS"
+    head = (
+        f"{'consistency':{width}s} {'channel':8s} {'cov68%':>6s} {'cov95%':>6s} "
+        f"{'NEES':>7s} {'95% band':15s} {nis_head:>9s} {'95% band':15s}"
+    ).rstrip()
+    lines = [head]
+    for name, run in runs.items():
+        if run is None:
+            lines.append(f"{name:{width}s} {'–':8s} (the filter diverged)")
+            continue
+        channels = run["channels"] or {"–": None}
+        nis = _mean_and_band(run["nis"], "band")
+        for i, (channel, ch) in enumerate(channels.items()):
+            cov = (_pct(ch["cov68"]), _pct(ch["cov95"])) if ch else ("–", "–")
+            nees = _mean_and_band(ch["nees"] if ch else None, "band_eff")
+            last = nis if i == 0 else ("", "")
+            lines.append(
+                f"{name if i == 0 else '':{width}s} {channel:8s} {cov[0]:>6s} {cov[1]:>6s} "
+                f"{nees[0]:>7s} {nees[1]:15s} {last[0]:>9s} {last[1]:15s}".rstrip()
+            )
+    lines.append(
+        "consistent: cov68 68.3 %, cov95 95 %, NEES 1, NIS m, each mean in its 95 % band (* "
+        "outside);"
+    )
+    lines.append(
+        "NEES per channel (only P's diagonal is kept), its band for the errors' effective "
+        "sample count"
+    )
+    return lines
+
+
+def _pct(share: float | None) -> str:
+    return "–" if share is None else f"{100.0 * share:.1f}"
+
+
+def _mean_and_band(stat: Mapping[str, Any] | None, band: str) -> tuple[str, str]:
+    """(mean with ``*`` when outside ``band``, "[low, high]") of a χ² mean's JSON form."""
+    if stat is None or stat["mean"] is None:
+        return "–", ""
+    lo, hi = stat[band]
+    outside = lo is not None and hi is not None and not lo <= stat["mean"] <= hi
+    bounds = "" if lo is None or hi is None else f"[{lo:.3g}, {hi:.3g}]"
+    return f"{stat['mean']:.3g}" + ("*" if outside else ""), bounds

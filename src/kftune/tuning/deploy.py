@@ -381,6 +381,12 @@ def estimate(
     if probe:
         fs.probe([m], tuned.r, tuned.q)
     res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings)
+    return estimates_of(model, res, m)
+
+
+def estimates_of(model: StateSpaceModel, res: RunResult, m: Manoeuvre) -> Estimates:
+    """The named columns of a run ``res`` of a filter of ``model`` over ``m``
+    (:class:`Estimates`): what ``estimate`` writes and ``evaluate`` measures."""
     cols: dict[str, np.ndarray] = {"t": m.t}
     units: dict[str, str] = {"t": "s"}
     for i, (name, unit) in enumerate(zip(model.state_names, model.state_units)):
