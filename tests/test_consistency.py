@@ -271,3 +271,26 @@ def test_estimate_says_what_its_mean_nis_should_be(small, tuned, tmp_path):
     _kpis, checks = (x for x in text.stdout.splitlines() if x.startswith(SMALL_TEST[0] + " "))
     assert checks.split()[1] == "beta"  # the consistency row, after the KPI row
     assert sorted(p.suffix for p in out.iterdir()) == [".csv"] * 4 + [".png"] * 4
+
+
+@pytest.mark.parametrize(
+    ("error", "scale", "narrow"), [(1.0, 0.001, True), (1.0, 1.0, False), (0.01, 0.01, False)]
+)
+def test_the_estimate_figure_says_when_its_band_is_too_narrow_to_see(error, scale, narrow):
+    """β errors within ±1° and σ of 0.001° (a band of a fraction of a pixel) or of 1°, and
+    errors within ±0.01° with σ of 0.01° (a small band, wide on the error's scale): the
+    title says how much of the reference the band covers, and that it cannot be seen only
+    when, at the scale on the page, it cannot."""
+    from kftune.report.plots import estimate_trace, render
+
+    t = np.linspace(0.0, 10.0, 2001)
+    ref = np.radians(3.0 * np.sin(t))
+    est = ref + np.radians(error * np.sin(3.0 * t))
+    fig = estimate_trace(t, est, np.full(t.size, np.radians(scale)), ref, "β")
+    title = fig.axes[0].get_title()
+    render(fig)
+    inside = np.mean(np.abs(error * np.sin(3.0 * t)) <= 2.0 * scale)
+    assert f"covers {100 * inside:.0f} % of the reference" in title
+    assert ("too narrow to see" in title) == narrow
+    if narrow:
+        assert "±0.002°" in title  # the band: ±2σ

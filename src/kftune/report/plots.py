@@ -306,7 +306,8 @@ def estimate_trace(
 ) -> Figure:
     """``kftune estimate``: an estimate (by default the sideslip β) with its ±2σ band and,
     when there is one, the reference and the error; radians are shown in degrees, other
-    units as they are."""
+    units as they are. The title gives the share of the reference the band covers, and its
+    median half-width when it is too narrow to see (:func:`_band_note`)."""
     rows = 2 if beta_ref is not None else 1
     fig, axes = plt.subplots(
         rows,
@@ -335,10 +336,43 @@ def estimate_trace(
         ax_e.plot(t, est - ref, color=colour, lw=0.9, label="estimate − reference")
         ax_e.set_ylabel(f"error [{shown_unit}]")
         ax_e.legend(fontsize=8, loc="best")
+    if beta_std is not None:  # judged on the error's scale where it is shown
+        error = None if beta_ref is None else est - show(beta_ref)
+        title += _band_note(axes[-1, 0], band, error, shown_unit)
     ax.set_ylabel(f"{label} [{shown_unit}]")
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8, loc="best")
     axes[-1, 0].set_xlabel("time [s]")
     for a in axes[:, 0]:
         a.grid(True, alpha=0.3)
     return fig
+
+
+#: The narrowest ±2σ band that can be seen [points, 1/72 in]: about 3.6 pixels at the
+#: 130 dpi of :func:`save`.
+VISIBLE_BAND = 2.0
+
+
+def _band_note(ax: Any, half: np.ndarray, error: np.ndarray | None, unit: str) -> str:
+    """A title's second line on a ±2σ band of half-width ``half`` (N,) drawn on ``ax`` (its
+    limits final): the share of the samples whose ``error`` (N,) it covers, and its median
+    half-width where the band, at the axis's scale on the page, is narrower than
+    :data:`VISIBLE_BAND` — a band that cannot be seen says so rather than pass for one that
+    covers the error. ``half`` and ``error`` in ``unit`` ("deg" is written °); "" when there
+    is nothing to say."""
+    from kftune.tuning.consistency import covered
+
+    notes = []
+    finite = half[np.isfinite(half)]
+    if finite.size:
+        median = float(np.median(finite))
+        low, high = ax.get_ylim()
+        page = ax.get_position().height * ax.figure.get_figheight() * 72.0  # points
+        if 2.0 * median / (high - low) * page < VISIBLE_BAND:
+            shown = f"{median:.2g}°" if unit == "deg" else f"{median:.2g} {unit}"
+            notes.append(f"±{shown}, too narrow to see")
+    if error is not None:
+        inside, n = covered(error, half, 1.0)
+        if n:
+            notes.append(f"covers {100.0 * inside / n:.0f} % of the reference")
+    return f"\n±2σ band: {'; '.join(notes)}" if notes else ""
