@@ -85,7 +85,8 @@ def register(subparsers: Any) -> None:
     again.add_argument(
         "--force",
         action="store_true",
-        help="delete the studies stored in --out/studies and start afresh",
+        help="delete the studies stored in --out/studies and start afresh (only files of "
+        "studies kftune made; a foreign file named like a study is refused)",
     )
     p.set_defaults(func=run)
 
