@@ -101,12 +101,16 @@ def test_a_named_model_file_is_not_run_unless_it_is_the_tuned_one(tuned, tmp_pat
     assert res.returncode == EXIT_BAD_INPUT and (tmp_path / "MARKER").exists(), res.stderr
 
 
-def test_estimate_takes_only_a_model_file(tuned, tmp_path):
-    """estimate runs the tuned filter: its --model names the tuned model's file, a
-    built-in model comes from the tuned file."""
+def test_estimate_takes_only_the_model_file_of_a_filter_tuned_with_one(tuned, tmp_path):
+    """estimate runs the tuned filter: its --model names the tuned model's file; a
+    built-in model comes from the tuned file, and is not replaced by a file."""
     res = kftune("estimate", "--params", tuned, "--model", "ctrv", "-o", tmp_path / "e")
     assert res.returncode == 2 and "--model" in res.stderr and "FILE.py" in res.stderr
-    assert not (tmp_path / "e").exists()
+    (tmp_path / "mine.py").write_text(MARKING)
+    res = kftune("estimate", "--params", tuned, "--model", tmp_path / "mine.py", "-o",
+                 tmp_path / "e")  # fmt: skip
+    assert res.returncode == 2 and "built-in model 'single-track'" in res.stderr, res.stderr
+    assert not (tmp_path / "e").exists() and not (tmp_path / "MARKER").exists()
 
 
 def test_a_dataset_mapping_names_built_in_models_only(tmp_path):
