@@ -54,12 +54,13 @@ from kftune.cli._common import (
     filter_spec_of,
     output_dir,
     refuse_inputs,
+    split_model_file,
     write_output,
     writing,
 )
 from kftune.cli.evaluate import add_force, check_recordings, read_tuned, require_named_model
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
-from kftune.errors import ConfigError, UsageError
+from kftune.errors import ConfigError, UsageError, excerpt
 
 FORMATS = ("csv", "parquet")
 
@@ -152,6 +153,12 @@ def run(args: argparse.Namespace) -> int:
     parquet = _parquet_writer() if args.format == "parquet" else None
     output_dir(args.out, "--out")
     doc = read_tuned(args.params)
+    recorded = doc.get("model", "single-track")
+    if args.model is not None and not split_model_file(str(recorded)):
+        raise UsageError(
+            f"--model: {args.params} was tuned with the built-in model {excerpt(recorded)}, "
+            "which it runs; --model names the model file of a filter tuned with one"
+        )
     require_named_model(doc, args.params, args.model)
     tuned = TunedFilter.from_document(doc, str(args.params))
     dataset = open_dataset(args.dataset)
