@@ -294,3 +294,16 @@ def test_the_estimate_figure_says_when_its_band_is_too_narrow_to_see(error, scal
     assert ("too narrow to see" in title) == narrow
     if narrow:
         assert "±0.002°" in title  # the band: ±2σ
+
+
+def test_a_diverged_run_has_no_consistency_and_the_split_none(small):
+    """Where the filter diverged, its rows before the divergence would flatter it: no
+    consistency for that manoeuvre nor pooled (as the KPI averages); exit 1 as before."""
+    res = run_cli("evaluate", small, "--q", "1e9", "1e9", "1e9", "--json")
+    assert res.returncode == 1 and "Traceback" not in res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["consistency"] is None
+    assert all(row["consistency"] is None for row in doc["manoeuvres"].values())
+    text = run_cli("evaluate", small, "--q", "1e9", "1e9", "1e9")
+    assert text.returncode == 1
+    assert text.stdout.count("(the filter diverged)") == len(SMALL_TEST) + 1
