@@ -526,6 +526,37 @@ def test_damaged_matlab_structs_give_data_or_a_short_data_error(flips, cut, comp
             assert exc.file == str(f) and len(str(exc)) < 600
 
 
+def _scipy_without(monkeypatch, what: str) -> str:
+    """Take ``what`` out of SciPy's private MAT-file internals, as another SciPy version
+    might have them; the name the message should give."""
+    import scipy.io.matlab
+    from scipy.io.matlab import _mio5
+
+    if what == "module":
+        monkeypatch.delattr(scipy.io.matlab, "_mio5_params")
+        monkeypatch.setitem(sys.modules, "scipy.io.matlab._mio5_params", None)
+        return "_mio5_params"
+    if what == "method":
+        monkeypatch.delattr(_mio5.MatFile5Reader, "read_file_header")
+        return "MatFile5Reader.read_file_header"
+    monkeypatch.setattr(_mio5.MatFile5Reader, "initialize_read", lambda self: None)
+    return "MatFile5Reader()._file_reader"
+
+
+@pytest.mark.parametrize("what", ["module", "method", "reader attribute"])
+def test_a_scipy_without_the_matlab_internals_kftune_uses_is_named(tmp_path, monkeypatch, what):
+    """The v5 walker uses SciPy's private modules: a SciPy whose internals differ is named
+    as the cause (its version, what it lacks), exit 3, not a traceback or a damaged file."""
+    import scipy
+
+    src = tmp_path / "rec.mat"
+    scipy.io.savemat(src, synthetic_channels(n=400))
+    lacking = _scipy_without(monkeypatch, what)
+    res, out = run_import(tmp_path, src)
+    assert_refused(res, out, str(src), f"SciPy {scipy.__version__}", lacking, "v7.3")
+    assert "not a readable MATLAB file" not in res.stderr
+
+
 def test_a_matlab_v4_file_is_read_by_name_and_sized_first(tmp_path: Path, monkeypatch):
     c = synthetic_channels(n=400)
     src = tmp_path / "rec.mat"

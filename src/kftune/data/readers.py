@@ -17,8 +17,11 @@ CSV / TSV  .csv .tsv (.gz)          —           header row of names; separator
                                                 are the file's line numbers
 Parquet    .parquet .pq             parquet     numeric columns (nulls become NaN, reported by
                                                 validation); rows 1-based
-MATLAB     .mat                     (mat73)     v4–v7.2 through ``scipy.io.loadmat``; v7.3 (HDF5)
-                                                through h5py (extra ``mat73``); one numeric
+MATLAB     .mat                     (mat73)     v4 through ``scipy.io.loadmat``; v5–v7.2 walked
+                                                element by element with SciPy's private
+                                                reader (:data:`MAT5_SCIPY_INTERNALS`: a SciPy
+                                                without them is named, not the file); v7.3
+                                                (HDF5) through h5py (extra ``mat73``); one numeric
                                                 vector per signal, at the top level or in the
                                                 struct ``struct = "a.b"``; rows 1-based
 MDF4       .mf4 .mdf                mdf         through asammdf; signals resampled onto one
@@ -411,6 +414,68 @@ class _Inflated:
         return self._pos
 
 
+#: What the MATLAB v5 walker uses of SciPy's private MAT-file modules
+#: (``scipy.io.matlab._mio5``, ``_mio5_params``, ``_mio5_utils``: SciPy has no public API
+#: that reads one element at a time), as ``module.attribute``; checked before a file is
+#: read, so that a SciPy whose internals differ is named as the cause, not the file.
+MAT5_SCIPY_INTERNALS = (
+    "_mio5.MatFile5Reader.initialize_read",
+    "_mio5.MatFile5Reader.read_file_header",
+    "_mio5.MatFile5Reader.end_of_stream",
+    "_mio5_utils.VarReader5.set_stream",
+    "_mio5_utils.VarReader5.read_full_tag",
+    "_mio5_utils.VarReader5.read_header",
+    "_mio5_utils.VarReader5.shape_from_header",
+    "_mio5_utils.VarReader5.read_fieldnames",
+    "_mio5_params.mxSTRUCT_CLASS",
+    "_mio5_params.miMATRIX",
+    "_mio5_params.miCOMPRESSED",
+    "_mio5_params.mclass_info",
+)
+#: The attributes of a ``MatFile5Reader`` after ``initialize_read`` that the walker uses.
+MAT5_SCIPY_READER = ("_file_reader", "_matrix_reader", "byte_order")
+
+
+def _scipy_mat5(file: str) -> tuple[Any, Any]:
+    """SciPy's private modules ``_mio5`` and ``_mio5_params``, checked to hold every name
+    of :data:`MAT5_SCIPY_INTERNALS`.
+
+    Raises:
+        DataError: naming the file, the SciPy version and what it lacks (exit 3), when this
+            SciPy's internals are not the ones the walker was written against.
+    """
+    missing = []
+    try:
+        from scipy.io.matlab import _mio5, _mio5_params, _mio5_utils
+    except ImportError:
+        missing.append("the module scipy.io.matlab._mio5, _mio5_params or _mio5_utils")
+    else:
+        modules = {"_mio5": _mio5, "_mio5_params": _mio5_params, "_mio5_utils": _mio5_utils}
+        for dotted in MAT5_SCIPY_INTERNALS:
+            module, *attrs = dotted.split(".")
+            obj: Any = modules[module]
+            for attr in attrs:
+                obj = getattr(obj, attr, None)
+            if obj is None:
+                missing.append(f"scipy.io.matlab.{dotted}")
+    if missing:
+        raise _lacks_scipy_internals(missing, file)
+    return _mio5, _mio5_params
+
+
+def _lacks_scipy_internals(missing: Sequence[str], file: str) -> DataError:
+    """The error for a SciPy without the ``missing`` internals: the file is not at fault."""
+    import scipy
+
+    return DataError(
+        f"cannot read a MATLAB v5-v7.2 file with SciPy {scipy.__version__}: kftune reads it "
+        "one variable at a time through SciPy's private MAT-file modules, and this SciPy "
+        f"lacks {', '.join(missing[:3])}; install a SciPy version kftune is tested with, or "
+        "save the recording as MATLAB v7.3 (save -v7.3) or CSV",
+        file=file,
+    )
+
+
 def _mat5_variables(
     path: Path, names: Sequence[str], struct: str | None, limits: ReadLimits
 ) -> dict[str, Any]:
@@ -420,9 +485,8 @@ def _mat5_variables(
     loaded; every other variable and field is skipped unread (a compressed one is
     decompressed in blocks and dropped). Memory therefore follows the arrays kept, whatever
     else the file holds — ``loadmat`` would load a whole struct to reach one field."""
-    from scipy.io.matlab import _mio5, _mio5_params
-
     file = str(path)
+    _mio5, _mio5_params = _scipy_mat5(file)
     parts = struct.split(".") if struct else []
     out: dict[str, Any] = {}
     known: list[str] = []  # the names where the variables are looked for
@@ -470,6 +534,9 @@ def _mat5_variables(
         with open(path, "rb") as fh:
             top = _mio5.MatFile5Reader(fh)
             top.initialize_read()
+            lacks = [a for a in MAT5_SCIPY_READER if getattr(top, a, None) is None]
+            if lacks:
+                raise _lacks_scipy_internals([f"MatFile5Reader().{a}" for a in lacks], file)
             top.read_file_header()
             reader = top._matrix_reader
             order = top.byte_order
