@@ -205,6 +205,26 @@ def test_nees_and_nis_equal_filterpys_on_a_scalar_model():
     assert nis_consistency(res.nis, 1).mean == pytest.approx(np.mean(nis), rel=1e-9)
 
 
+def test_the_table_has_a_line_per_channel_the_nis_once_and_marks_means_outside():
+    """Two referenced states: a line each, the manoeuvre's NIS on its first; a mean outside
+    its band marked ``*``; a diverged manoeuvre says so; every line within 100 columns."""
+    from kftune.report.tables import consistency_lines
+    from kftune.tuning.consistency import as_doc
+
+    rng = np.random.default_rng(4)
+    e = rng.normal(0.0, 1.0, 500)
+    good = channel_consistency(e, np.ones(500), np.zeros(500))
+    bad = channel_consistency(10 * e, np.ones(500), np.zeros(500))
+    run = as_doc({"vx": good, "vy": bad}, nis_consistency(rng.chisquare(2, 500), 2))
+    lines = consistency_lines({"a-rather-long-manoeuvre-name": run, "b": None})
+    assert "NIS (m=2)" in lines[0]
+    vx, vy, diverged = lines[1:4]
+    assert vx.split()[:2] == ["a-rather-long-manoeuvre-name", "vx"] and "*" not in vx
+    assert vy.split()[0] == "vy" and vy.split()[3].endswith("*") and len(vy.split()) == 6
+    assert diverged.split()[:2] == ["b", "–"] and "diverged" in diverged
+    assert all(len(line) <= 100 for line in lines)
+
+
 # ------------------------------------------------------------------ the command line
 @pytest.fixture(scope="module")
 def tuned(small: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
