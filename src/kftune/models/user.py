@@ -11,6 +11,14 @@ and takes the model it defines:
 A file is run once per process and path (numba compiles its functions then); the model is
 registered under its name, so results, tuned files and studies can name it. Worker
 processes (``--workers``) load the same file again from the spec string.
+
+A model file is Python code that runs with the user's rights: the command line runs one
+only when the user names it (``--model``, or a configuration passed on the command line),
+never because a tuned file names it (:func:`kftune.cli.evaluate.require_named_model`).
+Loading one catches whatever it raises, also SystemExit and a KeyboardInterrupt of its
+own (a real Ctrl-C while it loads stays an interrupt). Its hooks are then checked in a
+child process, with bounds checked (:func:`checked_model`,
+:mod:`kftune.tuning.hookcheck`).
 """
 
 from __future__ import annotations
