@@ -324,7 +324,7 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
         print(
             "β KPIs in degrees against the reference"
             + (f", after a burn-in of {burn_in:g} s" if burn_in else "")
-            + "; MAE = maximum absolute error; _NON: samples with |ay| ≥ 4 m/s²"
+            + ";\nMAE = maximum absolute error; _NON: samples with |ay| ≥ 4 m/s²"
         )
     from kftune.report.tables import consistency_lines
 
