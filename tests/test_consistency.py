@@ -1,7 +1,7 @@
 """Consistency of a filter's standard deviations: coverage, NEES and NIS with χ² bands.
 
 References independent of kftune: a hand count; the textbook's χ² band (Bar-Shalom, Li &
-Kirubarajan 2001, §5.4.2: 50 runs of a 2-state NEES accept [1.5, 2.6]); the mean of N χ²_k
+Kirubarajan 2001, §5.4: 50 runs of a 2-state NEES accept [1.5, 2.6]); the mean of N χ²_k
 as a Gamma(N·k/2, 2/N) variable; Monte Carlo of AR(1) errors; a linear-Gaussian model
 simulated with known Q and R, filtered by kftune and by FilterPy.
 """
@@ -49,7 +49,7 @@ def test_coverage_and_nees_equal_a_hand_count_on_a_small_example():
 
 
 def test_the_band_is_the_textbooks_and_the_gamma_quantiles():
-    """50 runs of a 2-dimensional NEES: [1.5, 2.6] (Bar-Shalom et al. 2001, §5.4.2); and
+    """50 runs of a 2-dimensional NEES: [1.5, 2.6] (Bar-Shalom et al. 2001, §5.4); and
     for any N and k the mean of N χ²_k is Gamma(N·k/2, scale 2/N)."""
     lo, hi = chi2_band(50, 2)
     assert (lo, hi) == pytest.approx((1.5, 2.6), abs=0.02)
