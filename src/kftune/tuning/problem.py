@@ -370,11 +370,11 @@ class FilterSpec:
         self, manoeuvres: Sequence[Manoeuvre], r: np.ndarray, q: np.ndarray | None = None
     ) -> None:
         """Run the model's hooks before a filter relies on them, with measurement variances
-        ``r``: once on the first sample of the first manoeuvre
+        ``r``: once on the first sample of each manoeuvre
         (:meth:`~kftune.models.StateSpaceModel.probe`). A model file's hooks run in a
         child process instead, where a hook that never returns can be stopped (Ctrl-C,
-        SIGTERM), on every manoeuvre, and then through the filter with bounds checked
-        (process-noise variances ``q``, default 1e-4 each):
+        SIGTERM), and then through the filter with bounds checked (process-noise
+        variances ``q``, default 1e-4 each):
         :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models are not
         probed in a child (nor the paper's kernel at all).
 
@@ -391,12 +391,12 @@ class FilterSpec:
             except ValueError as exc:
                 raise ConfigError(f"model {self.spec}, {exc}") from None
             return
-        m = manoeuvres[0]
-        u, z = self.inputs(m)
-        try:
-            self.model.probe(u, z, r, self.params, m.dt)
-        except ValueError as exc:
-            raise ConfigError(f"model {self.spec}, on manoeuvre {m.name!r}: {exc}") from None
+        for m in manoeuvres:
+            u, z = self.inputs(m)
+            try:
+                self.model.probe(u, z, r, self.params, m.dt)
+            except ValueError as exc:
+                raise ConfigError(f"model {self.spec}, on manoeuvre {m.name!r}: {exc}") from None
 
     def run(
         self,
