@@ -82,9 +82,9 @@ def check_model_file(
                 if not slow and not conn.poll(SLOW_CHECK):
                     slow = True  # say why nothing happens (a hook that never returns?)
                     warnings.warn(
-                        f"model {spec}: its hooks have run for {SLOW_CHECK:g} s on manoeuvre "
-                        f"{at!r} in the process that checks them; a hook that never returns "
-                        "is stopped by Ctrl-C or SIGTERM",
+                        f"model {spec}: the process that checks its hooks has run for "
+                        f"{SLOW_CHECK:g} s, on manoeuvre {at!r} (a large model compiles for "
+                        "minutes); a hook that never returns is stopped by Ctrl-C or SIGTERM",
                         DataWarning,
                         stacklevel=2,
                     )
