@@ -6,6 +6,9 @@ file or option, that no traceback is printed and that nothing else is written.""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -79,6 +82,37 @@ def test_an_integer_beyond_the_digit_limit_in_any_json_input_is_refused(tmp_path
     assert name.strip() in res.stderr and f"more than {MAX_INT_DIGITS:,} digits" in res.stderr
     assert "Traceback" not in res.stderr and LONG not in res.stderr
     assert _files(tmp_path) == before
+
+
+@pytest.mark.parametrize("name", ["t.json", "t.json ", " t.json", "results.json"])
+def test_a_json_input_that_is_a_device_is_refused_before_it_is_read(tmp_path, name):
+    """A tuned file or results.json that is /dev/zero (here through a link) was read
+    whole: a MemoryError traceback after filling the memory. Exit 3 naming the file."""
+    args = READERS[name](tmp_path, "{}")
+    json_file = next(tmp_path.rglob(name.strip()))
+    json_file.unlink()
+    json_file.symlink_to("/dev/zero")
+    before = _files(tmp_path)
+    res = run_cli(*args, cwd=tmp_path)
+    assert res.returncode == 3, res.stderr
+    assert name.strip() in res.stderr and "not a regular file" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    assert _files(tmp_path) == before
+
+
+def test_a_tuned_file_that_is_a_fifo_is_refused_not_waited_on(tmp_path):
+    """A FIFO with no writer blocked the open for ever. In a subprocess, whose timeout is
+    only a hang guard."""
+    fifo = tmp_path / "t.json"
+    os.mkfifo(fifo)
+    res = subprocess.run(
+        [sys.executable, "-m", "kftune", "evaluate", "--params", str(fifo)],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 3, res.stderr
+    assert str(fifo) in res.stderr and "not a regular file" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    assert _files(tmp_path) == {fifo}
 
 
 @pytest.mark.parametrize("where", ["config", "manifest", "mapping"])

@@ -14,12 +14,17 @@ import json
 from pathlib import Path
 from typing import Any
 
+from kftune.data.textfile import check_regular_file
 from kftune.errors import DataError
 
 #: Most digits of an integer in a JSON file: Python's own default limit of int() on a
 #: string (``sys.get_int_max_str_digits``), fixed here so that a raised process-wide limit
 #: does not raise it. No number kftune writes comes near it.
 MAX_INT_DIGITS = 4300
+#: Largest JSON file read [bytes]: a tuned file is a few kB, a ``results.json`` of
+#: ``compare`` with every evaluation's history a few MB; the text and the objects parsed
+#: from it take several times the file's size in memory.
+MAX_JSON_BYTES = 256 * 2**20
 
 
 class _LongInteger(ValueError):
@@ -56,27 +61,26 @@ def parse_json(text: str, file: str) -> Any:
         raise DataError(f"not valid JSON: {exc}", file=file) from None
 
 
-def read_json(path: str | Path, max_bytes: int | None = None) -> Any:
+def read_json(path: str | Path, max_bytes: int = MAX_JSON_BYTES) -> Any:
     """The JSON document in the file ``path`` (UTF-8), read by :func:`parse_json`.
 
     Args:
-        max_bytes: refuse a larger file without reading it all (``None``: no limit).
+        max_bytes: refuse a larger file without reading more of it.
 
     Raises:
-        DataError: naming ``path``: missing, unreadable, larger than ``max_bytes``, not
-            UTF-8, or not valid JSON (see :func:`parse_json`).
+        DataError: naming ``path``: missing, not a regular file (a folder, a device such as
+            ``/dev/zero`` or a FIFO: refused before it is opened, as it would never end or
+            block), unreadable, larger than ``max_bytes``, not UTF-8, or not valid JSON (see
+            :func:`parse_json`).
     """
     p = Path(path)
+    check_regular_file(p)
     try:
         with open(p, "rb") as fh:
-            raw = fh.read() if max_bytes is None else fh.read(max_bytes + 1)
-    except FileNotFoundError:
-        raise DataError("file does not exist", file=str(p)) from None
-    except IsADirectoryError:
-        raise DataError("is a folder; expected a JSON file", file=str(p)) from None
+            raw = fh.read(max_bytes + 1)
     except OSError as exc:
         raise DataError(f"cannot be read ({exc.strerror or exc})", file=str(p)) from None
-    if max_bytes is not None and len(raw) > max_bytes:
+    if len(raw) > max_bytes:
         raise DataError(f"larger than {max_bytes:,} bytes", file=str(p))
     try:
         text = raw.decode("utf-8")

@@ -129,7 +129,7 @@ class ExperimentResults:
         """
         src = Path(directory)
         path = src / RESULTS_FILE
-        if not path.is_file():
+        if not path.exists():  # a device or FIFO there is refused by read_json, by name
             raise DataError(
                 f"no {RESULTS_FILE} here; expected a results directory written by 'kftune compare'",
                 file=str(src),
