@@ -217,3 +217,21 @@ def test_a_hook_that_never_returns_is_stopped_by_a_signal(small, tmp_path, signu
     child = int(imported.read_text().split()[1])
     with pytest.raises(ProcessLookupError):  # killed with the command, not left looping
         os.kill(child, 0)
+
+
+def test_a_long_hook_check_says_why_the_command_waits(small, tmp_path, monkeypatch):
+    """A check that takes long (a hook that never returns, or a large model's compile)
+    warns that Ctrl-C or SIGTERM stops it, instead of waiting without a word."""
+    from kftune.data import open_dataset
+    from kftune.errors import DataWarning
+    from kftune.tuning import hookcheck
+    from kftune.tuning.problem import filter_spec
+
+    monkeypatch.setattr(hookcheck, "SLOW_CHECK", 0.0)  # every check is a long one
+    model = tmp_path / "mine.py"
+    model.write_text(EXAMPLE.read_text())
+    dataset = open_dataset(str(small))
+    fs = filter_spec(str(model), "ukf", dataset.vehicle)
+    with pytest.warns(DataWarning, match=r"Ctrl-C or SIGTERM") as seen:
+        fs.probe(dataset.train[:1], dataset.r_default)
+    assert str(model) in str(seen[0].message) and "train-03-j-turn" in str(seen[0].message)
