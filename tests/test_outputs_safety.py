@@ -100,6 +100,25 @@ def test_a_json_input_that_is_a_device_is_refused_before_it_is_read(tmp_path, na
     assert _files(tmp_path) == before
 
 
+@pytest.mark.parametrize("where", ["config", "mapping"])
+def test_a_toml_input_that_is_a_device_is_refused_before_it_is_read(tmp_path, where):
+    """A configuration or import mapping that is /dev/zero was read whole (a MemoryError
+    traceback); one reader for every JSON and TOML input refuses it naming the file."""
+    name = {"config": "run.toml", "mapping": "map.toml"}[where]
+    args = {
+        "config": ["tune", "--config", name, "-o", "t.json"],
+        "mapping": ["dataset", "import", "rec.csv", "--mapping", name, "-o", "o"],
+    }[where]
+    (tmp_path / "rec.csv").write_text("t,vx\n0,1\n")
+    (tmp_path / name).symlink_to("/dev/zero")
+    before = _files(tmp_path)
+    res = run_cli(*args, cwd=tmp_path)
+    assert res.returncode == 3, res.stderr
+    assert name in res.stderr and "not a regular file" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    assert _files(tmp_path) == before
+
+
 def test_a_tuned_file_that_is_a_fifo_is_refused_not_waited_on(tmp_path):
     """A FIFO with no writer blocked the open for ever. In a subprocess, whose timeout is
     only a hang guard."""

@@ -51,13 +51,12 @@ import json
 import math
 import os
 import stat
-import sys
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from kftune.errors import ConfigError, RunFailedError, UsageError, excerpt
+from kftune.errors import ConfigError, DataError, RunFailedError, UsageError, excerpt
 from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
 from kftune.tuning.cost import CHANNELS, NORMALISATIONS
 
@@ -65,11 +64,6 @@ if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a co
     from kftune.filters import UKFSettings
     from kftune.tuning.cost import CostSpec
     from kftune.tuning.problem import NoiseParameterization
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 #: Most cost evaluations a run may be given (``-n``, ``budget``, ``budgets``): far beyond
 #: any tuning that ends — the Bayesian methods' step grows as n³ — while a typing slip
@@ -152,23 +146,12 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     if path is None:
         return {}
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"configuration file {p} does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read configuration file {p}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"configuration file {p} is not valid TOML: {exc}") from None
-    except RecursionError:
-        raise ConfigError(f"configuration file {p} nests arrays or tables too deeply") from None
-    except ValueError:  # an integer beyond Python's int-conversion limit
-        from kftune.data.jsonfile import MAX_INT_DIGITS
+    from kftune.data.jsonfile import read_toml
 
-        raise ConfigError(
-            f"configuration file {p} is not valid TOML: an integer with more than "
-            f"{MAX_INT_DIGITS:,} digits"
-        ) from None
+    try:
+        data = read_toml(p)
+    except DataError as exc:  # a configuration's errors are ConfigErrors (also exit 3)
+        raise ConfigError(f"configuration {exc}") from None
     _check_keys(data, CONFIG_KEYS, str(p))
     for key, (low, strict, high) in _LIMITS.items():
         value = data.get(key)

@@ -72,7 +72,6 @@ import fnmatch
 import itertools
 import math
 import re
-import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -88,7 +87,7 @@ from kftune.data.io import (
     segment_bounds,
     segment_manoeuvre,
 )
-from kftune.data.jsonfile import MAX_INT_DIGITS
+from kftune.data.jsonfile import read_toml
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.readers import FORMATS, READER_OPTIONS, Format, Table, format_named, format_of
 from kftune.data.textfile import ReadLimits, check_regular_file
@@ -111,11 +110,6 @@ from kftune.vehicle.params import VehicleParams
 
 if TYPE_CHECKING:
     from kftune.models import StateSpaceModel
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 #: Top-level keys of a mapping, and what each holds.
 MAPPING_KEYS = {
@@ -206,21 +200,7 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         file, data = "<mapping>", dict(mapping)
     else:
         file = str(mapping)
-        try:
-            data = tomllib.loads(Path(mapping).read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise DataError("mapping file not found", file=file) from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise DataError(f"cannot read the mapping: {exc}", file=file) from None
-        except tomllib.TOMLDecodeError as exc:
-            raise DataError(f"mapping is not valid TOML: {exc}", file=file) from None
-        except RecursionError:
-            raise DataError("mapping nests arrays or tables too deeply", file=file) from None
-        except ValueError:  # tomllib: an integer beyond Python's int-conversion limit
-            raise DataError(
-                f"mapping is not valid TOML: an integer with more than {MAX_INT_DIGITS:,} digits",
-                file=file,
-            ) from None
+        data = read_toml(mapping)
 
     def bad(key: str, what: str) -> DataError:
         return DataError(f"key {key!r}: {what}", file=file)

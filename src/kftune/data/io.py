@@ -33,7 +33,6 @@ import itertools
 import json
 import math
 import re
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
@@ -43,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from kftune.data.jsonfile import MAX_INT_DIGITS, parse_json
+from kftune.data.jsonfile import read_json, read_toml
 from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
 from kftune.data.readers import mat_variables
 from kftune.data.textfile import (
@@ -68,11 +67,6 @@ from kftune.data.validate import (
 )
 from kftune.errors import DataError, excerpt
 from kftune.vehicle.params import VehicleParams, preset
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 #: Identifies a kftune manifest.
 FORMAT_TAG = "kftune-dataset"
@@ -287,33 +281,10 @@ MAX_MANIFEST_BYTES = 16 * 2**20
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read(MAX_MANIFEST_BYTES + 1)
-        if len(raw) > MAX_MANIFEST_BYTES:
-            raise DataError(
-                f"manifest larger than {MAX_MANIFEST_BYTES:,} bytes: not a kftune manifest",
-                file=str(path),
-            )
-        text = raw.decode("utf-8")
-        data = parse_json(text, str(path)) if path.suffix == ".json" else tomllib.loads(text)
-    except DataError:
-        raise
-    except FileNotFoundError:
-        raise DataError("manifest not found", file=str(path)) from None
-    except OSError as exc:
-        raise DataError(f"cannot read the manifest: {exc.strerror}", file=str(path)) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(
-            f"manifest is not valid {path.suffix[1:].upper()}: {exc}", file=str(path)
-        ) from None
-    except RecursionError:
-        raise DataError("manifest nests arrays or tables too deeply", file=str(path)) from None
-    except ValueError:  # tomllib: an integer beyond Python's int-conversion limit
-        raise DataError(
-            f"manifest is not valid TOML: an integer with more than {MAX_INT_DIGITS:,} digits",
-            file=str(path),
-        ) from None
+    if path.suffix == ".json":
+        data = read_json(path, MAX_MANIFEST_BYTES)
+    else:
+        data = read_toml(path, MAX_MANIFEST_BYTES)
     if not isinstance(data, dict):
         raise DataError("manifest must be a table/object at the top level", file=str(path))
     return data
