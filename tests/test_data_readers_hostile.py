@@ -333,20 +333,21 @@ def test_blank_lines_stop_after_a_thousand(tmp_path, monkeypatch, compress: bool
 # =========================================================================== not a file
 def test_a_device_or_a_fifo_is_not_a_regular_file(tmp_path: Path):
     """Refused before it is opened: a FIFO with no writer would block the open for ever
-    (the subprocess's timeout only guards against that hang)."""
+    (so it runs in a subprocess, whose timeout only guards against that hang)."""
     fifo = tmp_path / "fifo.csv"
     os.mkfifo(fifo)
     zero = tmp_path / "zero.csv"
     zero.symlink_to("/dev/zero")
     mapping = mapping_file(tmp_path)
-    for src in (fifo, zero, tmp_path):
-        res = subprocess.run(
-            [sys.executable, "-m", "kftune", "dataset", "import", str(src), "--mapping",
-             str(mapping), "-o", str(tmp_path / "out")],
-            capture_output=True, text=True, timeout=300,
-        )  # fmt: skip
-        what = "is a folder" if src == tmp_path else "not a regular file"
-        assert_refused(res, tmp_path / "out", str(src), what)
+    res = subprocess.run(
+        [sys.executable, "-m", "kftune", "dataset", "import", str(fifo), "--mapping",
+         str(mapping), "-o", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert_refused(res, tmp_path / "out", str(fifo), "not a regular file")
+    for src, what in ((zero, "not a regular file"), (tmp_path, "is a folder")):
+        res, out = run_import(tmp_path, src, mapping)
+        assert_refused(res, out, str(src), what)
 
 
 # =========================================================================== disk full
