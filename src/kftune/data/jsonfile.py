@@ -111,10 +111,10 @@ def read_text(path: str | Path, max_bytes: int = MAX_INPUT_BYTES) -> str:
             block), unreadable, larger than ``max_bytes``, or not UTF-8.
     """
     p = Path(path)
-    check_regular_file(p)
+    size = check_regular_file(p)
     try:
-        with open(p, "rb") as fh:
-            raw = fh.read(max_bytes + 1)
+        with open(p, "rb") as fh:  # read(n) allocates n bytes first: no more than the file
+            raw = fh.read(min(size, max_bytes) + 1)
     except OSError as exc:
         raise DataError(f"cannot be read ({exc.strerror or exc})", file=str(p)) from None
     if len(raw) > max_bytes:
