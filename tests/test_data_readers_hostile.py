@@ -280,13 +280,14 @@ def gzip_file(path: Path, body: bytes, repeat: int) -> Path:
 
 def test_a_gzip_file_that_unpacks_to_many_times_its_size_stops_early(tmp_path, monkeypatch):
     """64 MiB of rows in 160 kB are refused by a first pass that keeps nothing: parsing up
-    to the limit (8 MiB and 20 times the file) would have made 37 MB of arrays first."""
+    to the limit (8 MiB and 100 times the file) would have made 50 MB of arrays first."""
     row = b"0.01,20,0,0,0,0,0\n"
     src = gzip_file(tmp_path / "rec.csv.gz", row * 2**16, 56)
     size = src.stat().st_size
     assert size < 2**18
     res, out, peak = _peak_of_import(tmp_path, src)
-    assert_refused(res, out, str(src), f"20 times its {size:,} bytes", "KFTUNE_MAX_RATIO")
+    ratio = textfile.DEFAULT_MAX_RATIO
+    assert_refused(res, out, str(src), f"{ratio} times its {size:,} bytes", "KFTUNE_MAX_RATIO")
     assert peak < 8 * 2**20, f"peak {peak / 2**20:.1f} MiB"
     monkeypatch.setattr(textfile, "RATIO_FREE_BYTES", 2**20)  # a smaller file is enough
     src = gzip_file(tmp_path / "rec.csv.gz", row * 2**16, 8)  # 9.4 MB of rows in 20 kB
@@ -297,6 +298,24 @@ def test_a_gzip_file_that_unpacks_to_many_times_its_size_stops_early(tmp_path, m
     with pytest.raises(ConfigError, match="KFTUNE_MAX_RATIO must be a whole number"):
         monkeypatch.setenv("KFTUNE_MAX_RATIO", "0")
         ReadLimits.from_env()
+
+
+def test_a_logger_export_with_many_constant_columns_loads(tmp_path, monkeypatch):
+    """300 unmapped columns of zeros beside the channels: a genuine file that compresses
+    over 20 times (the first default refused it), well within the ratio limit."""
+    c = synthetic_channels(n=4000)
+    zeros = ",0" * 300
+    values = zip(*(c[k] for k in CHANNELS))
+    rows = [",".join(f"{float(v):.5g}" for v in row) + zeros for row in values]
+    header = ",".join(CHANNELS) + "".join(f",status{i}" for i in range(300)) + "\n"
+    body = (header + "\n".join(rows) + "\n").encode()
+    src = tmp_path / "rec.csv.gz"
+    src.write_bytes(gzip.compress(body, 9))
+    assert len(body) / src.stat().st_size > 20
+    monkeypatch.setattr(textfile, "RATIO_FREE_BYTES", 0)  # the ratio alone, on a small file
+    res, out = run_import(tmp_path, src)
+    assert res.returncode == 0, res.stderr
+    np.testing.assert_allclose(load_dataset(out).manoeuvres[0].vx, c["vx"], rtol=1e-4)
 
 
 def test_a_compressed_recording_loads_within_the_ratio(tmp_path):

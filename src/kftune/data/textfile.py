@@ -22,7 +22,8 @@ limit and how to raise it:
   first :data:`RATIO_FREE_BYTES`), checked (with ``max_bytes``) in a first pass that
   decompresses the file block by block and keeps nothing: a small file that unpacks to
   millions of rows is refused before a row of it is parsed (numeric CSV text compresses 3
-  to 12 times); ``KFTUNE_MAX_RATIO``, default :data:`DEFAULT_MAX_RATIO`;
+  to 12 times, a logger's export with a hundred columns of zeros 30 times);
+  ``KFTUNE_MAX_RATIO``, default :data:`DEFAULT_MAX_RATIO`;
 * :data:`MAX_LINE_BYTES`: one line; a binary or sparse file without line breaks is refused
   after its first block;
 * :data:`MAX_BLANK_LINES`: empty lines in a row (only allowed at the end of a file).
@@ -61,7 +62,10 @@ DEFAULT_MAX_BYTES = 8 * 2**30
 #: Default of ``max_rows``: the most rows (samples) of one file or signal.
 DEFAULT_MAX_ROWS = 40_000_000
 #: Default of ``max_ratio``: the most bytes a gzipped file decompresses to per byte of it.
-DEFAULT_MAX_RATIO = 20
+#: A logger's export with many constant columns compresses 30 times (a CSV of 120 columns
+#: of zeros, 3 signals and time: 30×); gzip reaches 1,000 on a bomb. The first pass keeps
+#: nothing, so a bomb costs only the time to decompress this multiple of its size.
+DEFAULT_MAX_RATIO = 100
 #: Decompressed bytes that ``max_ratio`` does not count (a small file of constant rows).
 RATIO_FREE_BYTES = 8 * 2**20
 #: Environment variables that override the defaults (integers, ``4e9`` allowed).
