@@ -256,8 +256,6 @@ def test_tune_refuses_an_output_that_is_one_of_its_inputs(work, out, what):
     """-o onto the study (or a widening round's file or SQLite's side files), a file of the
     dataset, the configuration, also through a symbolic or hard link: exit 3 before any
     work, naming --out and the input; every file as it was, no study started."""
-    import os
-
     (work / "run.toml").write_text("seed = 1\n")
     (work / "link.json").symlink_to("run.toml")
     os.link(work / "run.toml", work / "hard.json")
@@ -283,8 +281,6 @@ def test_tune_refuses_a_study_that_is_its_configuration(work):
 
 @pytest.mark.parametrize("out", ["t.json", "./t.json", "lnk.json", "hard.json"])
 def test_export_refuses_to_replace_its_tuned_file(work, out):
-    import os
-
     (work / "lnk.json").symlink_to("t.json")
     os.link(work / "t.json", work / "hard.json")
     before = _snapshot(work)
@@ -303,10 +299,6 @@ def test_dataset_show_refuses_a_name_that_is_a_file_of_its_dataset(work):
 
 def test_export_to_a_closed_standard_output_fails_with_a_message(work):
     """``export -o - >&-``: nothing can be written, and the command says so (exit 2)."""
-    import os
-    import subprocess
-    import sys
-
     res = subprocess.run(
         [sys.executable, "-m", "kftune", "export", "t.json", "-o", "-"],
         preexec_fn=lambda: os.close(1),
@@ -522,10 +514,7 @@ def test_tune_with_standard_error_closed_runs_to_the_end(work):
     """``tune 2>&-``: the progress bar and messages have nowhere to go; the run must not
     fail on them (it exited 1 with no message, leaving an empty study)."""
     import contextlib
-    import os
     import sqlite3
-    import subprocess
-    import sys
 
     res = subprocess.run(
         [sys.executable, "-m", "kftune", "tune", "ds", "-m", "random", "-n", "3",
@@ -593,8 +582,6 @@ def _cc() -> str:
 def test_c_header_compiles_without_warnings_however_little_is_used(plain, tmp_path, body):
     """Even with -Wunused-const-variable=2, which warns about unused static const arrays
     defined in headers too."""
-    import subprocess
-
     from kftune.report.export import to_c_header
 
     cc = _cc()
