@@ -23,7 +23,7 @@ from kftune.data.validate import (
     KINEMATIC_RATIO,
     SLOW_SPEED,
     kinematic_ratio,
-    plausibility_warnings,
+    plausibility_findings,
 )
 from kftune.errors import DataError, DataWarning
 from kftune.vehicle import preset
@@ -178,7 +178,7 @@ def test_a_noisy_recording_with_a_straight_and_held_samples_imports(tmp_path):
 def test_a_recording_held_in_part_is_told_its_recorded_rate():
     """A third of the recording held at 40 Hz: 4 of 5 samples of that third repeat (27 %),
     and the rate is the held part's (from the runs of repeats), not 73 % of 200 Hz."""
-    (text,) = plausibility_warnings(drive(), mu=1.0)
+    (text,) = plausibility_findings(drive(), mu=1.0).values()
     assert text.startswith("27% of the samples repeat the previous one in ax, ay, r at once")
     assert "recorded at about 40 Hz and held up to 200 Hz" in text
 

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from kftune.cli import main
 from kftune.data import Dataset, Manoeuvre, save_dataset, validate_channels
-from kftune.data.validate import HELD_SHARE, STEER_L_EFF, plausibility_warnings
+from kftune.data.validate import HELD_SHARE, STEER_L_EFF, plausibility_findings
 from kftune.errors import DataError, DataWarning
 from kftune.optim import make_optimizer
 from kftune.tuning.cost import CostSpec
@@ -291,7 +291,7 @@ def held(channels: dict, factor: int) -> dict:
 def test_samples_held_at_a_lower_rate_are_reported_with_share_and_rate(factor, seed):
     c = held(synthetic_channels(n=600, seed=seed), factor)
     validate_channels(c)  # they load
-    (message,) = plausibility_warnings(c, mu=1.0)
+    (message,) = plausibility_findings(c, mu=1.0).values()
     share = 1.0 - 1.0 / factor
     assert share >= HELD_SHARE
     assert f"{share:.0%} of the samples repeat the previous one in ax, ay, r" in message
@@ -300,17 +300,17 @@ def test_samples_held_at_a_lower_rate_are_reported_with_share_and_rate(factor, s
 
 
 def test_unheld_data_give_no_warning():
-    assert plausibility_warnings(synthetic_channels(n=600), mu=1.0) == []
+    assert plausibility_findings(synthetic_channels(n=600), mu=1.0) == {}
 
 
 def test_lateral_acceleration_beyond_the_tyres_names_the_share():
     """The synthetic drive reaches |vx·r| = 6.6 m/s²: with μ = 0.3, 1.5·μ·g = 4.41 m/s²."""
     c = synthetic_channels(n=600)
     lateral = np.abs(c["vx"] * c["r"])
-    (message,) = plausibility_warnings(c, mu=0.3)
+    (message,) = plausibility_findings(c, mu=0.3).values()
     share = float(np.mean(lateral > 1.5 * 0.3 * 9.81))
     assert f"1.5·μ·g = 4.41 m/s² (μ = 0.3) in {share:.1%} of the samples" in message
-    assert plausibility_warnings(c, mu=1.0) == []
+    assert plausibility_findings(c, mu=1.0) == {}
 
 
 def test_a_dataset_warns_once_per_finding_naming_dataset_and_manoeuvre():

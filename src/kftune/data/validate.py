@@ -708,12 +708,6 @@ def kinematic_ratio(channels: Mapping[str, np.ndarray]) -> KinematicRatio | None
     return result(k, math.sqrt(var))
 
 
-def plausibility_warnings(channels: Mapping[str, np.ndarray], mu: float | None) -> list[str]:
-    """Why channels that passed :func:`validate_channels` may not be what they claim: the
-    messages of :func:`plausibility_findings`, in its order."""
-    return list(plausibility_findings(channels, mu).values())
-
-
 def plausibility_findings(channels: Mapping[str, np.ndarray], mu: float | None) -> dict[str, str]:
     """Why channels that passed :func:`validate_channels` may not be what they claim, by
     kind of finding (so that a dataset can report each kind once for all its manoeuvres).
