@@ -431,6 +431,19 @@ def test_compare_force_deletes_only_the_studies_kftune_made(compared, tmp_path):
     assert is_study(studies / "random.db")  # a new one
 
 
+def test_a_fifo_among_the_studies_is_not_a_study_and_does_not_block(tmp_path):
+    """compare --force asks of every OUT/studies/*.db whether kftune made it: a FIFO there
+    blocked the open for ever. In a subprocess, whose timeout is only a hang guard."""
+    fifo = tmp_path / "x.db"
+    os.mkfifo(fifo)
+    res = subprocess.run(
+        [sys.executable, "-c", "import sys; from kftune.optim import is_study; "
+         "print(is_study(sys.argv[1]))", str(fifo)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0 and res.stdout.strip() == "False", res.stderr
+
+
 @pytest.mark.parametrize("kind", ["text", "sqlite"])
 def test_compare_force_refuses_a_foreign_file_where_a_study_goes(compared, tmp_path, kind):
     """A file named like a method's study that kftune did not make: exit 3 naming it,

@@ -47,6 +47,7 @@ import contextlib
 import json
 import os
 import sqlite3
+import stat
 import sys
 import weakref
 from pathlib import Path
@@ -74,12 +75,15 @@ def study_files(path: str | os.PathLike[str]) -> list[Path]:
 
 
 def is_study(path: str | os.PathLike[str]) -> bool:
-    """Whether ``path`` is a study file kftune made: an SQLite database (by its header)
-    whose ``meta`` table names kftune as its application. Read without changing the file
-    or creating any beside it (SQLite's ``immutable`` mode); a study whose creation is
-    still in its write-ahead log only is read through that log."""
+    """Whether ``path`` is a study file kftune made: a regular file (a FIFO would block the
+    open) holding an SQLite database (by its header) whose ``meta`` table names kftune as
+    its application. Read without changing the file or creating any beside it (SQLite's
+    ``immutable`` mode); a study whose creation is still in its write-ahead log only is
+    read through that log."""
     p = Path(path)
     try:
+        if not stat.S_ISREG(os.stat(p).st_mode):
+            return False
         with open(p, "rb") as fh:
             if fh.read(16) != b"SQLite format 3\x00":
                 return False
