@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import run_cli
-from kftune.data import load_dataset, load_mat, validate_channels
+from kftune.data import load_columns, load_dataset, load_mat, validate_channels
 from kftune.data.validate import (
     CORNERING,
     KINEMATIC_RATIO,
@@ -229,6 +229,25 @@ def test_a_segment_refused_by_load_mat_names_the_file_and_its_row(tmp_path):
     peak = first + int(np.argmax(np.abs(flipped["vx"] * flipped["r"])))
     assert (e.file, e.column, e.row) == (str(tmp_path / "rec.mat"), "ay", peak + 1)
     assert str(e).endswith("(segment 'rec-s04')")
+
+
+def test_a_segment_refused_by_load_columns_names_the_column_s_own_file(tmp_path):
+    """A column-per-file recording: the refused segment's error names the file of the
+    column at fault (ay's), not the folder, and that file's row."""
+    c = drive(held=None)
+    first = round(FLIPPED[0] * RATE)
+    c["ay"] = c["ay"].copy()
+    c["ay"][first : first + round((FLIPPED[1] - FLIPPED[0]) * RATE)] *= -1.0
+    names = {"t": "time", "vx": "Speed", "ax": "AccX", "ay": "AccY", "r": "YawRate"}
+    for channel, name in names.items():
+        np.savetxt(tmp_path / f"{name}.txt", c[channel])
+    with pytest.raises(DataError) as info:
+        load_columns(tmp_path, names, preset("bmw-320i"), segment_length=20.0)
+    e = info.value
+    flipped = segment(c, FLIPPED)
+    peak = first + int(np.argmax(np.abs(flipped["vx"] * flipped["r"])))
+    assert (e.file, e.column, e.row) == (str(tmp_path / "AccY.txt"), "ay", peak + 1)
+    assert str(e).endswith("(segment 'tmp_path-s04')".replace("tmp_path", tmp_path.name))
 
 
 def test_standstill_without_min_speed_is_blamed_on_the_speed(tmp_path):

@@ -658,6 +658,16 @@ def _mapped_units(mapping: ColumnMapping, file: str) -> dict[str, str]:
     }
 
 
+def column_files(directory: Path, mapping: ColumnMapping, suffix: str = ".txt") -> dict[str, str]:
+    """channel → the file of a column-per-file recording in ``directory`` that holds it
+    (``<source name><suffix>``)."""
+    sources = _normalise_mapping(mapping, str(directory))
+    return {
+        c: str(directory / (s.name if s.name.endswith(suffix) else s.name + suffix))
+        for c, s in sources.items()
+    }
+
+
 def read_columns(
     directory: str | Path,
     mapping: ColumnMapping,
@@ -680,11 +690,10 @@ def read_columns(
     if not directory.is_dir():
         raise DataError("recording directory not found", file=str(directory))
     sources = _normalise_mapping(mapping, str(directory))
-    files: dict[str, str] = {}
+    files = column_files(directory, mapping, suffix)
     channels: dict[str, np.ndarray] = {}
     for channel, src in sources.items():
-        path = directory / (src.name if src.name.endswith(suffix) else src.name + suffix)
-        files[channel] = str(path)
+        path = Path(files[channel])
         if not path.is_file():
             raise DataError("file not found (named in the column mapping)", file=str(path))
         factor = unit_factor(
@@ -774,11 +783,13 @@ def segment_manoeuvre(
     file: str | None,
     row: int,
     note: str = "",
+    files: Mapping[str, str] | None = None,
 ) -> Manoeuvre:
     """A segment of a recording as a manoeuvre of kind ``"segment"``. Its own checks (the
-    kinematic ones judge the segment alone) name the recording's ``file`` and a row of it
-    (``row``: the segment's first sample's), with the segment's name and ``note`` — not the
-    manoeuvre as the file and an index inside the segment as the row.
+    kinematic ones judge the segment alone) name the recording's ``file`` (for a channel
+    with a file of its own, ``files[channel]``) and a row of it (``row``: the segment's
+    first sample's), with the segment's name and ``note`` — not the manoeuvre as the file
+    and an index inside the segment as the row.
 
     Raises:
         DataError: a check refuses the segment (located in ``file`` when given).
@@ -797,7 +808,7 @@ def segment_manoeuvre(
             raise
         raise DataError(
             f"{exc.message} (segment {label!r}{note})",
-            file=file,
+            file=(files or {}).get(exc.column or "", file),
             column=exc.column,
             row=None if exc.row is None else row + exc.row,
         ) from None
@@ -815,6 +826,7 @@ def recording_to_dataset(
     units: Mapping[str, str] | None = None,
     file: str | None = None,
     row_offset: int = 0,
+    files: Mapping[str, str] | None = None,
 ) -> Dataset:
     """Turn one validated recording into a dataset, cut into segments.
 
@@ -824,7 +836,8 @@ def recording_to_dataset(
     segments are spread over the whole recording (different laps, tyre temperatures) and
     the split is a pure function of the recording's length. With ``segment_length=None``
     the whole recording is one training manoeuvre. ``file`` and ``row_offset`` (the row of
-    sample 0 in it) locate a segment's errors in the recording (:func:`segment_manoeuvre`).
+    sample 0 in it), and ``files`` (channel → its own file, for a column-per-file
+    recording), locate a segment's errors in the recording (:func:`segment_manoeuvre`).
     """
     t = np.asarray(channels["t"])
     if train_every < 1:
@@ -843,6 +856,7 @@ def recording_to_dataset(
                 f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
                 file=file,
                 row=a + row_offset,
+                files=files,
             )
         )
     dt = sample_time(t)
@@ -876,6 +890,7 @@ def load_columns(
         units=_mapped_units(mapping, str(directory)),
         file=str(directory),
         row_offset=1,
+        files=column_files(directory, mapping, suffix),
     )
 
 
@@ -982,6 +997,7 @@ def load_revs(
         },
         file=str(directory),
         row_offset=1,
+        files=column_files(directory, REVS_MAPPING),
     )
 
 
