@@ -16,6 +16,7 @@ import subprocess
 import sys
 import tempfile
 import tracemalloc
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -518,6 +519,24 @@ def test_a_damaged_data_type_in_a_matlab_file_is_refused_not_a_crash(tmp_path: P
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert_refused(res, out, str(src), "not a readable MATLAB file", "type 57353")
+
+
+def test_a_compressed_matlab_variable_whose_name_claims_megabytes_is_refused(tmp_path):
+    """An unmapped variable whose name element claims 32 MiB (of one letter, 32 kB
+    compressed): SciPy fills a buffer of the claimed size while reading the header, so a
+    500 kB file made the import take 1.2 GB (and up to KFTUNE_MAX_BYTES). Refused."""
+    buf = io.BytesIO()
+    scipy.io.savemat(buf, synthetic_channels(n=400), do_compression=True)
+    good = buf.getvalue()
+    size = 32 * 2**20
+    body = struct.pack("<IIII", 6, 8, 6, 0) + struct.pack("<IIii", 5, 8, 1, 1)  # double, 1×1
+    body += struct.pack("<II", 1, size) + b"a" * size  # the name
+    body += struct.pack("<IId", 9, 8, 1.0)
+    packed = zlib.compress(struct.pack("<II", 14, len(body)) + body, 9)
+    src = tmp_path / "rec.mat"
+    src.write_bytes(good[:128] + struct.pack("<II", 15, len(packed)) + packed + good[128:])
+    res, out = run_import(tmp_path, src)
+    assert_refused(res, out, str(src), "not a readable MATLAB file", "headers or field names")
 
 
 @settings(max_examples=40, deadline=None)

@@ -355,6 +355,12 @@ def _mat4_variables(path: Path, names: Sequence[str], limits: ReadLimits) -> dic
         raise _unreadable(exc, file) from None
 
 
+#: Most bytes SciPy's reader may read of one compressed element: its headers (MATLAB names
+#: are at most 63 characters) and the field names of the structs on the way (64 bytes a
+#: field); the numbers of mapped variables are read by kftune, sized from their headers.
+MAT5_MAX_HEADER_BYTES = 16 * 2**20
+
+
 class _Inflated:
     """One compressed element of a MAT file as a stream SciPy's reader can read: inflated
     in blocks of at most :data:`~kftune.data.textfile.BLOCK_BYTES` as they are asked for
@@ -367,6 +373,7 @@ class _Inflated:
         self._limit, self._file = limit, file
         self._z = zlib.decompressobj()
         self._pos = 0
+        self._header_bytes = 0
 
     def _chunk(self, want: int) -> bytes:
         """Up to ``want`` inflated bytes; ``b""`` at the end of the element."""
@@ -393,6 +400,20 @@ class _Inflated:
                 return b""
 
     def read(self, n: int) -> bytes:
+        """SciPy's reads (headers, a struct's field names): at most
+        :data:`MAT5_MAX_HEADER_BYTES` in all from one element, as a damaged or hostile size
+        would have SciPy fill a buffer of up to ``limits.max_bytes`` with it."""
+        self._header_bytes += n
+        if self._header_bytes > MAT5_MAX_HEADER_BYTES:
+            raise DataError(
+                f"not a readable MATLAB file (a variable's headers or field names take more "
+                f"than {MAT5_MAX_HEADER_BYTES:,} bytes)",
+                file=self._file,
+            )
+        return self.read_data(n)
+
+    def read_data(self, n: int) -> bytes:
+        """kftune's own read of a mapped variable's numbers (sized from its header)."""
         parts = []
         while n > 0:
             data = self._chunk(min(n, BLOCK_BYTES))
@@ -587,7 +608,7 @@ MAT5_NUMBERS = {
 
 
 def _read_exactly(stream: Any, n: int, file: str) -> bytes:
-    data = stream.read(n)
+    data = stream.read_data(n) if isinstance(stream, _Inflated) else stream.read(n)
     if len(data) != n:
         raise DataError("not a readable MATLAB file (it ends inside a variable)", file=file)
     return data
