@@ -521,6 +521,23 @@ def test_a_damaged_data_type_in_a_matlab_file_is_refused_not_a_crash(tmp_path: P
     assert_refused(res, out, str(src), "not a readable MATLAB file", "type 57353")
 
 
+def test_a_v73_variable_of_long_strings_is_refused_before_it_is_loaded(tmp_path):
+    """'vx' tagged double but stored as 200 strings of 1 MB, compressed to a few kB: its
+    dtype is checked before it is read (loaded first, it took 200 MB before the refusal)."""
+    c = synthetic_channels(n=400)
+
+    def strings(h5py, group) -> None:
+        ds = group.create_dataset("vx", shape=(1, 200), dtype="S1000000", chunks=(1, 4),
+                                  compression="gzip")  # fmt: skip
+        ds.attrs["MATLAB_class"] = np.bytes_("double")
+
+    src = savemat73(tmp_path / "rec.mat", {k: v for k, v in c.items() if k != "vx"}, strings)
+    assert src.stat().st_size < 2**17
+    res, out, peak = _peak_of_import(tmp_path, src, {"struct": "rec"})
+    assert_refused(res, out, str(src), "'vx'", "not as numbers")
+    assert peak < 16 * 2**20, f"peak {peak / 2**20:.1f} MiB"
+
+
 def test_a_compressed_matlab_variable_whose_name_claims_megabytes_is_refused(tmp_path):
     """An unmapped variable whose name element claims 32 MiB (of one letter, 32 kB
     compressed): SciPy fills a buffer of the claimed size while reading the header, so a

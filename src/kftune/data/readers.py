@@ -730,6 +730,13 @@ def _mat73_variables(
                     file=file,
                     column=name,
                 )
+            if item.dtype.kind not in "biuf":  # checked before loading: 1 MB strings …
+                raise DataError(
+                    f"variable {excerpt(name)} is stored as {excerpt(str(item.dtype), 40)}, "
+                    "not as numbers; expected a real numeric vector",
+                    file=file,
+                    column=name,
+                )
             if item.size > limits.max_rows:
                 raise _too_many(name, int(item.size), limits, file)
             out[name] = item[()]
