@@ -258,6 +258,29 @@ def test_an_mdf_signal_beyond_the_row_limit_is_refused_before_it_is_loaded(tmp_p
     assert peak < 8 * 2**20, f"peak {peak / 2**20:.1f} MiB"
 
 
+def test_an_mdf_signal_of_large_records_in_a_small_file_is_refused_before_it_is_loaded(
+    tmp_path,
+):
+    """'S_vx' of 100 kB arrays (40 MB of records) in a compressed file of tens of kB:
+    asammdf reads a channel group's records whole (1 MB arrays took 640 MB from a 500 kB
+    file); sized from the group's header, it is refused first."""
+    asammdf = pytest.importorskip("asammdf")
+    c = synthetic_channels(n=400)
+    write_mdf(tmp_path, {f"S_{k}": (c[k], c["t"]) for k in CHANNELS if k != "t"})  # map.toml
+    mdf = asammdf.MDF(version="4.10")
+    for k in CHANNELS:
+        if k != "t":
+            big = np.zeros((400, 100_000), np.uint8) if k == "vx" else c[k]
+            mdf.append([asammdf.Signal(big, c["t"], name=f"S_{k}")])
+    src = tmp_path / "big.mf4"
+    mdf.save(src, overwrite=True, compression=2)
+    mdf.close()
+    assert src.stat().st_size < 2**20
+    res, out, peak = _peak_of_import(tmp_path, src, mapping=tmp_path / "map.toml")
+    assert_refused(res, out, str(src), "'S_vx'", "400 records of 100,008 bytes", "KFTUNE_MAX_RATIO")
+    assert peak < 16 * 2**20, f"peak {peak / 2**20:.1f} MiB"
+
+
 def test_time_running_backwards_where_min_speed_drops_the_rows_is_still_refused(tmp_path):
     c = _backwards(at=120)
     c["vx"][100:150] = 0.0  # standing still where the clock steps back

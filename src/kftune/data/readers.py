@@ -42,6 +42,7 @@ import codecs
 import contextlib
 import importlib
 import math
+import os
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -53,7 +54,9 @@ import numpy as np
 from kftune.data.textfile import (
     BLOCK_BYTES,
     ENV_MAX_BYTES,
+    ENV_MAX_RATIO,
     ENV_MAX_ROWS,
+    RATIO_FREE_BYTES,
     NumericRows,
     ReadLimits,
     line_blocks,
@@ -805,6 +808,29 @@ def read_mat(
 
 
 # ----------------------------------------------------------------------------- MDF
+def _check_mdf_records(mdf: Any, name: str, limits: ReadLimits, file: str) -> None:
+    """Refuse the signal ``name`` when loading it would read more bytes of records than
+    ``limits.max_bytes``, or (a compressed file) than ``limits.max_ratio`` times the file's
+    size beyond :data:`~kftune.data.textfile.RATIO_FREE_BYTES`: asammdf reads its channel
+    group's records whole (``cycles_nr`` records of ``samples_byte_nr`` bytes, from the
+    group's header), and a signal of 1 MB arrays took 640 MB from a file of 500 kB."""
+    packed = os.path.getsize(file)
+    for g, _ in mdf.channels_db[name]:
+        cg = mdf.groups[g].channel_group
+        record = cg.samples_byte_nr + getattr(cg, "invalidation_bytes_nr", 0)
+        total = cg.cycles_nr * record
+        if total > min(limits.max_bytes, RATIO_FREE_BYTES + limits.max_ratio * packed):
+            raise DataError(
+                f"signal's channel group holds {cg.cycles_nr:,} records of {record:,} bytes "
+                f"({total:,} bytes), more than {limits.max_bytes:,} bytes or "
+                f"{limits.max_ratio} times the file's {packed:,}: raise the limits with the "
+                f"environment variables {ENV_MAX_BYTES} and {ENV_MAX_RATIO} if the file is "
+                "genuine",
+                file=file,
+                column=name,
+            )
+
+
 def read_mdf(
     path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
 ) -> Table:
@@ -852,6 +878,7 @@ def read_mdf(
                         file=file,
                         column=name,
                     )
+                _check_mdf_records(mdf, name, limits, file)
                 sig = mdf.get(name)
             except DataError:
                 raise
