@@ -109,6 +109,10 @@ def _spec(**changes):
         ({"stop_reasons": {1: "mine"}}, "stop causes must be >= 2"),
         ({"name": ""}, "non-empty string"),
         ({"measurement_names": (), "measurement_units": ()}, "at least one state and one"),
+        (
+            {"state_names": tuple(f"s{i}" for i in range(101)), "state_units": ("m",) * 101},
+            "has 101 states; kftune takes at most 100",
+        ),
     ],
 )
 def test_model_type_refuses_inconsistent_declarations(changes, match):

@@ -131,6 +131,23 @@ def test_a_broken_model_file_is_a_clear_error(tmp_path, text, expected):
     assert "Traceback" not in res.stderr
 
 
+def test_a_model_file_with_more_states_than_kftune_takes_is_refused_before_compiling(tmp_path):
+    model = tmp_path / "huge.py"
+    model.write_text(
+        "import numpy as np\nfrom numba import njit\nfrom kftune.models import StateSpaceModel\n"
+        "N = 1000\n"
+        "@njit\ndef f(x, u, p, dt, out):\n    out[:] = x\n"
+        "@njit\ndef h(x, u, p, out):\n    out[0] = x[0]\n"
+        "MODEL = StateSpaceModel(name='huge', state_names=tuple(f's{i}' for i in range(N)),\n"
+        "    state_units=('m',) * N, input_names=(), input_units=(),\n"
+        "    measurement_names=('z',), measurement_units=('m',), f=f, h=h)\n"
+    )
+    res = kftune("tune", "--model", str(model), "-n", "2")
+    assert res.returncode == 3, res.stderr
+    assert "has 1000 states; kftune takes at most 100" in res.stderr and str(model) in res.stderr
+    assert "Traceback" not in res.stderr
+
+
 def test_unknown_model_and_filter_are_refused(tmp_path):
     res = kftune("tune", "--model", "unicycle", "-n", "2")  # a name: the command line is wrong
     assert res.returncode == 2 and "--model: unknown model 'unicycle'" in res.stderr

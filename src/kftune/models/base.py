@@ -56,6 +56,7 @@ from numpy.typing import ArrayLike
 __all__ = [
     "FIRST_MODEL_STOP",
     "GENERIC_STOP_REASONS",
+    "MAX_STATES",
     "STOP_NONE",
     "STOP_NUMERICAL",
     "DataRefused",
@@ -67,6 +68,13 @@ __all__ = [
 STOP_NONE = 0
 STOP_NUMERICAL = 1  # covariance not repairable, or a non-finite state, NIS or estimate
 FIRST_MODEL_STOP = 2
+
+#: The most states a model may have. Every state gets a process-noise variance of its own
+#: in the search, and kftune's tuners are measured up to about ten dimensions (BENCHMARKS.md);
+#: the filter's compile time also grows steeply with n (measured on a 2-core machine: 35 s at
+#: n = 50, 74 s at 200, 490 s for one UKF run at 1,000, and 1,011 s for a first tuning
+#: evaluation there). A model beyond it is refused when it is made, by name and count.
+MAX_STATES = 100
 
 #: The generic stop causes in words.
 GENERIC_STOP_REASONS: dict[int, str] = {
@@ -204,6 +212,12 @@ class StateSpaceModel:
             _names(name, attr, names, units)
         if not self.state_names or not self.measurement_names:
             raise ValueError(f"model {name!r} needs at least one state and one measurement")
+        if len(self.state_names) > MAX_STATES:
+            raise ValueError(
+                f"model {name!r} has {len(self.state_names)} states; kftune takes at most "
+                f"{MAX_STATES} (one process-noise variance per state is searched, and the "
+                "filter's compile time grows steeply with the state count)"
+            )
         both = set(self.input_names) & set(self.measurement_names)
         if both:
             raise ValueError(
