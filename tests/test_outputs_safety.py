@@ -166,13 +166,17 @@ def test_a_deeply_nested_import_mapping_is_refused(tmp_path):
     assert "Traceback" not in res.stderr and _files(tmp_path) == before
 
 
+def _containers(inner: st.SearchStrategy) -> st.SearchStrategy:
+    """JSON arrays and objects of ``inner`` (a named function: hypothesis cannot read a
+    lambda split over lines and warns that it does not recurse)."""
+    return st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3)
+
+
 @settings(max_examples=200, deadline=None)
 @given(
     st.recursive(
         st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
-        lambda inner: (
-            st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3)
-        ),
+        _containers,
         max_leaves=8,
     ),
     st.integers(min_value=0, max_value=2 * MAX_INT_DIGITS),
