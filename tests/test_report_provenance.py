@@ -5,6 +5,7 @@ one colour, distinct from every other's, in every figure; MAE is explained."""
 from __future__ import annotations
 
 import colorsys
+import csv
 import itertools
 import json
 import platform
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 from matplotlib.colors import to_hex, to_rgb
 
-from conftest import SMALL_TEST, SMALL_TRAIN
+from conftest import SMALL_TEST, SMALL_TRAIN, run_cli
 from kftune.cli import build_parser, main
 from kftune.data import default_dataset, load_dataset, save_dataset
 from kftune.optim import METHODS
@@ -148,3 +149,65 @@ def test_report_md_shows_it_and_rebuilds_the_same(compared, tmp_path):
     assert "MAE: the *maximum* absolute error" in md
     assert main(["report", str(compared), "-o", str(tmp_path / "again")]) == 0
     assert (tmp_path / "again" / "report.md").read_text() == md
+
+
+def test_the_report_says_whether_each_methods_sigma_can_be_trusted(compared):
+    """Per method, pooled over the test manoeuvres: β's coverage of ±1σ and ±1.96σ, the mean
+    NEES and NIS with their bands and a verdict, in results.json, report.md and
+    tables/consistency_test.csv; the reliability figure's points at 68.27 % and 95 % (counted
+    apart from the table's) are the table's coverages, and rise with the nominal level."""
+    doc = json.loads((compared / "results.json").read_text())
+    with open(compared / "tables" / "consistency_test.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["Method"] for r in rows] == ["Manual", "TSBO - tSP"]
+    for run, row in zip(doc["methods"], rows):
+        assert set(run["consistency"]) == {"train", "test"}
+        test = run["consistency"]["test"]
+        beta, nees = test["channels"]["beta"], test["channels"]["beta"]["nees"]
+        assert beta["n"] == doc["meta"]["dataset"]["samples_test"]  # no burn-in: every one
+        assert 0 < beta["cov68"] <= beta["cov95"] <= 1
+        assert float(row["±1σ coverage [%] (68.3)"]) == pytest.approx(100 * beta["cov68"])
+        assert float(row["±1.96σ coverage [%] (95)"]) == pytest.approx(100 * beta["cov95"])
+        assert float(row["Mean NEES (1)"]) == pytest.approx(nees["mean"])
+        assert nees["band_eff"][0] < 1 < nees["band_eff"][1]
+        assert test["nis"]["dof"] == 3 and float(row["Mean NIS (m = 3)"]) > 0
+        if nees["inside"]:
+            assert row["σ"] == "consistent"
+        else:
+            side = "small" if nees["mean"] > 1 else "large"
+            assert row["σ"].startswith("σ is about ") and row["σ"].endswith(f"too {side}")
+        levels, cov = test["reliability"]["levels"], test["reliability"]["coverage"]["beta"]
+        assert levels == sorted(levels) and levels[0] > 0 and levels[-1] < 1
+        assert cov == sorted(cov) and len(cov) == len(levels)
+        assert cov[levels.index(0.6827)] == pytest.approx(beta["cov68"])
+        assert cov[levels.index(0.95)] == pytest.approx(beta["cov95"])
+    md = (compared / "report.md").read_text()
+    assert "## Consistency of the tuned filters on the test set" in md
+    assert "| Method | Channel | ±1σ coverage [%] (68.3) |" in md
+    assert "![Reliability of the stated uncertainty](figures/reliability.png)" in md
+    assert (compared / "figures" / "reliability.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_results_without_consistency_still_rebuild_their_report(compared, tmp_path):
+    """A results.json written before consistency was measured (no "consistency" key): the
+    report is rebuilt, says consistency is not recorded, and has every other table."""
+    old = tmp_path / "old"
+    old.mkdir()
+    doc = json.loads((compared / "results.json").read_text())
+    for run in doc["methods"]:
+        del run["consistency"]
+    (old / "results.json").write_text(json.dumps(doc))
+    (old / "traces.npz").write_bytes((compared / "traces.npz").read_bytes())
+    res = run_cli("report", old, "-o", tmp_path / "rep")
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "Consistency of the tuned filters (whether their standard deviations can be " in md
+    assert "not recorded in these results" in md and "reliability.png" not in md
+    assert not (tmp_path / "rep" / "figures" / "reliability.png").exists()
+    tables = sorted(p.name for p in (tmp_path / "rep" / "tables").iterdir())
+    assert tables == sorted(
+        p.name for p in (compared / "tables").iterdir() if p.name != "consistency_test.csv"
+    )
+    assert (tmp_path / "rep" / "tables" / "kpi_test.csv").read_text() == (
+        compared / "tables" / "kpi_test.csv"
+    ).read_text()

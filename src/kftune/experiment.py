@@ -45,7 +45,7 @@ from kftune.report.provenance import machine, package_versions
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.space import Space
 from kftune.tuning.cost import CostSpec
-from kftune.tuning.deploy import dataset_fingerprint
+from kftune.tuning.deploy import RELIABILITY_LEVELS, consistency_docs, dataset_fingerprint
 from kftune.tuning.kpi import average_kpis
 from kftune.tuning.problem import (
     Q_NAMES,
@@ -336,6 +336,10 @@ def method_run(
     ``channels``: score these channels (:func:`~kftune.tuning.problem.assess`) instead of
     the sideslip KPIs.
 
+    Each split's consistency (pooled over its manoeuvres, with the points of the
+    reliability figure: :func:`~kftune.tuning.deploy.consistency_docs`) goes in
+    ``MethodRun.consistency``.
+
     Returns:
         (the :class:`MethodRun`, manoeuvre → β estimate [rad] ``beta_<key>`` for every
         manoeuvre; with ``channels``, their estimates ``<channel>_<key>`` instead).
@@ -347,12 +351,14 @@ def method_run(
     steps = np.array([r.t_propose + r.t_eval for r in result.history])
     metrics: dict[str, dict[str, dict[str, float]]] = {}
     averages: dict[str, dict[str, float]] = {}
+    consistency: dict[str, dict[str, Any] | None] = {}
     betas: dict[str, dict[str, np.ndarray]] = {}
     for split, manoeuvres in splits.items():
         if not manoeuvres:
             continue
         per, runs = assess(problem, result.x, manoeuvres, channels)
         metrics[split] = per
+        consistency[split] = consistency_docs(problem, manoeuvres, runs, RELIABILITY_LEVELS)[1]
         if channels is None:
             averages[split] = average_kpis(per.values())
         else:
@@ -378,6 +384,7 @@ def method_run(
         history_time_s=np.cumsum(steps).tolist(),
         metrics=metrics,
         averages=averages,
+        consistency=consistency,
         extra={
             "q": q.tolist(),
             "r": r_diag.tolist(),

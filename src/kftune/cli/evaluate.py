@@ -60,7 +60,6 @@ from kftune.tuning.kpi import KPI_NAMES
 
 if TYPE_CHECKING:
     from kftune.data import Dataset, Manoeuvre
-    from kftune.tuning.problem import RunResult, TuningProblem
     from kftune.vehicle.params import VehicleParams
 
 
@@ -346,7 +345,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data import open_dataset
     from kftune.experiment import channel_units, manual_point
     from kftune.filters import UKFSettings
-    from kftune.tuning.deploy import TunedFilter
+    from kftune.tuning.deploy import TunedFilter, consistency_docs
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import (
         FilterDivergedError,
@@ -446,7 +445,7 @@ def run(args: argparse.Namespace) -> int:
             cost = None
         metrics, results = assess(problem, x, manoeuvres)
     missing = missing_references(problem, manoeuvres)
-    consistency, pooled = _consistency(problem, manoeuvres, results)
+    consistency, pooled = consistency_docs(problem, manoeuvres, results)
     sideslip = all("rmse" in row for row in metrics.values())
     avg = average_kpis(metrics.values()) if sideslip else _averages(metrics.values())
     where = {
@@ -502,27 +501,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _num(v: float) -> float | None:
     return None if isinstance(v, float) and not math.isfinite(v) else v
-
-
-def _consistency(
-    problem: TuningProblem, manoeuvres: Sequence[Manoeuvre], results: Mapping[str, RunResult]
-) -> tuple[dict[str, dict[str, Any] | None], dict[str, Any] | None]:
-    """(manoeuvre name → the consistency of the filter's run on it, after the burn-in
-    (:func:`kftune.tuning.consistency.as_doc`; None where it diverged); the same pooled
-    over all of them, None when it diverged on any, as the KPI averages)."""
-    from kftune.tuning.consistency import as_doc, of_columns, pool_runs
-    from kftune.tuning.deploy import estimates_of
-    from kftune.tuning.problem import first_scored
-
-    model, runs = problem.model, {}
-    for m in manoeuvres:
-        res = results[m.name]
-        if not res.diverged:
-            columns = estimates_of(model, res, m).columns
-            first = first_scored(m, problem.burn_in)
-            runs[m.name] = of_columns(columns, model.n_measurements, first)
-    each = {m.name: as_doc(*runs[m.name]) if m.name in runs else None for m in manoeuvres}
-    return each, as_doc(*pool_runs(runs.values())) if len(runs) == len(manoeuvres) else None
 
 
 def _averages(rows: Any) -> dict[str, float]:

@@ -19,6 +19,8 @@ from kftune.report import plots
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.report.tables import (
     Table,
+    consistency_split,
+    consistency_table,
     cost_table,
     kpi_table,
     per_manoeuvre_table,
@@ -36,6 +38,8 @@ def all_tables(results: ExperimentResults) -> dict[str, Table]:
     for split in ("train", "test"):
         if split in splits:
             tables[f"kpi_{split}"] = kpi_table(results, split)
+    if (split := consistency_split(results)) is not None:
+        tables[f"consistency_{split}"] = consistency_table(results, split)
     tables["per_manoeuvre"] = per_manoeuvre_table(results)
     tables["parameters"] = _parameter_table(results)
     return tables
@@ -135,7 +139,9 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
 
     md = [f"# kftune report — {results.meta.get('dataset', {}).get('name', 'dataset')}", ""]
     md += _meta_lines(results.meta)
-    for stem in ("cost", "kpi_train", "kpi_test", "parameters"):
+    for stem in ("cost", "kpi_train", "kpi_test", "consistency", "parameters"):
+        if stem == "consistency":
+            md += _consistency_lines(results, tables, out)
         if stem in tables:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
             if stem.startswith("kpi_"):
@@ -160,6 +166,53 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
     path = out / "report.md"
     path.write_text("\n".join(md))
     return path
+
+
+#: How to read the consistency table, under it.
+CONSISTENCY_NOTE = (
+    "Whether the standard deviations σ that each tuned filter states can be trusted (for "
+    "gating, or fusing with another estimator): the share of the errors against the "
+    "reference inside ±1σ and ±1.96σ (68.3 % and 95 % when σ is right), the mean NEES, "
+    "err²/σ² (1 when right; above its band σ is too small, by about √NEES), and the mean "
+    "NIS of the m measurements (m when right). Each band holds the mean with 95 % "
+    "probability for a consistent filter; the NEES band counts the errors' effective number "
+    "of independent samples (successive errors are correlated). A filter tuned for accuracy "
+    "alone can be accurate and still state a σ several times too small."
+)
+
+
+def _consistency_lines(
+    results: ExperimentResults, tables: dict[str, Table], out: Path
+) -> list[str]:
+    """The consistency table with its note, and its reliability figure (written to
+    ``out/figures``); for results that do not record consistency, a line saying so."""
+    split = consistency_split(results)
+    if split is None:
+        return [
+            "Consistency of the tuned filters (whether their standard deviations can be "
+            "trusted): not recorded in these results, written by a kftune that did not "
+            "measure it; run `kftune compare` again to have it.",
+            "",
+        ]
+    table = tables[f"consistency_{split}"]
+    md = [f"## {table.title}", "", table.to_markdown(), "", CONSISTENCY_NOTE, ""]
+    if not any((d := m.consistency.get(split)) and d.get("reliability") for m in results.methods):
+        return md
+    plots.save(plots.reliability(results, split), out / "figures" / "reliability.png")
+    heading = "Reliability of the stated uncertainty"
+    return [
+        *md,
+        f"## {heading}",
+        "",
+        "Observed share of the errors inside ±z·σ (y) against the share the filter claims "
+        "(x, the nominal coverage of ±z·σ), pooled over the "
+        + ("test" if split == "test" else "training")
+        + " manoeuvres. On the diagonal σ is right; below it σ is too small (the intervals "
+        "hold fewer errors than they claim), above it too large.",
+        "",
+        f"![{heading}](figures/reliability.png)",
+        "",
+    ]
 
 
 def _bound_lines(results: ExperimentResults) -> list[str]:

@@ -376,3 +376,48 @@ def _band_note(ax: Any, half: np.ndarray, error: np.ndarray | None, unit: str) -
         if n:
             notes.append(f"covers {100.0 * inside / n:.0f} % of the reference")
     return f"\n±2σ band: {'; '.join(notes)}" if notes else ""
+
+
+def reliability(results: ExperimentResults, split: str) -> Figure:
+    """Reliability of each method's stated uncertainty on ``split``: the observed coverage
+    of the intervals ±z_p·σ (y) against their nominal probability p (x), pooled over the
+    split's manoeuvres (``MethodRun.consistency[split]["reliability"]``), one panel per
+    referenced channel. A consistent filter lies on the diagonal; below it σ is too small
+    (the intervals hold fewer errors than they claim), above it too large."""
+    curves = {
+        m.key: doc["reliability"]
+        for m in results.methods
+        if (doc := m.consistency.get(split)) and doc.get("reliability")
+    }
+    channels = list(dict.fromkeys(c for r in curves.values() for c in r["coverage"]))
+    n = max(1, len(channels))
+    fig, axes = plt.subplots(1, n, figsize=(5.4 * n, 5.0), squeeze=False)
+    for ax, channel in zip(axes[0], channels or ["–"]):
+        ax.plot([0, 100], [0, 100], color=COLOURS["reference"], ls="--", lw=1, label="consistent")
+        for p in (68.27, 95.0):  # the table's two intervals: ±1σ and ±1.96σ
+            ax.axvline(p, color="#c0c0c0", lw=0.8, zorder=0)
+        for m in results.methods:
+            r = curves.get(m.key)
+            if r is None or channel not in r["coverage"]:
+                continue
+            obs = np.array([np.nan if v is None else 100 * v for v in r["coverage"][channel]])
+            ax.plot(
+                100 * np.asarray(r["levels"]), obs, marker="o", ms=4, lw=1.6,
+                color=_colour(m.key), label=m.label,
+            )  # fmt: skip
+        for x, y, text in ((58, 52, "below: σ too small"), (42, 48, "above: σ too large")):
+            ax.text(x, y, text, rotation=45, rotation_mode="anchor", ha="center",
+                    va="top" if y < x else "bottom", fontsize=8, color="#505050")  # fmt: skip
+        for p in (68.27, 95.0):
+            ax.text(p, 101, f"{p:.3g}", ha="center", va="bottom", fontsize=7, color="#808080")
+        ax.set_xlim(0, 100)
+        ax.set_ylim(0, 100)
+        ax.set_aspect("equal")
+        ax.set_xlabel("nominal coverage of ±z·σ [%]")
+        ax.set_ylabel(f"observed coverage of the {channel} errors [%]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left")
+    which = "test" if split == "test" else "training"
+    fig.suptitle(f"Reliability of the stated uncertainty, {which} manoeuvres pooled", fontsize=10)
+    fig.tight_layout()
+    return fig

@@ -45,6 +45,12 @@ class MethodRun:
             (``meta["scored_channels"]``, channel → unit), ``rmse_<channel>`` of each in its
             unit. And ``diverged`` (0/1).
         averages: split → KPI → value averaged over the split's manoeuvres.
+        consistency: split → whether the tuned filter's standard deviations can be
+            trusted there, pooled over the split's manoeuvres
+            (:func:`kftune.tuning.consistency.as_doc`, plus ``"reliability"``: observed
+            coverage at nominal levels; :func:`kftune.tuning.deploy.consistency_docs`), None
+            where the filter diverged on a manoeuvre; empty in results written before it
+            was recorded.
         extra: free-form, JSON-serialisable (stage per evaluation, failures, ...).
     """
 
@@ -58,6 +64,7 @@ class MethodRun:
     history_time_s: list[float]
     metrics: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
     averages: dict[str, dict[str, float]] = field(default_factory=dict)
+    consistency: dict[str, dict[str, Any] | None] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
 
     def best_so_far(self) -> np.ndarray:
@@ -261,6 +268,8 @@ def _method_from_json(doc: dict[str, Any]) -> MethodRun:
             for h in (run.history_cost, run.history_time_s)
         )
         and all(isinstance(d, dict) for d in (run.metrics, run.averages, run.extra))
+        and isinstance(run.consistency, dict)
+        and all(d is None or isinstance(d, dict) for d in run.consistency.values())
     )
     if not fields_ok:
         raise ValueError("a field has the wrong type")

@@ -278,3 +278,101 @@ def _mean_and_band(stat: Mapping[str, Any] | None, band: str) -> tuple[str, str]
     outside = lo is not None and hi is not None and not lo <= stat["mean"] <= hi
     bounds = "" if lo is None or hi is None else f"[{lo:.3g}, {hi:.3g}]"
     return f"{stat['mean']:.3g}" + ("*" if outside else ""), bounds
+
+
+def sigma_verdict(nees: Mapping[str, Any] | None) -> str:
+    """Whether σ can be trusted, from a mean NEES's JSON form
+    (:meth:`~kftune.tuning.consistency.ChiSquareMean.as_dict`): "consistent" when the mean
+    lies in its band (effective sample count), else by how much σ is off — the factor
+    √(mean NEES) that would bring the mean to 1; "–" when nothing was counted."""
+    if nees is None or nees.get("mean") is None:
+        return "–"
+    mean, inside = float(nees["mean"]), nees.get("inside")
+    if inside or mean <= 0:
+        return "consistent" if inside else "–"
+    factor = math.sqrt(mean)
+    if factor >= 1:
+        return f"σ is about {factor:.2g}× too small"
+    return f"σ is about {1 / factor:.2g}× too large"
+
+
+def consistency_split(results: ExperimentResults) -> str | None:
+    """The split the report's consistency table and reliability figure show: the test
+    manoeuvres, the training ones when there are none; None when no method's results record
+    consistency (results written before it was measured)."""
+    splits = {s for m in results.methods for s in m.consistency}
+    return next((s for s in ("test", "train") if s in splits), None)
+
+
+def consistency_table(results: ExperimentResults, split: str) -> Table:
+    """Whether each method's tuned filter has standard deviations that can be trusted on
+    ``split``, pooled sample by sample over its manoeuvres: per referenced channel, the
+    coverage of the ±1σ and ±1.96σ intervals [%], the mean NEES and its 95 % band (for the
+    errors' effective sample count), the mean NIS against m and its band, and a verdict
+    (:func:`sigma_verdict`). A method whose filter diverged on a manoeuvre of the split has
+    one row saying so."""
+    dof = next(
+        (
+            d["nis"]["dof"]
+            for m in results.methods
+            if (d := m.consistency.get(split)) and d.get("nis")
+        ),
+        None,
+    )
+    m_text = "m" if dof is None else f"m = {dof}"
+    header = (
+        "Method",
+        "Channel",
+        "±1σ coverage [%] (68.3)",
+        "±1.96σ coverage [%] (95)",
+        "Mean NEES (1)",
+        "NEES 95 % band",
+        f"Mean NIS ({m_text})",
+        "NIS 95 % band",
+        "σ",
+    )
+    rows: list[tuple[object, ...]] = []
+    for m in results.methods:
+        if split not in m.consistency:
+            continue
+        doc = m.consistency[split]
+        if doc is None:
+            rows.append((m.label, "–", *(math.nan,) * 3, "", math.nan, "", "diverged"))
+            continue
+        nis = doc.get("nis") or {}
+        for i, (channel, ch) in enumerate(doc["channels"].items()):
+            nees = ch["nees"]
+            rows.append(
+                (
+                    m.label,
+                    channel,
+                    _share(ch["cov68"]),
+                    _share(ch["cov95"]),
+                    _float(nees["mean"]),
+                    _band(nees["band_eff"]),
+                    _float(nis.get("mean")) if i == 0 else math.nan,
+                    _band(nis.get("band")) if i == 0 else "",
+                    sigma_verdict(nees),
+                )
+            )
+    which = "test" if split == "test" else "training"
+    return Table(
+        title=f"Consistency of the tuned filters on the {which} set (pooled over its manoeuvres)",
+        header=header,
+        rows=tuple(rows),
+    )
+
+
+def _share(v: float | None) -> float:
+    return math.nan if v is None else 100.0 * float(v)
+
+
+def _float(v: float | None) -> float:
+    return math.nan if v is None else float(v)
+
+
+def _band(band: Sequence[float | None] | None) -> str:
+    """ "[low, high]" of a band's JSON form; "" when it is not known."""
+    if not band or any(v is None for v in band):
+        return ""
+    return f"[{band[0]:.3g}, {band[1]:.3g}]"

@@ -27,7 +27,13 @@ from kftune.errors import DataError
 from kftune.filters import UKFSettings
 from kftune.models import StateSpaceModel, get_model, model_names
 from kftune.models.user import model_file_sha256
-from kftune.tuning.problem import RunResult, TuningProblem, filter_spec, model_output
+from kftune.tuning.problem import (
+    RunResult,
+    TuningProblem,
+    filter_spec,
+    first_scored,
+    model_output,
+)
 from kftune.vehicle.params import VehicleParams
 
 #: Relative difference of sample times beyond which a recording is not the tuned one's.
@@ -421,6 +427,58 @@ def estimates_of(model: StateSpaceModel, res: RunResult, m: Manoeuvre) -> Estima
                 cols[f"{name}_ref"] = other
                 units[f"{name}_ref"] = units.get(name, "")
     return Estimates(columns=cols, units=units, result=res)
+
+
+#: Nominal probabilities of the intervals ±z·σ whose observed coverage a reliability
+#: figure plots (nominal against observed), pooled over manoeuvres.
+RELIABILITY_LEVELS: tuple[float, ...] = (
+    0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.6827, 0.7, 0.8, 0.9, 0.95, 0.99
+)  # fmt: skip
+
+
+def consistency_docs(
+    problem: TuningProblem,
+    manoeuvres: Sequence[Manoeuvre],
+    results: Mapping[str, RunResult],
+    levels: Sequence[float] = (),
+) -> tuple[dict[str, dict[str, Any] | None], dict[str, Any] | None]:
+    """Whether the filter's standard deviations can be trusted on ``manoeuvres``, from its
+    runs ``results`` (name → run), after the problem's burn-in.
+
+    Returns:
+        (manoeuvre name → its consistency (:func:`kftune.tuning.consistency.as_doc`;
+        None where the filter diverged); the same pooled sample by sample over all of them,
+        None when it diverged on any, as the KPI averages). With ``levels`` (nominal
+        probabilities p), the pooled document also holds ``"reliability": {"levels": [p…],
+        "coverage": {channel: [observed share of |err| ≤ z_p·σ for each p]}}``, the points
+        of a reliability figure.
+    """
+    from kftune.tuning.consistency import as_doc, covered, of_columns, pool_runs, z_of
+
+    model, runs, curves = problem.model, {}, {}
+    zs = [z_of(p) for p in levels]
+    for m in manoeuvres:
+        res = results[m.name]
+        if res.diverged:
+            continue
+        columns = estimates_of(model, res, m).columns
+        first = first_scored(m, problem.burn_in)
+        runs[m.name] = of_columns(columns, model.n_measurements, first)
+        for c in runs[m.name][0]:  # the channels measured: with a std and a reference
+            err = (columns[c] - columns[f"{c}_ref"])[first:]
+            counts = [covered(err, columns[f"{c}_std"][first:], z) for z in zs]
+            was = curves.get(c, [(0, 0)] * len(zs))
+            curves[c] = [(a + k, b + n) for (a, b), (k, n) in zip(was, counts)]
+    each = {m.name: as_doc(*runs[m.name]) if m.name in runs else None for m in manoeuvres}
+    if len(runs) != len(manoeuvres):
+        return each, None
+    pooled = as_doc(*pool_runs(runs.values()))
+    if levels:
+        pooled["reliability"] = {
+            "levels": list(levels),
+            "coverage": {c: [k / n if n else None for k, n in cs] for c, cs in curves.items()},
+        }
+    return each, pooled
 
 
 def referenced(est: Estimates) -> list[str]:
