@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -227,12 +228,19 @@ def test_the_table_has_a_line_per_channel_the_nis_once_and_marks_means_outside()
 
 # ------------------------------------------------------------------ the command line
 @pytest.fixture(scope="module")
-def tuned(small: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tuned file of the small dataset (3 evaluations: cheap, not a good filter)."""
+def tuned_run(small: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """(a tuned file of the small dataset, what tune printed): 3 evaluations, cheap, not a
+    good filter."""
     out = tmp_path_factory.mktemp("tuned") / "t.json"
     res = run_cli("tune", small, "-n", "3", "-q", "-o", out)
     assert res.returncode == 0, res.stderr
-    return out
+    return out, res.stdout
+
+
+@pytest.fixture(scope="module")
+def tuned(tuned_run: tuple[Path, str]) -> Path:
+    """The tuned file of :func:`tuned_run`."""
+    return tuned_run[0]
 
 
 def check_doc(doc: dict, m: int = 3) -> None:
@@ -328,3 +336,65 @@ def test_a_diverged_run_has_no_consistency_and_the_split_none(small):
     text = run_cli("evaluate", small, "--q", "1e9", "1e9", "1e9")
     assert text.returncode == 1
     assert text.stdout.count("(the filter diverged)") == len(SMALL_TEST) + 1
+
+
+def test_tune_says_how_well_its_sigma_covers_the_held_out_errors(small, tuned_run, tmp_path):
+    """tune's summary: beside the held-out RMSE, the tuned filter's β ±1.96σ coverage and
+    mean NEES on the test manoeuvres, and the factor σ is off by; the same numbers as
+    evaluate's --json for the tuned file, recorded in its held_out, and as a count by hand
+    over estimate's CSV columns β, beta_std and beta_ref after the burn-in."""
+    path, stdout = tuned_run
+    lines = stdout.splitlines()
+    at = next(i for i, line in enumerate(lines) if "held-out errors" in line)
+    assert "β RMSE" in lines[at - 1] and "Traceback" not in stdout
+    line = lines[at]
+    shown = re.search(r"±1\.96σ covers (\d+) % .* mean NEES ([0-9.e+]+) \(1 if consistent\)", line)
+    assert shown, line
+    tuned = json.loads(path.read_text())
+    held = tuned["held_out"]["consistency"]["channels"]["beta"]
+    res = run_cli("evaluate", small, "--params", path, "--split", "test", "--json")
+    assert res.returncode == 0, res.stderr
+    evaluated = json.loads(res.stdout)["consistency"]["channels"]["beta"]
+    assert held["n"] == evaluated["n"]
+    for key in ("cov68", "cov95"):
+        assert held[key] == pytest.approx(evaluated[key], abs=1e-9)
+    assert held["nees"]["mean"] == pytest.approx(evaluated["nees"]["mean"], rel=1e-9)
+    est = tmp_path / "est"
+    res = run_cli("estimate", small, "--params", path, "-o", est, "--no-plot")
+    assert res.returncode == 0, res.stderr
+    errors = []
+    for name in SMALL_TEST:
+        cols = np.genfromtxt(est / f"{name}.csv", delimiter=",", names=True)
+        kept = cols["t"] - cols["t"][0] >= tuned["burn_in"] - 1e-9
+        errors.append(((cols["beta"] - cols["beta_ref"]) / cols["beta_std"])[kept])
+    e = np.concatenate(errors)
+    cov95, nees = np.mean(np.abs(e) <= 1.959964), np.mean(e**2)
+    assert held["n"] == e.size
+    assert held["cov95"] == pytest.approx(cov95, abs=1e-9)
+    assert held["nees"]["mean"] == pytest.approx(nees, rel=1e-6)
+    assert int(shown[1]) == round(100 * cov95)
+    assert float(shown[2]) == pytest.approx(nees, rel=5e-3)
+    if held["nees"]["inside"]:
+        assert line.endswith("σ can be trusted there")
+    else:
+        factor = math.sqrt(nees) if nees > 1 else 1 / math.sqrt(nees)
+        got = re.search(r"σ is about ([0-9.]+)× too (small|large)$", line)
+        assert got and float(got[1]) == pytest.approx(factor, rel=0.06)
+        assert got[2] == ("small" if nees > 1 else "large")
+
+
+def test_tunes_consistency_line_says_trusted_too_large_or_nothing():
+    """Inside the band: σ can be trusted; a mean NEES of 0.25: σ about 2× too large; no
+    consistency recorded (the filter diverged, or an older tuned file): no line."""
+    from kftune.cli.tune import held_out_consistency_line
+    from kftune.tuning.consistency import as_doc
+
+    rng = np.random.default_rng(5)
+    e = rng.normal(0.0, 1.0, 4000)
+    for scale, end in ((1.0, "σ can be trusted there"), (0.5, "σ is about 2× too large")):
+        beta = channel_consistency(scale * e, np.ones(e.size), np.zeros(e.size))
+        line = held_out_consistency_line({"consistency": as_doc({"beta": beta}, None)})
+        assert line.endswith(end), line
+        assert f"covers {100 * beta.coverage[1]:.0f} % of the held-out errors" in line
+    assert held_out_consistency_line({"consistency": None}) is None
+    assert held_out_consistency_line({"beta_rmse_deg": 0.1}) is None

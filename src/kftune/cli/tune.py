@@ -11,7 +11,9 @@ re-evaluating anything finished.
 
 The cost is a proxy: at the end ``tune`` runs the tuned filter and the manual rule of thumb
 on the dataset's test manoeuvres, which the tuning never saw, and prints and records
-(``held_out``) their mean β RMSE.
+(``held_out``) their mean β RMSE, and whether the tuned filter's β standard deviation can be
+trusted there: its ±1.96σ coverage and mean NEES (``held_out.consistency``, as ``kftune
+evaluate`` reports them).
 
 When the best point lies on a bound of the search box (within 1 % of a parameter's range),
 tune says which parameter and which bound, and the file records it (``on_bounds``): the
@@ -254,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
             print(line)
         if doc["held_out"] is not None:
             print(held_out_line(doc["held_out"]))
+            if (line := held_out_consistency_line(doc["held_out"])) is not None:
+                print(line)
         elif no_evidence:
             print(f"no held-out evidence: {no_evidence}")
         print(f"tuned parameters written to {args.out}")
@@ -324,8 +328,9 @@ def held_out(
     """The evidence that the lower training cost is the better filter: the tuned filter and
     the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
     manoeuvres, which the tuning never saw — mean β RMSE [deg] over those with a sideslip
-    reference (None where a filter diverged). Two filter runs over the test split, in this
-    process.
+    reference (None where a filter diverged), and the tuned filter's consistency pooled
+    over them (``consistency``: :func:`kftune.tuning.deploy.consistency_docs`, None where
+    it diverged). Two filter runs over the test split, in this process.
 
     Returns:
         (evidence, why not): evidence None without test manoeuvres or sideslip output (no
@@ -334,6 +339,7 @@ def held_out(
     """
     from kftune.errors import KftuneError
     from kftune.experiment import manual_point
+    from kftune.tuning.deploy import consistency_docs
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import assess, first_scored, output_names
 
@@ -345,9 +351,12 @@ def held_out(
     if not test:
         return None, "no test manoeuvre has a sideslip reference longer than the burn-in"
     rmse: dict[str, float | None] = {}
+    consistency = None
     try:
         for key, point in (("tuned", x), ("manual", manual_point(problem.parameterization))):
-            metrics, _ = assess(problem, point, test)
+            metrics, runs = assess(problem, point, test)
+            if key == "tuned":  # pooled over the test manoeuvres, None if it diverged
+                consistency = consistency_docs(problem, test, runs)[1]
             if not all("rmse" in row for row in metrics.values()):
                 return None, None  # a model without the sideslip KPIs' channels
             avg = average_kpis(metrics.values())
@@ -362,6 +371,7 @@ def held_out(
         "n_left_out": len(dataset.test) - len(test),
         "beta_rmse_deg": rmse["tuned"],
         "manual_beta_rmse_deg": rmse["manual"],
+        "consistency": consistency,
     }, None
 
 
@@ -384,6 +394,25 @@ def held_out_line(h: dict[str, Any]) -> str:
             if worse
             else ""
         )
+    )
+
+
+def held_out_consistency_line(h: dict[str, Any]) -> str | None:
+    """Whether the tuned filter's β σ can be trusted on the held-out test manoeuvres: its
+    ±1.96σ coverage and mean NEES pooled over them (``h["consistency"]``, as ``kftune
+    evaluate`` measures it), with what a consistent filter gives; None when not measured
+    (the filter diverged there, or a tuned file of an older kftune)."""
+    from kftune.report.tables import sigma_verdict
+
+    beta = ((h.get("consistency") or {}).get("channels") or {}).get("beta")
+    if not beta or beta["cov95"] is None or beta["nees"]["mean"] is None:
+        return None
+    nees = beta["nees"]
+    verdict = sigma_verdict(nees)
+    return (
+        f"  β ±1.96σ covers {100 * beta['cov95']:.0f} % of the held-out errors (95 % if "
+        f"consistent), mean NEES {nees['mean']:.3g} (1 if consistent); "
+        + ("σ can be trusted there" if verdict == "consistent" else verdict)
     )
 
 
