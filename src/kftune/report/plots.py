@@ -378,6 +378,10 @@ def _band_note(ax: Any, half: np.ndarray, error: np.ndarray | None, unit: str) -
     return f"\n±2σ band: {'; '.join(notes)}" if notes else ""
 
 
+#: Markers of the methods' curves in the reliability figure, in report order.
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">")
+
+
 def reliability(results: ExperimentResults, split: str) -> Figure:
     """Reliability of each method's stated uncertainty on ``split``: the observed coverage
     of the intervals ±z_p·σ (y) against their nominal probability p (x), pooled over the
@@ -396,13 +400,16 @@ def reliability(results: ExperimentResults, split: str) -> Figure:
         ax.plot([0, 100], [0, 100], color=COLOURS["reference"], ls="--", lw=1, label="consistent")
         for p in (68.27, 95.0):  # the table's two intervals: ±1σ and ±1.96σ
             ax.axvline(p, color="#c0c0c0", lw=0.8, zorder=0)
-        for m in results.methods:
+        for i, m in enumerate(results.methods):
             r = curves.get(m.key)
             if r is None or channel not in r["coverage"]:
                 continue
             obs = np.array([np.nan if v is None else 100 * v for v in r["coverage"][channel]])
+            # tuned filters often coincide: each later one drawn thinner with another
+            # marker, so that the ones beneath still show
             ax.plot(
-                100 * np.asarray(r["levels"]), obs, marker="o", ms=4, lw=1.6,
+                100 * np.asarray(r["levels"]), obs, marker=MARKERS[i % len(MARKERS)],
+                ms=max(3.0, 8.0 - 1.2 * i), lw=max(1.0, 3.0 - 0.5 * i), mfc="none",
                 color=_colour(m.key), label=m.label,
             )  # fmt: skip
         for x, y, text in ((58, 52, "below: σ too small"), (42, 48, "above: σ too large")):
