@@ -96,8 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (exposed for tests and documentation)."""
     parser = argparse.ArgumentParser(
         prog="kftune",
-        description="Automatic tuning of Kalman filters — a sideslip UKF tuned by two-stage "
-        "Bayesian optimisation with a Student-t process surrogate.",
+        description="kftune tunes Kalman filters: it searches the noise covariances of a "
+        "UKF or EKF running a built-in model (the paper's single-track sideslip model, and "
+        "others: kftune models) or a model file of your own, against a dataset's "
+        "manoeuvres. The default tuner is TR-BO (trust-region Bayesian optimisation); the "
+        "paper's two-stage Bayesian optimisation with a Student-t process (TSBO) is one "
+        "method among GA, TSBO-GP, manual tuning and more (kftune tune --method), and "
+        "kftune compare reproduces the paper's experiment.",
     )
     parser.add_argument("--version", action="version", version=f"kftune {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
