@@ -40,7 +40,7 @@ from kftune.optim import (
     study_files,
 )
 from kftune.optim.engine import Engine
-from kftune.progress import ProgressBar
+from kftune.progress import ProgressBar, announce
 from kftune.report.provenance import machine, package_versions
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.space import Space
@@ -56,6 +56,7 @@ from kftune.tuning.problem import (
     channel_estimate,
     check_units,
     default_r0,
+    failure_kinds,
     filter_spec,
     model_output,
 )
@@ -118,7 +119,8 @@ def tune(
     (:class:`kftune.optim.dask_engine.DaskEngine`); see :func:`kftune.minimize`.
 
     ``method="manual"`` evaluates :func:`manual_point` unless ``options`` give ``points``.
-    ``progress``: None shows a bar when stderr is a terminal; True/False force it.
+    ``progress``: None shows a bar when stderr is a terminal and plain lines otherwise;
+    True/False force the bar or nothing (:class:`~kftune.progress.ProgressBar`).
 
     The study (``storage``) records the problem's :meth:`~TuningProblem.fingerprint`, so
     resuming it on other data, another cost or another model is refused.
@@ -159,7 +161,8 @@ def tune(
         )
 
     def run(space: Any, study: Path | None) -> OptimizeResult:
-        with ProgressBar(total, LABELS.get(method, method), enabled=progress) as bar:
+        label = LABELS.get(method, method)
+        with ProgressBar(total, label, enabled=progress, note=problem.compile_note()) as bar:
             return minimize(
                 problem,
                 space,
@@ -272,12 +275,14 @@ def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str], sideslip: bool = T
 
 def require_success(result: OptimizeResult, method: str) -> None:
     """Raise :class:`~kftune.errors.RunFailedError` if every evaluation of ``result`` (a run
-    of ``method``) failed, with the count and the first reason."""
+    of ``method``) failed, with the count and the reasons grouped by kind
+    (:func:`~kftune.tuning.problem.failure_kinds`)."""
     if result.x is None:
+        kinds = failure_kinds(r.reason for r in result.history)
         raise RunFailedError(
-            f"every evaluation of {method!r} failed ({result.n_failed} of {result.n_evals}); "
-            f"first reason: {result.history[0].reason if result.history else 'none'}; "
-            "leave the method out or widen its search space"
+            f"every evaluation of {method!r} failed ({result.n_failed} of {result.n_evals}): "
+            + ("; ".join(f"{kind} ({n})" for kind, n in kinds) or "no evaluation ran")
+            + "; leave the method out or widen its search space"
         )
 
 
@@ -531,6 +536,7 @@ def run_compare(
     with problem:
         # one untimed evaluation first, so no method's timing includes loading the compiled
         # kernel from numba's cache (or compiling it) and starting worker processes
+        announce(problem.compile_note(), progress)
         with contextlib.suppress(FilterDivergedError):  # the manual run will record it
             problem(manual_point(problem.parameterization))
         for method in settings.methods:

@@ -252,6 +252,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  model {problem.model.name!r}, filter {problem.filter}")
         for name, value in (result.params or {}).items():
             print(f"  {name:10s} = {value:.4e}")
+        for line in failure_lines(result):
+            print(line)
         for line in bound_lines(doc, problem, widen):
             print(line)
         if doc["held_out"] is not None:
@@ -299,6 +301,20 @@ def _engine(problem: TuningProblem, scheduler: str | None, workers: int) -> Iter
         yield engine
     finally:
         engine.close()
+
+
+def failure_lines(result: OptimizeResult) -> list[str]:
+    """Why evaluations failed, grouped by kind with counts (the reasons are otherwise in
+    the study file only): ``"3 of 40 evaluations failed:"`` and one line per kind, most
+    frequent first; nothing when none failed."""
+    from kftune.tuning.problem import failure_kinds
+
+    reasons = [r.reason for r in result.history if not r.ok]
+    if not reasons:
+        return []
+    return [f"{len(reasons)} of {len(result.history)} evaluations failed:"] + [
+        f"  {kind} ({n})" for kind, n in failure_kinds(reasons)
+    ]
 
 
 def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> list[str]:

@@ -16,7 +16,9 @@ import json
 import math
 import multiprocessing
 import os
-from collections.abc import Mapping, Sequence
+import re
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -320,6 +322,25 @@ def channel_estimate(
     if estimate == "prior":
         return measured - res.innovation[:, column], measured
     return res.z_hat[:, column], measured
+
+
+#: Where a filter diverged, as :func:`where_diverged` says it: not part of a failure's kind.
+_WHERE_DIVERGED = re.compile(r" on manoeuvre (?:'[^']*'|\"[^\"]*\") at step \d+ \(t = [^)]*\)")
+#: The exception's class name in front of a failed evaluation's reason.
+_EXCEPTION_NAME = re.compile(r"^[A-Za-z_]\w*(?:Error|Exception): ")
+
+
+def failure_kinds(reasons: Iterable[str | None]) -> list[tuple[str, int]]:
+    """Failed evaluations' reasons grouped by kind, most frequent first, as
+    ``[(kind, count), …]``: a reason without the exception's class name and without where
+    the filter diverged (manoeuvre, step, time), so that the divergences of one cause are
+    one kind (``"filter diverged: runaway: the estimated sideslip went beyond ±60°"``).
+    A missing reason counts as ``"no reason recorded"``."""
+    kinds = Counter(
+        _WHERE_DIVERGED.sub("", _EXCEPTION_NAME.sub("", r)) if r else "no reason recorded"
+        for r in reasons
+    )
+    return kinds.most_common()
 
 
 def where_diverged(m: Manoeuvre, res: RunResult) -> str:
@@ -702,6 +723,7 @@ class TuningProblem:
         self.workers = min(workers, len(self.manoeuvres))
         self._pool: ProcessPoolExecutor | None = None
         self._chunks = _balanced_chunks([m.n for m in self.manoeuvres], self.workers)
+        self._evaluated = False  # see compile_note
 
     @property
     def space(self) -> Space:
@@ -761,6 +783,17 @@ class TuningProblem:
     def __call__(self, x: Sequence[float] | np.ndarray) -> float:
         return self.evaluate(x).cost
 
+    def compile_note(self) -> str | None:
+        """What to say before the first evaluation: that it compiles the filter for the
+        model, which takes seconds (a large model, minutes) that look like a hang and are
+        not the time an evaluation takes; None once this problem has evaluated a point."""
+        if self._evaluated:
+            return None
+        what = f"compiling the filter for model {self.model.name!r} ({self.filter})"
+        if self._fs.fast:  # numba keeps the paper's kernel on disk
+            return f"{what} (first run only; cached afterwards)…"
+        return f"{what} (at the first evaluation of each run; it cannot be cached)…"
+
     def evaluate(self, x: Sequence[float] | np.ndarray) -> Evaluation:
         """Run the filter on every manoeuvre and compute the cost.
 
@@ -769,6 +802,7 @@ class TuningProblem:
         """
         q, r, settings = self.decode(x)
         spec = self.cost_spec
+        self._evaluated = True  # the filter compiles now, also for a point that diverges
         if self.workers == 1:
             scores = [
                 _score(m, self.vehicle, self._fs, q, r, settings, spec, self.burn_in)
@@ -867,6 +901,7 @@ class TuningProblem:
                     out.append(exc)
             return out
         decoded = [self.decode(x) for x in points]
+        self._evaluated = True
         groups: dict[UKFSettings, list[int]] = {}
         for i, (_, _, settings) in enumerate(decoded):
             groups.setdefault(settings, []).append(i)
