@@ -275,3 +275,39 @@ def test_report_says_the_burn_in_when_there_is_one(results, tmp_path):
     assert "- Burn-in: the first 1 s of every manoeuvre left out" in text
     results.meta["burn_in_s"] = 0.0  # the paper's: nothing to say
     assert "Burn-in" not in write_report(results, tmp_path / "rep2").read_text()
+
+
+def test_a_method_that_diverged_has_a_consistency_row_saying_so(results, tmp_path):
+    """One method consistent on the test split, one whose filter diverged on a test
+    manoeuvre (its pooled consistency None), one not recorded: a row each for the first
+    two; the diverged row's empty numbers are null in the JSON records, not NaN."""
+    from kftune.report.tables import consistency_table
+    from kftune.tuning.consistency import as_doc, channel_consistency, nis_consistency
+
+    rng = np.random.default_rng(0)
+    e = rng.normal(0.0, 1.0, 2000)
+    beta = channel_consistency(e, np.ones(e.size), np.zeros(e.size))
+    results.methods[0].consistency = {"test": as_doc({"beta": beta}, nis_consistency(e**2, 1))}
+    results.methods[1].consistency = {"test": None}
+    table = consistency_table(results, "test")
+    assert [row[0] for row in table.rows] == ["Manual", "GA"]
+    assert table.rows[0][-1] == "consistent" and table.rows[1][-1] == "diverged"
+    assert table.rows[0][2] == pytest.approx(100 * beta.coverage[0])
+    json.dumps(table.to_records(), allow_nan=False)
+    md = write_report(results, tmp_path).read_text()
+    assert "## Consistency of the tuned filters on the test set" in md
+    assert not (tmp_path / "figures" / "reliability.png").exists()  # no curves recorded
+
+
+@pytest.mark.parametrize(
+    ("mean", "said"),
+    [(13.9, "σ is about 3.7× too small"), (165.0, "σ is about 13× too small"),
+     (110150.0, "σ is about 332× too small"), (0.25, "σ is about 2× too large")],
+)  # fmt: skip
+def test_the_verdict_says_by_how_much_sigma_is_off(mean, said):
+    """√(mean NEES): the factor that would bring the mean NEES to 1; no exponent."""
+    from kftune.report.tables import sigma_verdict
+
+    assert sigma_verdict({"mean": mean, "inside": False}) == said
+    assert sigma_verdict({"mean": mean, "inside": True}) == "consistent"
+    assert sigma_verdict({"mean": None, "inside": None}) == "–"

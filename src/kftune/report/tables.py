@@ -107,8 +107,11 @@ class Table:
                 writer.writerow(["" if _isnan(c) else c for c in row])
 
     def to_records(self) -> list[dict[str, object]]:
-        """Rows as dicts keyed by the header (for JSON)."""
-        return [dict(zip(self.header, row)) for row in self.rows]
+        """Rows as dicts keyed by the header (for strict JSON: an empty or unknown number,
+        NaN, is None)."""
+        return [
+            {h: None if _isnan(c) else c for h, c in zip(self.header, row)} for row in self.rows
+        ]
 
 
 def _isnan(x: object) -> bool:
@@ -291,9 +294,10 @@ def sigma_verdict(nees: Mapping[str, Any] | None) -> str:
     if inside or mean <= 0:
         return "consistent" if inside else "–"
     factor = math.sqrt(mean)
-    if factor >= 1:
-        return f"σ is about {factor:.2g}× too small"
-    return f"σ is about {1 / factor:.2g}× too large"
+    small = factor >= 1
+    factor = factor if small else 1 / factor
+    text = f"{factor:.2g}" if factor < 10 else f"{factor:.0f}"  # 3.7, 13, 330: no exponent
+    return f"σ is about {text}× too {'small' if small else 'large'}"
 
 
 def consistency_split(results: ExperimentResults) -> str | None:
