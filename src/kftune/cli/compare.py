@@ -12,7 +12,11 @@ mean — and both over the samples with |ay| ≥ 4 m/s² (_NON). For a model wit
 sideslip output beta (--model ctrv, a model file) or data without beta_ref, they are the
 RMSE of each scored channel against its reference <channel>_ref (the cost's channels; every
 measurement, against the measured channel, for the nis, pem and msp costs), in the
-channel's unit, and the figures show those channels over time. results.json and report.md
+channel's unit, and the figures show those channels over time. And whether each tuned
+filter's standard deviations can be trusted, pooled over the test manoeuvres: for β (each
+channel with a reference) the share of errors inside ±1σ and ±1.96σ (68.3 % and 95 % when
+consistent), the mean NEES (1) and NIS (m) with their 95 % bands (tables/consistency_test.csv),
+and a reliability figure of observed against nominal coverage. results.json and report.md
 record the command line, every option of every method (defaults included), the package
 versions, the dataset's SHA-256 fingerprint and the machine.
 """

@@ -2,7 +2,8 @@
 
 Reads ``results.json`` and ``traces.npz`` from a directory written by ``kftune compare`` and
 writes ``report.md``, ``figures/`` and ``tables/`` (into the same directory unless ``--out``
-names another).
+names another). Results written before the consistency of the tuned filters was measured
+still rebuild their report, which says it is not recorded.
 """
 
 from __future__ import annotations
