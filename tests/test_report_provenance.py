@@ -211,3 +211,24 @@ def test_results_without_consistency_still_rebuild_their_report(compared, tmp_pa
     assert (tmp_path / "rep" / "tables" / "kpi_test.csv").read_text() == (
         compared / "tables" / "kpi_test.csv"
     ).read_text()
+
+
+@pytest.mark.parametrize(
+    "broken",
+    [
+        {"test": {"channels": {"beta": {"cov68": "most"}}}},
+        {"test": {"channels": {}, "nis": {"mean": 3.0, "band": [2.9]}}},
+        {"test": {"channels": {}, "reliability": {"levels": [0.5], "coverage": {"beta": []}}}},
+        {"test": ["not", "an", "object"]},
+    ],
+)
+def test_a_damaged_consistency_in_results_json_is_refused_by_name(compared, tmp_path, broken):
+    """A hand-edited or damaged "consistency": exit 3 naming results.json and the method,
+    no traceback, and no report written."""
+    doc = json.loads((compared / "results.json").read_text())
+    doc["methods"][1]["consistency"] = broken
+    (tmp_path / "results.json").write_text(json.dumps(doc))
+    res = run_cli("report", tmp_path, "-o", tmp_path / "rep")
+    assert res.returncode == 3 and "Traceback" not in res.stderr
+    assert "results.json" in res.stderr and "methods[1]" in res.stderr
+    assert not (tmp_path / "rep").exists()

@@ -269,8 +269,48 @@ def _method_from_json(doc: dict[str, Any]) -> MethodRun:
         )
         and all(isinstance(d, dict) for d in (run.metrics, run.averages, run.extra))
         and isinstance(run.consistency, dict)
-        and all(d is None or isinstance(d, dict) for d in run.consistency.values())
+        and all(d is None or _consistency_ok(d) for d in run.consistency.values())
     )
     if not fields_ok:
         raise ValueError("a field has the wrong type")
     return run
+
+
+def _consistency_ok(doc: Any) -> bool:
+    """Whether ``doc`` has the shape of a pooled consistency that the report reads
+    (:func:`kftune.tuning.consistency.as_doc`, optionally with ``"reliability"``)."""
+    number = (int, float, type(None))
+
+    def mean_ok(d: Any, band: str) -> bool:
+        return (
+            isinstance(d, dict)
+            and isinstance(d.get("mean"), number)
+            and isinstance(d.get(band), list)
+            and len(d[band]) == 2
+            and all(isinstance(v, number) for v in d[band])
+        )
+
+    if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
+        return False
+    channels_ok = all(
+        isinstance(ch, dict)
+        and all(isinstance(ch.get(k), number) for k in ("cov68", "cov95"))
+        and mean_ok(ch.get("nees"), "band_eff")
+        for ch in doc["channels"].values()
+    )
+    nis = doc.get("nis")
+    rel = doc.get("reliability")
+    rel_ok = rel is None or (
+        isinstance(rel, dict)
+        and isinstance(rel.get("levels"), list)
+        and all(isinstance(v, (int, float)) for v in rel["levels"])
+        and isinstance(rel.get("coverage"), dict)
+        and all(
+            isinstance(c, list)
+            and len(c) == len(rel["levels"])
+            and all(isinstance(v, number) for v in c)
+            for c in rel["coverage"].values()
+        )
+    )
+    nis_ok = nis is None or (mean_ok(nis, "band") and isinstance(nis.get("dof"), int))
+    return channels_ok and nis_ok and rel_ok
