@@ -5,7 +5,9 @@ one colour, distinct from every other's, in every figure; MAE is explained."""
 from __future__ import annotations
 
 import colorsys
+import contextlib
 import csv
+import io
 import itertools
 import json
 import platform
@@ -116,7 +118,10 @@ def compared(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = root / "report"
     args = ["compare", str(root / "data"), "--methods", "manual", "tsbo-tsp", "--budget",
             "tsbo-tsp=4", "--config", str(config), "-o", str(out), "-q"]  # fmt: skip
-    assert main(args) == 0
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(args) == 0
+    (root / "stdout.txt").write_text(printed.getvalue())  # what compare printed
     return out
 
 
@@ -185,6 +190,9 @@ def test_the_report_says_whether_each_methods_sigma_can_be_trusted(compared):
     assert "## Consistency of the tuned filters on the test set" in md
     assert "| Method | Channel | ±1σ coverage [%] (68.3) |" in md
     assert "![Reliability of the stated uncertainty](figures/reliability.png)" in md
+    printed = (compared.parent / "stdout.txt").read_text()  # compare prints the table too
+    assert "Consistency of the tuned filters on the test set" in printed
+    assert printed.count("| beta |") == 2
     assert (compared / "figures" / "reliability.png").read_bytes()[:4] == b"\x89PNG"
 
 

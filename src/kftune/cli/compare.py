@@ -193,7 +193,8 @@ def run(args: argparse.Namespace) -> int:
             }
         )
     else:
-        for key in ("cost", "kpi_train", "kpi_test"):
+        consistency = [k for k in tables if k.startswith("consistency_")]
+        for key in ("cost", "kpi_train", "kpi_test", *consistency):
             if key in tables:
                 print(f"\n{tables[key].title}\n\n{tables[key].to_markdown()}")
         print(f"\nreport written to {report}")
