@@ -283,6 +283,23 @@ def test_cli_exit_code_for_bad_input(tmp_path, capsys):
     assert not (tmp_path / "ds" / "manifest.toml").exists()
 
 
+def test_an_imported_dataset_folder_has_the_permissions_of_a_new_folder(tmp_path, capsys):
+    """The dataset is written into a private temporary folder and renamed into place: the
+    folder others read must get what ``mkdir`` gives (0o777 less the umask), not 0o700."""
+    src = _write_csv(tmp_path / "run.csv", _user_units(_recording()))
+    (tmp_path / "map.toml").write_text(
+        '[channels]\nt = "time"\nvx = { column = "Speed", unit = "km/h" }\n'
+    )
+    (tmp_path / "plain").mkdir()
+    code = main(["dataset", "import", str(src), "--mapping", str(tmp_path / "map.toml"),
+                 "-o", str(tmp_path / "ds")])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    assert "Traceback" not in capsys.readouterr().err
+    mode = (tmp_path / "ds").stat().st_mode & 0o777
+    assert mode == (tmp_path / "plain").stat().st_mode & 0o777
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "map.toml", "plain", "run.csv"]
+
+
 MAPPING_TOML = """
 name = "cli-car"
 vehicle = "bmw-320i"

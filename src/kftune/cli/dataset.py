@@ -197,6 +197,9 @@ def _save_in_place(dataset: Dataset, out: Path, old_files: list[Path]) -> Path:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp"))
+        umask = os.umask(0o022)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; renamed, it is ``out``
         manifest = save_dataset(dataset, tmp)
         if not out.exists():
             os.rename(tmp, out)
