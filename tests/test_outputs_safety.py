@@ -527,16 +527,27 @@ def test_the_limits_are_in_the_help():
 
 
 # ------------------------------------------------------------------ closed standard error
-def test_tune_with_standard_error_closed_runs_to_the_end(work):
-    """``tune 2>&-``: the progress bar and messages have nowhere to go; the run must not
-    fail on them (it exited 1 with no message, leaving an empty study)."""
+@pytest.mark.parametrize("stderr", ["closed", "/dev/full"])
+def test_tune_with_standard_error_closed_runs_to_the_end(work, stderr):
+    """``tune 2>&-`` or ``2>/dev/full``: the progress bar and messages have nowhere to go;
+    the run must not fail on them (it exited 1 with no message, leaving an empty study or,
+    with a full standard error, none)."""
     import contextlib
     import sqlite3
+
+    if stderr != "closed" and not os.path.exists(stderr):
+        pytest.skip(f"no {stderr} on this system")
+
+    def redirect() -> None:
+        if stderr == "closed":
+            os.close(2)
+        else:
+            os.dup2(os.open(stderr, os.O_WRONLY), 2)
 
     res = subprocess.run(
         [sys.executable, "-m", "kftune", "tune", "ds", "-m", "random", "-n", "3",
          "--storage", "s.db", "-o", "t2.json"],
-        preexec_fn=lambda: os.close(2),
+        preexec_fn=redirect,
         stdout=subprocess.PIPE,
         text=True,
         cwd=work,
