@@ -19,6 +19,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 from collections.abc import Iterator
 
 import numpy as np
@@ -33,7 +34,7 @@ from kftune.data import default_dataset  # noqa: E402
 from kftune.errors import ConfigError  # noqa: E402
 from kftune.experiment import tune  # noqa: E402
 from kftune.optim import minimize  # noqa: E402
-from kftune.optim.dask_engine import DaskEngine  # noqa: E402
+from kftune.optim.dask_engine import DaskEngine, SchedulerLostError  # noqa: E402
 from kftune.optim.result import COMPLETE, FAILED  # noqa: E402
 from kftune.tuning.problem import TuningProblem  # noqa: E402
 
@@ -429,6 +430,31 @@ def test_a_killed_scheduler_keeps_what_finished_and_says_how_to_resume(tmp_path)
     assert json.loads((tmp_path / "t.partial.json").read_text())["n_evals"] == n
     written = {p.name for p in tmp_path.iterdir()} - {"scheduler.json", "t.partial.json"}
     assert all(name.startswith("s.db") for name in written), written  # the study's files
+
+
+@pytest.mark.parametrize(
+    ("error", "lost"),
+    [
+        # gather's stream closes under a future that finished, before the client marks
+        # itself disconnected: the scheduler is gone (seen once in the test above)
+        (distributed.comm.CommClosedError("in <TCP (closed) ConnectionPool.gather>: closed"), True),
+        (ValueError("a bug of the objective's"), False),  # connected: not a lost scheduler
+    ],
+)
+def test_a_closed_connection_is_a_lost_scheduler_while_the_client_still_runs(error, lost):
+    engine = DaskEngine.__new__(DaskEngine)  # no cluster: only run()'s reading of errors
+    engine.client = types.SimpleNamespace(status="running")
+    engine.scheduler = "tcp://127.0.0.1:8786"
+
+    def fails(points):
+        raise error
+        yield
+
+    engine._run = fails
+    expected = SchedulerLostError if lost else type(error)
+    with pytest.raises(expected) as caught:
+        list(engine.run([np.zeros(3)]))
+    assert ("lost the Dask scheduler at 'tcp://127.0.0.1:8786'" in str(caught.value)) == lost
 
 
 @pytest.mark.parametrize("address", ["foo", "tcp:/127.0.0.1", "tcp://127.0.0.1:99999", ""])

@@ -398,7 +398,10 @@ class DaskEngine(Engine):
         except SchedulerLostError:
             raise
         except (Exception, asyncio.CancelledError) as exc:
-            if self._connected():
+            # A closed comm is the scheduler's connection going: the client may not have
+            # marked itself disconnected yet when gather's stream closes under it.
+            closed = isinstance(exc, _distributed().comm.CommClosedError)
+            if self._connected() and not closed:
                 raise
             raise self._lost(describe(exc)) from None
 
