@@ -100,6 +100,11 @@ def run_cli(*args: str, cwd: Path | None = None) -> Ran:
     return Ran(int(code), out.getvalue(), err.getvalue())
 
 
+#: The device that refuses every write with ENOSPC, and the one that reads endless zeros
+#: (Linux, FreeBSD): named once, as devices, not as paths of a machine.
+DEV_FULL = Path("/dev", "full")
+DEV_ZERO = Path("/dev", "zero")
+
 #: [s] how long a test waits for evidence (a study's first results, a process's exit) before
 #: it gives up: a guard against a hang, never a measure of speed. A shared machine under load
 #: (load average 10–19 on 2 cores) stretches a command of 5 s beyond a minute.

@@ -19,7 +19,15 @@ from pathlib import Path
 
 import pytest
 
-from conftest import HANG_GUARD, SMALL_TEST, SMALL_TRAIN, default_sigint, run_cli, wait_until
+from conftest import (
+    DEV_FULL,
+    HANG_GUARD,
+    SMALL_TEST,
+    SMALL_TRAIN,
+    default_sigint,
+    run_cli,
+    wait_until,
+)
 from kftune.cli import SUBCOMMANDS, main
 from kftune.data import default_dataset, save_dataset
 
@@ -560,10 +568,6 @@ def test_a_reader_that_closes_early_gets_no_traceback():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=HANG_GUARD) == 141
     assert "Traceback" not in err and "BrokenPipe" not in err
-
-
-#: The device that refuses every write with ENOSPC (Linux, FreeBSD).
-DEV_FULL = Path("/dev", "full")
 
 
 @pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")

@@ -25,7 +25,7 @@ import scipy.io
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import run_cli
+from conftest import DEV_ZERO, run_cli
 from kftune.data import load_dataset, textfile
 from kftune.data.readers import mat_variables
 from kftune.data.textfile import ReadLimits
@@ -380,7 +380,7 @@ def test_a_device_or_a_fifo_is_not_a_regular_file(tmp_path: Path):
     fifo = tmp_path / "fifo.csv"
     os.mkfifo(fifo)
     zero = tmp_path / "zero.csv"
-    zero.symlink_to("/dev/zero")
+    zero.symlink_to(DEV_ZERO)
     mapping = mapping_file(tmp_path)
     res = subprocess.run(
         [sys.executable, "-m", "kftune", "dataset", "import", str(fifo), "--mapping",

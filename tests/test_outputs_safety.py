@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import run_cli
+from conftest import DEV_FULL, DEV_ZERO, run_cli
 from kftune.data.jsonfile import MAX_INT_DIGITS, parse_json
 from kftune.errors import DataError
 
@@ -91,7 +91,7 @@ def test_a_json_input_that_is_a_device_is_refused_before_it_is_read(tmp_path, na
     args = READERS[name](tmp_path, "{}")
     json_file = next(tmp_path.rglob(name.strip()))
     json_file.unlink()
-    json_file.symlink_to("/dev/zero")
+    json_file.symlink_to(DEV_ZERO)
     before = _files(tmp_path)
     res = run_cli(*args, cwd=tmp_path)
     assert res.returncode == 3, res.stderr
@@ -110,7 +110,7 @@ def test_a_toml_input_that_is_a_device_is_refused_before_it_is_read(tmp_path, wh
         "mapping": ["dataset", "import", "rec.csv", "--mapping", name, "-o", "o"],
     }[where]
     (tmp_path / "rec.csv").write_text("t,vx\n0,1\n")
-    (tmp_path / name).symlink_to("/dev/zero")
+    (tmp_path / name).symlink_to(DEV_ZERO)
     before = _files(tmp_path)
     res = run_cli(*args, cwd=tmp_path)
     assert res.returncode == 3, res.stderr
@@ -350,7 +350,7 @@ def test_dataset_show_says_when_its_figure_cannot_be_written(work):
     kept in a fallback file that the message names."""
     import re
 
-    (work / "full.png").symlink_to(Path("/dev/full"))
+    (work / "full.png").symlink_to(DEV_FULL)
     res = run_cli("dataset", "show", "ds", "-o", "full.png", cwd=work)
     _refused(res, "cannot write --out full.png", "No space left on device", code=1)
     assert "wrote" not in res.stdout
@@ -377,14 +377,14 @@ def test_dataset_show_says_the_name_it_wrote(work):
 
 
 def test_a_figure_that_cannot_be_written_raises():
-    """matplotlib's own writing ignores a failed write (savefig('/dev/full') succeeds)."""
+    """matplotlib's own writing ignores a failed write (savefig to the full device succeeds)."""
     import matplotlib.pyplot as plt
 
     from kftune.report import plots
 
     fig = plt.figure()
     with pytest.raises(OSError):
-        plots.save(fig, "/dev/full")
+        plots.save(fig, DEV_FULL)
 
 
 # ------------------------------------------------------------------ compare --force
@@ -527,7 +527,7 @@ def test_the_limits_are_in_the_help():
 
 
 # ------------------------------------------------------------------ closed standard error
-@pytest.mark.parametrize("stderr", ["closed", "/dev/full"])
+@pytest.mark.parametrize("stderr", ["closed", str(DEV_FULL)])
 def test_tune_with_standard_error_closed_runs_to_the_end(work, stderr):
     """``tune 2>&-`` or ``2>/dev/full``: the progress bar and messages have nowhere to go;
     the run must not fail on them (it exited 1 with no message, leaving an empty study or,

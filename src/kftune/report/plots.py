@@ -53,7 +53,7 @@ def _colour(key: str) -> str | None:
 def render(fig: Figure, dpi: int = 130, tight: bool = True) -> bytes:
     """A figure as PNG bytes; the figure is released. Rendered in memory, so that the
     file is written by a write that reports its errors: matplotlib's own file writing
-    ignores a failed one (``savefig("/dev/full")`` succeeds)."""
+    ignores a failed one (``savefig`` to the full device succeeds)."""
     buf = io.BytesIO()
     try:
         fig.savefig(buf, format="png", dpi=dpi, **({"bbox_inches": "tight"} if tight else {}))
