@@ -104,6 +104,12 @@ def foreign(tmp_path: Path) -> dict[str, Path]:
     return {"h5": h5, "text": text}
 
 
+def _in_file(*names: str) -> str:
+    """An absolute HDF5 path inside the file being written (from its root group), which a
+    soft link names; not a path of the machine."""
+    return "/" + "/".join(names)
+
+
 def _replace_vx(kind: str, foreign: dict[str, Path]):
     def extra(h5py, group) -> None:
         del group["vx"]
@@ -112,13 +118,13 @@ def _replace_vx(kind: str, foreign: dict[str, Path]):
         elif kind == "external link to text":
             group["vx"] = h5py.ExternalLink(str(foreign["text"]), "/vx")
         elif kind == "soft link loop":
-            group["vx"] = h5py.SoftLink("/rec/speed")
-            group["speed"] = h5py.SoftLink("/rec/vx")
+            group["vx"] = h5py.SoftLink(_in_file("rec", "speed"))
+            group["speed"] = h5py.SoftLink(_in_file("rec", "vx"))
         elif kind == "dangling soft link":
-            group["vx"] = h5py.SoftLink("/nowhere/vx")
+            group["vx"] = h5py.SoftLink(_in_file("nowhere", "vx"))
         elif kind == "soft link through an external link":
             group["elsewhere"] = h5py.ExternalLink(str(foreign["h5"]), "/")
-            group["vx"] = h5py.SoftLink("/rec/elsewhere/vx")
+            group["vx"] = h5py.SoftLink(_in_file("rec", "elsewhere", "vx"))
         elif kind == "virtual dataset":
             layout = h5py.VirtualLayout(shape=(1, 400), dtype="f8")
             layout[0, :] = h5py.VirtualSource(str(foreign["h5"]), "vx", shape=(1, 400))[0, :]
@@ -171,7 +177,7 @@ def test_a_v73_soft_link_inside_the_file_is_read(tmp_path: Path):
         group.file["speeds/vx"] = group["vx"][()]
         group.file["speeds/vx"].attrs["MATLAB_class"] = np.bytes_("double")
         del group["vx"]
-        group["vx"] = h5py.SoftLink("/speeds/vx")
+        group["vx"] = h5py.SoftLink(_in_file("speeds", "vx"))
 
     src = savemat73(tmp_path / "rec.mat", c, extra)
     res, out = run_import(tmp_path, src, mapping_file(tmp_path, {"struct": "rec"}))
