@@ -70,6 +70,40 @@ def test_a_tuned_file_never_runs_the_model_file_it_names(tuned, tmp_path, where)
     assert not (model.parent / "MARKER").exists()
 
 
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_a_model_file_named_by_a_tuned_file_is_hashed_only_if_it_is_a_regular_file(
+    tuned, tmp_path, kind
+):
+    """export compares the recorded SHA-256 with the file's: a tuned file from elsewhere
+    naming a FIFO made it wait for ever, one naming /dev/zero read without end."""
+    from conftest import DEV_ZERO
+    from kftune.models.user import model_file_sha256
+
+    model = tmp_path / "evil.py"
+    if kind == "fifo":
+        os.mkfifo(model)
+    else:
+        model.symlink_to(DEV_ZERO)
+    assert model_file_sha256(str(model)) is None
+    params = naming(tuned, tmp_path, "evil.py", sha256="0" * 64)
+    export = [sys.executable, "-m", "kftune", "export", str(params), "-f", "c"]
+    res = subprocess.run(
+        [*export, "-o", str(tmp_path / "kf.h")], capture_output=True, text=True,
+        timeout=HANG_GUARD, cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == EXIT_OK and "Traceback" not in res.stderr, res.stderr
+
+
+def test_a_model_files_hash_is_sha256_of_its_bytes(tmp_path):
+    from kftune.models.user import model_file_sha256
+
+    model = tmp_path / "m.py"
+    model.write_bytes(bytes(range(256)) * 5000)  # over one read block
+    want = hashlib.sha256(model.read_bytes()).hexdigest()
+    assert model_file_sha256(f"{model}:MODEL") == want == model_file_sha256(str(model))
+    assert model_file_sha256("single-track") is None
+
+
 def test_a_model_file_the_user_names_runs(tuned, tmp_path):
     model = tmp_path / "mine.py"
     model.write_text(MARKING)

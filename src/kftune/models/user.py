@@ -29,6 +29,7 @@ import hashlib
 import importlib.util
 import os
 import signal
+import stat
 import sys
 import threading
 from collections.abc import Iterable, Iterator
@@ -64,17 +65,35 @@ def model_file_parts(spec: str) -> tuple[str, str] | None:
     return (head + ".py", attr) if sep else None
 
 
+#: [bytes] the largest model file kftune hashes (a Python source of a model is kilobytes).
+MAX_MODEL_FILE_BYTES = 64 * 2**20
+
+
 def model_file_sha256(spec: str) -> str | None:
     """The SHA-256 of the file a model-file spec names (hex), so that a tuned file and a
     study can tell an edited model from the one they were made with; None for a model
-    name, or a file that cannot be read."""
+    name, or a file that cannot be read, is not a regular file or is larger than
+    :data:`MAX_MODEL_FILE_BYTES`."""
     parts = model_file_parts(spec) if isinstance(spec, str) else None
     if parts is None:
         return None
+    # Opened without blocking and checked on the open file: a tuned file from elsewhere may
+    # name a FIFO (reading it would wait for ever) or a device such as /dev/zero (endless).
     try:
-        return hashlib.sha256(Path(parts[0]).expanduser().read_bytes()).hexdigest()
+        fd = os.open(Path(parts[0]).expanduser(), os.O_RDONLY | os.O_NONBLOCK)
     except OSError:
         return None
+    with os.fdopen(fd, "rb") as file:
+        try:
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_MODEL_FILE_BYTES:
+                return None
+            digest = hashlib.sha256()
+            for block in iter(lambda: file.read(2**20), b""):
+                digest.update(block)
+            return digest.hexdigest()
+        except OSError:
+            return None
 
 
 def load_model(spec: str | StateSpaceModel) -> StateSpaceModel:
