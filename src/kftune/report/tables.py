@@ -286,11 +286,18 @@ def _mean_and_band(stat: Mapping[str, Any] | None, band: str) -> tuple[str, str]
 def sigma_verdict(nees: Mapping[str, Any] | None) -> str:
     """Whether σ can be trusted, from a mean NEES's JSON form
     (:meth:`~kftune.tuning.consistency.ChiSquareMean.as_dict`): "consistent" when the mean
-    lies in its band (effective sample count), else by how much σ is off — the factor
-    √(mean NEES) that would bring the mean to 1; "–" when nothing was counted."""
+    lies in its band (effective sample count) and that count is at least
+    :data:`~kftune.tuning.consistency.MIN_EFFECTIVE_TERMS` (fewer: too few to tell), else by
+    how much σ is off — the factor √(mean NEES) that would bring the mean to 1; "–" when
+    nothing was counted."""
+    from kftune.tuning.consistency import MIN_EFFECTIVE_TERMS
+
     if nees is None or nees.get("mean") is None:
         return "–"
     mean, inside = float(nees["mean"]), nees.get("inside")
+    n_eff = nees.get("n_eff")
+    if inside and n_eff is not None and n_eff < MIN_EFFECTIVE_TERMS:
+        return f"too few independent errors to tell (about {n_eff:.0f})"
     if inside or mean <= 0:
         return "consistent" if inside else "–"
     factor = math.sqrt(mean)

@@ -54,6 +54,10 @@ from numpy.typing import ArrayLike
 COVERAGE_LEVELS: tuple[float, float] = (0.6827, 0.95)
 #: Probability of the χ² acceptance bands (two-sided).
 BAND_PROBABILITY = 0.95
+#: Below this many effective independent terms a mean NEES inside its band is no evidence
+#: of consistency: errors that wander slowly (n_eff ≈ 5 of 4,000 samples at ρ = 0.999) widen
+#: the band until a σ 1.5× too small passes it.
+MIN_EFFECTIVE_TERMS = 30.0
 
 
 def z_of(probability: float) -> float:
