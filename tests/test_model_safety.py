@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import default_sigint
@@ -208,6 +209,46 @@ def test_a_hook_that_writes_out_of_bounds_in_some_states_is_named(small, tmp_pat
     assert f"model {model}, on manoeuvre 'train-03-j-turn': f(x, u, p, dt, out)" in res.stderr
     assert "indexes beyond an array" in res.stderr and "Traceback" not in res.stderr
     assert not out.exists()
+
+
+#: A random walk whose f writes beyond ``out`` only where |s| > 5: a unit prior around
+#: z = 0 reaches it only through sigma points spread by √(n + λ) = √(1 + κ) beyond 5.
+WIDE_SIGMA_MODEL = """import numpy as np
+from numba import njit
+from kftune.models import StateSpaceModel
+
+@njit
+def f(x, u, p, dt, out):
+    if abs(x[0]) > 5.0:
+        out[3 + int(abs(x[0]))] = 0.0
+    out[0] = x[0]
+
+@njit
+def h(x, u, p, out):
+    out[0] = x[0]
+
+def prior(z0, r, p):
+    return np.array([z0[0]]), np.diag([1.0])
+
+MODEL = StateSpaceModel(name="walk", state_names=("s",), state_units=("m",), input_names=(),
+    input_units=(), measurement_names=("z",), measurement_units=("m",), f=f, h=h,
+    initial_state=prior)
+"""
+
+
+def test_the_hook_check_runs_the_sigma_points_of_the_filter_it_protects(tmp_path):
+    """evaluate and estimate run the tuned α, β, κ: a check with the default sigma points
+    never visits the states a wider spread reaches (κ = 100: √101 ≈ 10 prior σ out)."""
+    from kftune.filters import UKFSettings
+    from kftune.tuning.hookcheck import check_model_file
+
+    model = tmp_path / "walk.py"
+    model.write_text(WIDE_SIGMA_MODEL)
+    runs = [("walk-1", None, np.zeros((50, 1)), 0.01)]
+    q, r = np.array([1e-4]), np.array([1.0])
+    check_model_file(str(model), "ukf", runs, np.zeros(0), q, r, UKFSettings())  # no error
+    with pytest.raises(ValueError, match=r"on manoeuvre 'walk-1': f\(x, u, p, dt, out\)"):
+        check_model_file(str(model), "ukf", runs, np.zeros(0), q, r, UKFSettings(kappa=100.0))
 
 
 def test_a_hook_that_crashes_its_process_is_named(small, tmp_path):

@@ -176,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
     # the model it was tuned with, loaded once before any output (a lost one is named)
     fs = filter_spec_of(args, {}, vehicle, (args.params, tuned.document))
     check_units(fs.model, dataset)
-    fs.probe(manoeuvres, tuned.r, tuned.q)  # its hooks on every manoeuvre, before any output
+    # its hooks on every manoeuvre, with the tuned filter's sigma points, before any output
+    fs.probe(manoeuvres, tuned.r, tuned.q, tuned.settings)
     out: dict[str, Any] = {
         "params": str(args.params),
         "dataset": dataset.name,

@@ -385,7 +385,7 @@ def estimate(
     fs = filter_spec(tuned.model, tuned.filter, vehicle)
     model = fs.model
     if probe:
-        fs.probe([m], tuned.r, tuned.q)
+        fs.probe([m], tuned.r, tuned.q, tuned.settings)
     res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings)
     return estimates_of(model, res, m)
 

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from kftune.errors import ConfigError, DataWarning
+from kftune.filters import UKFSettings
 from kftune.models.base import HOOK_ARGUMENTS
 from kftune.processes import sigint_blocked, watch_parent
 
@@ -53,10 +54,12 @@ def check_model_file(
     params: np.ndarray,
     q: np.ndarray,
     r: np.ndarray,
+    settings: UKFSettings,
 ) -> None:
     """Run the hooks of the model file ``spec`` in a child process: the first-sample probe
     and a bounds-checked run of ``filter`` (``"ukf"``/``"ekf"``) with process-noise
-    variances ``q`` and measurement-noise variances ``r`` over each of ``runs``.
+    variances ``q``, measurement-noise variances ``r`` and (a UKF) the sigma-point
+    ``settings`` of the filter that will run, over each of ``runs``.
 
     Raises:
         ValueError: naming the manoeuvre, the hook and what it did (a probe's message, an
@@ -68,7 +71,7 @@ def check_model_file(
     # the data go through the pipe, not with the start: multiprocessing writes a start's
     # arguments with the child's end of that pipe still open here, so a child that died
     # while starting would leave a large write blocked for ever
-    args = (theirs, spec, filter, params, q, r, os.getpid())
+    args = (theirs, spec, filter, params, q, r, settings, os.getpid())
     with sigint_blocked():  # a Ctrl-C while the child starts is the parent's alone
         child = ctx.Process(target=_check, args=args, daemon=True)
         child.start()
@@ -128,6 +131,7 @@ def _check(
     params: np.ndarray,
     q: np.ndarray,
     r: np.ndarray,
+    settings: UKFSettings,
     parent_pid: int,
 ) -> None:  # pragma: no cover - runs in the child process
     """The child: receive the runs, load the model, then for each run the probe and a
@@ -136,7 +140,7 @@ def _check(
     watch_parent(parent_pid)  # Ctrl-C is the parent's; a killed parent ends this one
     runs = conn.recv()
     try:
-        error = _checked_runs(conn, spec, filter, runs, params, q, r)
+        error = _checked_runs(conn, spec, filter, runs, params, q, r, settings)
         conn.send(("ok", None) if error is None else ("error", error))
     except BaseException as exc:  # the model file's own failure, whatever it is
         conn.send(("error", f"{type(exc).__name__}: {str(exc)[:200]}"))
@@ -150,9 +154,9 @@ def _checked_runs(
     params: np.ndarray,
     q: np.ndarray,
     r: np.ndarray,
+    settings: UKFSettings,
 ) -> str | None:  # pragma: no cover - runs in the child process
     """What is wrong with the hooks on ``runs`` (None: nothing)."""
-    from kftune.filters import UKFSettings
     from kftune.filters.generic import get_filter
     from kftune.models.user import checked_model, load_model
 
@@ -160,7 +164,7 @@ def _checked_runs(
         model = load_model(spec)
     except ConfigError as exc:
         return str(exc)
-    filt = get_filter("ukf", settings=UKFSettings()) if filter == "ukf" else get_filter("ekf")
+    filt = get_filter("ukf", settings=settings) if filter == "ukf" else get_filter("ekf")
     checked = None
     for name, u, z, dt in runs:
         conn.send(("at", name))

@@ -388,14 +388,20 @@ class FilterSpec:
         return u, np.column_stack([m.channel(c) for c in self.model.measurement_names])
 
     def probe(
-        self, manoeuvres: Sequence[Manoeuvre], r: np.ndarray, q: np.ndarray | None = None
+        self,
+        manoeuvres: Sequence[Manoeuvre],
+        r: np.ndarray,
+        q: np.ndarray | None = None,
+        settings: UKFSettings | None = None,
     ) -> None:
         """Run the model's hooks before a filter relies on them, with measurement variances
         ``r``: once on the first sample of each manoeuvre
         (:meth:`~kftune.models.StateSpaceModel.probe`). A model file's hooks run in a
         child process instead, where a hook that never returns can be stopped (Ctrl-C,
         SIGTERM), and then through the filter with bounds checked (process-noise
-        variances ``q``, default 1e-4 each):
+        variances ``q``, default 1e-4 each; the UKF's sigma-point ``settings``, default
+        :class:`~kftune.filters.UKFSettings`, so that the check visits the states the
+        filter it protects visits):
         :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models are not
         probed in a child (nor the paper's kernel at all).
 
@@ -408,7 +414,15 @@ class FilterSpec:
             runs = [(m.name, *self.inputs(m), m.dt) for m in manoeuvres]
             qs = np.full(self.model.n_states, 1e-4) if q is None else np.asarray(q, float)
             try:
-                check_model_file(self.spec, self.filter, runs, self.params, qs, np.asarray(r))
+                check_model_file(
+                    self.spec,
+                    self.filter,
+                    runs,
+                    self.params,
+                    qs,
+                    np.asarray(r),
+                    settings or UKFSettings(),
+                )
             except ValueError as exc:
                 raise ConfigError(f"model {self.spec}, {exc}") from None
             return
@@ -707,7 +721,6 @@ class TuningProblem:
                 f"r0 must be {k} positive finite variances {list(mod.measurement_names)}, "
                 f"got {r0!r}"
             )
-        self._fs.probe(self.manoeuvres, self.r0)  # before a budget is spent on the model
         self.parameterization = parameterization or NoiseParameterization(
             states=mod.state_names, measurements=mod.measurement_names
         )
@@ -718,6 +731,8 @@ class TuningProblem:
                 f"{list(par.measurements)}, but model {mod.name!r} has "
                 f"{list(mod.state_names)} and {list(mod.measurement_names)}"
             )
+        # before a budget is spent on the model; with the sigma points the tuning starts from
+        self._fs.probe(self.manoeuvres, self.r0, settings=par.default_settings)
         if not (isinstance(workers, int) and workers >= 1):
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.workers = min(workers, len(self.manoeuvres))
