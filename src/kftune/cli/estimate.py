@@ -145,8 +145,7 @@ def run(args: argparse.Namespace) -> int:
 
     from kftune.data import open_dataset
     from kftune.data.io import file_stem
-    from kftune.tuning.consistency import as_doc, of_columns, pool_runs
-    from kftune.tuning.deploy import TunedFilter, estimate, referenced
+    from kftune.tuning.deploy import TunedFilter, consistency_of, estimate, referenced
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
     from kftune.tuning.problem import check_units, first_scored, where_diverged
 
@@ -198,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
             refuse_inputs(args.out / f"{stem}{suffix}", "--out", reads)
     args.out.mkdir(parents=True, exist_ok=True)
     kpis: list[dict[str, float]] = []
-    checks: dict[str, Any] = {}  # manoeuvre → its consistency (of_columns), where it ran
+    ran: dict[str, Any] = {}  # manoeuvre → (it, its estimates; None where it diverged)
     diverged: list[str] = []
     keep = "nothing else is lost; fix it and run the command again"
     for m in manoeuvres:
@@ -263,14 +262,13 @@ def run(args: argparse.Namespace) -> int:
                 for c in others
             }
             row["units"] = {c: est.units.get(c, "") for c in others}
-        if not est.result.diverged:  # after the burn-in, as the KPIs
-            first = first_scored(m, tuned.burn_in)
-            checks[m.name] = of_columns(est.columns, est.result.innovation.shape[1], first)
-        row["consistency"] = as_doc(*checks[m.name]) if m.name in checks else None
+        ran[m.name] = (m, None if est.result.diverged else est)
         out["manoeuvres"][m.name] = row
     out["average"] = {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
-    pooled = len(checks) == len(manoeuvres)  # none when it diverged anywhere, as the KPIs
-    out["consistency"] = as_doc(*pool_runs(checks.values())) if pooled else None
+    # after the burn-in, as the KPIs; none pooled when it diverged anywhere
+    each, out["consistency"] = consistency_of(fs.model, tuned.burn_in, ran)
+    for name, doc in each.items():
+        out["manoeuvres"][name]["consistency"] = doc
     if args.json:
         emit_json(out)
     else:

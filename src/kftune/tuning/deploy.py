@@ -453,24 +453,40 @@ def consistency_docs(
         "coverage": {channel: [observed share of |err| ≤ z_p·σ for each p]}}``, the points
         of a reliability figure.
     """
+    model = problem.model
+    runs = {
+        m.name: (m, None if results[m.name].diverged else estimates_of(model, results[m.name], m))
+        for m in manoeuvres
+    }
+    return consistency_of(model, problem.burn_in, runs, levels)
+
+
+def consistency_of(
+    model: StateSpaceModel,
+    burn_in: float,
+    estimates: Mapping[str, tuple[Manoeuvre, Estimates | None]],
+    levels: Sequence[float] = (),
+) -> tuple[dict[str, dict[str, Any] | None], dict[str, Any] | None]:
+    """:func:`consistency_docs` from the estimates of ``model`` (name → (manoeuvre, its
+    :class:`Estimates`, None where the filter diverged)), after ``burn_in`` [s]: what
+    ``evaluate``, ``compare``, ``tune`` and ``estimate`` report, counted in one place."""
     from kftune.tuning.consistency import as_doc, covered, of_columns, pool_runs, z_of
 
-    model, runs, curves = problem.model, {}, {}
+    runs, curves = {}, {}
     zs = [z_of(p) for p in levels]
-    for m in manoeuvres:
-        res = results[m.name]
-        if res.diverged:
+    for name, (m, est) in estimates.items():
+        if est is None:
             continue
-        columns = estimates_of(model, res, m).columns
-        first = first_scored(m, problem.burn_in)
-        runs[m.name] = of_columns(columns, model.n_measurements, first)
+        columns = est.columns
+        first = first_scored(m, burn_in)
+        runs[name] = of_columns(columns, model.n_measurements, first)
         for c in runs[m.name][0]:  # the channels measured: with a std and a reference
             err = (columns[c] - columns[f"{c}_ref"])[first:]
             counts = [covered(err, columns[f"{c}_std"][first:], z) for z in zs]
             was = curves.get(c, [(0, 0)] * len(zs))
             curves[c] = [(a + k, b + n) for (a, b), (k, n) in zip(was, counts)]
-    each = {m.name: as_doc(*runs[m.name]) if m.name in runs else None for m in manoeuvres}
-    if len(runs) != len(manoeuvres):
+    each = {name: as_doc(*runs[name]) if name in runs else None for name in estimates}
+    if len(runs) != len(estimates):
         return each, None
     pooled = as_doc(*pool_runs(runs.values()))
     if levels:
