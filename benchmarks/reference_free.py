@@ -33,12 +33,23 @@ left out; at |β| of a few degrees Vy's variance dominates).
 Then the checks of issue 13: for each reference-free configuration, median test β RMSE
 below the manual one, and at most 1.5× the NRMSE-tuned one.
 
+With ``--rank-top N`` it also asks whether the training cost still ranks the test error near
+the optimum each run reached: the ``N`` distinct points of lowest training cost J that the
+run evaluated (its tuned point first) are each scored on the test manoeuvres, and the
+Spearman rank correlation ρ(J, test β RMSE) is reported per run (median over seeds), over
+the ``N`` points of every seed pooled, the gap of the ``N``-th point's J to the run's best,
+and the lowest test β RMSE among the ``N`` points (what a perfect proxy would have chosen).
+ρ near +1: the lower cost is the better filter there; near 0 or negative: the cost no longer
+tells the filters apart, and more evaluations buy no better filter.
+
 Usage::
 
     .venv/bin/python benchmarks/reference_free.py
     .venv/bin/python benchmarks/reference_free.py --dataset ../shared/data/revs-250lm
     .venv/bin/python benchmarks/reference_free.py --seeds 3 --budget 40 --configs manual pem-q
     .venv/bin/python benchmarks/reference_free.py --configs nrmse nrmse-dataset --budget 100
+    .venv/bin/python benchmarks/reference_free.py --configs nrmse nrmse-dataset --budget 100 \
+        --rank-top 20
 
 Prints a table and, as its last line, one JSON object with the figures.
 """
@@ -55,6 +66,7 @@ import time
 from typing import Any
 
 import numpy as np
+from scipy.stats import spearmanr
 
 import kftune
 from kftune.data import open_dataset
@@ -98,20 +110,62 @@ def beta_calibration(problem: TuningProblem, x: np.ndarray, manoeuvres: Any) -> 
     return {"nees": nees / n, "coverage_2sigma": inside / n}
 
 
-def run_config(ds: Any, name: str, method: str, budget: int, seed: int) -> dict[str, Any]:
+def test_beta_rmse(problem: TuningProblem, x: np.ndarray, manoeuvres: Any) -> float:
+    """Mean over ``manoeuvres`` of the β RMSE [deg] of the filter at ``x`` (NaN: diverged)."""
+    per_manoeuvre, _ = assess(problem, x, manoeuvres)
+    return float(average_kpis(per_manoeuvre.values())["rmse"])
+
+
+def rank_near_optimum(
+    problem: TuningProblem, history: Any, manoeuvres: Any, top: int
+) -> dict[str, Any]:
+    """The ``top`` distinct points of lowest training cost in ``history`` (EvalRecords),
+    each with its test β RMSE [deg], and Spearman's ρ between the two (None below 5 points
+    or where either is constant)."""
+    seen: set[tuple[float, ...]] = set()
+    best: list[tuple[float, tuple[float, ...]]] = []
+    for rec in sorted((r for r in history if r.ok), key=lambda r: r.value):
+        if rec.x not in seen:
+            seen.add(rec.x)
+            best.append((float(rec.value), rec.x))
+        if len(best) == top:
+            break
+    j = np.array([v for v, _ in best])
+    beta = np.array([test_beta_rmse(problem, np.asarray(x), manoeuvres) for _, x in best])
+    ok = np.isfinite(beta)
+    rho = math.nan
+    if ok.sum() >= 5 and np.ptp(j[ok]) > 0 and np.ptp(beta[ok]) > 0:
+        rho = float(spearmanr(j[ok], beta[ok]).statistic)
+    return {
+        "J": j.tolist(),
+        "beta_rmse_deg": beta.tolist(),
+        "spearman": None if math.isnan(rho) else rho,
+        "gap_last_pct": float(100.0 * (j[-1] - j[0]) / j[0]) if j.size else None,
+        "beta_min_deg": float(np.nanmin(beta)) if ok.any() else None,
+    }
+
+
+def run_config(
+    ds: Any, name: str, method: str, budget: int, seed: int, rank_top: int = 0
+) -> dict[str, Any]:
     cost, tune_r = CONFIGS[name]
     par = NoiseParameterization(tune_r=tune_r)
     problem = TuningProblem(ds.train, ds.vehicle, ds.r_default, cost=cost, parameterization=par)
     paper = TuningProblem(ds.train, ds.vehicle, ds.r_default, parameterization=par)
     t0 = time.perf_counter()
+    history: list[Any] = []
     if name == "manual":
         x, fun, n_eval = manual_point(par), math.nan, 1
     else:
         res = minimize(problem, problem.space, method, budget=budget, seed=seed)
         x, fun, n_eval = np.asarray(res.x, dtype=float), float(res.fun), len(res.history)
+        history = res.history
     wall = time.perf_counter() - t0
     per_manoeuvre, _ = assess(problem, x, ds.test)
     kpis = average_kpis(per_manoeuvre.values())
+    rank = None
+    if rank_top > 0 and history:
+        rank = rank_near_optimum(problem, history, ds.test, rank_top)
     try:
         paper_cost = float(paper(x))
     except FilterDivergedError:
@@ -127,6 +181,28 @@ def run_config(ds: Any, name: str, method: str, budget: int, seed: int) -> dict[
         "beta_rmse_deg": kpis["rmse"],
         "beta_mae_deg": kpis["mae"],
         **beta_calibration(problem, x, ds.test),
+        "rank": rank,
+    }
+
+
+def _fmt_rho(rho: float | None) -> str:
+    return "n/a" if rho is None else f"{rho:+.2f}"
+
+
+def pooled_rank(ranked: list[dict[str, Any]]) -> dict[str, Any]:
+    """Summary over seeds of :func:`rank_near_optimum`'s records: median per-run ρ, ρ of
+    the points of every run pooled, median gap of the last point, lowest test β."""
+    j = np.concatenate([r["J"] for r in ranked])
+    beta = np.concatenate([r["beta_rmse_deg"] for r in ranked])
+    ok = np.isfinite(beta)
+    rhos = [r["spearman"] for r in ranked if r["spearman"] is not None]
+    pooled = float(spearmanr(j[ok], beta[ok]).statistic) if ok.sum() >= 5 else math.nan
+    return {
+        "rank_median_spearman": statistics.median(rhos) if rhos else None,
+        "rank_pooled_spearman": None if math.isnan(pooled) else pooled,
+        "rank_pooled_n": int(ok.sum()),
+        "rank_median_gap_last_pct": statistics.median(r["gap_last_pct"] for r in ranked),
+        "rank_min_beta_deg": float(np.nanmin(beta)),
     }
 
 
@@ -140,20 +216,36 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--seed-offset", type=int, default=0, help="first seed (default 0; fresh seeds: 3)"
     )
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    ap.add_argument(
+        "--rank-top",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also score the N lowest-cost points of each run on the test set (default 0)",
+    )
     args = ap.parse_args(argv)
+    if args.rank_top < 0:
+        ap.error("--rank-top must be >= 0")
 
     ds = open_dataset(args.dataset)
     runs: list[dict[str, Any]] = []
     for name in args.configs:
         seeds = range(args.seed_offset, args.seed_offset + (1 if name == "manual" else args.seeds))
         for seed in seeds:
-            r = run_config(ds, name, args.method, args.budget, seed)
+            r = run_config(ds, name, args.method, args.budget, seed, args.rank_top)
             runs.append(r)
+            rank = r["rank"]
             print(
-                f"{name:<11} seed {seed}: test β RMSE {r['beta_rmse_deg']:.3f}°  "
+                f"{name:<11} seed {seed}: test β RMSE {r['beta_rmse_deg']:.4f}°  "
                 f"NEES {r['nees']:.3g}  ±2σ {100 * r['coverage_2sigma']:.1f} %  "
                 f"J {r['cost']:.4g}  paper J {r['paper_cost']:.6g}  {r['wall_s']:.1f} s  "
-                + " ".join(f"{k}={v:.3g}" for k, v in r["params"].items()),
+                + " ".join(f"{k}={v:.3g}" for k, v in r["params"].items())
+                + (
+                    ""
+                    if rank is None
+                    else f"  top {len(rank['J'])}: ρ(J, β) {_fmt_rho(rank['spearman'])}, "
+                    f"J within {rank['gap_last_pct']:.2f} %, lowest β {rank['beta_min_deg']:.4f}°"
+                ),
                 flush=True,
             )
     summary: dict[str, dict[str, float]] = {}
@@ -168,6 +260,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "median_nees": statistics.median(r["nees"] for r in rs),
             "median_coverage_2sigma": statistics.median(r["coverage_2sigma"] for r in rs),
         }
+        ranked = [r["rank"] for r in rs if r["rank"] is not None]
+        if ranked:
+            summary[name].update(pooled_rank(ranked))
     print()
     print("| Config | median test β RMSE [°] | range [°] | paper J | β NEES | ±2σ coverage |")
     print("| --- | --- | --- | --- | --- | --- |")
@@ -178,6 +273,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             f"{s['median_nees']:.3g} | "
             f"{100 * s['median_coverage_2sigma']:.1f} % |"
         )
+    if any("rank_pooled_spearman" in s for s in summary.values()):
+        print()
+        print(
+            f"| Config | ρ(J, test β) per run, median | pooled over seeds (n) | gap of the "
+            f"{args.rank_top}-th point [%] | lowest test β among them [°] |"
+        )
+        print("| --- | --- | --- | --- | --- |")
+        for name, s in summary.items():
+            if "rank_pooled_spearman" in s:
+                print(
+                    f"| {name} | {_fmt_rho(s['rank_median_spearman'])} | "
+                    f"{_fmt_rho(s['rank_pooled_spearman'])} ({s['rank_pooled_n']}) | "
+                    f"{s['rank_median_gap_last_pct']:.2f} | {s['rank_min_beta_deg']:.4f} |"
+                )
     checks: dict[str, dict[str, bool | None]] = {}
     man = summary.get("manual", {}).get("median_beta_rmse_deg")
     ref = summary.get("nrmse", {}).get("median_beta_rmse_deg")
