@@ -1,0 +1,530 @@
+"""Whether the data determine each tuned parameter: value against start, bounds, and a profile.
+
+What a system-identification engineer reads after an estimate (Ljung, *System
+Identification*, 2nd ed., 1999, Ch. 9.2; Raue et al., "Structural and practical
+identifiability analysis of partially observed dynamical models by exploiting the profile
+likelihood", Bioinformatics 25(15), 2009): for each parameter its value against the start,
+whether it sits on a bound of the box, and how far it can move before the cost notices.
+
+Everything is measured in the *search scale* of the parameter, ``t = log10 x`` on a log10
+scale (a change of t by δ is a factor 10^δ) and ``t = x`` on a linear one, along the
+parameter's 1-D **profile**: the cost J at points ``t* ± h`` with every other coordinate
+held at the best point x* (a *conditional* profile; see below). Steps h are fixed shares
+:data:`STEPS` of the box width W (in t), clipped at the bounds, plus the bound itself where
+it lies beyond the widest step, so that the profile reaches both ends of the box:
+at most ``2·(len(STEPS) + 1)`` = :data:`MAX_EVALS_PER_PARAMETER` evaluations per parameter,
+and one at x* shared by all.
+
+* **Curvature** c = ∂²J/∂t² by the second divided difference of three profile points
+  t_a < t_b < t_c (for the central pair t* ± h: the central difference
+  c = (J(t*+h) + J(t*−h) − 2J(t*))/h²), once per step. Small steps resolve the local shape
+  but magnify any roughness of J (an error σ in J gives an error ≈ 2σ/h² in c), wide ones
+  see beyond the quadratic region; the reported c is the one whose rise of J is nearest
+  the threshold ΔJ below — the scale the confidence range lives on — and every step's
+  estimate is kept (``curvature_steps``) so that their agreement can be read.
+* **Confidence range** from the curvature: the quadratic J ≈ J* + c·δ²/2 rises by ΔJ at
+  δ = √(2·ΔJ/c) (a Wald-type interval; with ΔJ = 1.92 on a negative log-likelihood, the
+  95 % interval of a χ²₁ test, Ljung Ch. 9.2).
+* **Profile range**: the interval of t around t* where J ≤ J* + ΔJ, from the profile
+  itself, out to its farthest point under the threshold on each side (so that one rough
+  value cannot shorten it), the crossing interpolated linearly in √(J − J*) — exact for a
+  quadratic profile. A side whose profile stays below the threshold up to the bound is
+  *open*: the box, not the data, ends the range there.
+* **Determined** when the range is closed on both sides (the cost rises by ΔJ before
+  either bound) and spans less than :data:`NOT_DETERMINED_SHARE` of the box; otherwise the
+  parameter is said plainly to be not determined — only a lower limit, only an upper limit,
+  or flat across the box. ΔJ is :data:`REL_RISE` (1 %) of J*.
+
+The profile is conditional (the other coordinates held, not re-optimised at each point)
+because a re-optimised profile costs a tuning run per point — some hundred evaluations
+each. Holding the others can only make a valley narrower than the re-optimised profile
+(a trade-off with another parameter is not followed), so a parameter found *not
+determined* here is not determined, while *determined* is an upper bound on what the data
+say when two parameters trade off (the front and rear cornering stiffness through the
+understeer gradient).
+
+Physical reasons a model can know (a friction coefficient on data far from the friction
+limit) come from the model's optional hook :attr:`~kftune.models.StateSpaceModel.param_hints`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from kftune.space import BOUND_TOL, Space
+
+if TYPE_CHECKING:
+    from kftune.tuning.problem import TuningProblem
+
+#: Relative rise of the cost that marks the edge of a parameter's confidence range.
+REL_RISE = 0.01
+#: A parameter whose range spans at least this share of its box is not determined.
+NOT_DETERMINED_SHARE = 0.5
+#: Profile steps on each side of the best point, as shares of the box width (search scale).
+STEPS: tuple[float, ...] = (0.01, 0.03, 0.1, 0.3)
+#: Profile evaluations per parameter at most: each step on both sides, and both bounds.
+MAX_EVALS_PER_PARAMETER = 2 * (len(STEPS) + 1)
+#: What the profile holds fixed, in words (for the tuned file and the printed lines).
+METHOD = (
+    "1-D profile of the cost in the search scale with the other parameters held at the "
+    "best point; curvature by second differences of the profile"
+)
+
+#: J over a batch of points: (B, d) natural units → (B,) costs, inf (or NaN) where the
+#: evaluation failed (a diverged filter).
+CostBatch = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class ParameterIdentifiability:
+    """What the data say about one tuned parameter (module docstring).
+
+    Attributes:
+        name, unit: the parameter and its unit ("" if none).
+        scale: ``"log10"`` or ``"linear"``: the search scale t (log10 x or x).
+        value: the best value x*; start: the start (recorded) value, or None.
+        low, high: the search box, natural units.
+        on_bound: ``"lower"``/``"upper"`` when x* lies within 1 % of the box of a bound
+            (:data:`kftune.space.BOUND_TOL`, in the search scale), else None.
+        cost: J at the best point; delta_j: the rise ΔJ that ends the range.
+        curvature: ∂²J/∂t² at the best point [J per decade² on log10, per unit² on
+            linear], None where no step saw J rise (flat, or not a minimum).
+        curvature_steps: (step h in t, curvature estimate) for every step, widest last.
+        half_width: √(2·ΔJ/curvature) [decades or units of x], None without curvature.
+        range_low, range_high: the profile range in natural units (J ≤ J* + ΔJ).
+        closed_low, closed_high: whether J rose by ΔJ before the bound on that side.
+        share: (t(range_high) − t(range_low)) / W, the share of the box the range spans.
+        determined: closed on both sides and ``share < NOT_DETERMINED_SHARE``.
+        better: (value, J) of a profile point with J below J* by more than ΔJ/10, or
+            None: the search had not converged along this parameter.
+        profile: (value, J) of every profile point, the best point included, by value;
+            J is inf where the evaluation failed.
+        reason: a physical reason from the model why the data may not determine it.
+    """
+
+    name: str
+    unit: str
+    scale: str
+    value: float
+    start: float | None
+    low: float
+    high: float
+    on_bound: str | None
+    cost: float
+    delta_j: float
+    curvature: float | None
+    curvature_steps: tuple[tuple[float, float], ...]
+    half_width: float | None
+    range_low: float
+    range_high: float
+    closed_low: bool
+    closed_high: bool
+    share: float
+    determined: bool
+    better: tuple[float, float] | None
+    profile: tuple[tuple[float, float], ...]
+    reason: str | None = None
+
+    @property
+    def ratio(self) -> float | None:
+        """x* / start, None without a (non-zero) start."""
+        if self.start is None or self.start == 0:
+            return None
+        return self.value / self.start
+
+    @property
+    def limits(self) -> str:
+        """Which ends of the range the data set: ``"both"``, ``"lower"``, ``"upper"``,
+        ``"none"``."""
+        if self.closed_low and self.closed_high:
+            return "both"
+        return "lower" if self.closed_low else "upper" if self.closed_high else "none"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form (strict JSON: no inf or NaN)."""
+        ratio = self.ratio
+        return {
+            "value": self.value,
+            "start": self.start,
+            "ratio": ratio,
+            "change_pct": None if ratio is None else 100.0 * (ratio - 1.0),
+            "unit": self.unit,
+            "scale": self.scale,
+            "low": self.low,
+            "high": self.high,
+            "on_bound": self.on_bound,
+            "determined": self.determined,
+            "limits": self.limits,
+            "range": [self.range_low, self.range_high],
+            "share_of_box": self.share,
+            "curvature": self.curvature,
+            "half_width": self.half_width,
+            "curvature_steps": [[h, c] for h, c in self.curvature_steps],
+            "better": None if self.better is None else list(self.better),
+            "profile": [[v, _finite_or_none(j)] for v, j in self.profile],
+            "reason": self.reason,
+        }
+
+    def describe(self) -> str:
+        """One or two lines for ``kftune tune``: value against start, bound, verdict."""
+        unit = f" {self.unit}" if self.unit and self.unit != "-" else ""
+        text = f"{self.name} = {self.value:.4g}{unit}"
+        ratio = self.ratio
+        if ratio is not None:
+            text += f" (×{ratio:.3g} the start {self.start:.4g}, {100 * (ratio - 1):+.0f} %)"
+        if self.on_bound is not None:
+            bound = self.low if self.on_bound == "lower" else self.high
+            text += f", on its {self.on_bound} bound {bound:g}"
+        lo, hi = self.range_low, self.range_high
+        span = f"{lo:.3g} … {hi:.3g}"
+        if self.determined:
+            text += f": determined, {span}"
+            if self.scale == "log10":
+                text += f" (×{lo / self.value:.3g} … ×{hi / self.value:.3g})"
+        else:
+            what = {
+                "both": f"the range {span} spans {100 * self.share:.0f} % of the box",
+                "lower": f"only a lower limit, ≥ {lo:.3g} (the cost is flat up to the upper "
+                f"bound {self.high:g})",
+                "upper": f"only an upper limit, ≤ {hi:.3g} (the cost is flat down to the "
+                f"lower bound {self.low:g})",
+                "none": f"the cost is flat across the box [{self.low:g}, {self.high:g}]",
+            }[self.limits]
+            text += f": NOT determined by these data — {what}"
+        if self.better is not None:
+            v, j = self.better
+            text += (
+                f"; the cost is lower at {self.name} = {v:.4g} ({100 * (j / self.cost - 1):+.2g} "
+                "%): the search had not converged along it"
+            )
+        if self.reason and not self.determined:
+            text += f"\n      {self.reason}"
+        return text
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """The identifiability of the tuned parameters of one best point.
+
+    Attributes:
+        parameters: one record per reported parameter, in search-space order.
+        rel_rise: ΔJ / J*. n_evals: the cost evaluations spent. method: what was held.
+    """
+
+    parameters: tuple[ParameterIdentifiability, ...]
+    rel_rise: float
+    n_evals: int
+    method: str = METHOD
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (``identifiability`` of the tuned file and ``--json``)."""
+        return {
+            "method": self.method,
+            "rel_rise": self.rel_rise,
+            "not_determined_share": NOT_DETERMINED_SHARE,
+            "n_evals": self.n_evals,
+            "parameters": {p.name: p.to_dict() for p in self.parameters},
+        }
+
+    def lines(self) -> list[str]:
+        """What ``kftune tune`` prints; nothing without parameters."""
+        if not self.parameters:
+            return []
+        out = [
+            f"tuned model parameters (range: where the cost rises by less than "
+            f"{100 * self.rel_rise:g} % with the other parameters held; {self.n_evals} extra "
+            "evaluations):"
+        ]
+        out += [f"  {p.describe()}" for p in self.parameters]
+        return out
+
+
+def identify(
+    cost: CostBatch,
+    space: Space,
+    x_best: Sequence[float] | np.ndarray,
+    names: Sequence[str],
+    *,
+    start: Mapping[str, float] | None = None,
+    units: Mapping[str, str] | None = None,
+    reasons: Mapping[str, str] | None = None,
+    rel_rise: float = REL_RISE,
+) -> Identifiability:
+    """Profile the cost along each parameter in ``names`` around ``x_best`` (module
+    docstring): at most :data:`MAX_EVALS_PER_PARAMETER` evaluations per parameter and one
+    at ``x_best``, all in one call of ``cost``.
+
+    Args:
+        cost: J of a (B, d) batch of points of ``space`` (natural units) → (B,), inf or
+            NaN where an evaluation failed (counted as a rise of the cost).
+        space: the search space; x_best: (d,) the best point, natural units.
+        names: the parameters to report (names of ``space``; may be empty).
+        start: name → the start value, for the ratio; units: name → unit.
+        reasons: name → a physical reason the data may not determine it (printed with a
+            parameter found not determined).
+        rel_rise: ΔJ / |J*|, the rise that ends a range (> 0).
+
+    Raises:
+        ValueError: a name not in the space, a point outside it, ``rel_rise`` ≤ 0, or a
+            best point whose cost is not finite.
+    """
+    x = np.asarray(x_best, dtype=float)
+    if x.shape != (space.dim,):
+        raise ValueError(f"x_best must have shape ({space.dim},), got {x.shape}")
+    unknown = [n for n in names if n not in space.names]
+    if unknown:
+        raise ValueError(f"parameters {unknown} are not in the search space {list(space.names)}")
+    if not space.contains(x):
+        raise ValueError("x_best lies outside the search space")
+    if not (isinstance(rel_rise, (int, float)) and rel_rise > 0 and math.isfinite(rel_rise)):
+        raise ValueError(f"rel_rise must be a positive number, got {rel_rise!r}")
+    plans = {n: _profile_offsets(space, x, space.names.index(n)) for n in names}
+    points = [x]
+    for n, offsets in plans.items():
+        i = space.names.index(n)
+        p = space.params[i]
+        t0 = _to_t(p.log, x[i])
+        for h in offsets:
+            xi = x.copy()
+            xi[i] = float(np.clip(_from_t(p.log, t0 + h), p.low, p.high))
+            points.append(xi)
+    values = np.asarray(cost(np.array(points)), dtype=float).reshape(-1)
+    if values.shape != (len(points),):
+        raise ValueError(f"cost returned {values.shape[0]} values for {len(points)} points")
+    values = np.where(np.isnan(values), np.inf, values)
+    j0 = float(values[0])
+    if not math.isfinite(j0):
+        raise ValueError("the cost at the best point is not finite")
+    delta_j = rel_rise * abs(j0) if j0 != 0 else rel_rise
+    records = []
+    k = 1
+    for n, offsets in plans.items():
+        js = values[k : k + len(offsets)]
+        k += len(offsets)
+        records.append(
+            _record(
+                space,
+                x,
+                n,
+                offsets,
+                js,
+                j0,
+                delta_j,
+                start=(start or {}).get(n),
+                unit=(units or {}).get(n, ""),
+                reason=(reasons or {}).get(n),
+            )
+        )
+    return Identifiability(tuple(records), float(rel_rise), len(points))
+
+
+def identify_problem(
+    problem: TuningProblem,
+    x_best: Sequence[float] | np.ndarray,
+    names: Sequence[str] | None = None,
+    *,
+    rel_rise: float = REL_RISE,
+) -> Identifiability:
+    """:func:`identify` on a tuning problem: the tuned model parameters by default
+    (``problem.parameterization.model_names``, their start values ``model_start`` and the
+    model's units), J from :meth:`TuningProblem.evaluate_batch` (a diverged filter counts
+    as a rise of the cost), and the model's physical reasons
+    (:attr:`~kftune.models.StateSpaceModel.param_hints`) on the training manoeuvres at
+    the best point's model parameters."""
+    par = problem.parameterization
+    if names is None:
+        names = tuple(getattr(par, "model_names", ()))
+    model = problem.model
+    units = dict(zip(model.param_names, model.param_units))
+    start = dict(getattr(par, "model_start", {}) or {})
+    reasons: dict[str, str] = {}
+    hints = getattr(model, "param_hints", None)
+    if names and hints is not None:
+        channels = (*model.input_names, *model.measurement_names)
+        runs = [(m.dt, {c: m.channel(c) for c in channels if m.has(c)}) for m in problem.manoeuvres]
+        params = getattr(problem, "params_at", None)
+        p = np.asarray(params(x_best)) if params is not None else None
+        if p is not None:
+            reasons = {k: v for k, v in hints(runs, p).items() if k in names}
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        out = problem.evaluate_batch(points)
+        return np.array([getattr(e, "cost", math.inf) for e in out], dtype=float)
+
+    if not names:
+        return Identifiability((), float(rel_rise), 0)
+    return identify(
+        cost,
+        problem.space,
+        x_best,
+        names,
+        start=start,
+        units=units,
+        reasons=reasons,
+        rel_rise=rel_rise,
+    )
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _to_t(log: bool, v: float) -> float:
+    return math.log10(v) if log else float(v)
+
+
+def _from_t(log: bool, t: float) -> float:
+    return 10.0**t if log else float(t)
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _profile_offsets(space: Space, x: np.ndarray, i: int) -> list[float]:
+    """Offsets in t of the profile of parameter i: ±h·W for h in :data:`STEPS`, clipped at
+    the bounds, and the bound itself where it lies beyond the widest step; points closer
+    than half the smallest step to x* or to each other are left out. Left side first
+    (outwards), then the right side (outwards)."""
+    p = space.params[i]
+    lo, hi = p._t_bounds
+    t0 = _to_t(p.log, x[i])
+    width = hi - lo
+    gap = 0.5 * STEPS[0] * width
+    out: list[float] = []
+    for sign, room in ((-1.0, t0 - lo), (1.0, hi - t0)):
+        side: list[float] = []
+        for h in (*(s * width for s in STEPS), room):
+            d = min(h, room)
+            if d >= gap and all(abs(d - e) >= gap for e in side):
+                side.append(d)
+        out += [sign * d for d in sorted(side)]
+    return out
+
+
+def _record(
+    space: Space,
+    x: np.ndarray,
+    name: str,
+    offsets: Sequence[float],
+    js: np.ndarray,
+    j0: float,
+    delta_j: float,
+    *,
+    start: float | None,
+    unit: str,
+    reason: str | None,
+) -> ParameterIdentifiability:
+    """One parameter's record from its profile (offsets in t and their costs)."""
+    i = space.names.index(name)
+    p = space.params[i]
+    log = p.log
+    lo, hi = p._t_bounds
+    width = hi - lo
+    t0 = _to_t(log, x[i])
+    left = [(-h, float(j)) for h, j in zip(offsets, js) if h < 0]  # outwards
+    right = [(h, float(j)) for h, j in zip(offsets, js) if h > 0]
+    threshold = j0 + delta_j
+    # the range on each side: out to its farthest point under the threshold
+    ends: list[tuple[float, bool]] = []
+    for side, room in ((left, t0 - lo), (right, hi - t0)):
+        d, closed = _side_end(side, j0, delta_j, threshold)
+        ends.append((d if closed else room, closed))  # open: flat up to the bound
+    (d_lo, closed_lo), (d_hi, closed_hi) = ends
+    share = (d_lo + d_hi) / width
+    steps = _curvatures(left, right, j0)
+    curvature = _chosen_curvature(steps, delta_j)
+    hits = space.on_bounds(space.to_unit(x), BOUND_TOL)
+    on_bound = next((h.side for h in hits if h.name == name), None)
+    along = [float(np.clip(_from_t(log, t0 + h), p.low, p.high)) for h in offsets]
+    profile = sorted([(float(x[i]), j0), *zip(along, (float(j) for j in js))])
+    finite = [(v, j) for v, j in profile if math.isfinite(j)]
+    vmin, jmin = min(finite, key=lambda vj: vj[1])
+    better = (vmin, jmin) if jmin < j0 - 0.1 * delta_j else None
+    return ParameterIdentifiability(
+        name=name,
+        unit=unit,
+        scale=p.scale,
+        value=float(x[i]),
+        start=None if start is None else float(start),
+        low=p.low,
+        high=p.high,
+        on_bound=on_bound,
+        cost=j0,
+        delta_j=delta_j,
+        curvature=curvature,
+        curvature_steps=tuple(steps),
+        half_width=None if curvature is None else math.sqrt(2.0 * delta_j / curvature),
+        range_low=float(np.clip(_from_t(log, t0 - d_lo), p.low, p.high)),
+        range_high=float(np.clip(_from_t(log, t0 + d_hi), p.low, p.high)),
+        closed_low=closed_lo,
+        closed_high=closed_hi,
+        share=float(min(share, 1.0)),
+        determined=closed_lo and closed_hi and share < NOT_DETERMINED_SHARE,
+        better=better,
+        profile=tuple(profile),
+        reason=reason,
+    )
+
+
+def _side_end(
+    side: Sequence[tuple[float, float]], j0: float, delta_j: float, threshold: float
+) -> tuple[float, bool]:
+    """(distance in t from t* to the range's end on one side, closed): the farthest point
+    under the threshold, and the crossing beyond it interpolated linearly in √(J − J*)
+    (exact for a quadratic profile); closed False when no point beyond it rose."""
+    under = [k for k, (_, j) in enumerate(side) if j <= threshold]
+    k = under[-1] if under else -1
+    if k == len(side) - 1:
+        return (side[-1][0] if side else 0.0), False
+    d_in, j_in = side[k] if k >= 0 else (0.0, j0)
+    d_out, j_out = side[k + 1]
+    if not math.isfinite(j_out):
+        return d_out, True  # failed: somewhere before it, taken at it (the wider range)
+    s_in = math.sqrt(max(j_in - j0, 0.0))
+    s_out = math.sqrt(j_out - j0)
+    s_thr = math.sqrt(delta_j)
+    return d_in + (s_thr - s_in) / (s_out - s_in) * (d_out - d_in), True
+
+
+def _curvatures(
+    left: Sequence[tuple[float, float]], right: Sequence[tuple[float, float]], j0: float
+) -> list[tuple[float, float]]:
+    """(step, ∂²J/∂t²) by the second divided difference of three profile points, for each
+    step: the pair t* − h, t*, t* + h' where both sides have one (h' = h unless clipped),
+    and the points t*, t* + h_k, t* + h_{k+1} on the one side where the other has none.
+    Steps with a failed evaluation are left out."""
+    out = []
+    if left and right:
+        for (a, ja), (b, jb) in zip(left, right):
+            if math.isfinite(ja) and math.isfinite(jb):
+                out.append((0.5 * (a + b), _second_difference((-a, ja), (0.0, j0), (b, jb))))
+    else:
+        side = left or right
+        for (a, ja), (b, jb) in itertools.pairwise(side):
+            if math.isfinite(ja) and math.isfinite(jb):
+                out.append((b, _second_difference((0.0, j0), (a, ja), (b, jb))))
+    return out
+
+
+def _second_difference(
+    p0: tuple[float, float], p1: tuple[float, float], p2: tuple[float, float]
+) -> float:
+    """2·f[t0, t1, t2] for t0 < t1 < t2: the second derivative of the parabola through the
+    three points (for t1 − t0 = t2 − t1 = h, (f0 − 2f1 + f2)/h²)."""
+    (t0, f0), (t1, f1), (t2, f2) = p0, p1, p2
+    return 2.0 * ((f2 - f1) / (t2 - t1) - (f1 - f0) / (t1 - t0)) / (t2 - t0)
+
+
+def _chosen_curvature(steps: Sequence[tuple[float, float]], delta_j: float) -> float | None:
+    """The curvature of the step whose rise c·h²/2 is nearest ΔJ (in ratio), among the
+    positive estimates; None without one."""
+    positive = [(h, c) for h, c in steps if c > 0]
+    if not positive:
+        return None
+    return min(positive, key=lambda hc: abs(math.log(0.5 * hc[1] * hc[0] ** 2 / delta_j)))[1]

@@ -1,0 +1,223 @@
+"""Identifiability of tuned parameters against closed forms: a quadratic cost of known
+Hessian, a flat direction, an optimum on a bound, a noisy flat direction, failed points."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from kftune.space import Param, Space
+from kftune.tuning.identify import (
+    MAX_EVALS_PER_PARAMETER,
+    NOT_DETERMINED_SHARE,
+    REL_RISE,
+    identify,
+)
+
+#: log10 over 6 decades, linear over 10 units, log10 over 2 decades.
+SPACE = Space(
+    (
+        Param("k", 1e-3, 1e3, "log10"),
+        Param("b", -5.0, 5.0, "linear"),
+        Param("c", 1.0, 100.0, "log10"),
+    )
+)
+X_BEST = np.array([0.1, 1.0, 10.0])
+J_BEST = 2.0
+
+
+def search_t(x: np.ndarray) -> np.ndarray:
+    """(B, 3) natural units → the search scale t (log10 k, b, log10 c)."""
+    x = np.atleast_2d(x)
+    return np.column_stack([np.log10(x[:, 0]), x[:, 1], np.log10(x[:, 2])])
+
+
+def quadratic(hessian: np.ndarray, t_best: np.ndarray | None = None):
+    """J(t) = J* + ½ (t − t*)ᵀ H (t − t*) over batches of natural-unit points."""
+    centre = search_t(X_BEST)[0] if t_best is None else t_best
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        d = search_t(points) - centre
+        return J_BEST + 0.5 * np.einsum("bi,ij,bj->b", d, hessian, d)
+
+    return cost
+
+
+#: A symmetric positive definite Hessian with strong off-diagonal terms.
+HESSIAN = np.array([[80.0, 30.0, -10.0], [30.0, 40.0, 5.0], [-10.0, 5.0, 500.0]])
+
+
+def test_quadratic_curvature_and_range_are_the_closed_form():
+    """With the other coordinates held, the curvature along t_i is H_ii and the cost rises
+    by ΔJ = 1 % of J* at δ = √(2·ΔJ/H_ii), from the curvature and from the profile."""
+    assert np.all(np.linalg.eigvalsh(HESSIAN) > 0)
+    calls = []
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        calls.append(len(points))
+        return quadratic(HESSIAN)(points)
+
+    out = identify(cost, SPACE, X_BEST, ["k", "b", "c"], start={"k": 0.05, "b": 2.0, "c": 10.0})
+    assert len(calls) == 1 and calls[0] == out.n_evals
+    assert out.n_evals <= 1 + 3 * MAX_EVALS_PER_PARAMETER
+    delta_j = REL_RISE * J_BEST
+    for i, rec in enumerate(out.parameters):
+        assert rec.delta_j == pytest.approx(delta_j)
+        assert rec.curvature == pytest.approx(HESSIAN[i, i], rel=1e-6)
+        for _, c in rec.curvature_steps:  # every step agrees on a quadratic
+            assert c == pytest.approx(HESSIAN[i, i], rel=1e-6)
+        half = math.sqrt(2 * delta_j / HESSIAN[i, i])
+        assert rec.half_width == pytest.approx(half, rel=1e-6)
+        t = search_t(X_BEST)[0][i]
+        lo, hi = (t - half, t + half)
+        if rec.scale == "log10":
+            lo, hi = 10**lo, 10**hi
+        assert rec.range_low == pytest.approx(lo, rel=1e-6)
+        assert rec.range_high == pytest.approx(hi, rel=1e-6)
+        assert rec.determined and rec.limits == "both" and rec.on_bound is None
+        assert rec.better is None
+        assert rec.share == pytest.approx(2 * half / SPACE.params[i].width, rel=1e-6)
+    k, b, _ = out.parameters
+    assert k.ratio == pytest.approx(2.0) and b.ratio == pytest.approx(0.5)
+    assert k.to_dict()["change_pct"] == pytest.approx(100.0)
+    json.dumps(out.to_dict(), allow_nan=False)  # strict JSON
+    assert "determined" in k.describe() and "×2 the start" in k.describe()
+
+
+def test_a_direction_the_cost_ignores_is_not_determined():
+    hessian = HESSIAN.copy()
+    hessian[2, :] = hessian[:, 2] = 0.0  # c does not enter J
+    out = identify(quadratic(hessian), SPACE, X_BEST, ["k", "c"], reasons={"c": "c is idle"})
+    k, c = out.parameters
+    assert k.determined
+    assert not c.determined and c.limits == "none" and c.curvature is None
+    assert c.share == pytest.approx(1.0)
+    assert (c.range_low, c.range_high) == (1.0, 100.0)
+    text = c.describe()
+    assert "NOT determined" in text and "flat across the box" in text and "c is idle" in text
+    assert "c is idle" not in k.describe()
+
+
+def test_a_wide_valley_is_not_determined_even_when_closed():
+    """A range closed on both sides that spans most of the box says the data do not
+    determine the parameter: the box, not the data, is almost all that limits it."""
+    hessian = np.diag([80.0, 40.0, 0.0])
+    width = SPACE.params[2].width
+    # the cost rises by ΔJ at ±0.35 of the box: closed, but over 70 % of it
+    hessian[2, 2] = 2 * REL_RISE * J_BEST / (0.35 * width) ** 2
+    (c,) = identify(quadratic(hessian), SPACE, X_BEST, ["c"]).parameters  # c at its centre
+    assert c.limits == "both" and c.share == pytest.approx(0.7, rel=1e-6)
+    assert c.share >= NOT_DETERMINED_SHARE and not c.determined
+    assert "spans 70 % of the box" in c.describe()
+
+
+def test_an_optimum_beyond_a_bound_is_on_it_with_only_a_lower_limit():
+    """The best point sits on the upper bound (the valley's centre lies beyond it): on
+    its bound, the cost rises below it and not above, so only a lower limit."""
+    beyond = np.array([-1.0, 1.0, 2.3])  # log10 c = 2.3 > log10 100
+    x = np.array([0.1, 1.0, 100.0])
+    (c,) = identify(quadratic(np.diag([80.0, 40.0, 50.0]), beyond), SPACE, x, ["c"]).parameters
+    assert c.on_bound == "upper"
+    assert c.limits == "lower" and not c.determined
+    assert c.range_high == 100.0 and c.range_low < 100.0
+    assert "on its upper bound 100" in c.describe() and "only a lower limit" in c.describe()
+    # within 1 % of the box (in the search scale) of the lower bound counts as on it
+    x_near = np.array([10 ** (-3 + 0.009 * 6), 1.0, 10.0])
+    (k,) = identify(quadratic(HESSIAN), SPACE, x_near, ["k"]).parameters
+    assert k.on_bound == "lower"
+    x_off = np.array([10 ** (-3 + 0.02 * 6), 1.0, 10.0])
+    (k,) = identify(quadratic(HESSIAN), SPACE, x_off, ["k"]).parameters
+    assert k.on_bound is None
+
+
+def test_a_one_sided_valley_gives_only_a_lower_limit():
+    """A cost that rises below a threshold and is flat above it (a friction coefficient
+    on data that never reach the friction limit): only a lower limit, not determined."""
+    t_knee = 1.0  # log10 c
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        below = np.maximum(t_knee - search_t(points)[:, 2], 0.0)
+        return J_BEST + 50.0 * below**2
+
+    x = np.array([0.1, 1.0, 10**1.3])
+    (c,) = identify(cost, SPACE, x, ["c"]).parameters
+    assert c.limits == "lower" and not c.determined
+    # J*(1 + 1 %) is reached at t = 1 − 0.02; the profile brackets it between its points
+    # at t* − 0.1·W and t* − 0.3·W (t = 1.1 and 0.7): the end lies in that bracket
+    assert 0.7 <= math.log10(c.range_low) <= 1.1
+    assert c.range_high == 100.0
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_noise_does_not_make_a_flat_direction_look_determined(seed):
+    """Cost noise of 0.3 % of J (σ, Gaussian, independent per point: under a third of the
+    1 % rise that ends a range): the flat direction stays not determined, and the
+    determined one keeps its range within 25 % of the closed form."""
+    rng = np.random.default_rng(seed)
+    hessian = np.diag([80.0, 40.0, 0.0])
+    clean = quadratic(hessian)
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        return clean(points) * (1.0 + 0.003 * rng.standard_normal(len(points)))
+
+    k, c = identify(cost, SPACE, X_BEST, ["k", "c"]).parameters
+    assert not c.determined and c.share > NOT_DETERMINED_SHARE
+    assert k.determined
+    half = math.sqrt(2 * REL_RISE * J_BEST / 80.0)
+    width = math.log10(k.range_high) - math.log10(k.range_low)
+    assert width == pytest.approx(2 * half, rel=0.25)
+
+
+def test_failed_points_count_as_a_rise_and_a_lower_cost_is_reported():
+    """A diverged filter (inf, or NaN) ends the range; a profile point below J* says the
+    search had not converged along that parameter."""
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        t = search_t(points)
+        j = J_BEST - 0.5 * (t[:, 1] - 1.0) + 0.0 * t[:, 0]  # falls along b, flat along k
+        j = np.where(t[:, 0] > -0.5, np.inf, j)  # k above 10^-0.5 diverges
+        return np.where(t[:, 0] < -2.5, np.nan, j)  # and below 10^-2.5
+
+    k, b = identify(cost, SPACE, X_BEST, ["k", "b"]).parameters
+    # each end at the first failed point beyond the last good one (the wider range)
+    failed_above = min(v for v, j in k.profile if j == math.inf and v > k.value)
+    failed_below = max(v for v, j in k.profile if j == math.inf and v < k.value)
+    assert failed_above > 10**-0.5 and failed_below < 10**-2.5
+    assert k.limits == "both" and k.determined
+    assert (k.range_low, k.range_high) == (failed_below, failed_above)
+    assert b.better is not None and b.better[0] > 1.0 and b.better[1] < J_BEST
+    assert "had not converged" in b.describe()
+    doc = json.dumps(k.to_dict(), allow_nan=False)
+    assert "null" in doc  # the failed points, in strict JSON
+
+
+def test_refuses_unknown_names_points_outside_and_a_bad_rise():
+    cost = quadratic(HESSIAN)
+    with pytest.raises(ValueError, match=r"\['mu'\] are not in the search space"):
+        identify(cost, SPACE, X_BEST, ["mu"])
+    with pytest.raises(ValueError, match="outside the search space"):
+        identify(cost, SPACE, np.array([1e4, 1.0, 10.0]), ["k"])
+    with pytest.raises(ValueError, match="rel_rise"):
+        identify(cost, SPACE, X_BEST, ["k"], rel_rise=0.0)
+    with pytest.raises(ValueError, match="best point is not finite"):
+        identify(lambda p: np.full(len(p), np.inf), SPACE, X_BEST, ["k"])
+    assert identify(cost, SPACE, X_BEST, []).lines() == []
+
+
+def test_an_isolated_rough_value_does_not_close_a_flat_range():
+    """A flat cost with one value 2 % too high on each side of the best point, next to it
+    (a rough evaluation): the range runs out to the farthest point under the threshold, so
+    the parameter is still not determined."""
+    width = SPACE.params[2].width
+    rough = {round(1.0 - 0.03 * width, 9), round(1.0 + 0.03 * width, 9)}  # log10 c
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        t = np.round(search_t(points)[:, 2], 9)
+        return np.where(np.isin(t, list(rough)), 1.02 * J_BEST, J_BEST)
+
+    (c,) = identify(cost, SPACE, X_BEST, ["c"]).parameters
+    assert sum(j > J_BEST for _, j in c.profile) == 2  # both rough values were evaluated
+    assert c.limits == "none" and not c.determined
