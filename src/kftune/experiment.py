@@ -309,7 +309,7 @@ def scored_channels(model: StateSpaceModel, dataset: Dataset, cost: CostSpec) ->
     channel against ``<channel>_ref``), or every measurement for a cost without a
     reference (nis, pem, msp). A unit is the model's for a measurement or state, else the
     unit the dataset declares for ``<channel>_ref`` ("" if none)."""
-    names = cost.channels if cost.kind == "nrmse" else model.measurement_names
+    names = cost.channels if cost.kind in ("nrmse", "nlpd", "crps") else model.measurement_names
     return channel_units(model, dataset, names)
 
 
@@ -614,6 +614,12 @@ def _describe_cost(cost: CostSpec, model: StateSpaceModel | None = None) -> str:
         return "innovation negative log-likelihood per sample (prediction-error method)"
     if cost.kind == "msp" and model is not None:
         return "multi-step prediction error of the measured channels"
+    if cost.kind == "nlpd":
+        terms = " + ".join(f"{w:g}·NLPD_{c}" for c, w in cost.weights.items() if w > 0)
+        return f"J = {terms} (mean −log N(ref; est, σ²) per sample, nats)"
+    if cost.kind == "crps":
+        terms = " + ".join(f"{w:g}·CRPS_{c}" for c, w in cost.weights.items() if w > 0)
+        return f"J = {terms} (mean Gaussian CRPS per sample / the largest |X|)"
     terms = " + ".join(f"{w:g}·E_{c}" for c, w in cost.weights.items() if w > 0)
     measured = "r, ay, vx" if model is None else ", ".join(model.measurement_names)
     scored = (

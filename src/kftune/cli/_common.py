@@ -23,7 +23,8 @@ unknown key is an error, not silently ignored::
     burn_in = 0.0                  # [s] left out of cost and KPIs at each manoeuvre's start
 
     [cost]
-    kind = "nrmse"                 # or "pem" / "nis": no reference sensor needed
+    kind = "nrmse"                 # or "nlpd" / "crps" (rewards a calibrated σ); "pem" /
+                                   #   "nis" / "msp": no reference sensor needed
     weights = { beta = 5.0, r = 1.0, ay = 1.0 }
     estimate = "posterior"         # or "prior" (see kftune.tuning.cost.CostSpec)
     normalise = "manoeuvre"        # or "dataset" (see kftune tune --help)
@@ -58,7 +59,7 @@ from typing import TYPE_CHECKING, Any
 
 from kftune.errors import ConfigError, DataError, RunFailedError, UsageError, excerpt
 from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
-from kftune.tuning.cost import CHANNELS, NORMALISATIONS
+from kftune.tuning.cost import CHANNELS, COST_KINDS, NORMALISATIONS
 
 if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
     from kftune.filters import UKFSettings
@@ -370,16 +371,20 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
     cost = parser.add_argument_group("cost")
     cost.add_argument(
         "--cost",
-        choices=("nrmse", "nis", "pem", "msp"),
-        help="nrmse: the paper's weighted NRMSE (default); pem: the innovation likelihood "
-        "(prediction-error method), msp: multi-step prediction error (single-track UKF) and "
-        "nis: NIS consistency, all three without a reference sensor",
+        choices=COST_KINDS,
+        help="nrmse: the paper's weighted NRMSE (default); nlpd / crps: the negative log "
+        "density / CRPS of the reference under the filter's Gaussian (estimate ± σ), which "
+        "reward an accurate and calibrated σ (default weights beta=1; README 'Which cost'); "
+        "pem: the innovation likelihood (prediction-error method), msp: multi-step "
+        "prediction error (single-track UKF) and nis: NIS consistency, all three without a "
+        "reference sensor",
     )
     cost.add_argument(
         "--weights",
         type=_weights_arg,
         metavar="CH=W,...",
-        help=f"NRMSE weights per channel (default beta=5,r=1,ay=1): a measurement of the model "
+        help=f"nrmse, nlpd, crps weights per channel (default beta=5,r=1,ay=1; nlpd and crps: "
+        "beta=1, reference channels only): a measurement of the model "
         f"(single-track: {list(CHANNELS[1:])}), scored against its data channel, or an "
         "output or unmeasured state (single-track: beta, vy), scored against the data's "
         "reference channel <name>_ref",

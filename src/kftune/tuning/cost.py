@@ -1,5 +1,6 @@
 """Tuning costs: the paper's weighted NRMSE (Eq. 14–15) and a variant normalised over the
-whole set of manoeuvres, a NIS consistency cost, and the innovation negative
+whole set of manoeuvres, two proper scoring rules of the reference under the filter's
+Gaussian (NLPD, CRPS), a NIS consistency cost, and the innovation negative
 log-likelihood (the prediction-error method).
 
 The functions here are pure and work on plain arrays, so they can be checked by hand. The
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from scipy.special import ndtr
 
 from kftune.errors import ConfigError
 
@@ -22,9 +24,16 @@ from kftune.errors import ConfigError
 #: acceleration and longitudinal speed (against their measurements).
 CHANNELS: tuple[str, ...] = ("beta", "r", "ay", "vx")
 
-#: The costs a tuning problem knows: the paper's weighted NRMSE (needs a β reference) and
-#: two reference-free ones, NIS consistency and the innovation likelihood (``"pem"``).
-COST_KINDS: tuple[str, ...] = ("nrmse", "nis", "pem", "msp")
+#: The costs a tuning problem knows: the paper's weighted NRMSE and the two proper scoring
+#: rules ``"nlpd"`` and ``"crps"`` (these need a β reference), and three reference-free
+#: ones: NIS consistency, the innovation likelihood (``"pem"``) and the multi-step
+#: prediction error (``"msp"``).
+COST_KINDS: tuple[str, ...] = ("nrmse", "nis", "pem", "msp", "nlpd", "crps")
+
+#: The costs that score the reference channels under the filter's Gaussian N(est, σ²)
+#: (proper scoring rules: minimised in expectation only by the true predictive
+#: distribution, so by an accurate *and* calibrated σ).
+SCORING_RULES: tuple[str, ...] = ("nlpd", "crps")
 
 #: How the NRMSE cost normalises a channel's error: ``"manoeuvre"`` — each manoeuvre's RMSE
 #: over its own max|X| (paper Eq. 15); ``"dataset"`` — the RMSE pooled over all manoeuvres
@@ -39,8 +48,14 @@ MSP_STRIDE = 5
 PAPER_WEIGHTS: Mapping[str, float] = {"beta": 5.0, "r": 1.0, "ay": 1.0}
 
 
+class _DefaultWeights(dict[str, float]):
+    """The weights a :class:`CostSpec` gets when none are given (a plain dict otherwise
+    equal to :data:`PAPER_WEIGHTS`), so that a scoring-rule cost can put β alone in their
+    place."""
+
+
 def _paper_weights() -> dict[str, float]:
-    return dict(PAPER_WEIGHTS)
+    return _DefaultWeights(PAPER_WEIGHTS)
 
 
 @dataclass(frozen=True)
@@ -58,9 +73,18 @@ class CostSpec:
             among ``weights`` (default r and ay); single-track model only. No
             reference-free cost is reliable yet (README, "Tuning without a reference
             sensor": on revs-250lm msp's optimum is a worse filter than manual tuning).
-        weights: channel → weight W_j ≥ 0 (``"nrmse"`` only): a measurement of the
-            filter's model or one of its outputs (the single-track model's: :data:`CHANNELS`);
-            the tuning problem checks them against its model.
+            ``"nlpd"`` — the mean negative log predictive density of the reference under the
+            filter's Gaussian N(est, σ²) (:func:`gaussian_nlpd`), ``"crps"`` — its mean
+            continuous ranked probability score (:func:`gaussian_crps`): proper scoring
+            rules, minimised only by an estimate that is accurate and whose σ is calibrated;
+            see :func:`scoring_rule_cost` for how channels are combined.
+        weights: channel → weight W_j ≥ 0 (``"nrmse"``, ``"nlpd"``, ``"crps"``): a
+            measurement of the filter's model or one of its outputs (the single-track
+            model's: :data:`CHANNELS`); the tuning problem checks them against its model.
+            The scoring rules score reference channels only (an output such as β, or a state
+            that is not measured, against ``<name>_ref``), and default to β alone
+            (``{"beta": 1.0}``): a measured channel's predictive density is the ``pem``
+            cost's.
         estimate: which filter output the measured channels (r, ay, vx) are scored with.
             ``"posterior"`` (default; the paper's "estimated states"): h(x⁺_k), after the
             update with z_k. Because that update has already used z_k, a large process noise
@@ -79,7 +103,7 @@ class CostSpec:
             RMSE on five (README, "Which cost").
     """
 
-    kind: Literal["nrmse", "nis", "pem", "msp"] = "nrmse"
+    kind: Literal["nrmse", "nis", "pem", "msp", "nlpd", "crps"] = "nrmse"
     weights: Mapping[str, float] = field(default_factory=_paper_weights)
     estimate: Literal["posterior", "prior"] = "posterior"
     normalise: Literal["manoeuvre", "dataset"] = "manoeuvre"
@@ -102,7 +126,9 @@ class CostSpec:
                 raise ConfigError(
                     f"cost weight for {name!r} must be a finite number >= 0, got {w!r}"
                 )
-        if self.kind == "nrmse" and not any(w > 0 for w in self.weights.values()):
+        if self.kind in SCORING_RULES and isinstance(self.weights, _DefaultWeights):
+            object.__setattr__(self, "weights", {"beta": 1.0})
+        if self.kind in ("nrmse", *SCORING_RULES) and not any(w > 0 for w in self.weights.values()):
             raise ConfigError("at least one cost weight must be > 0")
         if self.estimate not in ("posterior", "prior"):
             raise ConfigError(
@@ -220,6 +246,113 @@ def weighted_cost(
             pooled[channel] = dataset_error(channel_nrmse[channel], scales[channel], n_samples)
         total += w * pooled[channel]
     return total, pooled
+
+
+def _error_and_std(error: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    e = np.asarray(error, dtype=float)
+    sd = np.asarray(std, dtype=float)
+    if e.shape != sd.shape:
+        raise ValueError(f"error and std must have equal shapes, got {e.shape} and {sd.shape}")
+    return e, sd
+
+
+def gaussian_nlpd(error: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Negative log predictive density of a reference under the Gaussian N(est, σ²), per
+    sample:
+
+    NLPD = −log N(ref; est, σ²) = ½·log(2πσ²) + (ref − est)²/(2σ²)   [nats].
+
+    The logarithmic score (Good 1952; Gneiting & Raftery 2007, §3.4): strictly proper, so
+    its expectation over ref ~ N(μ, s²) is minimised only by est = μ and σ = s. Not
+    scale-free: expressing the channel in another unit (×c) adds log c to every sample.
+
+    Args:
+        error: (N,) ref − est (or est − ref), in the channel's unit.
+        std: (N,) σ > 0 of the estimate, same unit.
+
+    Returns:
+        (N,) the score per sample; inf where σ = 0 and the error is not (and NaN where
+        both are 0).
+    """
+    e, sd = _error_and_std(error, std)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return 0.5 * np.log(2.0 * math.pi * sd * sd) + 0.5 * (e / sd) ** 2
+
+
+def gaussian_crps(error: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Continuous ranked probability score of a reference under the Gaussian N(est, σ²),
+    per sample, in closed form (Gneiting & Raftery 2007, Eq. 21):
+
+    CRPS = σ·[z·(2Φ(z) − 1) + 2φ(z) − 1/√π],   z = (ref − est)/σ,
+
+    with Φ, φ the standard normal CDF and density; equal to E|X − ref| − ½·E|X − X'| for
+    X, X' ~ N(est, σ²) independent. Strictly proper like the NLPD, in the channel's unit
+    (→ |ref − est| as σ → 0), and less severe on a single large error (it grows linearly
+    in |z|, the NLPD quadratically).
+
+    Args:
+        error: (N,) ref − est (the score is even in it), in the channel's unit.
+        std: (N,) σ > 0, same unit.
+
+    Returns:
+        (N,) the score per sample [channel unit]; NaN where σ = 0.
+    """
+    e, sd = _error_and_std(error, std)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = e / sd
+        pdf = np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+        return sd * (z * (2.0 * ndtr(z) - 1.0) + 2.0 * pdf - 1.0 / math.sqrt(math.pi))
+
+
+def scoring_rule_cost(
+    channel_sums: Mapping[str, Sequence[float]],
+    n_samples: Sequence[int],
+    weights: Mapping[str, float],
+    scales: Mapping[str, Sequence[float]] | None = None,
+) -> tuple[float, dict[str, float]]:
+    """A scoring rule's cost J = Σ_j W_j·S̄_j, with S̄_j the channel's per-sample score
+    (:func:`gaussian_nlpd` or :func:`gaussian_crps`) averaged over all samples of all
+    manoeuvres: S̄_j = Σ_i Σ_k s_{j,i,k} / Σ_i N_i, pooled like the NRMSE (Eq. 14).
+
+    How channels of different units are combined: with ``scales`` (the CRPS, which is in
+    the channel's unit) S̄_j is divided by the largest |X| of the channel among the
+    manoeuvres, as the NRMSE normalised over the whole set, so that the weights compare
+    dimensionless numbers; without (the NLPD, in nats) the scores are added as they are —
+    a channel's unit shifts its NLPD by a constant (log of the unit), which leaves the
+    minimiser unchanged, and the weights trade log-likelihood between channels.
+
+    Args:
+        channel_sums: channel → (M,) Σ_k of the per-sample score in each manoeuvre.
+        n_samples: (M,) sample counts N_i.
+        weights: channel → W_j; channels with weight 0 are ignored.
+        scales: channel → (M,) max|X| per manoeuvre, or None (see above).
+
+    Returns:
+        (J, {channel: S̄_j (divided by its scale with ``scales``)}); J is inf when a score
+        is not finite (a σ of 0, or a run that ran away).
+    """
+    n = np.asarray(n_samples, dtype=float)
+    if n.ndim != 1 or n.size == 0 or np.any(n <= 0):
+        raise ValueError(f"need positive sample counts, got {n_samples!r}")
+    pooled: dict[str, float] = {}
+    total = 0.0
+    for channel, w in weights.items():
+        if w == 0:
+            continue
+        if channel not in channel_sums:
+            raise ValueError(f"no scores for weighted channel {channel!r}")
+        sums = np.asarray(channel_sums[channel], dtype=float)
+        if sums.shape != n.shape:
+            raise ValueError(f"need one score sum per manoeuvre, got {sums.shape} for {n.shape}")
+        value = float(np.sum(sums) / np.sum(n))
+        if scales is not None:
+            s = np.asarray(scales[channel], dtype=float)
+            if s.shape != n.shape or not np.all(s > 0):
+                raise ValueError(f"need one positive scale per manoeuvre, got {s.shape}")
+            value /= float(np.max(s))
+        pooled[channel] = value
+        total += w * value
+    return (total if math.isfinite(total) else math.inf), pooled
 
 
 def nis_cost(nis: Sequence[np.ndarray], n_z: int) -> float:

@@ -30,6 +30,7 @@ from kftune.models.user import model_file_sha256
 from kftune.tuning.problem import (
     RunResult,
     TuningProblem,
+    beta_std,
     filter_spec,
     first_scored,
     model_output,
@@ -326,22 +327,6 @@ def vehicle_differences(a: VehicleParams, b: VehicleParams, rtol: float = 1e-9) 
         if not same:
             out.append(f"{key} {va!r} vs {vb!r}")
     return out
-
-
-def beta_std(x: np.ndarray, p_diag: np.ndarray) -> np.ndarray:
-    """(N,) standard deviation [rad] of β = atan2(Vy, Vx) by the delta method.
-
-    Linearises β about the estimate: ∂β/∂Vx = −Vy/(Vx² + Vy²), ∂β/∂Vy = Vx/(Vx² + Vy²), so
-    var β ≈ (Vy²·var Vx + Vx²·var Vy)/(Vx² + Vy²)². Only the diagonal of P is kept by the
-    filter's output, so the Vx–Vy covariance is left out (it is small when Vx is measured).
-
-    Args:
-        x: (N, ≥2) states with Vx in column 0 and Vy in column 1 [m/s]; p_diag: (N, ≥2) their
-            variances [(m/s)²].
-    """
-    vx, vy = x[:, 0], x[:, 1]
-    s = vx**2 + vy**2
-    return np.sqrt(vy**2 * p_diag[:, 0] + vx**2 * p_diag[:, 1]) / s
 
 
 @dataclass(frozen=True)

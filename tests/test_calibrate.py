@@ -1,0 +1,213 @@
+"""Calibration of a filter's σ by one covariance scale c (c·Q, c·R, c·P0).
+
+References independent of kftune's calibration: a linear-Gaussian model simulated with known
+Q and R (the filter with the true noise is consistent, its mean NEES inside the χ² band of
+Bar-Shalom et al. 2001 §5.4), FilterPy's Kalman filter run with the scaled covariances (the
+estimate of the Kalman filter does not depend on a common scale of Q, R and P0), hand counts.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from kftune.filters import EKF
+from kftune.models.linear import linear_model
+from kftune.tuning.calibrate import (
+    SPREAD_LIMIT,
+    TOLERANCE,
+    RunErrors,
+    bias_share,
+    fit_scale,
+    required_factor,
+)
+from kftune.tuning.consistency import channel_consistency, pool
+
+F = np.array([[1.0, 0.1], [0.0, 0.95]])
+H = np.array([[1.0, 0.0]])
+Q = np.array([1e-4, 1e-2])
+R = np.array([0.05])
+P0 = np.array([1.0, 1.0])
+
+
+def simulate(seed: int, n: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    """(x (n, 2), z (n, 1)) of x_k = F·x_{k−1} + w, z_k = H·x_k + v, w ~ N(0, diag Q),
+    v ~ N(0, R), x_0 ~ N(0, diag P0)."""
+    rng = np.random.default_rng(seed)
+    x = np.zeros((n, 2))
+    x[0] = rng.normal(0.0, np.sqrt(P0))
+    for k in range(1, n):
+        x[k] = F @ x[k - 1] + rng.normal(0.0, np.sqrt(Q))
+    return x, x @ H.T + rng.normal(0.0, np.sqrt(R), (n, 1))
+
+
+RUNS = [simulate(seed) for seed in range(4)]
+MODEL = linear_model(F, H)  # one model object: each new one compiles the filter again
+
+
+def linear_runs(scale: float):
+    """c → kftune's Kalman filter (EKF of the linear model) with c·scale·(Q, R, P0) over
+    the simulated runs, both states referenced."""
+
+    def run(c: float) -> list[RunErrors]:
+        out = []
+        for i, (x, z) in enumerate(RUNS):
+            s = c * scale
+            res = EKF().run(MODEL, None, z, 1.0, Q * s, R * s, x0=[0, 0], P0=P0 * s)
+            names = ("x0", "x1")
+            out.append(
+                RunErrors(
+                    name=f"run{i}",
+                    err={c: res.x[:, j] - x[:, j] for j, c in enumerate(names)},
+                    std={c: np.sqrt(res.P_diag[:, j]) for j, c in enumerate(names)},
+                    estimate={c: res.x[:, j] for j, c in enumerate(names)},
+                    nis=res.nis,
+                    m=1,
+                )
+            )
+        return out
+
+    return run
+
+
+def pooled(runs: list[RunErrors]):
+    """Both states' consistency pooled over the runs (NEES with its effective band)."""
+    return pool(
+        channel_consistency(r.err[c], r.std[c], np.zeros_like(r.err[c]))
+        for r in runs
+        for c in r.err
+    )
+
+
+def test_the_filter_with_the_true_noise_is_left_unchanged():
+    """The true Q, R and P0: the fitted c lies within the χ² band of the mean NEES around 1
+    (c is the mean NEES at c = 1 for a linear filter), so calibrating changes nothing that
+    the data could tell; NEES and coverage stay in their bounds."""
+    run = linear_runs(1.0)
+    nees = pooled(run(1.0)).nees
+    lo, hi = nees.band_eff
+    assert lo <= nees.mean <= hi  # the reference: a consistent filter
+    cal = fit_scale(run, "nees")
+    assert lo <= cal.factor <= hi, (cal.factor, (lo, hi))
+    assert cal.factor == pytest.approx(nees.mean, rel=TOLERANCE)
+    after = pooled(run(cal.factor))
+    assert after.nees.mean == pytest.approx(1.0, abs=TOLERANCE)
+    for share, p in zip(after.coverage, (0.6827, 0.95)):
+        assert abs(share - p) < 4 * math.sqrt(p * (1 - p) / after.nees.n_eff)
+    assert cal.warning is None
+
+
+@pytest.mark.parametrize("criterion", ["nees", "coverage95"])
+def test_q_and_r_ten_times_too_large_are_detected_and_recalibrated(criterion):
+    """Q, R and P0 × 10: the NEES far below its band before; c ≈ 0.1 (exactly the true
+    filter's required factor / 10, P scaling exactly with c); after it the NEES (or the 95 %
+    coverage) is at its target and the estimate has not moved, to rounding."""
+    true_rho = required_factor(linear_runs(1.0)(1.0), criterion)
+    cal = fit_scale(linear_runs(10.0), criterion)
+    assert cal.before.nees.mean < cal.before.nees.band_eff[0]
+    assert cal.before.coverage[1] > 0.999
+    assert cal.factor == pytest.approx(true_rho / 10, rel=1e-6)
+    assert 0.08 < cal.factor < 0.12
+    assert cal.n_runs == 2  # one fixed-point step is exact for a linear filter
+    after = pooled(linear_runs(10.0)(cal.factor))  # both states, as fitted
+    if criterion == "nees":
+        lo, hi = after.nees.band_eff
+        assert lo <= after.nees.mean <= hi
+    else:
+        assert after.coverage[1] == pytest.approx(0.95, abs=1e-3)
+    assert cal.shift_rms < 1e-9 * cal.rmse
+
+
+def test_the_calibrated_filter_equals_filterpys_kalman_filter():
+    """kftune's filter with c·10·(Q, R, P0) and FilterPy's KalmanFilter with the same
+    covariances agree in estimate and covariance; the estimate equals the uncalibrated
+    (×10) filter's, and the covariance is c times it."""
+    cal = fit_scale(linear_runs(10.0), "nees")
+    s = 10.0 * cal.factor
+    z = RUNS[0][1]
+    ours = EKF().run(MODEL, None, z, 1.0, Q * s, R * s, x0=[0, 0], P0=P0 * s)
+    raw = EKF().run(MODEL, None, z, 1.0, Q * 10, R * 10, x0=[0, 0], P0=P0 * 10)
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.x, kf.P, kf.F, kf.H = np.zeros(2), np.diag(P0 * s), F, H
+    kf.Q, kf.R = np.diag(Q * s), np.diag(R * s)
+    est, var = [], []
+    for k in range(len(z)):
+        if k:
+            kf.predict()
+        kf.update(z[k])
+        est.append(kf.x.copy())
+        var.append(np.diag(kf.P).copy())
+    np.testing.assert_allclose(ours.x, np.array(est), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ours.P_diag, np.array(var), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(ours.x, raw.x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ours.P_diag, cal.factor * raw.P_diag, rtol=1e-9)
+
+
+def test_without_a_reference_it_fits_the_nis_to_m():
+    """No channel with a reference: c makes the mean NIS equal m (S scales by c)."""
+    full = linear_runs(10.0)
+
+    def run(c: float) -> list[RunErrors]:
+        return [RunErrors(r.name, {}, {}, {}, r.nis, r.m) for r in full(c)]
+
+    cal = fit_scale(run, "nees")
+    assert cal.criterion == "nis" and cal.channels == ()
+    assert cal.nis_after == pytest.approx(1.0, abs=1e-3)
+    assert cal.nis_before == pytest.approx(cal.factor, rel=1e-6)  # ρ(1) = NIS/m at c = 1
+    assert 0.05 < cal.factor < 0.2
+
+
+# ------------------------------------------------------------------------- hand counts
+def one(name: str, e: list[float], s: float = 1.0) -> RunErrors:
+    arr = np.asarray(e, dtype=float)
+    return RunErrors(name, {"a": arr}, {"a": np.full(arr.size, s)}, {"a": arr})
+
+
+def test_required_factor_and_bias_share_equal_hand_counts():
+    """Errors 2, 0 (σ = 1): mean NEES (4 + 0)/2 = 2; bias share 2·1²/4 = 0.5. Alternating
+    ±1: no bias; constant 1: all bias. The 95 % criterion: the 95th percentile of |e|/σ
+    over 0…19 (numpy's linear interpolation: 18.05) over 1.96, squared."""
+    assert required_factor([one("m", [2.0, 0.0])], "nees") == pytest.approx(2.0)
+    assert bias_share(one("m", [2.0, 0.0])) == pytest.approx(0.5)
+    assert bias_share(one("m", [1.0, -1.0, 1.0, -1.0])) == pytest.approx(0.0)
+    assert bias_share(one("m", [1.0, 1.0, 1.0])) == pytest.approx(1.0)
+    got = required_factor([one("m", list(range(20)))], "coverage95")
+    assert got == pytest.approx((18.05 / 1.959963984540054) ** 2)
+    # a σ of 0 and a NaN error are not counted
+    r = RunErrors("m", {"a": np.array([2.0, np.nan, 5.0])}, {"a": np.array([1.0, 1.0, 0.0])}, {})
+    assert required_factor([r], "nees") == pytest.approx(4.0)
+
+
+def test_a_manoeuvre_dominated_by_bias_is_named():
+    """Nine manoeuvres of unit white errors and one with an offset of 3σ (own factor 10,
+    bias share 9/10; the common one about 1.9): the common factor cannot serve it; the
+    warning names it as dominated by bias and says what the user sees, and none is named
+    when all are alike."""
+    rng = np.random.default_rng(0)
+    errs = {f"m{i}": rng.normal(0.0, 1.0, 2000) for i in range(9)}
+    errs["offset"] = rng.normal(0.0, 1.0, 2000) + 3.0
+
+    def runs(errors: dict[str, np.ndarray]):
+        def run(c: float) -> list[RunErrors]:
+            return [
+                RunErrors(n, {"a": e}, {"a": np.full(e.size, math.sqrt(c))}, {"a": e})
+                for n, e in errors.items()
+            ]
+
+        return run
+
+    cal = fit_scale(runs(errs))
+    own = {f.name: f for f in cal.per_manoeuvre}
+    assert own["offset"].bias_share == pytest.approx(9 / 10, abs=0.02)
+    assert own["offset"].factor / cal.factor > SPREAD_LIMIT
+    assert [f.name for f in cal.outliers] == ["offset"]
+    assert cal.warning.startswith(
+        "one scale cannot make every manoeuvre consistent: errors dominated by bias on 'offset'"
+    )
+    assert "What you see" in cal.warning
+    assert cal.as_dict()["warning"] == cal.warning
+    del errs["offset"]
+    assert fit_scale(runs(errs)).warning is None
