@@ -87,13 +87,22 @@ MANUAL_Q: tuple[float, float, float] = (1e-6, 1e-4, 1e-6)
 def manual_point(parameterization: NoiseParameterization) -> np.ndarray:
     """The manual-tuning point in the space of ``parameterization`` (R unscaled, default
     sigma points), clipped into the space's bounds if they exclude it. A state without a
-    rule of thumb (any but Vx, Vy, r) gets the geometric centre of its box."""
+    rule of thumb (any but Vx, Vy, r) gets the geometric centre of its box; a tuned model
+    parameter its start value ``model_start`` (the recorded model; a parameterisation
+    without one — not yet completed by a :class:`TuningProblem` — is refused)."""
     space = parameterization.space
+    missing = [n for n in parameterization.model_names if n not in parameterization.model_start]
+    if missing:
+        raise ValueError(
+            f"model parameters {missing} have no start value: take the parameterisation of "
+            "the TuningProblem, which completes them from the recorded model"
+        )
     values = {p.name: float(np.sqrt(p.low * p.high)) for p in space if p.name.startswith("q_")}
     values.update(zip(Q_NAMES, MANUAL_Q))
     values.update({n: 1.0 for n in parameterization.r_names})
     s = parameterization.default_settings
     values.update(ukf_alpha=s.alpha, ukf_beta=s.beta, ukf_kappa=s.kappa)
+    values.update(parameterization.model_start)
     x = np.array([values[n] for n in space.names])
     return np.clip(x, space.lows, space.highs)
 

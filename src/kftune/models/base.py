@@ -169,6 +169,9 @@ class StateSpaceModel:
         outputs: derived quantities a cost can score against a reference channel
             ``<name>_ref`` of the data: name → ``g(x (N, n)) -> (N,)`` over the posterior
             states (the single-track models' ``beta`` = atan2(Vy, Vx) [rad]).
+        param_ranges: name → (low, high), the plausible range of a parameter in its unit
+            (both ends included): a tuning box for it beyond the range is refused. A
+            parameter without one may take any finite value.
     """
 
     name: str
@@ -197,6 +200,7 @@ class StateSpaceModel:
     description: str = ""
     outputs: Mapping[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
     needs_vehicle: bool = False
+    param_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         name = self.name
@@ -231,6 +235,26 @@ class StateSpaceModel:
                 f"({self.param_names}), got {self.param_defaults}"
             )
         object.__setattr__(self, "param_defaults", defaults)
+        ranges: dict[str, tuple[float, float]] = {}
+        for key, rng in dict(self.param_ranges).items():
+            if key not in self.param_names:
+                raise ValueError(
+                    f"model {name!r}: param_ranges names {key!r}, which is not one of its "
+                    f"parameters {list(self.param_names)}"
+                )
+            try:
+                low, high = (float(v) for v in rng)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"model {name!r}: param_ranges[{key!r}] must be (low, high), got {rng!r}"
+                ) from None
+            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+                raise ValueError(
+                    f"model {name!r}: param_ranges[{key!r}] must be finite with low <= high, "
+                    f"got {rng!r}"
+                )
+            ranges[key] = (low, high)
+        object.__setattr__(self, "param_ranges", types.MappingProxyType(ranges))
         for hook, args in HOOK_ARGUMENTS.items():
             fn = getattr(self, hook)
             if (fn is not None or hook in ("f", "h")) and not isinstance(fn, Dispatcher):

@@ -35,7 +35,7 @@ from numba import njit
 
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
 from kftune.models.base import FIRST_MODEL_STOP, DataRefused, PriorRule, StateSpaceModel
-from kftune.vehicle.params import PARAM_INDEX, PRESETS
+from kftune.vehicle.params import PARAM_INDEX, PLAUSIBLE_RANGES, PRESETS
 from kftune.vehicle.single_track import (
     MAX_SIDESLIP,
     measure_scalar,
@@ -296,6 +296,7 @@ def _model(
         description=description,
         outputs={"beta": sideslip_angle},
         needs_vehicle=True,
+        param_ranges={k: PLAUSIBLE_RANGES[k][:2] for k in PARAM_INDEX},
     )
 
 

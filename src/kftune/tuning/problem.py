@@ -20,7 +20,7 @@ import re
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -37,15 +37,11 @@ from kftune.space import Param, Space
 from kftune.tuning.cost import (
     MSP_HORIZON,
     MSP_STRIDE,
-    SCORING_RULES,
     CostSpec,
-    gaussian_crps,
-    gaussian_nlpd,
     innovation_nll,
     multistep_cost,
     nis_cost,
     nrmse,
-    scoring_rule_cost,
     weighted_cost,
 )
 from kftune.tuning.hookcheck import check_model_file
@@ -89,6 +85,17 @@ class NoiseParameterization:
     And ``tune_sigma_points``: ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa``
     (linear), the sigma-point parameters (FilterPy's ``MerweScaledSigmaPoints`` convention;
     κ > −2 keeps n + κ ≥ 1).
+
+    And the model's own parameters (``param_names`` of the model; for the single-track
+    models the vehicle's fields, e.g. ``C_af`` [N/rad]): ``model_bounds`` name → (low, high)
+    in the parameter's unit adds one parameter of that name per entry, after the others,
+    on the scale ``model_scales[name]`` — default log10 where low > 0 (stiffness, mass and
+    friction are scale quantities whose uncertainty is relative: ×0.7 and ×1.4 are equally
+    likely guesses), else linear. ``model_start`` name → the recorded value, the start and
+    manual point (:func:`kftune.experiment.manual_point`); :class:`TuningProblem` fills
+    the names it lacks from the model's recorded parameters. Whether a name is a parameter
+    of the model and its box plausible is checked against the model
+    (:func:`check_model_params`).
     """
 
     q_bounds: Bounds | Mapping[str, Bounds] = Q_BOUNDS
@@ -102,10 +109,14 @@ class NoiseParameterization:
     states: tuple[str, ...] = SIDESLIP_STATES
     measurements: tuple[str, ...] = SIDESLIP_MEASUREMENTS
     tune_r: str = "none"
+    model_bounds: Mapping[str, Bounds] = field(default_factory=dict)
+    model_scales: Mapping[str, str] = field(default_factory=dict)
+    model_start: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "states", tuple(self.states))
         object.__setattr__(self, "measurements", tuple(self.measurements))
+        self._check_model_fields()
         if self.tune_r not in R_MODES:
             raise ValueError(f"tune_r must be one of {list(R_MODES)}, got {self.tune_r!r}")
         if self.tune_r_scale and self.tune_r == "diag":
@@ -119,6 +130,87 @@ class NoiseParameterization:
                     f"q_bounds names {unknown} are not parameters of this model; "
                     f"expected some of {list(self.q_names)}"
                 )
+
+    def _check_model_fields(self) -> None:
+        """Normalise ``model_bounds``/``model_scales``/``model_start`` to plain dicts of
+        floats and refuse what no model could take (each message names the parameter)."""
+        bounds: dict[str, Bounds] = {}
+        for name, box in dict(self.model_bounds).items():
+            try:
+                low, high = (float(v) for v in box)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"model parameter {name!r}: bounds must be (low, high), got {box!r}"
+                ) from None
+            if not (math.isfinite(low) and math.isfinite(high) and low < high):
+                raise ValueError(
+                    f"model parameter {name!r}: bounds must be finite with low < high, "
+                    f"got ({low:g}, {high:g})"
+                )
+            bounds[str(name)] = (low, high)
+        scales: dict[str, str] = {}
+        for name, scale in dict(self.model_scales).items():
+            if name not in bounds:
+                raise ValueError(
+                    f"a scale is given for model parameter {name!r}, which is not tuned; "
+                    f"tuned: {list(bounds)}"
+                )
+            if scale not in ("log10", "linear"):
+                raise ValueError(
+                    f"model parameter {name!r}: scale must be 'log10' or 'linear', got {scale!r}"
+                )
+            scales[name] = scale
+        for name, (low, _) in bounds.items():
+            scales.setdefault(name, "log10" if low > 0 else "linear")
+            if scales[name] == "log10" and low <= 0:
+                raise ValueError(
+                    f"model parameter {name!r}: a log10 scale needs a positive lower bound, "
+                    f"got {low:g} (give the scale 'linear')"
+                )
+        start: dict[str, float] = {}
+        for name, value in dict(self.model_start).items():
+            if name not in bounds:
+                raise ValueError(
+                    f"a start value is given for model parameter {name!r}, which is not "
+                    f"tuned; tuned: {list(bounds)}"
+                )
+            v = float(value)
+            low, high = bounds[name]
+            if not low <= v <= high:
+                # refused, not clipped: the start is the recorded model, the manual point
+                # and the baseline of the held-out comparison; a clipped one is a model
+                # nobody recorded
+                raise ValueError(
+                    f"model parameter {name!r}: its recorded value {v:g} lies outside its "
+                    f"box [{low:g}, {high:g}]; widen the box to include it"
+                )
+            start[name] = v
+        object.__setattr__(self, "model_bounds", bounds)
+        object.__setattr__(self, "model_scales", {n: scales[n] for n in bounds})
+        object.__setattr__(self, "model_start", start)
+
+    @property
+    def model_names(self) -> tuple[str, ...]:
+        """The tuned model parameters, in the order of ``model_bounds`` (as in the space)."""
+        return tuple(self.model_bounds)
+
+    def model_values(self, x: Sequence[float] | np.ndarray) -> dict[str, float]:
+        """The model parameters of a point of :attr:`space` (natural units), name → value."""
+        if not self.model_bounds:
+            return {}
+        names = self.space.names
+        x = np.asarray(x, dtype=float)
+        if x.shape != (len(names),):
+            raise ValueError(f"expected a point with {len(names)} values {names}, got {x.shape}")
+        return {n: float(x[names.index(n)]) for n in self.model_names}
+
+    def with_start(self, recorded: Mapping[str, float]) -> NoiseParameterization:
+        """This parameterisation with ``model_start`` completed from ``recorded`` (name →
+        the model's recorded value) for the tuned names it lacks (itself when none)."""
+        missing = {n: float(recorded[n]) for n in self.model_names if n not in self.model_start}
+        if not missing:
+            return self
+        return replace(self, model_start={**self.model_start, **missing})
 
     @property
     def q_names(self) -> tuple[str, ...]:
@@ -151,6 +243,10 @@ class NoiseParameterization:
                 Param("ukf_beta", *self.beta_bounds),
                 Param("ukf_kappa", *self.kappa_bounds),
             ]
+        params += [
+            Param(name, *self.model_bounds[name], scale=self.model_scales[name])
+            for name in self.model_names
+        ]
         return Space(params)
 
     def decode(
@@ -186,6 +282,16 @@ class NoiseParameterization:
         }
         if self.states != SIDESLIP_STATES or self.measurements != SIDESLIP_MEASUREMENTS:
             out["states"], out["measurements"] = list(self.states), list(self.measurements)
+        if self.model_bounds:  # absent without: a noise-only study keeps its fingerprint
+            out["model"] = {
+                n: {
+                    "low": self.model_bounds[n][0],
+                    "high": self.model_bounds[n][1],
+                    "scale": self.model_scales[n],
+                    "start": self.model_start.get(n),
+                }
+                for n in self.model_names
+            }
         return out
 
 
@@ -202,9 +308,6 @@ class ManoeuvreScore:
         log_det_s_sum: Σ_k log det S_k (with ``nis_sum``, the innovation likelihood).
         msp_sq, msp_n: per cost channel the sum of squared multi-step prediction errors,
             and the number of start samples (the ``msp`` cost).
-        score_sum: channel → Σ_k of the per-sample scoring rule (the ``nlpd`` cost: NLPD
-            [nats]; ``crps``: CRPS [channel unit]) of the reference under the filter's
-            Gaussian, for the weighted channels (with ``scale`` their max|X|).
     """
 
     name: str
@@ -215,7 +318,6 @@ class ManoeuvreScore:
     log_det_s_sum: float = 0.0
     msp_sq: tuple[float, ...] = ()
     msp_n: int = 0
-    score_sum: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -275,25 +377,11 @@ def check_units(model: StateSpaceModel, dataset: Dataset) -> None:
 
 
 def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
-    """Refuse an NRMSE cost that weighs a channel ``model`` cannot score, and a scoring-rule
-    cost (nlpd, crps) that weighs a channel other than an output with a standard deviation
-    (:func:`std_outputs`).
+    """Refuse an NRMSE cost that weighs a channel ``model`` cannot score.
 
     Raises:
         ConfigError: naming the channel, the model's measurements and its outputs.
     """
-    if spec.kind in SCORING_RULES:
-        scored = std_outputs(model)
-        for c in spec.channels:
-            if c not in scored:
-                what = "a measurement" if c in model.measurement_names else "not an output"
-                raise ConfigError(
-                    f"cost channel {c!r} ({what} of model {model.name!r}): the {spec.kind} "
-                    "cost scores a reference channel <output>_ref under the filter's "
-                    f"Gaussian, for an output with a standard deviation: {list(scored)} (a "
-                    "measured channel's predictive density is the pem cost's)"
-                )
-        return
     if spec.kind != "nrmse":
         return
     outputs = output_names(model)
@@ -304,6 +392,40 @@ def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
                 f"{list(model.measurement_names)} nor one of its outputs {list(outputs)} "
                 "(scored against a reference channel <output>_ref)"
             )
+
+
+#: Vehicle fields that are no parameters of the single-track models, and why.
+_NOT_IN_MODEL = {
+    "track_f": "the single-track model lumps each axle",
+    "track_r": "the single-track model lumps each axle",
+    "steering_ratio": "it only converts recorded hand-wheel angles when data are imported",
+}
+
+
+def check_model_params(par: NoiseParameterization, model: StateSpaceModel) -> None:
+    """Refuse tuned model parameters ``model`` cannot take: a name that is not one of its
+    ``param_names``, or a box beyond the model's plausible range of the parameter
+    (``param_ranges``; the single-track models: the vehicle's ``PLAUSIBLE_RANGES``).
+
+    Raises:
+        ConfigError: naming the parameter and the model's parameters or the range.
+    """
+    for name, (low, high) in par.model_bounds.items():
+        if name not in model.param_names:
+            why = f" ({_NOT_IN_MODEL[name]})" if name in _NOT_IN_MODEL else ""
+            raise ConfigError(
+                f"tune_model: {name!r} is not a parameter of model {model.name!r}{why}; it "
+                f"has {list(model.param_names)}"
+            )
+        if name in model.param_ranges:
+            lo, hi = model.param_ranges[name]
+            unit = model.param_units[model.param_names.index(name)]
+            if low < lo or high > hi:
+                raise ConfigError(
+                    f"tune_model: the box of {name!r}, [{low:g}, {high:g}] {unit}, reaches "
+                    f"beyond its plausible range [{lo:g}, {hi:g}] {unit} (model "
+                    f"{model.name!r}); give a box within it"
+                )
 
 
 def model_output(res: RunResult, name: str) -> np.ndarray:
@@ -322,51 +444,6 @@ def model_output(res: RunResult, name: str) -> np.ndarray:
     raise KeyError(
         f"model {model.name!r} has no output {name!r}; it has {list(output_names(model))}"
     )
-
-
-def beta_std(x: np.ndarray, p_diag: np.ndarray) -> np.ndarray:
-    """(N,) standard deviation [rad] of β = atan2(Vy, Vx) by the delta method.
-
-    Linearises β about the estimate: ∂β/∂Vx = −Vy/(Vx² + Vy²), ∂β/∂Vy = Vx/(Vx² + Vy²), so
-    var β ≈ (Vy²·var Vx + Vx²·var Vy)/(Vx² + Vy²)². Only the diagonal of P is kept by the
-    filter's output, so the Vx–Vy covariance is left out (it is small when Vx is measured).
-
-    Args:
-        x: (N, ≥2) states with Vx in column 0 and Vy in column 1 [m/s]; p_diag: (N, ≥2) their
-            variances [(m/s)²].
-    """
-    vx, vy = x[:, 0], x[:, 1]
-    s = vx**2 + vy**2
-    return np.sqrt(vy**2 * p_diag[:, 0] + vx**2 * p_diag[:, 1]) / s
-
-
-def std_outputs(model: StateSpaceModel) -> tuple[str, ...]:
-    """The outputs of ``model`` (:func:`output_names`) whose standard deviation the filter
-    gives (:func:`output_std`): β of a model whose first states are Vx, Vy, and every
-    state that is not measured."""
-    beta = "beta" in model.outputs and model.state_names[:2] == ("vx", "vy")
-    return tuple(c for c in output_names(model) if (c == "beta" and beta) or c in model.state_names)
-
-
-def output_std(res: RunResult, name: str) -> np.ndarray:
-    """(N,) the standard deviation of :func:`model_output` ``name`` from the posterior
-    covariance's diagonal: β [rad] by the delta method (:func:`beta_std`), a state's
-    √P_ii in its unit.
-
-    Raises:
-        KeyError: an output whose σ the filter does not give (:func:`std_outputs`).
-    """
-    from kftune.models import SINGLE_TRACK
-
-    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
-    if name not in std_outputs(model):
-        raise KeyError(
-            f"model {model.name!r} gives no standard deviation of {name!r}; it gives one of "
-            f"{list(std_outputs(model))}"
-        )
-    if name == "beta" and "beta" in model.outputs:
-        return beta_std(res.x, res.P_diag)
-    return np.sqrt(np.asarray(res.P_diag[:, model.state_names.index(name)], dtype=float))
 
 
 def channel_estimate(
@@ -507,13 +584,53 @@ class FilterSpec:
         q: np.ndarray,
         r: np.ndarray,
         settings: UKFSettings,
+        *,
+        params: np.ndarray | None = None,
+        cov_scale: float = 1.0,
     ) -> RunResult:
-        """The filter's run over one manoeuvre."""
+        """The filter's run over one manoeuvre.
+
+        Args:
+            m: the manoeuvre. vehicle: the vehicle of the paper's kernel (single-track UKF).
+            q: (n,) and r: (m,) the noise variances. settings: the UKF's sigma points.
+            params: (n_p,) the model's parameter vector for this run (None: :attr:`params`,
+                or for the paper's kernel ``vehicle``).
+            cov_scale: c > 0: the filter runs with c·Q, c·R and c·P0, where x0 and P0 are
+                the model's prior rule evaluated with the unscaled r (the single-track
+                kernel: :func:`~kftune.models.sideslip.single_track_prior`). The Kalman
+                gain is homogeneous of degree 0 in (P, Q, R), so an EKF's estimate is
+                unchanged and its covariances scale by c; a UKF's sigma points spread
+                √c times wider, which moves its estimate slightly on a nonlinear model.
+        """
+        c = float(cov_scale)
+        if not (math.isfinite(c) and c > 0):
+            raise ValueError(f"cov_scale must be a positive finite number, got {cov_scale!r}")
         if self.fast:
-            assert vehicle is not None  # filter_spec refuses the single-track model without
-            return run_ukf(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
+            assert vehicle is not None or params is not None  # filter_spec refuses none
+            p = vehicle if params is None else params
+            if c == 1.0:
+                return run_ukf(m.u, m.z, m.dt, p, q, r, settings=settings)
+            from kftune.models.sideslip import single_track_prior
+
+            x0, P0 = single_track_prior(m.z[0], np.asarray(r, float), np.zeros(0))
+            return run_ukf(
+                m.u, m.z, m.dt, p, c * np.asarray(q, float), c * np.asarray(r, float),
+                x0=x0, P0=c * P0, settings=settings,
+            )  # fmt: skip
         u, z = self.inputs(m)
-        return self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=self.params)
+        p = self.params if params is None else np.asarray(params, dtype=float)
+        filt = self.filter_object(settings)
+        if c == 1.0:
+            return filt.run(self.model, u, z, m.dt, q, r, params=p)
+        if self.model.initial_state is None:
+            raise ValueError(f"model {self.model.name!r} has no prior rule to scale")
+        x0, P0 = self.model.initial_state(
+            np.ascontiguousarray(z[0], float), np.asarray(r, float), p
+        )
+        return filt.run(
+            self.model, u, z, m.dt, c * np.asarray(q, float), c * np.asarray(r, float),
+            params=p, x0=x0, P0=c * np.asarray(P0, float),
+        )  # fmt: skip
 
     def filter_object(self, settings: UKFSettings) -> ModelFilter:
         """The generic filter (the UKF with these sigma-point settings)."""
@@ -605,8 +722,13 @@ def _score(
     settings: UKFSettings,
     spec: CostSpec,
     burn_in: float,
+    params: np.ndarray | None = None,
+    cov_scale: float = 1.0,
 ) -> ManoeuvreScore:
-    return _score_result(m, fs.run(m, vehicle, q, r, settings), spec, burn_in, vehicle)
+    """One manoeuvre's score of one point: ``vehicle`` and ``params`` are the point's model
+    (:meth:`TuningProblem.vehicle_at`, :meth:`TuningProblem.params_at`)."""
+    res = fs.run(m, vehicle, q, r, settings, params=params, cov_scale=cov_scale)
+    return _score_result(m, res, spec, burn_in, vehicle)
 
 
 def _score_result(
@@ -630,18 +752,6 @@ def _score_result(
         except ValueError as exc:  # e.g. a reference that is zero throughout
             raise DataError(f"manoeuvre {m.name!r}: cannot score channel {c!r}: {exc}") from None
         scales[c] = float(np.max(np.abs(ref[k0:])))
-    score_sum: dict[str, float] = {}
-    if spec.kind in SCORING_RULES:
-        rule = gaussian_nlpd if spec.kind == "nlpd" else gaussian_crps
-        for c in spec.channels:
-            est, ref = channel_estimate(m, res, c)
-            scales[c] = float(np.max(np.abs(ref[k0:])))
-            if spec.kind == "crps" and not scales[c] > 0:
-                raise DataError(
-                    f"manoeuvre {m.name!r}: cannot score channel {c!r} by the crps cost: the "
-                    "reference is identically zero (the cost is divided by its largest |X|)"
-                )
-            score_sum[c] = float(np.sum(rule(ref[k0:] - est[k0:], output_std(res, c)[k0:])))
     msp_sq: tuple[float, ...] = ()
     msp_n = 0
     if spec.kind == "msp":
@@ -655,7 +765,6 @@ def _score_result(
         log_det_s_sum=float(np.sum(res.log_det_s[k0:])) if spec.kind == "pem" else 0.0,
         msp_sq=msp_sq,
         msp_n=msp_n,
-        score_sum=score_sum,
     )
 
 
@@ -711,9 +820,15 @@ def _score_chunk(
     settings: UKFSettings,
     spec: CostSpec,
     burn_in: float,
+    vehicle: VehicleParams | None,
+    params: np.ndarray | None,
+    cov_scale: float,
 ) -> list[ManoeuvreScore]:
-    ms, vehicle, fs = _WORKER["manoeuvres"], _WORKER["vehicle"], _WORKER["filter"]
-    return [_score(ms[i], vehicle, fs, q, r, settings, spec, burn_in) for i in indices]
+    ms, fs = _WORKER["manoeuvres"], _WORKER["filter"]
+    return [
+        _score(ms[i], vehicle, fs, q, r, settings, spec, burn_in, params, cov_scale)
+        for i in indices
+    ]
 
 
 class TuningProblem:
@@ -811,6 +926,15 @@ class TuningProblem:
                 f"{list(par.measurements)}, but model {mod.name!r} has "
                 f"{list(mod.state_names)} and {list(mod.measurement_names)}"
             )
+        check_model_params(par, mod)
+        recorded = dict(zip(mod.param_names, self._fs.params.tolist()))
+        try:
+            self.parameterization = par = par.with_start(recorded)
+        except ValueError as exc:
+            raise ConfigError(f"tune_model: {exc}") from None
+        self._model_index = [mod.param_names.index(n) for n in par.model_names]
+        #: c of :meth:`FilterSpec.run`: the runs use c·Q, c·R and c·P0 (1: as tuned).
+        self.cov_scale = 1.0
         # before a budget is spent on the model; with the sigma points the tuning starts from
         self._fs.probe(self.manoeuvres, self.r0, settings=par.default_settings)
         if not (isinstance(workers, int) and workers >= 1):
@@ -859,13 +983,6 @@ class TuningProblem:
                 "none)",
                 "a reference channel",
             )
-        elif self.cost_spec.kind in SCORING_RULES:
-            m.require(
-                [f"{c}_ref" for c in self.cost_spec.channels],
-                f"the {self.cost_spec.kind} cost (it scores the reference under the filter's "
-                "Gaussian; without a reference sensor use the nis, pem or msp cost)",
-                "a reference channel",
-            )
         if mod.validate_data is not None:
             u, z = self._fs.inputs(m)
             try:
@@ -881,6 +998,37 @@ class TuningProblem:
     def decode(self, x: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
         """(q, r, settings) of a point."""
         return self.parameterization.decode(x, self.r0)
+
+    def vehicle_at(self, x: Sequence[float] | np.ndarray) -> VehicleParams | None:
+        """The vehicle of a point: the recorded one with the point's tuned model parameters
+        (None for a model without a vehicle).
+
+        Raises:
+            ValueError: a value the vehicle refuses (outside its plausible range).
+        """
+        values = self.parameterization.model_values(x)
+        if self.vehicle is None or not values:
+            return self.vehicle
+        return self.vehicle.replace(**values)
+
+    def params_at(self, x: Sequence[float] | np.ndarray) -> np.ndarray:
+        """(n_p,) the model's parameter vector at a point: the recorded one with the point's
+        tuned model parameters in their places (``param_names``)."""
+        p = self._fs.params.copy()
+        values = self.parameterization.model_values(x)
+        for i, name in zip(self._model_index, self.parameterization.model_names):
+            p[i] = values[name]
+        return p
+
+    def _point(
+        self, x: Sequence[float] | np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, UKFSettings, VehicleParams | None, np.ndarray | None]:
+        """(q, r, settings, vehicle, params) of a point; params None when no model
+        parameter is tuned (the filter runs the recorded model)."""
+        q, r, settings = self.decode(x)
+        if not self.parameterization.model_names:
+            return q, r, settings, self.vehicle, None
+        return q, r, settings, self.vehicle_at(x), self.params_at(x)
 
     def __call__(self, x: Sequence[float] | np.ndarray) -> float:
         return self.evaluate(x).cost
@@ -902,19 +1050,21 @@ class TuningProblem:
         Raises:
             FilterDivergedError: the filter diverged on a manoeuvre.
         """
-        q, r, settings = self.decode(x)
-        spec = self.cost_spec
+        q, r, settings, vehicle, params = self._point(x)
+        spec, c = self.cost_spec, self.cov_scale
         self._evaluated = True  # the filter compiles now, also for a point that diverges
         if self.workers == 1:
             scores = [
-                _score(m, self.vehicle, self._fs, q, r, settings, spec, self.burn_in)
+                _score(m, vehicle, self._fs, q, r, settings, spec, self.burn_in, params, c)
                 for m in self.manoeuvres
             ]
         else:
             pool = self._get_pool()
             with sigint_blocked():  # workers started by a submit inherit it (see there)
                 futures = [
-                    pool.submit(_score_chunk, chunk, q, r, settings, spec, self.burn_in)
+                    pool.submit(
+                        _score_chunk, chunk, q, r, settings, spec, self.burn_in, vehicle, params, c
+                    )
                     for chunk in self._chunks
                 ]
             by_index: dict[int, ManoeuvreScore] = {}
@@ -929,10 +1079,10 @@ class TuningProblem:
         """The scores of a point on the manoeuvres ``indices`` (a share of :meth:`evaluate`
         for a distributed engine; pooled by :meth:`_pool_scores` in manoeuvre order, they
         give :meth:`evaluate`'s cost bit for bit)."""
-        q, r, settings = self.decode(x)
-        fs, spec = self._fs, self.cost_spec
+        q, r, settings, vehicle, params = self._point(x)
+        fs, spec, c = self._fs, self.cost_spec, self.cov_scale
         return [
-            _score(self.manoeuvres[i], self.vehicle, fs, q, r, settings, spec, self.burn_in)
+            _score(self.manoeuvres[i], vehicle, fs, q, r, settings, spec, self.burn_in, params, c)
             for i in indices
         ]
 
@@ -941,8 +1091,7 @@ class TuningProblem:
         return _balanced_chunks([m.n for m in self.manoeuvres], max(1, k))
 
     def _pool_scores(self, scores: Sequence[ManoeuvreScore]) -> Evaluation:
-        """The cost J (paper Eq. 14–15, a scoring rule's, or a reference-free one) from
-        every manoeuvre's score."""
+        """The cost J (paper Eq. 14–15, or the NIS cost) from every manoeuvre's score."""
         spec = self.cost_spec
         channels = spec.channels if spec.kind == "nrmse" else ()
         n_total = sum(s.n for s in scores)
@@ -960,15 +1109,6 @@ class TuningProblem:
                 n_z=self._fs.model.n_measurements,
             )
             pooled = {}
-        elif spec.kind in SCORING_RULES:
-            cost, pooled = scoring_rule_cost(
-                {c: [s.score_sum[c] for s in scores] for c in spec.channels},
-                [s.n for s in scores],
-                spec.weights,
-                {c: [s.scale[c] for s in scores] for c in spec.channels}
-                if spec.kind == "crps"
-                else None,
-            )
         else:
             cost, pooled = weighted_cost(
                 {c: [s.nrmse[c] for s in scores] for c in channels},
@@ -986,10 +1126,12 @@ class TuningProblem:
         """Evaluate B points; a point whose filter diverged gets its error, not a raise.
 
         On the paper's pair (single-track UKF) in this process (``workers == 1``) every
-        manoeuvre runs all points that share sigma-point settings in one call of the
-        vectorised batch kernel (:func:`~kftune.filters.run_ukf_simd`, the sets across the
-        CPU's vector lanes); otherwise the points are evaluated one after another. Either
-        way each result equals :meth:`evaluate`'s for that point exactly.
+        manoeuvre runs all points that share sigma-point settings and tuned model parameters
+        in one call of the vectorised batch kernel (:func:`~kftune.filters.run_ukf_simd`,
+        the sets across the CPU's vector lanes, one vehicle for all); otherwise the points
+        are evaluated one after another (a point whose model parameters no other point
+        shares is a group of one, which runs the sequential kernel). Either way each result
+        equals :meth:`evaluate`'s for that point exactly.
 
         Args:
             X: (B, d) points of ``self.space`` (natural units).
@@ -1003,7 +1145,7 @@ class TuningProblem:
         """
         points = [np.asarray(x, dtype=float) for x in X]
         # the vector kernel computes neither log det S (pem) nor predictions (msp)
-        vector = self.cost_spec.kind in ("nrmse", "nis", *SCORING_RULES)
+        vector = self.cost_spec.kind in ("nrmse", "nis") and self.cov_scale == 1.0
         if not (vector and self._fs.fast and self.workers == 1 and len(points) > 1):
             out: list[Evaluation | FilterDivergedError] = []
             for x in points:
@@ -1014,20 +1156,23 @@ class TuningProblem:
             return out
         decoded = [self.decode(x) for x in points]
         self._evaluated = True
-        groups: dict[UKFSettings, list[int]] = {}
-        for i, (_, _, settings) in enumerate(decoded):
-            groups.setdefault(settings, []).append(i)
+        par = self.parameterization
+        groups: dict[tuple[UKFSettings, tuple[float, ...]], list[int]] = {}
+        for i, (x, (_, _, settings)) in enumerate(zip(points, decoded)):
+            key = (settings, tuple(par.model_values(x).values()))
+            groups.setdefault(key, []).append(i)
         # results[i][j]: point i's score on manoeuvre j, or its error (first manoeuvre first)
         results: list[list[ManoeuvreScore | FilterDivergedError]] = [[] for _ in points]
-        for settings, idx in groups.items():
+        for (settings, _), idx in groups.items():
             q = np.array([decoded[i][0] for i in idx])
             r = np.array([decoded[i][1] for i in idx])
+            vehicle = self.vehicle_at(points[idx[0]])
             for m in self.manoeuvres:
-                batch = run_ukf_simd(m.u, m.z, m.dt, self.vehicle, q, r, settings=settings)
+                batch = run_ukf_simd(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
                 for b, i in enumerate(idx):
                     try:
                         results[i].append(
-                            _score_result(m, batch[b], self.cost_spec, self.burn_in, self.vehicle)
+                            _score_result(m, batch[b], self.cost_spec, self.burn_in, vehicle)
                         )
                     except FilterDivergedError as exc:
                         results[i].append(exc)
@@ -1054,6 +1199,8 @@ class TuningProblem:
             "parameterization": self.parameterization.to_dict(),
             "burn_in": self.burn_in,
         }
+        if self.cov_scale != 1.0:  # a run as tuned keeps earlier fingerprints
+            described["cov_scale"] = self.cov_scale
         if spec.normalise != "manoeuvre":  # the paper's Eq. 15 keeps earlier fingerprints
             described["cost"]["normalise"] = spec.normalise
         file_sha = model_file_sha256(self._fs.spec)
@@ -1068,6 +1215,11 @@ class TuningProblem:
             f"{self.vehicle.name if self.vehicle is not None else 'no vehicle'}, "
             f"cost {spec.kind}"
             + (f" ({spec.normalise}-normalised)" if spec.normalise != "manoeuvre" else "")
+            + (
+                f", model parameters {', '.join(self.parameterization.model_names)} tuned"
+                if self.parameterization.model_names
+                else ""
+            )
             + (f", model file sha256 {file_sha[:12]}" if file_sha else ""),
             "sha256": h.hexdigest(),
         }
@@ -1085,7 +1237,7 @@ class TuningProblem:
         ):
             return [m.t, m.u, m.z, m.beta_ref]
         names = [*mod.input_names, *mod.measurement_names]
-        if self.cost_spec.kind in ("nrmse", *SCORING_RULES):
+        if self.cost_spec.kind == "nrmse":
             names += [f"{c}_ref" for c in self.cost_spec.channels if c not in names]
         out = [m.t]
         for c in names:
@@ -1093,9 +1245,12 @@ class TuningProblem:
         return out
 
     def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> RunResult:
-        """The filter's full output on one manoeuvre for a point."""
-        q, r, settings = self.decode(x)
-        return self._fs.run(manoeuvre, self.vehicle, q, r, settings)
+        """The filter's full output on one manoeuvre for a point (its model parameters,
+        with :attr:`cov_scale`)."""
+        q, r, settings, vehicle, params = self._point(x)
+        return self._fs.run(
+            manoeuvre, vehicle, q, r, settings, params=params, cov_scale=self.cov_scale
+        )
 
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
