@@ -37,11 +37,15 @@ from kftune.space import Param, Space
 from kftune.tuning.cost import (
     MSP_HORIZON,
     MSP_STRIDE,
+    SCORING_RULES,
     CostSpec,
+    gaussian_crps,
+    gaussian_nlpd,
     innovation_nll,
     multistep_cost,
     nis_cost,
     nrmse,
+    scoring_rule_cost,
     weighted_cost,
 )
 from kftune.tuning.hookcheck import check_model_file
@@ -308,6 +312,9 @@ class ManoeuvreScore:
         log_det_s_sum: Σ_k log det S_k (with ``nis_sum``, the innovation likelihood).
         msp_sq, msp_n: per cost channel the sum of squared multi-step prediction errors,
             and the number of start samples (the ``msp`` cost).
+        score_sum: channel → Σ_k of the per-sample scoring rule (the ``nlpd`` cost: NLPD
+            [nats]; ``crps``: CRPS [channel unit]) of the reference under the filter's
+            Gaussian, for the weighted channels (with ``scale`` their max|X|).
     """
 
     name: str
@@ -318,6 +325,7 @@ class ManoeuvreScore:
     log_det_s_sum: float = 0.0
     msp_sq: tuple[float, ...] = ()
     msp_n: int = 0
+    score_sum: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -377,11 +385,25 @@ def check_units(model: StateSpaceModel, dataset: Dataset) -> None:
 
 
 def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
-    """Refuse an NRMSE cost that weighs a channel ``model`` cannot score.
+    """Refuse an NRMSE cost that weighs a channel ``model`` cannot score, and a scoring-rule
+    cost (nlpd, crps) that weighs a channel other than an output with a standard deviation
+    (:func:`std_outputs`).
 
     Raises:
         ConfigError: naming the channel, the model's measurements and its outputs.
     """
+    if spec.kind in SCORING_RULES:
+        scored = std_outputs(model)
+        for c in spec.channels:
+            if c not in scored:
+                what = "a measurement" if c in model.measurement_names else "not an output"
+                raise ConfigError(
+                    f"cost channel {c!r} ({what} of model {model.name!r}): the {spec.kind} "
+                    "cost scores a reference channel <output>_ref under the filter's "
+                    f"Gaussian, for an output with a standard deviation: {list(scored)} (a "
+                    "measured channel's predictive density is the pem cost's)"
+                )
+        return
     if spec.kind != "nrmse":
         return
     outputs = output_names(model)
@@ -444,6 +466,51 @@ def model_output(res: RunResult, name: str) -> np.ndarray:
     raise KeyError(
         f"model {model.name!r} has no output {name!r}; it has {list(output_names(model))}"
     )
+
+
+def beta_std(x: np.ndarray, p_diag: np.ndarray) -> np.ndarray:
+    """(N,) standard deviation [rad] of β = atan2(Vy, Vx) by the delta method.
+
+    Linearises β about the estimate: ∂β/∂Vx = −Vy/(Vx² + Vy²), ∂β/∂Vy = Vx/(Vx² + Vy²), so
+    var β ≈ (Vy²·var Vx + Vx²·var Vy)/(Vx² + Vy²)². Only the diagonal of P is kept by the
+    filter's output, so the Vx–Vy covariance is left out (it is small when Vx is measured).
+
+    Args:
+        x: (N, ≥2) states with Vx in column 0 and Vy in column 1 [m/s]; p_diag: (N, ≥2) their
+            variances [(m/s)²].
+    """
+    vx, vy = x[:, 0], x[:, 1]
+    s = vx**2 + vy**2
+    return np.sqrt(vy**2 * p_diag[:, 0] + vx**2 * p_diag[:, 1]) / s
+
+
+def std_outputs(model: StateSpaceModel) -> tuple[str, ...]:
+    """The outputs of ``model`` (:func:`output_names`) whose standard deviation the filter
+    gives (:func:`output_std`): β of a model whose first states are Vx, Vy, and every
+    state that is not measured."""
+    beta = "beta" in model.outputs and model.state_names[:2] == ("vx", "vy")
+    return tuple(c for c in output_names(model) if (c == "beta" and beta) or c in model.state_names)
+
+
+def output_std(res: RunResult, name: str) -> np.ndarray:
+    """(N,) the standard deviation of :func:`model_output` ``name`` from the posterior
+    covariance's diagonal: β [rad] by the delta method (:func:`beta_std`), a state's
+    √P_ii in its unit.
+
+    Raises:
+        KeyError: an output whose σ the filter does not give (:func:`std_outputs`).
+    """
+    from kftune.models import SINGLE_TRACK
+
+    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
+    if name not in std_outputs(model):
+        raise KeyError(
+            f"model {model.name!r} gives no standard deviation of {name!r}; it gives one of "
+            f"{list(std_outputs(model))}"
+        )
+    if name == "beta" and "beta" in model.outputs:
+        return beta_std(res.x, res.P_diag)
+    return np.sqrt(np.asarray(res.P_diag[:, model.state_names.index(name)], dtype=float))
 
 
 def channel_estimate(
@@ -752,6 +819,18 @@ def _score_result(
         except ValueError as exc:  # e.g. a reference that is zero throughout
             raise DataError(f"manoeuvre {m.name!r}: cannot score channel {c!r}: {exc}") from None
         scales[c] = float(np.max(np.abs(ref[k0:])))
+    score_sum: dict[str, float] = {}
+    if spec.kind in SCORING_RULES:
+        rule = gaussian_nlpd if spec.kind == "nlpd" else gaussian_crps
+        for c in spec.channels:
+            est, ref = channel_estimate(m, res, c)
+            scales[c] = float(np.max(np.abs(ref[k0:])))
+            if spec.kind == "crps" and not scales[c] > 0:
+                raise DataError(
+                    f"manoeuvre {m.name!r}: cannot score channel {c!r} by the crps cost: the "
+                    "reference is identically zero (the cost is divided by its largest |X|)"
+                )
+            score_sum[c] = float(np.sum(rule(ref[k0:] - est[k0:], output_std(res, c)[k0:])))
     msp_sq: tuple[float, ...] = ()
     msp_n = 0
     if spec.kind == "msp":
@@ -765,6 +844,7 @@ def _score_result(
         log_det_s_sum=float(np.sum(res.log_det_s[k0:])) if spec.kind == "pem" else 0.0,
         msp_sq=msp_sq,
         msp_n=msp_n,
+        score_sum=score_sum,
     )
 
 
@@ -983,6 +1063,13 @@ class TuningProblem:
                 "none)",
                 "a reference channel",
             )
+        elif self.cost_spec.kind in SCORING_RULES:
+            m.require(
+                [f"{c}_ref" for c in self.cost_spec.channels],
+                f"the {self.cost_spec.kind} cost (it scores the reference under the filter's "
+                "Gaussian; without a reference sensor use the nis, pem or msp cost)",
+                "a reference channel",
+            )
         if mod.validate_data is not None:
             u, z = self._fs.inputs(m)
             try:
@@ -1091,7 +1178,8 @@ class TuningProblem:
         return _balanced_chunks([m.n for m in self.manoeuvres], max(1, k))
 
     def _pool_scores(self, scores: Sequence[ManoeuvreScore]) -> Evaluation:
-        """The cost J (paper Eq. 14–15, or the NIS cost) from every manoeuvre's score."""
+        """The cost J (paper Eq. 14–15, a scoring rule's, or a reference-free one) from
+        every manoeuvre's score."""
         spec = self.cost_spec
         channels = spec.channels if spec.kind == "nrmse" else ()
         n_total = sum(s.n for s in scores)
@@ -1109,6 +1197,15 @@ class TuningProblem:
                 n_z=self._fs.model.n_measurements,
             )
             pooled = {}
+        elif spec.kind in SCORING_RULES:
+            cost, pooled = scoring_rule_cost(
+                {c: [s.score_sum[c] for s in scores] for c in spec.channels},
+                [s.n for s in scores],
+                spec.weights,
+                {c: [s.scale[c] for s in scores] for c in spec.channels}
+                if spec.kind == "crps"
+                else None,
+            )
         else:
             cost, pooled = weighted_cost(
                 {c: [s.nrmse[c] for s in scores] for c in channels},
@@ -1145,7 +1242,7 @@ class TuningProblem:
         """
         points = [np.asarray(x, dtype=float) for x in X]
         # the vector kernel computes neither log det S (pem) nor predictions (msp)
-        vector = self.cost_spec.kind in ("nrmse", "nis") and self.cov_scale == 1.0
+        vector = self.cost_spec.kind in ("nrmse", "nis", *SCORING_RULES) and self.cov_scale == 1.0
         if not (vector and self._fs.fast and self.workers == 1 and len(points) > 1):
             out: list[Evaluation | FilterDivergedError] = []
             for x in points:
@@ -1237,7 +1334,7 @@ class TuningProblem:
         ):
             return [m.t, m.u, m.z, m.beta_ref]
         names = [*mod.input_names, *mod.measurement_names]
-        if self.cost_spec.kind == "nrmse":
+        if self.cost_spec.kind in ("nrmse", *SCORING_RULES):
             names += [f"{c}_ref" for c in self.cost_spec.channels if c not in names]
         out = [m.t]
         for c in names:
