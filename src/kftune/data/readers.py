@@ -12,7 +12,9 @@ format     suffixes                 extra       notes
 CSV / TSV  .csv .tsv (.gz)          —           header row of names; separator sniffed from the
                                                 header (the most frequent of ``, ; TAB |``; TSV:
                                                 tab) or ``delimiter``; units from ``name [unit]``
-                                                headers or a units row (``units_row = true``);
+                                                or ``name(unit)`` headers or a units row
+                                                (``units_row = true``); a ``#`` before the
+                                                first name (``numpy.savetxt``) is dropped;
                                                 UTF-8 or ``encoding`` (``"cp1252"``, …); rows
                                                 are the file's line numbers
 Parquet    .parquet .pq             parquet     numeric columns (nulls become NaN, reported by
@@ -61,7 +63,7 @@ from kftune.data.textfile import (
     ReadLimits,
     line_blocks,
 )
-from kftune.data.validate import check_increasing
+from kftune.data.validate import UNITS, check_increasing
 from kftune.errors import ConfigError, DataError, excerpt
 
 
@@ -115,7 +117,8 @@ def require(module: str, extra: str, what: str) -> Any:
 
 def _not_found(what: str, name: str, known: Sequence[str], file: str) -> DataError:
     return DataError(
-        f"{what} {excerpt(name)} not found; the file has {excerpt(sorted(known), 300)}",
+        f"{what} {excerpt(name)} not found; the file has {excerpt(list(known), 300)} (in "
+        "file order)",
         file=file,
         column=name,
     )
@@ -127,11 +130,18 @@ SNIFFED = (",", ";", "\t", "|")
 
 
 def _split_unit(name: str) -> tuple[str, str | None]:
-    """``"speed [km/h]"`` → ``("speed", "km/h")``; a name without brackets has no unit."""
+    """``"speed [km/h]"`` → ``("speed", "km/h")``; ``"wheel_fl(kmph)"`` → ``("wheel_fl",
+    "kmph")`` when what the parentheses hold is a unit of
+    :data:`~kftune.data.validate.UNITS` (``"p(front)"`` stays a name); a name without
+    either has no unit."""
     name = name.strip().strip('"').strip()
     if name.endswith("]") and "[" in name:
         head, _, unit = name[:-1].rpartition("[")
         return head.strip(), unit.strip()
+    if name.endswith(")") and "(" in name:
+        head, _, unit = name[:-1].rpartition("(")
+        if unit.strip() in UNITS and head.strip():
+            return head.strip(), unit.strip()
     return name, None
 
 
@@ -161,7 +171,8 @@ def read_text_table(
                 delimiter = "\t"
             else:
                 delimiter = max(SNIFFED, key=lambda s: (lines[0].count(s), -SNIFFED.index(s)))
-        header = [_split_unit(h) for h in lines[0].split(delimiter)]
+        # numpy.savetxt writes its header after "# ": the first name is "# time(s)"
+        header = [_split_unit(h) for h in lines[0].removeprefix("#").split(delimiter)]
         heads = [h for h, _ in header]
         units = {h: u for h, u in header if u}
         body = 1

@@ -86,6 +86,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "°/s": ("angular rate", math.pi / 180.0),
     "m/s": ("speed", 1.0),
     "km/h": ("speed", 1.0 / 3.6),
+    "kmph": ("speed", 1.0 / 3.6),  # as loggers write km/h in a header: wheel_fl(kmph)
+    "kph": ("speed", 1.0 / 3.6),
     "mph": ("speed", 0.44704),
     "m": ("length", 1.0),
     "mm": ("length", 1e-3),
@@ -745,7 +747,8 @@ def plausibility_findings(channels: Mapping[str, np.ndarray], mu: float | None) 
             f"{share:.0%} of the samples repeat the previous one in {', '.join(HELD_CHANNELS)} "
             f"at once: recorded at about {rate / hold:.3g} Hz and held up to "
             f"{rate:.3g} Hz? The filter takes every sample as a new measurement; resample "
-            "the recording at its real rate"
+            "the recording at its real rate (kftune dataset import: [source] raster = <step> "
+            'in the mapping, or raster = { "<file glob>" = <step> } for some recordings)'
         )
     if mu is not None and "vx" in channels and "r" in channels:
         lateral = np.abs(np.asarray(channels["vx"], dtype=float) * np.asarray(channels["r"]))
