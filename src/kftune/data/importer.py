@@ -17,6 +17,7 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     [source]                        # reader options (each format uses its own)
     format = "csv"                  # the reader, instead of the file's suffix (a .txt export)
     raster = 0.01                   # [s] resample onto a uniform grid (jittered timestamps)
+    # raster = { "logger2-*" = 0.01 }   # only the recordings whose file name matches
     delimiter = ";"                 # CSV: default sniffed from the header row
     units_row = true                # CSV: the row after the header holds units
     encoding = "cp1252"             # CSV: the text encoding (default utf-8)
@@ -24,7 +25,8 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     # raster = "YawRate"            # MDF: resample onto this signal's timestamps
 
     [split]                         # one rule: test = [globs], train_every = k, test_fraction = f
-    test = ["run3*"]
+    test = ["run3*", "run1-s02"]    # globs of file names, stems or segment names
+    # train_every = 3, per = "file" # count segments within each file (default "all")
 
     [channels]                      # kftune channel = source
     t = "time"                      # a name alone: SI units (or the unit the file declares)
@@ -33,11 +35,27 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     delta = { column = "SWA", unit = "deg", hand_wheel = true }   # ÷ steering ratio
     beta_ref = { atan2 = ["Vy", "Vx"], unit = "km/h" }        # atan2(Vy, Vx)
     p_brake = { column = "BrakePress", unit = "bar", scale = 1.0, offset = 0.0 }
+    # computed channels, e.g. for a logger without ay and with four wheel speeds:
+    # vx = { expr = "(wheel_fl + wheel_fr + wheel_rl + wheel_rr) / 4", unit = "km/h" }
+    # ay = { expr = "vx * omega", unit = "m/s^2" }
 
 A source value becomes ``sign · (scale · raw + offset) · unit factor`` (``scale`` and
 ``offset`` in the source's unit). ``hand_wheel = true`` divides by ``steering_ratio`` (the
 mapping's, else the vehicle's); ``atan2 = [vy, vx]`` gives atan2(vy, vx) of two speed
-sources. Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``,
+sources (an ``offset`` there is refused: it would shift the speeds, not the angle).
+
+``expr = "..."`` computes a channel (:mod:`kftune.data.expr`: numbers, ``+ - * / **``,
+parentheses, abs, sqrt, sin, cos, tan, atan2, mean, clip, gradient/diff over time, lowpass).
+A name in an expression is a channel of the mapping where one has that name — its SI values,
+after its own unit, scale, offset, sign and hand-wheel ratio, computed first (dependency
+order; a cycle is refused, naming it) — else a column of the file, as the file holds it
+(raw, in the file's units: its declared unit is not applied); in a channel's own expression
+its name is the file's column (``ax = { expr = "lowpass(ax, 10)" }``). ``t`` is the time
+[s], ``pi`` is π. The result is in the channel's ``unit`` (else its SI unit) and converted
+like a column's value; a division by zero or NaN gives bad samples, reported by row.
+Expressions are computed over the whole recording before it is trimmed and resampled.
+
+Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``,
 a ``raster`` step) are SI numbers or strings with a unit (``"5 km/h"``, ``"5 ms"``).
 
 ``[source] raster = <step>`` resamples a recording onto the uniform grid t₀ + k·step over
@@ -59,16 +77,21 @@ makes segment ``i`` (0-based, counted over all recordings) training when ``i % k
 (the default, k = 3, as for :func:`~kftune.data.io.recording_to_dataset`);
 ``test_fraction = f`` makes test the segments that start after the first ``1 − f`` of the
 total duration (so one uncut recording gives no test segment: cut it with
-``segment_length``). A rule that gives no test (or no training) manoeuvre, and a test
-pattern that matches no recording, are warned about (:class:`~kftune.errors.DataWarning`).
-With a ``model``, each stretch is checked as the model checks data before a filter runs
-(the single-track models refuse vx ≤ 0: set ``min_speed``).
+``segment_length``). ``per = "file"`` beside either counts ``i`` (or measures the
+duration) within each recording instead of over all. A ``test`` glob also matches a
+segment's name (``<file stem>-sNN``, as the manoeuvres are named). A rule that gives no
+test (or no training) manoeuvre, and a test pattern that matches no recording, are
+warned about (:class:`~kftune.errors.DataWarning`). With a ``model``, each stretch is
+checked as the model checks data before a filter runs (the single-track models refuse
+vx ≤ 0: set ``min_speed``).
 """
 
 from __future__ import annotations
 
 import codecs
+import dataclasses
 import fnmatch
+import graphlib
 import itertools
 import math
 import re
@@ -80,6 +103,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from kftune.data.expr import ExprError, Expression, parse
 from kftune.data.io import (
     _vehicle_from,
     file_stem,
@@ -124,12 +148,14 @@ MAPPING_KEYS = {
     "segment_length": "[s] cut stretches into segments",
     "steering_ratio": "hand-wheel to road-wheel ratio for hand_wheel channels",
     "source": f"reader options: {', '.join(READER_OPTIONS)}",
-    "split": "test = [globs] | train_every = k | test_fraction = f",
-    "channels": "kftune channel = source column, or a table",
+    "split": "test = [globs] | train_every = k | test_fraction = f; per = 'all' | 'file'",
+    "channels": "kftune channel = source column, or a table (column, atan2 or expr)",
 }
 #: Keys of one ``[channels]`` entry.
-CHANNEL_KEYS = ("column", "atan2", "unit", "scale", "offset", "sign", "hand_wheel")
+CHANNEL_KEYS = ("column", "atan2", "expr", "unit", "scale", "offset", "sign", "hand_wheel")
 SPLIT_RULES = ("test", "train_every", "test_fraction")
+#: What ``[split] per`` takes: the segments counted over all recordings, or within each file.
+SPLIT_PER = ("all", "file")
 DEFAULT_TRAIN_EVERY = 3
 #: What ``[source] raster`` is called in messages that suggest it.
 RASTER_OPTION = "[source] raster"
@@ -146,16 +172,19 @@ class ChannelSpec:
     """How one kftune channel is made from the sources (see the module docstring)."""
 
     channel: str
-    sources: tuple[str, ...]  # one column, or (vy, vx) for atan2
+    sources: tuple[str, ...]  # one column, (vy, vx) for atan2, the names of an expression
     unit: str | None
     scale: float = 1.0
     offset: float = 0.0
     sign: float = 1.0
     hand_wheel: bool = False
+    expression: Expression | None = None  # a computed channel
 
     @property
     def label(self) -> str:
-        """``vx (source 'Speed')``, for messages."""
+        """``vx (source 'Speed')`` or ``ay (expression 'vx * omega')``, for messages."""
+        if self.expression is not None:
+            return f"{self.channel} (expression {excerpt(self.expression.text)})"
         return f"{self.channel} (source {', '.join(repr(s) for s in self.sources)})"
 
 
@@ -176,11 +205,23 @@ class Mapping_:
     segment_length: float | None
     steering_ratio: float | None
     split: tuple[str, Any]
+    split_per: str = "all"  # [split] per: count train_every / test_fraction per "file"
     split_at_gaps: bool = False  # a gap in time ends a stretch instead of being refused
     format: Format | None = None  # [source] format: the reader, instead of the suffix
     raster_step: float | None = None  # [s] [source] raster as a step: resample onto it
+    raster_by_file: tuple[tuple[str, float], ...] = ()  # [source] raster per file glob
     given: Mapping[str, Any] = field(default_factory=dict)  # quantities as written
     state_space: StateSpaceModel | None = None  # the model named by ``model``
+
+    def raster_for(self, path: Path) -> float | None:
+        """The raster step [s] a recording is resampled onto: that of the first glob of
+        ``[source] raster = { "<glob>" = <step> }`` that matches its file name or stem,
+        else the one ``raster`` step, else None (not resampled)."""
+        for glob, step in self.raster_by_file:
+            stem = file_stem(path.name.split(".")[0])
+            if fnmatch.fnmatch(path.name, glob) or fnmatch.fnmatch(stem, glob):
+                return step
+        return self.raster_step
 
     def echo(self, key: str, si_value: float, dimension: str) -> str:
         """A quantity for messages: in the unit the mapping wrote ``key`` in, then in SI
@@ -250,13 +291,27 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
             options.setdefault("delimiter", "\t")  # what the .tsv suffix means
     raster = options.get("raster")
     raster_step = None
+    raster_by_file: list[tuple[str, float]] = []
+
+    def raster_quantity(key: str, value: Any) -> float:
+        step = quantity(key, value, "time") or 0.0
+        if not 1e-4 <= step <= 1.0:
+            raise bad(key, f"expected a step of 1e-4 to 1 s, got {step!r}")
+        return step
+
     if isinstance(raster, str) and not _starts_with_number(raster):
         pass  # an MDF signal's name
+    elif isinstance(raster, dict):  # per recording: file-name glob → step
+        options.pop("raster")
+        if not raster:
+            raise bad("source.raster", 'expected a step, or a table { "<file glob>" = <step> }')
+        for glob, value in raster.items():
+            raster_by_file.append((glob, raster_quantity(f"source.raster.{glob}", value)))
     elif raster is not None:
-        raster_step = quantity("source.raster", options.pop("raster"), "time") or 0.0
-        if not 1e-4 <= raster_step <= 1.0:
-            raise bad("source.raster", f"expected a step of 1e-4 to 1 s, got {raster_step!r}")
+        raster_step = raster_quantity("source.raster", options.pop("raster"))
 
+    if isinstance(data.get("vehicle"), dict):
+        _check_vehicle_table(data["vehicle"], data.get("model"), file)
     vehicle = _vehicle_from(data["vehicle"], file) if "vehicle" in data else None
     sample_time = quantity("sample_time", data.get("sample_time"), "time")
     if sample_time is not None and not 1e-4 <= sample_time <= 1.0:
@@ -319,11 +374,60 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         segment_length=segment_length,
         steering_ratio=None if steering_ratio is None else float(steering_ratio),
         split=_split_rule(data.get("split"), file),
+        split_per=_split_per(data.get("split"), file),
         split_at_gaps=split_at_gaps,
         format=fmt,
         raster_step=raster_step,
+        raster_by_file=tuple(raster_by_file),
         given={k: data[k] for k in ("min_speed", "min_duration", "split") if k in data},
         state_space=state_space,
+    )
+
+
+#: What each required ``[vehicle]`` key is in the single-track models, for the message that
+#: names the missing ones.
+VEHICLE_ROLES = {
+    "m": "mass [kg]: every force balance",
+    "Iz": "yaw inertia [kg m²]: the yaw dynamics",
+    "a": "CG to front axle [m]: the slip angles and axle loads",
+    "b": "CG to rear axle [m]: the slip angles and axle loads",
+    "h": "CG height [m]: only the longitudinal load transfer from ax (where |ax| stays "
+    "small, a typical 0.5 m changes little)",
+    "C_af": "front cornering stiffness [N/rad]: the front lateral force, always",
+    "C_ar": "rear cornering stiffness [N/rad]: the rear lateral force, always",
+}
+
+
+def _check_vehicle_table(table: Mapping[str, Any], model: Any, file: str) -> None:
+    """Refuse a ``[vehicle]`` table that lacks a required key, naming the missing keys in
+    the mapping's terms and what each does in the model (instead of Python's message
+    about ``VehicleParams.__init__``)."""
+    required = [
+        f.name
+        for f in dataclasses.fields(VehicleParams)
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
+    missing = [k for k in required if k not in table]
+    if not missing:
+        return
+    uses = "the single-track models use every one of them"
+    if isinstance(model, str):
+        try:
+            from kftune.models import get_model
+
+            needs = get_model(model).needs_vehicle
+        except (KeyError, ValueError, TypeError):
+            needs = True  # the model key's own check names the problem
+        uses = (
+            f"model {model!r} uses every one of them"
+            if needs
+            else f"model {model!r} uses no vehicle: leave the [vehicle] table out"
+        )
+    raise DataError(
+        f"key 'vehicle': the [vehicle] table lacks {', '.join(missing)} (it needs "
+        f"{', '.join(required)}; {uses}): "
+        + "; ".join(f"{k} = {VEHICLE_ROLES.get(k, 'required')}" for k in missing),
+        file=file,
     )
 
 
@@ -374,12 +478,35 @@ def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
                 f"key '{key}.{unknown[0]}': unknown; expected some of {list(CHANNEL_KEYS)}",
                 file=file,
             )
-        if ("column" in spec) == ("atan2" in spec):
-            raise DataError(f"key {key!r}: give either column or atan2 = [vy, vx]", file=file)
+        if sum(k in spec for k in ("column", "atan2", "expr")) != 1:
+            raise DataError(
+                f'key {key!r}: give one of column, atan2 = [vy, vx] or expr = "..."', file=file
+            )
+        expression = None
         if "atan2" in spec:
             sources = spec["atan2"]
             if not (isinstance(sources, list) and len(sources) == 2):
                 raise DataError(f"key '{key}.atan2': expected [vy, vx], two names", file=file)
+            if "offset" in spec:
+                raise DataError(
+                    f"key '{key}.offset': an offset would shift both speeds before the angle, "
+                    "not the angle; for an angle offset compute the channel: "
+                    f'{channel} = {{ expr = "atan2({sources[0]}, {sources[1]}) + 0.01", '
+                    'unit = "rad" }',
+                    file=file,
+                )
+        elif "expr" in spec:
+            if channel == "t":
+                raise DataError(
+                    f"key '{key}.expr': the time t must be a column (or sample_time): "
+                    "expressions are computed against it",
+                    file=file,
+                )
+            try:
+                expression = parse(spec["expr"])
+            except ExprError as exc:
+                raise DataError(f"key '{key}.expr': {exc}", file=file) from None
+            sources = list(expression.names)
         else:
             sources = [spec["column"]]
         if not all(isinstance(s, str) and s for s in sources):
@@ -401,15 +528,70 @@ def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
         hand_wheel = spec.get("hand_wheel", False)
         if not isinstance(hand_wheel, bool):
             raise DataError(f"key '{key}.hand_wheel': expected true or false", file=file)
-        out[channel] = ChannelSpec(channel, tuple(sources), unit, hand_wheel=hand_wheel, **numbers)
+        out[channel] = ChannelSpec(
+            channel, tuple(sources), unit, hand_wheel=hand_wheel, expression=expression, **numbers
+        )
+    _computing_order(out, file)
     return out
+
+
+def _computing_order(channels: Mapping[str, ChannelSpec], file: str) -> list[str]:
+    """The computed channels in an order in which each comes after the channels of the
+    mapping its expression names (dependency order; :class:`graphlib.TopologicalSorter`).
+    A channel's own name in its expression is the file's column of that name
+    (``ax = { expr = "lowpass(ax, 10)" }``), not a reference to itself.
+
+    Raises:
+        DataError: channels that refer to each other in a cycle (naming it).
+    """
+    graph = {
+        c: [s for s in spec.sources if s in channels and s != c]
+        for c, spec in channels.items()
+        if spec.expression is not None
+    }
+    try:
+        return [c for c in graphlib.TopologicalSorter(graph).static_order() if c in graph]
+    except graphlib.CycleError as exc:
+        cycle = exc.args[1][::-1]  # graphlib lists it against the edges
+        raise DataError(
+            f"key 'channels': computed channels refer to each other in a cycle: "
+            f"{' -> '.join(cycle)} (an expression's name is a channel of the mapping where "
+            "one has that name, else a column of the file)",
+            file=file,
+        ) from None
+
+
+def _split_per(table: Any, file: str) -> str:
+    """``[split] per``: ``"all"`` (the default) or ``"file"``."""
+    if not isinstance(table, dict) or "per" not in table:
+        return "all"
+    per = table["per"]
+    if per not in SPLIT_PER:
+        raise DataError(
+            f"key 'split.per': expected one of {list(SPLIT_PER)}, got {excerpt(per)}", file=file
+        )
+    if per == "file" and "test" in table:
+        raise DataError(
+            "key 'split.per': per = \"file\" applies to train_every and test_fraction; test = "
+            "[globs] names recordings or segments itself",
+            file=file,
+        )
+    return str(per)
 
 
 def _split_rule(table: Any, file: str) -> tuple[str, Any]:
     if table is None:
         return ("train_every", DEFAULT_TRAIN_EVERY)
+    if isinstance(table, dict):
+        table = {k: v for k, v in table.items() if k != "per"}
+        if not table:
+            return ("train_every", DEFAULT_TRAIN_EVERY)
     if not isinstance(table, dict) or len(table) != 1 or next(iter(table)) not in SPLIT_RULES:
-        raise DataError(f"key 'split': expected one of {list(SPLIT_RULES)}", file=file)
+        raise DataError(
+            f"key 'split': expected one of {list(SPLIT_RULES)} (and optionally per = "
+            f"{' or '.join(repr(p) for p in SPLIT_PER)})",
+            file=file,
+        )
     rule, value = next(iter(table.items()))
     ok = {
         "test": isinstance(value, list) and all(isinstance(g, str) for g in value),
@@ -466,9 +648,18 @@ class _Recording:
     units: dict[str, str]  # SI unit of each channel kftune does not know
 
 
+def _columns_of(m: Mapping_, spec: ChannelSpec) -> list[str]:
+    """The file's columns a channel reads: its source(s), or the names of its expression
+    that are no channel of the mapping."""
+    if spec.expression is None:
+        return list(spec.sources)
+    return [s for s in spec.sources if s not in m.channels or s == spec.channel]
+
+
 def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """The table's columns as SI channels, with time (see the module docstring), and the
-    SI unit of each channel kftune does not know."""
+    """The table's columns as SI channels, with time (see the module docstring), then the
+    computed channels in dependency order; and the SI unit of each channel kftune does not
+    know."""
     file = str(path)
     lengths = {s: v.size for s, v in table.columns.items()}
     if len(set(lengths.values())) > 1:
@@ -477,7 +668,13 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
             "must be sampled together",
             file=file,
         )
-    n = next(iter(lengths.values()))
+    if not lengths and table.time is None:
+        raise DataError(
+            "key 'channels': the mapping names no column of the file (an expression of "
+            "numbers alone has no samples)",
+            file=m.file,
+        )
+    n = next(iter(lengths.values())) if lengths else table.time.size  # type: ignore[union-attr]
     out: dict[str, np.ndarray] = {}
     si_units: dict[str, str] = {}
     for channel, spec in m.channels.items():
@@ -487,6 +684,8 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
                 file=file,
                 column="t",
             )
+        if spec.expression is not None:
+            continue  # computed once the time and the channels it names are known
         dim = "speed" if len(spec.sources) == 2 else CHANNEL_DIMENSION.get(channel)
         values = []
         for source in spec.sources:
@@ -515,11 +714,7 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
             si_units[channel] = "rad"
         else:
             value = values[0]
-        if spec.hand_wheel:
-            ratio = m.steering_ratio or (m.vehicle and m.vehicle.steering_ratio)
-            assert ratio, "read_mapping checks that a hand_wheel channel has a ratio"
-            value = value / ratio
-        out[channel] = spec.sign * value
+        out[channel] = _finish(m, spec, value)
     if table.time is not None:
         out["t"] = table.time
     elif "t" in out:
@@ -535,8 +730,43 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
             file=m.file,
             column="t",
         )
+    for channel in _computing_order(m.channels, m.file):
+        spec = m.channels[channel]
+        assert spec.expression is not None
+        dim = CHANNEL_DIMENSION.get(channel)
+        unit = spec.unit or (SI_UNIT[dim] if dim else None)
+        if unit is None:
+            raise DataError(
+                f'{spec.label}: no unit in the mapping; add unit = "..." (the unit of the '
+                f"expression's result) to channels.{channel}",
+                file=m.file,
+            )
+        names = {
+            s: out[s] if s in m.channels and s != channel else table.columns[s]
+            for s in spec.sources
+        }
+        try:
+            value = spec.expression.evaluate(names, out["t"])
+        except ExprError as exc:
+            raise DataError(
+                f"{spec.label}: {exc}",
+                file=file,
+                row=None if exc.index is None else exc.index + table.row_offset,
+            ) from None
+        factor = unit_factor(unit, dim, file=m.file, column=channel)
+        out[channel] = _finish(m, spec, (value * spec.scale + spec.offset) * factor)
+        si_units[channel] = SI_UNIT[UNITS[unit.strip()][0]]
     extra = {c: u for c, u in si_units.items() if c not in CHANNEL_DIMENSION}
     return {"t": out.pop("t"), **out}, extra
+
+
+def _finish(m: Mapping_, spec: ChannelSpec, value: np.ndarray) -> np.ndarray:
+    """A converted channel with its hand-wheel ratio and sign applied."""
+    if spec.hand_wheel:
+        ratio = m.steering_ratio or (m.vehicle and m.vehicle.steering_ratio)
+        assert ratio, "read_mapping checks that a hand_wheel channel has a ratio"
+        value = value / ratio
+    return spec.sign * value
 
 
 def _stretches(
@@ -695,7 +925,7 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
     check_regular_file(path)  # before any reader opens it: a FIFO would block the open
     fmt = m.format or format_of(path)
     file = str(path)
-    names = list(dict.fromkeys(s for spec in m.channels.values() for s in spec.sources))
+    names = list(dict.fromkeys(s for spec in m.channels.values() for s in _columns_of(m, spec)))
     options = {k: v for k, v in m.options.items() if k in fmt.options}
     if isinstance(m.options.get("raster"), str) and "raster" not in fmt.options:
         raise DataError(
@@ -704,10 +934,26 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             "resample onto (raster = 0.01)",
             file=m.file,
         )
-    step = m.sample_time or m.raster_step
+    raster_step = m.raster_for(path)
+    step = m.sample_time or raster_step
     if fmt.own_time and step is not None:
         options["sample_time"] = step
-    table = fmt.read(path, names, options, limits)
+    try:
+        table = fmt.read(path, names, options, limits)
+    except DataError as exc:
+        users = [
+            s
+            for s in m.channels.values()
+            if s.expression is not None and exc.column in _columns_of(m, s)
+        ]
+        if not users or "not found" not in exc.message:
+            raise
+        raise DataError(
+            f"{users[0].label} names {exc.column!r}, which is neither a channel of the mapping "
+            f"nor a column of the file: {exc.message}",
+            file=exc.file,
+            column=exc.column,
+        ) from None
     channels, units = _convert(m, path, table)
     try:  # every reader's time, once, over the whole recording (rows min_speed drops too)
         check_increasing(channels["t"], file=file, row_offset=table.row_offset)
@@ -720,8 +966,8 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
     for first, piece in _pieces(m, channels, file, table.row_offset):
         for a, b in zip(*_stretches(m, path, piece)):  # resampled after trimming: a gap
             part = {c: v[a:b] for c, v in piece.items()}  # where vx is too low is cut out
-            if m.raster_step is not None and not fmt.own_time:
-                part = _resample(part, m.raster_step, file, first + a + table.row_offset)
+            if raster_step is not None and not fmt.own_time:
+                part = _resample(part, raster_step, file, first + a + table.row_offset)
             starts.append(first + a)
             stretches.append(part)
     t = channels["t"]
@@ -751,10 +997,10 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
     try:
         _check_stretches(m, file, starts, stretches, table.row_offset)
     except DataError as exc:
-        if m.raster_step is None or fmt.own_time:
+        if raster_step is None or fmt.own_time:
             raise
         raise DataError(  # rows of resampled data are raster samples, not lines
-            f"{exc.message} (resampled: a row counts {m.raster_step:g} s raster samples from "
+            f"{exc.message} (resampled: a row counts {raster_step:g} s raster samples from "
             "the first row of its stretch)",
             file=exc.file,
             column=exc.column,
@@ -804,6 +1050,15 @@ def import_recordings(
                 f"recordings {sources[a]} and {sources[b]} would both be named {labels[a]!r}; "
                 "rename one"
             )
+    for glob, _ in m.raster_by_file:
+        if not any(fnmatch.fnmatch(Path(s).name, glob) or fnmatch.fnmatch(lab, glob)
+                   for s, lab in zip(sources, labels)):  # fmt: skip
+            warnings.warn(
+                f"mapping {m.file}, key 'source.raster': pattern {excerpt(glob)} matches none "
+                f"of the recordings {excerpt([Path(s).name for s in sources], 200)}",
+                DataWarning,
+                stacklevel=2,
+            )
     recordings = [_read(m, Path(s), lab, lim) for s, lab in zip(sources, labels)]
     steps = [sample_time(r.stretches[0]["t"]) for r in recordings]
     for r, step in zip(recordings, steps):
@@ -811,7 +1066,8 @@ def import_recordings(
             raise DataError(
                 f"sample time {step:.4g} s, while {recordings[0].file.name} has {steps[0]:.4g} "
                 f"s: one dataset has one sample time (resample with {RASTER_OPTION} = "
-                f"{steps[0]:.4g})",
+                f"{steps[0]:.4g}, or this recording alone with {RASTER_OPTION} = "
+                f'{{ "{r.label}*" = {steps[0]:.4g} }})',
                 file=str(r.file),
             )
     pieces = []  # (recording, label, channels, description)
@@ -834,7 +1090,7 @@ def import_recordings(
             pieces.append((r, label, seg, f"{where}, t = {seg['t'][0]:.2f} … {seg['t'][-1]:.2f} s"))
             first_rows.append(row)
     splits = _splits(m, pieces)
-    for text in _split_warnings(m, recordings, splits):
+    for text in _split_warnings(m, recordings, splits, [label for _, label, _, _ in pieces]):
         warnings.warn(text, DataWarning, stacklevel=2)
     manoeuvres = [
         _segment(m, r, label, split, seg, desc, row)
@@ -847,7 +1103,8 @@ def import_recordings(
         "mapping": Path(m.file).name,
         "kept_s": [round(r.kept_s, 3) for r in recordings],
         "recorded_s": [round(r.total_s, 3) for r in recordings],
-        "split": f"{m.split[0]} = {m.split[1]!r}",
+        "split": f"{m.split[0]} = {m.split[1]!r}"
+        + (f", per = {m.split_per!r}" if m.split_per != "all" else ""),
     }
     if m.model is not None:
         meta["model"] = m.model
@@ -879,40 +1136,60 @@ def _segment(
     """A segment of a recording as a manoeuvre (:func:`~kftune.data.io.segment_manoeuvre`:
     its errors name the recording's file and row, ``row`` the segment's first)."""
     note = ""
-    if m.raster_step is not None and not (m.format or format_of(r.file)).own_time:
+    step = m.raster_for(r.file)
+    if step is not None and not (m.format or format_of(r.file)).own_time:
         note = (
-            f"; resampled: a row counts {m.raster_step:g} s raster samples from the first row "
-            "of its stretch"
+            f"; resampled: a row counts {step:g} s raster samples from the first row of its stretch"
         )
     return segment_manoeuvre(label, split, seg, desc, file=str(r.file), row=row, note=note)
 
 
-def _matches(r: _Recording, glob: str) -> bool:
-    """Whether a ``[split] test`` glob matches a recording's file name or its stem."""
-    return fnmatch.fnmatch(r.file.name, glob) or fnmatch.fnmatch(r.label, glob)
+def _matches(r: _Recording, glob: str, segment: str | None = None) -> bool:
+    """Whether a ``[split] test`` glob matches a recording's file name or its stem, or
+    (given) the name of one of its segments (``run1-s02``)."""
+    names = (r.file.name, r.label, *(() if segment is None else (segment,)))
+    return any(fnmatch.fnmatch(n, glob) for n in names)
 
 
 def _splits(m: Mapping_, pieces: list[tuple[Any, str, dict[str, np.ndarray], str]]) -> list[str]:
+    """Each piece's split by the mapping's rule; with ``per = "file"`` the rule counts
+    (``train_every``) or measures time (``test_fraction``) within each recording."""
     rule, value = m.split
     if rule == "test":
-        return ["test" if any(_matches(r, g) for g in value) else "train" for r, _, _, _ in pieces]
-    if rule == "train_every":
-        return ["train" if i % value == 0 else "test" for i in range(len(pieces))]
-    durations = np.array([float(seg["t"][-1] - seg["t"][0]) for _, _, seg, _ in pieces])
-    before = np.concatenate([[0.0], np.cumsum(durations)[:-1]])
-    return ["test" if b >= (1 - value) * durations.sum() else "train" for b in before]
+        return [
+            "test" if any(_matches(r, g, label) for g in value) else "train"
+            for r, label, _, _ in pieces
+        ]
+    groups: dict[int, list[int]] = {}
+    for i, (r, _, _, _) in enumerate(pieces):
+        groups.setdefault(id(r) if m.split_per == "file" else 0, []).append(i)
+    out = [""] * len(pieces)
+    for members in groups.values():
+        if rule == "train_every":
+            for k, i in enumerate(members):
+                out[i] = "train" if k % value == 0 else "test"
+            continue
+        durations = np.array([float(np.ptp(pieces[i][2]["t"])) for i in members])
+        before = np.concatenate([[0.0], np.cumsum(durations)[:-1]])
+        for i, b in zip(members, before):
+            out[i] = "test" if b >= (1 - value) * durations.sum() else "train"
+    return out
 
 
-def _split_warnings(m: Mapping_, recordings: list[_Recording], splits: list[str]) -> list[str]:
+def _split_warnings(
+    m: Mapping_, recordings: list[_Recording], splits: list[str], labels: list[str]
+) -> list[str]:
     """What is suspicious about the split: a test pattern that matches no recording, and a
     split without test (or training) manoeuvres, each naming the mapping's key."""
     rule, value = m.split
     where = f"mapping {m.file}, key 'split.{rule}'"
     out = [
         f"{where}: pattern {excerpt(g)} matches none of the recordings "
-        f"{excerpt([r.file.name for r in recordings], 200)} (by file name or stem)"
+        f"{excerpt([r.file.name for r in recordings], 200)} (by file name or stem) and none "
+        f"of their segments {excerpt(labels, 200)}"
         for g in (value if rule == "test" else ())
         if not any(_matches(r, g) for r in recordings)
+        and not any(fnmatch.fnmatch(label, g) for label in labels)
     ]
     given = f"{rule} = {excerpt(value, 100)}" + ("" if "split" in m.given else " (the default)")
     n = f"{len(splits)} manoeuvre{'s' if len(splits) > 1 else ''}"
@@ -926,7 +1203,9 @@ def _split_warnings(m: Mapping_, recordings: list[_Recording], splits: list[str]
         if rule == "test":  # by recording: segments do not help
             why, fix = "no recording matches a pattern", "name a recording in split.test"
         elif rule == "train_every":
-            why = f"manoeuvre i is test when i % {value} != 0"
+            why = f"manoeuvre i is test when i % {value} != 0" + (
+                " (i counted within each file)" if m.split_per == "file" else ""
+            )
             fix = "use train_every = 2 or more" if value == 1 else cut
         else:
             why = f"test are the manoeuvres that start in the last {value:.0%} of the total time"
