@@ -1,0 +1,456 @@
+"""Tuning the model's parameters with the noise: how close each optimiser gets to the best
+cost at d = 5, 6 and 9, and whether the jointly tuned filter repairs a wrong vehicle on the
+test manoeuvres.
+
+A user with a new car guesses its tyres. This benchmark gives the filter a vehicle scaled
+from the dataset's own (``--wrong``, default C_af ×0.7, C_ar ×1.4, μ ×0.8: the bundled
+data are simulated with the unscaled vehicle) and tunes, on the training manoeuvres with
+the paper's cost (Eq. 14–15, ``--normalise`` as ``kftune tune``):
+
+* ``noise-true``:  Q only (d = 3) on the dataset's vehicle — the filter to come near;
+* ``noise``:       Q only (d = 3) on the wrong vehicle — what tuning Q alone gives;
+* ``d5``:          Q + C_af + C_ar (d = 5) on the wrong vehicle, each stiffness in
+  [20000, 400000] N/rad (log10, started at the wrong value);
+* ``d6``:          ``d5`` + μ in [0.4, 1.6] (log10);
+* ``d9``:          ``d6`` + R's diagonal (``tune_r="diag"``, three factors on R₀).
+
+With ``--wrong`` and no factors the filter gets the recorded vehicle (``noise`` is then
+``noise-true``; on a recording such as ``../shared/data/revs-250lm`` this asks whether
+joint tuning of parameters its authors identified costs anything).
+
+Methods: any label of ``kftune.optim.METHODS`` (default: TR-BO, Optuna TPE, CMA-ES, random,
+GA). Budgets per configuration (``--budgets`` gives one list for all): d ≤ 6 at 50 and
+100, d = 9 at 75 and 150. A budget-independent method (TR-BO, TPE, CMA-ES, random) runs
+once at the largest budget and is read as prefixes; GA runs once per budget.
+
+J* of a configuration: the lowest training cost any run of this invocation found in it
+(stated in the output with the run that found it); gap = 100·(J − J*)/J*.
+
+Per configuration, method and budget: median and worst gap over seeds, median test β RMSE
+[deg] of the filter at the best point (KPI average over the test manoeuvres, as ``kftune
+compare``), median tuned model parameters, whether J never rises with the budget on any
+seed. Then the targets of the "tune model parameters" issue:
+
+1. median gap at 100 at d = 5 within 1 %, at 150 at d = 9 within 2 % (TR-BO);
+2. TR-BO's median J below every peer's at each budget (d = 5, 6, 9);
+3. never worse with more budget (every seed);
+4. joint (``d6``, TR-BO at 100) median test β RMSE within 5 % of ``noise-true``'s
+   (TR-BO at 100), and how far below ``noise`` (the wrong vehicle, Q only) it is;
+5. with ``--wrong`` empty (a recording): ``d5`` at most 1 % above ``noise``.
+
+Usage::
+
+    .venv/bin/python benchmarks/joint_tuning.py --json-out /tmp/joint.json
+    .venv/bin/python benchmarks/joint_tuning.py --configs noise-true noise d6 \\
+        --methods trbo --seeds 3 --budgets 100
+    .venv/bin/python benchmarks/joint_tuning.py --dataset ../shared/data/revs-250lm \\
+        --wrong --configs noise d5 --methods trbo --seeds 3 --budgets 100
+
+Prints the tables and, as its last line, one JSON object with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import kftune
+from kftune.data import open_dataset
+from kftune.errors import KftuneError
+from kftune.experiment import manual_point
+from kftune.optim import METHODS, PeerUnavailableError
+from kftune.tuning.cost import NORMALISATIONS, CostSpec
+from kftune.tuning.problem import FilterDivergedError, NoiseParameterization, TuningProblem
+from ukf_tuning import (  # benchmarks/ is the script's path
+    _CONTEXT,
+    gap_pct,
+    is_budget_independent,
+    json_safe,
+    monotonicity,
+    num,
+    read_at,
+    test_beta_rmse,
+    tuning_run,
+)
+
+#: The stiffness and friction boxes of the issue (natural units: N/rad, N/rad, -).
+STIFFNESS_BOX = (20_000.0, 400_000.0)
+MU_BOX = (0.4, 1.6)
+#: configuration → (tuned model parameters, R tuning, filter on the dataset's own vehicle).
+CONFIGS: dict[str, tuple[dict[str, tuple[float, float]], str, bool]] = {
+    "noise-true": ({}, "none", True),
+    "noise": ({}, "none", False),
+    "d5": ({"C_af": STIFFNESS_BOX, "C_ar": STIFFNESS_BOX}, "none", False),
+    "d6": ({"C_af": STIFFNESS_BOX, "C_ar": STIFFNESS_BOX, "mu": MU_BOX}, "none", False),
+    "d9": ({"C_af": STIFFNESS_BOX, "C_ar": STIFFNESS_BOX, "mu": MU_BOX}, "diag", False),
+}
+DEFAULT_WRONG = ("C_af=0.7", "C_ar=1.4", "mu=0.8")
+DEFAULT_METHODS = ("trbo", "optuna-tpe", "cma", "random", "ga")
+PEERS = ("optuna-tpe", "optuna-gp", "cma", "random", "ga")
+#: Targets: median gap at (d, budget) [%].
+GAP_TARGETS = (("d5", 100, 1.0), ("d9", 150, 2.0))
+#: Joint tuning within this factor of the noise-only filter on the true vehicle (test β).
+JOINT_VS_TRUE = 1.05
+#: On a recording: joint tuning at most this factor of noise-only (test β).
+JOINT_VS_NOISE = 1.01
+
+_PROBLEMS: dict[tuple, tuple[Any, TuningProblem]] = {}
+
+
+def parse_scales(items: Sequence[str]) -> dict[str, float]:
+    """``["C_af=0.7", …]`` → {"C_af": 0.7, …} (positive factors)."""
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            factor = float(value)
+        except ValueError:
+            factor = math.nan
+        if not sep or not name or not math.isfinite(factor) or factor <= 0:
+            raise argparse.ArgumentTypeError(
+                f"--wrong: expected NAME=FACTOR with a positive factor, got {item!r}"
+            )
+        out[name] = factor
+    return out
+
+
+def build(dataset: str | None, wrong: dict[str, float], normalise: str, config: str) -> None:
+    """Make ``config``'s problem the current one of ``ukf_tuning``'s helpers (cached)."""
+    key = (dataset, tuple(sorted(wrong.items())), normalise, config)
+    if key not in _PROBLEMS:
+        ds = open_dataset(dataset)
+        bounds, tune_r, true_vehicle = CONFIGS[config]
+        vehicle = ds.vehicle
+        if not true_vehicle and wrong:
+            vehicle = vehicle.replace(**{n: f * getattr(vehicle, n) for n, f in wrong.items()})
+        start = {n: float(getattr(vehicle, n)) for n in bounds}
+        model = {"model_bounds": bounds, "model_start": start} if bounds else {}
+        par = NoiseParameterization(tune_r=tune_r, **model)
+        cost = CostSpec(normalise=normalise)  # type: ignore[arg-type]
+        problem = TuningProblem(ds.train, vehicle, ds.r_default, cost=cost, parameterization=par)
+        _PROBLEMS[key] = (ds, problem)
+    ds, problem = _PROBLEMS[key]
+    _CONTEXT.update(spec=key, dataset=ds, problem=problem)
+
+
+def run_unit(
+    dataset: str | None,
+    wrong: dict[str, float],
+    normalise: str,
+    config: str,
+    label: str,
+    seed: int,
+    budgets: list[int],
+) -> dict[str, Any]:
+    """Every budget of one (configuration, method, seed), as ``ukf_tuning.run_unit``."""
+    build(dataset, wrong, normalise, config)
+    problem = _CONTEXT["problem"]
+    cache: dict[tuple, float] = {}
+
+    def rmse(x: tuple) -> float:
+        if x not in cache:
+            cache[x] = test_beta_rmse(x)
+        return cache[x]
+
+    try:
+        independent = is_budget_independent(label)
+        if independent:
+            run = tuning_run(label, seed, max(budgets))
+            cells = {b: read_at(run, b, rmse) for b in budgets}
+        else:
+            cells = {b: read_at(tuning_run(label, seed, b), b, rmse) for b in budgets}
+    except PeerUnavailableError as exc:
+        return {"config": config, "label": label, "seed": seed, "skipped": str(exc)}
+    names = problem.space.names
+    for c in cells.values():
+        c["params"] = dict(zip(names, c["x"], strict=True))
+        del c["trace"]  # the traces of a few hundred units make the JSON heavy
+    return json_safe(
+        {
+            "config": config,
+            "label": label,
+            "seed": seed,
+            "prefix_read": independent,
+            "budgets": {str(b): c for b, c in cells.items()},
+        }
+    )
+
+
+def start_point(dataset: str | None, wrong: dict[str, float], normalise: str, config: str) -> dict:
+    """Training cost and test β RMSE [deg] of the manual point (the recorded model)."""
+    build(dataset, wrong, normalise, config)
+    problem = _CONTEXT["problem"]
+    x = manual_point(problem.parameterization)
+    try:
+        j = float(problem(x))
+    except FilterDivergedError:
+        j = math.inf
+    return json_safe({"J": j, "test_rmse_deg": test_beta_rmse(tuple(x)), "x": x.tolist()})
+
+
+def summarise(units: list[dict], budgets: dict[str, list[int]]) -> dict[str, Any]:
+    """Per configuration: J* (best of every run), and per method and budget the gaps, test
+    β RMSE and tuned model parameters over seeds."""
+    out: dict[str, Any] = {}
+    for config in dict.fromkeys(u["config"] for u in units):
+        rows = [u for u in units if u["config"] == config and "skipped" not in u]
+        if not rows:
+            continue
+        best = min(
+            (num(c["best"]), u["label"], u["seed"], b)
+            for u in rows
+            for b, c in u["budgets"].items()
+        )
+        jstar = best[0]
+        s: dict[str, Any] = {
+            "jstar": jstar,
+            "jstar_found_by": {"method": best[1], "seed": best[2], "budget": int(best[3])},
+            "methods": {},
+        }
+        for label in dict.fromkeys(u["label"] for u in rows):
+            mine = sorted((u for u in rows if u["label"] == label), key=lambda u: u["seed"])
+            m: dict[str, Any] = {"seeds": [u["seed"] for u in mine]}
+            for b in budgets[config]:
+                cells = [u["budgets"][str(b)] for u in mine]
+                j = [num(c["best"]) for c in cells]
+                gaps = [gap_pct(v, jstar) for v in j]
+                rmse = [num(c["test_rmse_deg"], math.nan) for c in cells]
+                model = {
+                    n: float(np.median([c["params"][n] for c in cells])) for n in CONFIGS[config][0]
+                }
+                m[str(b)] = {
+                    "J": j,
+                    "median_J": float(np.median(j)),
+                    "median_gap_pct": float(np.median(gaps)),
+                    "worst_gap_pct": float(np.max(gaps)),
+                    "test_rmse_deg": rmse,
+                    "median_test_rmse_deg": float(np.median(rmse)),
+                    "median_model_params": model,
+                    "median_wall_s": float(np.median([c["wall_s"] for c in cells])),
+                    "n_failed": int(sum(c["n_failed"] for c in cells)),
+                }
+            m["monotone"] = monotonicity(mine, budgets[config], jstar)
+            s["methods"][label] = m
+        out[config] = s
+    return out
+
+
+def trbo_median_rmse(summary: dict[str, Any], config: str, budget: int, seeds: list[int]) -> Any:
+    """TR-BO's median test β RMSE at ``budget`` over ``seeds`` (None if not run)."""
+    m = summary.get(config, {}).get("methods", {}).get("trbo")
+    if m is None or str(budget) not in m:
+        return None
+    vals = [v for s, v in zip(m["seeds"], m[str(budget)]["test_rmse_deg"]) if s in seeds]
+    return float(np.median(vals)) if len(vals) == len(seeds) else None
+
+
+def targets(summary: dict[str, Any], recorded: bool) -> list[dict[str, Any]]:
+    """The issue's targets, each PASS/FAIL/n/a with its figures."""
+    out: list[dict[str, Any]] = []
+
+    def add(target: str, ok: bool | None, detail: str) -> None:
+        out.append(
+            {
+                "target": target,
+                "result": "n/a" if ok is None else "PASS" if ok else "FAIL",
+                "detail": detail,
+            }
+        )
+
+    for config, budget, limit in GAP_TARGETS:
+        c = summary.get(config, {}).get("methods", {}).get("trbo", {}).get(str(budget))
+        add(
+            f"TR-BO median gap at {budget} ({config}) <= {limit:g} %",
+            None if c is None else c["median_gap_pct"] <= limit,
+            "not run" if c is None else f"{c['median_gap_pct']:.3f} %",
+        )
+    for config in ("d5", "d6", "d9"):
+        methods = summary.get(config, {}).get("methods", {})
+        if "trbo" not in methods:
+            continue
+        for key in (k for k in methods["trbo"] if k.isdigit()):
+            peers = {p: methods[p][key]["median_J"] for p in PEERS if p in methods}
+            mine = methods["trbo"][key]["median_J"]
+            add(
+                f"TR-BO ahead of every peer at {key} ({config}, median J)",
+                None if not peers else all(mine < v for v in peers.values()),
+                f"{mine:.6f} vs " + ", ".join(f"{p} {v:.6f}" for p, v in peers.items()),
+            )
+        mono = methods["trbo"]["monotone"]
+        add(
+            f"TR-BO never worse with more budget ({config})",
+            not mono["rising_seeds"],
+            f"rising on seeds {mono['rising_seeds']}",
+        )
+    seeds = [0, 1, 2]
+    joint = trbo_median_rmse(summary, "d5" if recorded else "d6", 100, seeds)
+    if recorded:
+        noise = trbo_median_rmse(summary, "noise", 100, seeds)
+        add(
+            "joint (C_af, C_ar; TR-BO 100, seeds 0-2) test beta RMSE <= 1.01 x noise-only",
+            None if joint is None or noise is None else joint <= JOINT_VS_NOISE * noise,
+            "not run"
+            if joint is None or noise is None
+            else f"{joint:.4f} vs {noise:.4f} deg ({100 * (joint / noise - 1):+.1f} %)",
+        )
+    else:
+        true = trbo_median_rmse(summary, "noise-true", 100, seeds)
+        wrong = trbo_median_rmse(summary, "noise", 100, seeds)
+        add(
+            "joint (Q + C_af + C_ar + mu; TR-BO 100, seeds 0-2) test beta RMSE <= 1.05 x "
+            "noise-only on the true vehicle",
+            None if joint is None or true is None else joint <= JOINT_VS_TRUE * true,
+            "not run"
+            if joint is None or true is None
+            else f"{joint:.4f} vs {true:.4f} deg ({100 * (joint / true - 1):+.1f} %); "
+            + ("" if wrong is None else f"noise-only on the wrong vehicle {wrong:.4f} deg"),
+        )
+    return out
+
+
+def print_tables(summary: dict[str, Any], starts: dict[str, Any]) -> None:
+    for config, s in summary.items():
+        names = list(CONFIGS[config][0])
+        st = starts.get(config, {})
+        print(
+            f"\n{config} (d = {len(s.get('dim_names', [])) or '?'}): J* = {s['jstar']:.6f} "
+            f"(found by {s['jstar_found_by']['method']} seed {s['jstar_found_by']['seed']} "
+            f"at {s['jstar_found_by']['budget']}); start point J = {num(st.get('J')):.6f}, "
+            f"test β RMSE {num(st.get('test_rmse_deg'), math.nan):.4f}°\n"
+        )
+        head = "| method | budget | gap median [%] | worst [%] | test β RMSE median [°] |"
+        head += "".join(f" {n} median |" for n in names) + " J never rises |"
+        print(head)
+        print("|" + " --- |" * (6 + len(names)))
+        for label, m in s["methods"].items():
+            for key in (k for k in m if k.isdigit()):
+                c = m[key]
+                mono = m["monotone"]
+                print(
+                    f"| {label} | {key} | {c['median_gap_pct']:.3f} | {c['worst_gap_pct']:.3f} | "
+                    f"{c['median_test_rmse_deg']:.4f} |"
+                    + "".join(f" {c['median_model_params'][n]:.4g} |" for n in names)
+                    + f" {mono['n'] - len(mono['rising_seeds'])}/{mono['n']} |"
+                )
+
+
+def default_budgets(config: str) -> list[int]:
+    """d = 9: 75 and 150; otherwise 50 and 100."""
+    return [75, 150] if CONFIGS[config][1] == "diag" else [50, 100]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", default=None, help="dataset directory (default: bundled)")
+    ap.add_argument(
+        "--wrong",
+        nargs="*",
+        default=list(DEFAULT_WRONG),
+        metavar="NAME=FACTOR",
+        help="the filter's vehicle: these fields scaled (default C_af=0.7 C_ar=1.4 mu=0.8; "
+        "none: the recorded vehicle)",
+    )
+    ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
+    ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
+    ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
+    ap.add_argument("--budgets", type=int, nargs="+", default=None, help="for every config")
+    ap.add_argument("--normalise", choices=NORMALISATIONS, default="manoeuvre")
+    ap.add_argument("--json-out", type=Path, default=None, help="also write the units here")
+    args = ap.parse_args(argv)
+    try:
+        wrong = parse_scales(args.wrong)
+    except argparse.ArgumentTypeError as exc:
+        ap.error(str(exc))
+    if args.seeds < 1 or args.seed_offset < 0:
+        ap.error("--seeds must be >= 1 and --seed-offset >= 0")
+    if args.budgets is not None and any(b < 1 for b in args.budgets):
+        ap.error(f"--budgets must be positive integers, got {args.budgets}")
+    budgets = {
+        c: sorted(set(args.budgets)) if args.budgets else default_budgets(c) for c in args.configs
+    }
+    seeds = list(range(args.seed_offset, args.seed_offset + args.seeds))
+    t0 = time.perf_counter()
+    starts: dict[str, Any] = {}
+    units: list[dict[str, Any]] = []
+    try:
+        for config in args.configs:
+            starts[config] = start_point(args.dataset, wrong, args.normalise, config)
+            print(
+                f"{config}: d = {_CONTEXT['problem'].space.dim}, "
+                f"{' '.join(_CONTEXT['problem'].space.names)}; start J "
+                f"{num(starts[config]['J']):.6f}, test β RMSE "
+                f"{num(starts[config]['test_rmse_deg'], math.nan):.4f}°",
+                flush=True,
+            )
+            for label in args.methods:
+                if config.startswith("noise") and label != "trbo":
+                    continue  # the noise-only baselines are TR-BO's (the targets' reference)
+                for seed in seeds:
+                    u = run_unit(
+                        args.dataset, wrong, args.normalise, config, label, seed, budgets[config]
+                    )
+                    units.append(u)
+                    if "skipped" in u:
+                        print(f"  {config} {label} seed {seed}: skipped ({u['skipped']})")
+                        continue
+                    print(
+                        f"  {config:10s} {label:10s} seed {seed}: "
+                        + "  ".join(
+                            f"J {num(c['best']):.6f} β {num(c['test_rmse_deg'], math.nan):.4f}°"
+                            f" @{b} ({c['wall_s']:.0f} s) "
+                            + " ".join(f"{n}={c['params'][n]:.4g}" for n in CONFIGS[config][0])
+                            for b, c in u["budgets"].items()
+                        ),
+                        flush=True,
+                    )
+    except KftuneError as exc:
+        print(f"joint_tuning: error: {exc}", file=sys.stderr)
+        return 3
+    summary = summarise(units, budgets)
+    for config, s in summary.items():
+        build(args.dataset, wrong, args.normalise, config)
+        s["dim_names"] = list(_CONTEXT["problem"].space.names)
+    print_tables(summary, starts)
+    checks = targets(summary, recorded=not wrong)
+    print("\ntargets:")
+    for c in checks:
+        print(f"  {c['result']:4s}  {c['target']}: {c['detail']}")
+    out = {
+        "benchmark": "joint_tuning",
+        "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
+        "machine": f"{platform.machine()} {os.cpu_count()} cpu, {platform.python_version()}",
+        "kftune_version": kftune.__version__,
+        "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "dataset": args.dataset or "bundled",
+        "wrong": wrong,
+        "normalise": args.normalise,
+        "seeds": seeds,
+        "budgets": budgets,
+        "starts": starts,
+        "summary": summary,
+        "targets": checks,
+    }
+    if args.json_out is not None:
+        args.json_out.write_text(
+            json.dumps(json_safe({**out, "units": units}), allow_nan=False) + "\n"
+        )
+    print(json.dumps(json_safe(out), allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
