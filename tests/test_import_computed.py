@@ -418,3 +418,14 @@ def test_the_held_samples_warning_names_the_raster_option():
         warnings.simplefilter("error")
         found = plausibility_findings(c, None)["held"]
     assert "[source] raster = <step>" in found and '{ "<file glob>" = <step> }' in found
+
+
+def test_the_readme_computed_channels_example_imports_the_issues_recording(tmp_path):
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("**Computed channels**", 1)[1]
+    block = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    c, cols = _logger_columns()
+    src = _savetxt(tmp_path / "drive.csv", cols, UNITS)
+    (tmp_path / "map.toml").write_text(block)
+    (m,) = import_recordings([src], tmp_path / "map.toml").manoeuvres
+    np.testing.assert_allclose(m.ay, c["vx"] * c["r"], rtol=1e-12)

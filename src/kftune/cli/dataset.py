@@ -80,9 +80,10 @@ def register(subparsers: Any) -> None:
         "import",
         help="turn recordings (CSV/TSV, Parquet, MATLAB, MDF4) into a dataset",
         description="Read recordings through one column mapping (a TOML file: which source "
-        "signal is which channel, its unit, a sample time, derived channels, standstill "
-        "trimming, the train/test rule, the vehicle; see the README, 'Importing your "
-        "recordings'), merge them into one dataset and write it in the kftune format. "
+        "signal is which channel, its unit, a sample time, channels computed from the "
+        'columns (expr = "(wheel_fl + wheel_fr) / 2"), standstill trimming, the train/test '
+        "rule, the vehicle; see the README, 'Importing your recordings'), merge them into "
+        "one dataset and write it in the kftune format. "
         "Formats by suffix: CSV/TSV (.csv .tsv), Parquet (.parquet, extra [parquet]), "
         "MATLAB (.mat; v7.3 needs extra [mat73]), MDF4 (.mf4 .mdf, extra [mdf]).",
     )
