@@ -44,7 +44,7 @@ import functools
 import inspect
 import math
 import types
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -108,6 +108,10 @@ class DataRefused(ValueError):
 
 
 PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: ``(runs: [(dt, {channel: (N,) array})], p: (n_p,)) -> {parameter: sentence}``.
+ParamHints = Callable[
+    [Sequence[tuple[float, Mapping[str, np.ndarray]]], np.ndarray], Mapping[str, str]
+]
 
 #: The arguments of each compiled hook, in order (module docstring).
 HOOK_ARGUMENTS: dict[str, tuple[str, ...]] = {
@@ -172,6 +176,13 @@ class StateSpaceModel:
         param_ranges: name → (low, high), the plausible range of a parameter in its unit
             (both ends included): a tuning box for it beyond the range is refused. A
             parameter without one may take any finite value.
+        param_hints: physical reasons the data may not determine a tuned parameter,
+            ``(runs, p) -> {name: sentence}`` over the training data — ``runs`` a sequence
+            of (dt [s], {channel: (N,) array}) of the model's input and measurement
+            channels, ``p`` (n_p,) the tuned parameters — naming only the parameters the
+            data leave unexcited (a friction coefficient on data far from the friction
+            limit); None: no such knowledge. Said with a parameter the tuning's profile
+            finds not determined (:mod:`kftune.tuning.identify`).
     """
 
     name: str
@@ -201,6 +212,7 @@ class StateSpaceModel:
     outputs: Mapping[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
     needs_vehicle: bool = False
     param_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    param_hints: ParamHints | None = None
 
     def __post_init__(self) -> None:
         name = self.name
@@ -255,6 +267,11 @@ class StateSpaceModel:
                 )
             ranges[key] = (low, high)
         object.__setattr__(self, "param_ranges", types.MappingProxyType(ranges))
+        if self.param_hints is not None and not callable(self.param_hints):
+            raise ValueError(
+                f"model {name!r}: param_hints must be a function (runs, p) -> {{name: reason}}, "
+                f"got {type(self.param_hints).__name__}"
+            )
         for hook, args in HOOK_ARGUMENTS.items():
             fn = getattr(self, hook)
             if (fn is not None or hook in ("f", "h")) and not isinstance(fn, Dispatcher):

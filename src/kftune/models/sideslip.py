@@ -29,13 +29,15 @@ measured Vx held for 0.5 s stops it where it began. The measured Vx is z[0], whi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from numba import njit
+from scipy.ndimage import uniform_filter1d
 
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
 from kftune.models.base import FIRST_MODEL_STOP, DataRefused, PriorRule, StateSpaceModel
-from kftune.vehicle.params import PARAM_INDEX, PLAUSIBLE_RANGES, PRESETS
+from kftune.vehicle.params import PARAM_INDEX, PLAUSIBLE_RANGES, PRESETS, G
 from kftune.vehicle.single_track import (
     MAX_SIDESLIP,
     measure_scalar,
@@ -60,6 +62,8 @@ __all__ = [
     "STOP_SIDESLIP_HELD",
     "STOP_SPEED",
     "check_forward_speed",
+    "largest_lateral_acceleration",
+    "param_hints",
     "single_track_prior",
 ]
 
@@ -256,6 +260,79 @@ def _validate(u: np.ndarray, z: np.ndarray) -> None:
     check_forward_speed(z)
 
 
+#: A friction coefficient is not determined by data whose largest |ay| stays below this
+#: share of μ·g. The Dugoff axle force is C_α·tan α, free of μ, while |F_y| ≤ μ·F_z/2
+#: (λ ≥ 1, :mod:`kftune.vehicle.tyre`), which in steady cornering is |ay| ≤ μ·g/2; from
+#: there to μ·g the force bends towards its limit μ·F_z.
+FRICTION_HINT_SHARE = 0.7
+#: The cornering stiffnesses are barely excited when the largest |ay| stays below this
+#: [m/s²] (about 0.1 g): the lateral forces, and so C_α·α, are then of the order of the
+#: accelerometer's noise and bank.
+LATERAL_HINT_AY = 1.0
+#: [s] the centred moving average |ay| is taken over, so that the accelerometer's noise
+#: does not set the largest value.
+HINT_SMOOTHING = 0.2
+
+
+def largest_lateral_acceleration(runs: Sequence[tuple[float, Mapping[str, np.ndarray]]]) -> float:
+    """The largest |ay| [m/s²] of the runs' measured ay, each smoothed by a centred moving
+    average over :data:`HINT_SMOOTHING`; NaN without an ay channel."""
+    peaks = [
+        float(np.max(np.abs(uniform_filter1d(np.asarray(ch["ay"], float), size, mode="nearest"))))
+        for dt, ch in runs
+        if "ay" in ch and len(ch["ay"]) and (size := max(1, round(HINT_SMOOTHING / dt)))
+    ]
+    return max(peaks) if peaks else math.nan
+
+
+def _friction_hint(ay: float, p: np.ndarray) -> str | None:
+    share = ay / (float(p[PARAM_INDEX["mu"]]) * G)
+    if share >= FRICTION_HINT_SHARE:
+        return None
+    return (
+        f"μ is not determined by these manoeuvres: the largest |ay| is {100 * share:.0f} % of "
+        "μ·g, no sample near the friction limit (the Dugoff tyre force depends on μ only "
+        "beyond 50 %)"
+    )
+
+
+def _stiffness_hint(name: str) -> Callable[[float, np.ndarray], str | None]:
+    axle = "front" if name == "C_af" else "rear"
+
+    def hint(ay: float, p: np.ndarray) -> str | None:
+        if ay >= LATERAL_HINT_AY:
+            return None
+        return (
+            f"too little lateral excitation for the {axle} cornering stiffness {name}: the "
+            f"largest |ay| is {ay:.2g} m/s² (under {LATERAL_HINT_AY:g} m/s²)"
+        )
+
+    return hint
+
+
+#: What kftune knows of the single-track parameters' excitation: parameter → (largest
+#: |ay| [m/s²], tuned parameters p) → a reason the data may not determine it, or None.
+_PARAM_HINTS: dict[str, Callable[[float, np.ndarray], str | None]] = {
+    "mu": _friction_hint,
+    "C_af": _stiffness_hint("C_af"),
+    "C_ar": _stiffness_hint("C_ar"),
+}
+
+
+def param_hints(
+    runs: Sequence[tuple[float, Mapping[str, np.ndarray]]], p: np.ndarray
+) -> dict[str, str]:
+    """The single-track models' :attr:`~kftune.models.StateSpaceModel.param_hints`: from
+    the largest lateral acceleration of the training runs (:func:`largest_lateral_acceleration`)
+    and the tuned parameters p (9,), a reason for each parameter of :data:`_PARAM_HINTS`
+    the data leave unexcited."""
+    ay = largest_lateral_acceleration(runs)
+    if not math.isfinite(ay):
+        return {}
+    found = {name: hint(ay, p) for name, hint in _PARAM_HINTS.items()}
+    return {name: text for name, text in found.items() if text is not None}
+
+
 def sideslip_angle(x: np.ndarray) -> np.ndarray:
     """(N,) the sideslip angle atan2(Vy, Vx) [rad] of posterior states x (N, n ≥ 2)."""
     return np.arctan2(x[:, 1], x[:, 0])
@@ -297,6 +374,7 @@ def _model(
         outputs={"beta": sideslip_angle},
         needs_vehicle=True,
         param_ranges={k: PLAUSIBLE_RANGES[k][:2] for k in PARAM_INDEX},
+        param_hints=param_hints,
     )
 
 
