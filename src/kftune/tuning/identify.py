@@ -39,9 +39,17 @@ The profile is conditional (the other coordinates held, not re-optimised at each
 because a re-optimised profile costs a tuning run per point — some hundred evaluations
 each. Holding the others can only make a valley narrower than the re-optimised profile
 (a trade-off with another parameter is not followed), so a parameter found *not
-determined* here is not determined, while *determined* is an upper bound on what the data
-say when two parameters trade off (the front and rear cornering stiffness through the
-understeer gradient).
+determined* here is not determined, while *determined* could overstate what the data say
+when two parameters trade off (the front and rear cornering stiffness through the
+understeer gradient). For those, one more point per pair of reported parameters gives
+the cross curvatures, and with them the curvature matrix H over the reported parameters:
+the **joint range** √(2·ΔJ·(H⁻¹)_ii) with the other reported parameters re-fitted on that
+quadratic, and the correlations of the estimates (:func:`_joint`); a parameter whose joint
+range spans half its box or more is not determined either. The noise parameters stay held:
+following them too would cost their profiles as well (some 40 more evaluations at d = 6).
+
+Cost: at most ``MAX_EVALS_PER_PARAMETER·k + 1 + k(k−1)/2`` evaluations for k reported
+parameters (34 for C_af, C_ar and μ), in two batches.
 
 Physical reasons a model can know (a friction coefficient on data far from the friction
 limit) come from the model's optional hook :attr:`~kftune.models.StateSpaceModel.param_hints`.
@@ -52,7 +60,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -66,6 +74,8 @@ if TYPE_CHECKING:
 REL_RISE = 0.01
 #: A parameter whose range spans at least this share of its box is not determined.
 NOT_DETERMINED_SHARE = 0.5
+#: Correlations of at least this size are named with a parameter.
+STRONG_CORRELATION = 0.9
 #: Profile steps on each side of the best point, as shares of the box width (search scale).
 STEPS: tuple[float, ...] = (0.01, 0.03, 0.1, 0.3)
 #: Profile evaluations per parameter at most: each step on both sides, and both bounds.
@@ -106,6 +116,13 @@ class ParameterIdentifiability:
         profile: (value, J) of every profile point, the best point included, by value;
             J is inf where the evaluation failed.
         reason: a physical reason from the model why the data may not determine it.
+        joint_half_width: √(2·ΔJ·(H⁻¹)_ii) [decades or units of x], the half-width with
+            the other reported parameters re-fitted on the quadratic J ≈ J* + ½ δᵀHδ
+            over them (H their curvature matrix in the search scale); None where H is not
+            positive definite or the parameter has no curvature.
+        correlations: other reported parameter → the correlation
+            (H⁻¹)_ij / √((H⁻¹)_ii·(H⁻¹)_jj) of the two estimates (near ±1: the data
+            determine a combination of them, not each).
     """
 
     name: str
@@ -130,6 +147,8 @@ class ParameterIdentifiability:
     better: tuple[float, float] | None
     profile: tuple[tuple[float, float], ...]
     reason: str | None = None
+    joint_half_width: float | None = None
+    correlations: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def ratio(self) -> float | None:
@@ -145,6 +164,16 @@ class ParameterIdentifiability:
         if self.closed_low and self.closed_high:
             return "both"
         return "lower" if self.closed_low else "upper" if self.closed_high else "none"
+
+    def _joint_range(self) -> tuple[float, float]:
+        """x* moved by ∓ ``joint_half_width`` in the search scale, clipped to the box."""
+        h = self.joint_half_width or 0.0
+        log = self.scale == "log10"
+        t = _to_t(log, self.value)
+        return (
+            max(self.low, _from_t(log, t - h)),
+            min(self.high, _from_t(log, t + h)),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (strict JSON: no inf or NaN)."""
@@ -165,6 +194,8 @@ class ParameterIdentifiability:
             "share_of_box": self.share,
             "curvature": self.curvature,
             "half_width": self.half_width,
+            "joint_half_width": self.joint_half_width,
+            "correlations": dict(self.correlations),
             "curvature_steps": [[h, c] for h, c in self.curvature_steps],
             "better": None if self.better is None else list(self.better),
             "profile": [[v, _finite_or_none(j)] for v, j in self.profile],
@@ -183,13 +214,24 @@ class ParameterIdentifiability:
             text += f", on its {self.on_bound} bound {bound:g}"
         lo, hi = self.range_low, self.range_high
         span = f"{lo:.3g} … {hi:.3g}"
+        partner = max(self.correlations.items(), key=lambda kv: abs(kv[1]), default=None)
+        traded = ""
+        if partner is not None and abs(partner[1]) >= STRONG_CORRELATION:
+            traded = f"it trades off with {partner[0]} (correlation {partner[1]:+.2f})"
+            if self.joint_half_width is not None:
+                lo_j, hi_j = self._joint_range()
+                traded += f": {lo_j:.3g} … {hi_j:.3g} when {partner[0]} moves too"
         if self.determined:
             text += f": determined, {span}"
             if self.scale == "log10":
                 text += f" (×{lo / self.value:.3g} … ×{hi / self.value:.3g})"
+            if traded:
+                text += f"; {traded}"
         else:
             what = {
-                "both": f"the range {span} spans {100 * self.share:.0f} % of the box",
+                "both": f"{span} with the others held, but {traded or 'not jointly'}"
+                if self.share < NOT_DETERMINED_SHARE
+                else f"the range {span} spans {100 * self.share:.0f} % of the box",
                 "lower": f"only a lower limit, ≥ {lo:.3g} (the cost is flat up to the upper "
                 f"bound {self.high:g})",
                 "upper": f"only an upper limit, ≤ {hi:.3g} (the cost is flat down to the "
@@ -321,7 +363,79 @@ def identify(
                 reason=(reasons or {}).get(n),
             )
         )
-    return Identifiability(tuple(records), float(rel_rise), len(points))
+    pairs = _joint(cost, space, x, records, plans, values, delta_j)
+    return Identifiability(tuple(pairs[0]), float(rel_rise), len(points) + pairs[1])
+
+
+def _joint(
+    cost: CostBatch,
+    space: Space,
+    x: np.ndarray,
+    records: Sequence[ParameterIdentifiability],
+    plans: Mapping[str, Sequence[float]],
+    values: np.ndarray,
+    delta_j: float,
+) -> tuple[list[ParameterIdentifiability], int]:
+    """The curvature matrix H over the reported parameters that have a curvature, and
+    from it each one's joint half-width and correlations; (records, evaluations spent).
+
+    H_ii is the profile's curvature; H_ij = (J(x* + s_i e_i + s_j e_j) − J(x* + s_i e_i)
+    − J(x* + s_j e_j) + J*)/(s_i·s_j) from one more point per pair, with s_i the offset of
+    the profile point nearest the step of the chosen curvature (exact for a quadratic).
+    A parameter whose joint range spans at least :data:`NOT_DETERMINED_SHARE` of its box
+    is not determined either."""
+    curved = [r for r in records if r.curvature is not None]
+    if len(curved) < 2:
+        return [replace(r, joint_half_width=r.half_width) for r in records], 0
+    starts, k = {}, 1
+    for n, offsets in plans.items():
+        starts[n] = k
+        k += len(offsets)
+    axis = {}
+    for r in curved:
+        offs = plans[r.name]
+        js = values[starts[r.name] : starts[r.name] + len(offs)]
+        step = _chosen_step(r.curvature_steps, delta_j)
+        axis[r.name] = _axis_point(offs, js, step)
+    index = [space.names.index(r.name) for r in curved]
+    pairs = list(itertools.combinations(range(len(curved)), 2))
+    points = []
+    for a, b in pairs:
+        xp = x.copy()
+        for c in (a, b):
+            p = space.params[index[c]]
+            t = _to_t(p.log, x[index[c]]) + axis[curved[c].name][0]
+            xp[index[c]] = float(np.clip(_from_t(p.log, t), p.low, p.high))
+        points.append(xp)
+    js = np.asarray(cost(np.array(points)), dtype=float).reshape(-1)
+    j0 = curved[0].cost
+    hess = np.diag([float(r.curvature) for r in curved])  # type: ignore[arg-type]
+    for (a, b), j in zip(pairs, js):
+        (sa, ja), (sb, jb) = axis[curved[a].name], axis[curved[b].name]
+        hess[a, b] = hess[b, a] = (j - ja - jb + j0) / (sa * sb) if math.isfinite(j) else math.nan
+    try:
+        if not np.all(np.isfinite(hess)):
+            raise np.linalg.LinAlgError
+        np.linalg.cholesky(hess)
+        cov = np.linalg.inv(hess)
+    except np.linalg.LinAlgError:
+        return list(records), len(points)  # no joint quadratic: the profile's word stands
+    sd = np.sqrt(np.diag(cov))
+    joint = {}
+    for a, r in enumerate(curved):
+        half = math.sqrt(2.0 * delta_j * cov[a, a])
+        width = space.params[index[a]].width
+        joint[r.name] = replace(
+            r,
+            joint_half_width=half,
+            correlations={
+                curved[b].name: float(cov[a, b] / (sd[a] * sd[b]))
+                for b in range(len(curved))
+                if b != a
+            },
+            determined=r.determined and 2.0 * half / width < NOT_DETERMINED_SHARE,
+        )
+    return [joint.get(r.name, r) for r in records], len(points)
 
 
 def identify_problem(
@@ -521,10 +635,25 @@ def _second_difference(
     return 2.0 * ((f2 - f1) / (t2 - t1) - (f1 - f0) / (t1 - t0)) / (t2 - t0)
 
 
-def _chosen_curvature(steps: Sequence[tuple[float, float]], delta_j: float) -> float | None:
-    """The curvature of the step whose rise c·h²/2 is nearest ΔJ (in ratio), among the
-    positive estimates; None without one."""
+def _chosen_step(steps: Sequence[tuple[float, float]], delta_j: float) -> float | None:
+    """The step whose rise c·h²/2 is nearest ΔJ (in ratio), among the positive curvature
+    estimates; None without one."""
     positive = [(h, c) for h, c in steps if c > 0]
     if not positive:
         return None
-    return min(positive, key=lambda hc: abs(math.log(0.5 * hc[1] * hc[0] ** 2 / delta_j)))[1]
+    return min(positive, key=lambda hc: abs(math.log(0.5 * hc[1] * hc[0] ** 2 / delta_j)))[0]
+
+
+def _chosen_curvature(steps: Sequence[tuple[float, float]], delta_j: float) -> float | None:
+    """The curvature estimate at :func:`_chosen_step`; None without one."""
+    step = _chosen_step(steps, delta_j)
+    return None if step is None else dict(steps)[step]
+
+
+def _axis_point(
+    offsets: Sequence[float], js: np.ndarray, step: float | None
+) -> tuple[float, float]:
+    """(offset in t, J) of the finite profile point nearest ``step`` away from x* (the
+    upper side first on a tie)."""
+    finite = [(h, float(j)) for h, j in zip(offsets, js) if math.isfinite(j)]
+    return min(finite, key=lambda hj: (abs(abs(hj[0]) - (step or 0.0)), -hj[0]))
