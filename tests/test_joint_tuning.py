@@ -4,14 +4,22 @@ recovery of known cornering stiffnesses."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import kftune
-from kftune.data import default_dataset
+from conftest import run_cli, wait_until
+from kftune.data import default_dataset, open_dataset, save_dataset
 from kftune.errors import ConfigError
 from kftune.experiment import MANUAL_Q, manual_point
 from kftune.models import get_model
@@ -227,3 +235,154 @@ def test_joint_tuning_recovers_known_cornering_stiffnesses(ds, short):
     assert np.mean([v["rmse"] for v in metrics.values()]) < np.mean(
         [v["rmse"] for v in start_metrics.values()]
     )
+
+
+# --------------------------------------------------------------------- the command line ----
+
+
+def _tuned(small, tmp_path, *extra: str, budget: str = "20") -> tuple[Path, dict]:
+    out = tmp_path / "tuned.json"
+    res = run_cli("tune", str(small), "-n", budget, "--quiet", "-o", str(out), *extra)
+    assert res.returncode == 0, res.stderr
+    return out, json.loads(out.read_text())
+
+
+def test_tuned_file_records_the_model_parameters_and_every_reader_runs_them(small, tmp_path):
+    """The TOML form: the tuned file's model_params, deployment vehicle and parameter list
+    hold the tuned values; evaluate's KPIs are assess() at the tuned point; every export
+    format writes the tuned values."""
+    config = tmp_path / "joint.toml"
+    config.write_text(
+        "[parameters]\n"
+        "tune_model = { C_af = [20000.0, 400000.0], C_ar = [20000.0, 400000.0] }\n"
+        'model_scale = { C_ar = "linear" }\n'
+    )
+    out, doc = _tuned(small, tmp_path, "--config", str(config))
+    ds = open_dataset(str(small))
+    rec = doc["model_params"]
+    assert list(rec) == ["C_af", "C_ar"]
+    assert rec["C_af"]["start"] == ds.vehicle.C_af and rec["C_ar"]["start"] == ds.vehicle.C_ar
+    assert (rec["C_af"]["scale"], rec["C_ar"]["scale"]) == ("log10", "linear")
+    assert rec["C_af"]["value"] == doc["params"]["C_af"] != ds.vehicle.C_af
+    dep = doc["deployment"]
+    assert dep["vehicle"]["C_af"] == rec["C_af"]["value"]
+    assert {e["name"]: e["value"] for e in dep["model_params"]}["C_ar"] == rec["C_ar"]["value"]
+    # evaluate: the recording's vehicle has the start values, which is no mismatch
+    ev = run_cli("evaluate", str(small), "--params", str(out), "--split", "test", "--json")
+    assert ev.returncode == 0, ev.stderr
+    got = json.loads(ev.stdout)
+    assert got["model_params"] == {n: rec[n]["value"] for n in rec}
+    par = NoiseParameterization(model_bounds=STIFFNESS, model_scales={"C_ar": "linear"})
+    problem = TuningProblem(ds.test, ds.vehicle, doc["r"], parameterization=par)
+    problem.cov_scale = got.get("cov_scale", 1.0)  # the calibration evaluate applies
+    x = [*doc["q"], rec["C_af"]["value"], rec["C_ar"]["value"]]
+    metrics, _ = assess(problem, x, ds.test)
+    for name, row in metrics.items():
+        assert got["manoeuvres"][name]["rmse"] == pytest.approx(row["rmse"], rel=1e-9)
+    value = rec["C_af"]["value"]
+    exported = {}
+    for fmt in ("json", "yaml", "c", "matlab"):
+        res = run_cli("export", str(out), "-f", fmt, "-o", "-")
+        assert res.returncode == 0, res.stderr
+        exported[fmt] = res.stdout
+    assert json.loads(exported["json"])["vehicle_C_af"] == value
+    patterns = {
+        "yaml": r"vehicle_C_af: (\S+)",
+        "c": r"#define KFTUNE_VEHICLE_C_AF (\S+)",
+        "matlab": r"kf\.vehicle\.C_af = ([^;]+);",
+    }
+    for fmt, pattern in patterns.items():
+        found = re.search(pattern, exported[fmt])
+        assert found and float(found.group(1)) == pytest.approx(value, rel=1e-15), fmt
+
+
+def test_a_recording_with_another_vehicle_is_still_refused(small, tmp_path):
+    """The tuned fields may differ from the recording's; any other field may not."""
+    out, _ = _tuned(small, tmp_path, "--tune-model", "C_af=20000:400000", budget="6")
+    ds = open_dataset(str(small))
+    other = tmp_path / "other"
+    save_dataset(dataclasses.replace(ds, vehicle=ds.vehicle.replace(m=1.2 * ds.vehicle.m)), other)
+    res = run_cli("evaluate", str(other), "--params", str(out))
+    assert res.returncode == 3
+    assert "m 1" in res.stderr and "C_af" not in res.stderr.split("differs")[1]
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "says"),
+    [
+        (["--tune-model", "C_af=20000:4000000"], 2, "--tune-model C_af: .*plausible range"),
+        (["--tune-model", "C_f=20000:40000"], 2, "'C_f' is not a parameter.*'C_af'"),
+        (["--tune-model", "C_af=2e4"], 2, "NAME=LOW:HIGH"),
+        (["--tune-model", "mu=0.4:1.6:log2"], 2, "mu: scale must be log10 or linear"),
+        (["--tune-model", "C_af=4e5:2e4"], 2, "--tune-model C_af: .*low < high"),
+        (["--tune-model", "C_af=60000:400000"], 3, "'C_af'.*recorded value 55600"),
+    ],
+)
+def test_bad_tune_model_options_are_refused_naming_the_parameter(small, tmp_path, args, code, says):
+    res = run_cli("tune", str(small), "-n", "4", "--quiet", "-o", str(tmp_path / "t.json"), *args)
+    assert res.returncode == code, res.stderr
+    assert re.search(says, res.stderr), res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "t.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("section", "says"),
+    [
+        ("tune_model = { mu = [0.4, 2.5] }", r"joint.toml \[parameters\]: .*'mu'.*\[0.05, 2\]"),
+        ("tune_model = { C_af = 20000.0 }", r"tune_model.C_af must be \[low, high\]"),
+        ('tune_model = { mu = [0.4, 1.6] }\nmodel_scale = { C_af = "linear" }', "model_scale"),
+        ('tune_model = { mu = [0.4, 1.6] }\nmodel_scale = { mu = "ln" }', "model_scale.mu"),
+    ],
+)
+def test_bad_tune_model_tables_are_refused_naming_file_and_key(small, tmp_path, section, says):
+    config = tmp_path / "joint.toml"
+    config.write_text(f"[parameters]\n{section}\n")
+    res = run_cli("tune", str(small), "-n", "4", "--quiet", "--config", str(config))
+    assert res.returncode == 3, res.stderr
+    assert re.search(says, res.stderr), res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def _completed(db: Path) -> int:
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1) as conn:
+            return conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
+def test_a_joint_study_resumes_exactly_after_sigkill(small, tmp_path):
+    budget = "30"
+    joint = ["--tune-model", "C_af=20000:400000", "--tune-model", "mu=0.4:1.6:linear"]
+    full = run_cli("tune", str(small), "-n", budget, "--quiet", "-o", str(tmp_path / "full.json"),
+                   *joint)  # fmt: skip
+    assert full.returncode == 0, full.stderr
+    db = tmp_path / "study.db"
+    args = ["tune", str(small), "-n", budget, "--quiet", "--storage", str(db), *joint]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kftune", *args, "-o", str(tmp_path / "killed.json")],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        wait_until(lambda: _completed(db) >= 8, proc, "8 finished evaluations in the study")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    n_before = _completed(db)
+    assert 8 <= n_before < 30, "the run was not killed mid-way"
+    with sqlite3.connect(db) as conn:
+        before = conn.execute("SELECT number, value FROM trials WHERE state='complete'").fetchall()
+    # another box is another objective: refused
+    other = run_cli(*args[:-1], "mu=0.5:1.6:linear", "--resume", "-o", str(tmp_path / "o.json"))
+    assert other.returncode == 3, other.stderr
+    res = run_cli(*args, "--resume", "-o", str(tmp_path / "resumed.json"))
+    assert res.returncode == 0, res.stderr
+    with sqlite3.connect(db) as conn:
+        after = dict(conn.execute("SELECT number, value FROM trials WHERE state='complete'"))
+    assert len(after) == 30 and all(after[n] == v for n, v in before)
+    resumed = json.loads((tmp_path / "resumed.json").read_text())
+    uninterrupted = json.loads((tmp_path / "full.json").read_text())
+    assert resumed["params"] == uninterrupted["params"]
+    assert resumed["model_params"] == uninterrupted["model_params"]
+    assert resumed["cost"] == uninterrupted["cost"]

@@ -34,6 +34,9 @@ unknown key is an error, not silently ignored::
     tune_r = "none"                # or "scale" (= tune_r_scale) or "diag": R's diagonal
     tune_r_scale = false
     tune_sigma_points = false
+    tune_model = { C_af = [20000.0, 400000.0], C_ar = [20000.0, 400000.0] }
+                                   # model parameters tuned with the noise (tune, compare)
+    model_scale = { mu = "linear" }  # default log10 for a positive box, else linear
 
     [ukf]                          # sigma points when they are not tuned
     alpha = 1.0
@@ -127,6 +130,8 @@ _SECTION_KEYS = {
         "tune_r_scale": bool,
         "tune_sigma_points": bool,
         "r_scale_bounds": list,
+        "tune_model": dict,
+        "model_scale": dict,
     },
     "ukf": {"alpha": (int, float), "beta": (int, float), "kappa": (int, float)},
 }
@@ -426,6 +431,44 @@ def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
         default=None,
         help="also tune the sigma-point parameters alpha, beta, kappa",
     )
+    par.add_argument(
+        "--tune-model",
+        type=tune_model_arg,
+        action="append",
+        metavar="NAME=LOW:HIGH[:SCALE]",
+        help="also tune a parameter of the model (repeatable; 'kftune models' lists them, "
+        "e.g. C_af=20000:400000 or mu=0.4:1.6:linear), starting from its recorded value; "
+        "SCALE log10 (default for LOW > 0: stiffness, mass and friction are uncertain by a "
+        "factor) or linear; wins over the configuration's tune_model for that name",
+    )
+
+
+def tune_model_arg(text: str) -> tuple[str, float, float, str | None]:
+    """``"C_af=20000:400000"`` or ``"mu=0.4:1.6:linear"`` → (name, low, high, scale or
+    None) (errors say what was expected; argparse adds the option's name)."""
+    name, sep, box = text.partition("=")
+    parts = box.split(":")
+    if not sep or not name.strip() or len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(
+            f"expected NAME=LOW:HIGH or NAME=LOW:HIGH:SCALE (e.g. C_af=20000:400000), got {text!r}"
+        )
+    values = []
+    for part in parts[:2]:
+        try:
+            v = float(part) if _plain(part) else math.nan
+        except ValueError:
+            v = math.nan
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(
+                f"{name.strip()}: bounds must be finite numbers, got {part!r} in {text!r}"
+            )
+        values.append(v)
+    scale = parts[2] if len(parts) == 3 else None
+    if scale is not None and scale not in ("log10", "linear"):
+        raise argparse.ArgumentTypeError(
+            f"{name.strip()}: scale must be log10 or linear, got {scale!r}"
+        )
+    return name.strip(), values[0], values[1], scale
 
 
 def parse_weights(text: str) -> dict[str, float]:
@@ -618,12 +661,66 @@ def parameterization(
                 kwargs[key] = pair(key, bounds)
     if model is not None:
         kwargs.update(states=model.state_names, measurements=model.measurement_names)
+    given = _model_boxes(args, config, section)
+    if given:
+        kwargs["model_bounds"] = {n: (lo, hi) for n, (lo, hi, _, _) in given.items()}
+        kwargs["model_scales"] = {n: sc for n, (_, _, sc, _) in given.items() if sc}
     try:
         p = NoiseParameterization(**kwargs)
         p.space  # noqa: B018 — validates the bounds
     except ValueError as exc:
+        where = next((g[3] for n, g in given.items() if repr(n) in str(exc)), None)
+        if where is not None and where.startswith("--"):
+            raise UsageError(f"{where}: {exc}") from None
         raise ConfigError(f"{_where(config, 'parameters')}: {exc}") from None
+    if p.model_names:
+        from kftune.models import SINGLE_TRACK
+        from kftune.tuning.problem import check_model_params
+
+        for name, (lo, hi, _, origin) in given.items():
+            one = NoiseParameterization(model_bounds={name: (lo, hi)})
+            try:
+                check_model_params(one, model if model is not None else SINGLE_TRACK)
+            except ConfigError as exc:
+                if origin.startswith("--"):
+                    raise UsageError(f"{origin}: {exc}") from None
+                raise ConfigError(f"{_where(config, 'parameters')}: {exc}") from None
     return p
+
+
+def _model_boxes(
+    args: argparse.Namespace, config: dict[str, Any], section: Mapping[str, Any]
+) -> dict[str, tuple[float, float, str | None, str]]:
+    """Tuned model parameters, name → (low, high, scale or None, where it was given): the
+    configuration's ``tune_model``/``model_scale``, then ``--tune-model`` (which wins for
+    its names)."""
+    where = _where(config, "parameters")
+    out: dict[str, tuple[float, float, str | None, str]] = {}
+    scales = section.get("model_scale", {})
+    for name, scale in scales.items():
+        if name not in section.get("tune_model", {}):
+            raise ConfigError(
+                f"{where}: model_scale names {name!r}, which tune_model does not tune "
+                f"(tuned: {sorted(section.get('tune_model', {}))})"
+            )
+        if scale not in ("log10", "linear"):
+            raise ConfigError(
+                f'{where}: model_scale.{name} must be "log10" or "linear", got {scale!r}'
+            )
+    for name, box in section.get("tune_model", {}).items():
+        if (
+            not isinstance(box, list)
+            or len(box) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box)
+        ):
+            raise ConfigError(
+                f"{where}: tune_model.{name} must be [low, high] in the parameter's unit, "
+                f"e.g. {name} = [20000.0, 400000.0], got {box!r}"
+            )
+        out[name] = (float(box[0]), float(box[1]), scales.get(name), f"tune_model.{name}")
+    for name, low, high, scale in getattr(args, "tune_model", None) or []:
+        out[name] = (low, high, scale, f"--tune-model {name}")
+    return out
 
 
 def _ukf_settings(config: dict[str, Any]) -> UKFSettings:

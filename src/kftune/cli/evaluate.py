@@ -216,9 +216,10 @@ def read_tuned(path: Path) -> dict[str, Any]:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
     if not isinstance(doc["params"], dict):
         raise DataError("'params' must be an object of parameter values", file=str(path))
-    from kftune.tuning.deploy import tuned_for
+    from kftune.tuning.deploy import tuned_for, tuned_model_params
 
     tuned_for(doc, str(path))  # the record's sample time and vehicle
+    tuned_model_params(doc, str(path))  # model parameters tuned with the noise
     _check_deployment(doc, path)
     _locate_model(doc, path)
     for key, value, strict in (
@@ -279,7 +280,13 @@ def check_recordings(
     Raises:
         ConfigError: (exit 3) naming ``path`` and the first difference, and --force.
     """
-    from kftune.tuning.deploy import mismatches, model_file_changed, tuned_for, unrecorded
+    from kftune.tuning.deploy import (
+        mismatches,
+        model_file_changed,
+        tuned_for,
+        tuned_model_params,
+        unrecorded,
+    )
 
     dt, vehicle = tuned_for(doc, str(path))
     notes = []
@@ -295,7 +302,8 @@ def check_recordings(
             )
         )
     changed = model_file_changed(doc)
-    bad = ([changed] if changed else []) + mismatches(dt, vehicle, dataset, manoeuvres)
+    tuned = list(tuned_model_params(doc, str(path)))  # expected to differ from the recording
+    bad = ([changed] if changed else []) + mismatches(dt, vehicle, dataset, manoeuvres, tuned)
     if bad and not force:
         raise ConfigError(
             f"{path}: the filter was not tuned for these recordings: {bad[0]}"
@@ -406,12 +414,17 @@ def run(args: argparse.Namespace) -> int:
             factors = [
                 r_scale * float(params.get(f"r_{m}_scale", 1.0)) for m in model.measurement_names
             ]
-        x = np.array([*tuned["q"], *factors])
+        # the model parameters as tuned (a vehicle model's are in its vehicle already)
+        record = tuned.get("model_params") or {}
+        x = np.array([*tuned["q"], *factors, *(float(e["value"]) for e in record.values())])
         par = NoiseParameterization(
             tune_r="diag",
             default_settings=ukf,
             states=model.state_names,
             measurements=model.measurement_names,
+            model_bounds={n: (e["low"], e["high"]) for n, e in record.items()},
+            model_scales={n: e.get("scale", "log10") for n, e in record.items()},
+            model_start={n: e["start"] for n, e in record.items()},
         )
     else:
         par = parameterization(args, config, model)
@@ -459,6 +472,7 @@ def run(args: argparse.Namespace) -> int:
         "q": q.tolist(),
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
+        "model_params": problem.parameterization.model_values(x),
         "cost": cost,
         "cost_kind": spec.kind,
         "cost_estimate": spec.estimate,

@@ -491,7 +491,7 @@ def tuned_document(
     export``, see :func:`kftune.tuning.deploy.deployment_record`). A model file is recorded
     so that it is found from the file's folder (:func:`~kftune.cli._common.model_file_for`)."""
     from kftune.experiment import on_bounds
-    from kftune.tuning.deploy import deployment_record
+    from kftune.tuning.deploy import deployment_record, model_params_record
 
     q, r, ukf = problem.decode(result.x)
     model = model_file_for(problem.model_spec, out)
@@ -518,6 +518,8 @@ def tuned_document(
         "n_failed": result.n_failed,
         "status": result.status,
         "params": result.params,
+        # the model parameters tuned with the noise: value, recorded start, box, scale
+        "model_params": model_params_record(problem, result.x),
         "search_space": result.space,
         "on_bounds": on_bounds(result),
         "q": q.tolist(),

@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -87,17 +87,17 @@ def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[
     ``problem`` tuned on ``dataset`` (strict-JSON values)."""
     q, r, settings = problem.decode(x)
     model = problem.model
-    fs = filter_spec(problem.model_spec, problem.filter, problem.vehicle)
+    vehicle = problem.vehicle_at(x)  # the tuned model parameters: what runs
     file_sha = model_file_sha256(problem.model_spec)
     return {
         "model": problem.model_spec,
         **({"model_sha256": file_sha} if file_sha else {}),
         "filter": problem.filter,
         "dt": float(dataset.dt),
-        "vehicle": None if problem.vehicle is None else problem.vehicle.to_dict(),
+        "vehicle": None if vehicle is None else vehicle.to_dict(),
         "model_params": [
             {"name": n, "unit": u, "value": float(v)}
-            for n, u, v in zip(model.param_names, model.param_units, fs.params.tolist())
+            for n, u, v in zip(model.param_names, model.param_units, problem.params_at(x).tolist())
         ],
         "states": [{"name": n, "unit": u} for n, u in zip(model.state_names, model.state_units)],
         "inputs": [{"name": n, "unit": u} for n, u in zip(model.input_names, model.input_units)],
@@ -125,6 +125,71 @@ def deployment_record(problem: TuningProblem, x: Any, dataset: Dataset) -> dict[
     }
 
 
+def model_params_record(problem: TuningProblem, x: Any) -> dict[str, dict[str, Any]]:
+    """The ``"model_params"`` of a tuned-parameters file: for each tuned model parameter,
+    name → ``{"value", "start", "low", "high", "scale", "unit"}`` (the tuned value, the
+    recorded one it started from, its box and scale); empty when none was tuned."""
+    par = problem.parameterization
+    values = par.model_values(x)
+    units = dict(zip(problem.model.param_names, problem.model.param_units))
+    return {
+        n: {
+            "value": values[n],
+            "start": par.model_start[n],
+            "low": par.model_bounds[n][0],
+            "high": par.model_bounds[n][1],
+            "scale": par.model_scales[n],
+            "unit": units[n],
+        }
+        for n in par.model_names
+    }
+
+
+def tuned_model_params(doc: Mapping[str, Any], source: str) -> dict[str, float]:
+    """The tuned model parameters of a tuned-parameters file, name → value (``model_params``;
+    empty for a file without it: noise only, or an older kftune). The one check of the key:
+    every reader of tuned files goes through it (:func:`kftune.cli.evaluate.read_tuned`).
+
+    Raises:
+        DataError: naming ``source`` and the key, when ``model_params`` is not an object of
+            ``{value, start, low, high, scale}`` objects with finite numbers, low ≤ start,
+            value ≤ high, scale log10 or linear.
+    """
+    record = doc.get("model_params", {})
+    if not isinstance(record, Mapping):
+        raise DataError(
+            f"'model_params' must be an object (name -> its record), got {record!r:.60}",
+            file=source,
+        )
+    out: dict[str, float] = {}
+    for name, entry in record.items():
+        where = f"'model_params.{name}'"
+        nums = (
+            {k: entry.get(k) for k in ("value", "start", "low", "high")}
+            if isinstance(entry, Mapping)
+            else {}
+        )
+        if not nums or not all(finite_number(v) for v in nums.values()):
+            raise DataError(
+                f"{where} must be an object with finite numbers value, start, low and high, "
+                f"got {entry!r:.80}",
+                file=source,
+            )
+        if not (
+            nums["low"] <= nums["start"] <= nums["high"]
+            and nums["low"] <= nums["value"] <= nums["high"]
+        ):
+            raise DataError(
+                f"{where}: value {nums['value']!r} and start {nums['start']!r} must lie in "
+                f"[low, high] = [{nums['low']!r}, {nums['high']!r}]",
+                file=source,
+            )
+        if entry.get("scale", "log10") not in ("log10", "linear"):
+            raise DataError(f"{where}: scale must be log10 or linear", file=source)
+        out[str(name)] = float(nums["value"])
+    return out
+
+
 @dataclass(frozen=True)
 class TunedFilter:
     """A tuned filter read from a tuned-parameters file.
@@ -141,6 +206,8 @@ class TunedFilter:
         burn_in: [s] left out of the KPIs at each manoeuvre's start.
         source: the file it came from (for messages).
         document: the whole file.
+        model_params: name → the tuned value of each model parameter tuned with the noise
+            (:func:`tuned_model_params`; ``vehicle`` already holds them).
     """
 
     model: str
@@ -154,6 +221,15 @@ class TunedFilter:
     burn_in: float
     source: str
     document: Mapping[str, Any]
+    model_params: Mapping[str, float] = field(default_factory=dict)
+
+    def params_of(self, model: StateSpaceModel, recorded: np.ndarray) -> np.ndarray:
+        """(n_p,) the parameter vector the tuned filter runs: ``recorded`` (the model's
+        parameters of the recordings or defaults) with the tuned values in their places."""
+        p = np.array(recorded, dtype=float)
+        for name, value in self.model_params.items():
+            p[model.param_names.index(name)] = value
+        return p
 
     @classmethod
     def from_document(cls, doc: Mapping[str, Any], source: str) -> TunedFilter:
@@ -188,6 +264,7 @@ class TunedFilter:
             burn_in=float(doc.get("burn_in", 0.0)),
             source=source,
             document=doc,
+            model_params=tuned_model_params(doc, source),
         )
 
 
@@ -261,10 +338,12 @@ def mismatches(
     vehicle: VehicleParams | None,
     dataset: Dataset,
     manoeuvres: Sequence[Manoeuvre],
+    tuned: Sequence[str] = (),
 ) -> list[str]:
     """How recordings differ from what a filter was tuned for (``dt``, ``vehicle`` from
     :func:`tuned_for`; None: not recorded, not checked): a sample time off by more than
-    :data:`DT_TOLERANCE` (each manoeuvre named), other vehicle parameters."""
+    :data:`DT_TOLERANCE` (each manoeuvre named), other vehicle parameters than those
+    ``tuned`` with the noise (which are expected to differ from the recorded ones)."""
     out = []
     if dt is not None:
         for m in manoeuvres:
@@ -278,7 +357,9 @@ def mismatches(
             f"the filter was tuned for vehicle {vehicle.name!r}; the recording names no vehicle"
         )
     elif vehicle is not None:
-        differ = vehicle_differences(vehicle, dataset.vehicle)
+        differ = [
+            d for d in vehicle_differences(vehicle, dataset.vehicle) if d.split()[0] not in tuned
+        ]
         if differ:
             out.append(
                 f"the recording's vehicle {dataset.vehicle.name!r} differs from the tuned "
@@ -371,7 +452,8 @@ def estimate(
     model = fs.model
     if probe:
         fs.probe([m], tuned.r, tuned.q, tuned.settings)
-    res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings)
+    params = tuned.params_of(fs.model, fs.params)  # a vehicle model's: already in vehicle
+    res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings, params=params)
     return estimates_of(model, res, m)
 
 
