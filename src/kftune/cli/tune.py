@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
         for line in bound_lines(doc, problem, widen):
             print(line)
         if doc["held_out"] is not None:
-            print(held_out_line(doc["held_out"]))
+            print(held_out_line(doc["held_out"], doc["cost_spec"]))
             if (line := held_out_consistency_line(doc["held_out"])) is not None:
                 print(line)
         elif no_evidence:
@@ -330,10 +330,18 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
                 f"[{p['low']:g}, {p['high']:g}]"
             )
     for hit in doc["on_bounds"]:
+        log = initial[hit["parameter"]].log if hit["parameter"] in initial else False
         lines.append(
             f"best point on a bound: {hit['parameter']} = {hit['value']:.4g} lies within 1 % "
             f"of its {hit['side']} bound {hit['bound']:g}; the optimum may lie beyond it"
-            + ("" if widened else " (widen the box with --widen-bounds)")
+            + (
+                ""
+                if widened
+                else " (widen the box with --widen-bounds)"
+                if log
+                else " (--widen-bounds widens log10 parameters only: give this one a wider "
+                "box in the configuration, where the physics allows)"
+            )
         )
     return lines
 
@@ -391,8 +399,12 @@ def held_out(
     }, None
 
 
-def held_out_line(h: dict[str, Any]) -> str:
-    """What ``tune`` says about the held-out test manoeuvres."""
+def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
+    """What ``tune`` says about the held-out test manoeuvres; where the tuned filter is the
+    worse one, a hint that fits the cost it was tuned on (``cost``: the tuned file's
+    ``cost_spec``; None: no hint about the cost): ``--normalise dataset`` only for the
+    NRMSE normalised per manoeuvre (it is refused for other costs, and is no news when it
+    was given)."""
 
     def deg(v: float | None) -> str:
         return "diverged" if v is None else f"{v:.3f}°"
@@ -405,12 +417,24 @@ def held_out_line(h: dict[str, Any]) -> str:
         + (f" with a sideslip reference ({left_out} without)" if left_out else "")
         + f": β RMSE {deg(tuned)} (manual rule of thumb {deg(manual)})"
         + (
-            "; the tuned filter is the worse one there — the search stopped early, or the "
-            "cost is a poor proxy on these data (try --normalise dataset)"
+            "; the tuned filter is the worse one there — the search stopped early (a larger "
+            "-n), or the cost is a poor proxy on these data" + _cost_hint(cost)
             if worse
             else ""
         )
     )
+
+
+def _cost_hint(cost: dict[str, Any] | None) -> str:
+    """What to try when the tuned cost was a poor proxy for β (see :func:`held_out_line`)."""
+    if cost is None:
+        return ""
+    kind = cost.get("kind")
+    if kind == "nrmse":
+        return " (try --normalise dataset)" if cost.get("normalise") != "dataset" else ""
+    if kind in ("nis", "pem", "msp"):
+        return f" (the {kind} cost scores the innovations, not β: try --cost nrmse)"
+    return ""
 
 
 def held_out_consistency_line(h: dict[str, Any]) -> str | None:
