@@ -288,7 +288,10 @@ def test_joint_tuning_far_from_the_friction_limit_determines_the_stiffnesses_not
     r0 = np.square(SENSOR_STD)
     problem = TuningProblem(runs, recorded, r0, parameterization=par)
     result = minimize(problem, problem.space, method="trbo", budget=150, seed=0)
+    problem.cov_scale = 3.0  # a calibration fitted after the search: not the tuned cost
     out = identify_problem(problem, result.x)
+    assert problem.cov_scale == 3.0
+    assert out.parameters[0].cost == pytest.approx(result.fun, rel=1e-9)
     assert out.n_evals <= 1 + 3 * MAX_EVALS_PER_PARAMETER + 3  # and one per pair
     rec = {p.name: p for p in out.parameters}
     assert list(rec) == ["C_af", "C_ar", "mu"]

@@ -450,39 +450,39 @@ def identify_problem(
     model's units), J from :meth:`TuningProblem.evaluate_batch` (a diverged filter counts
     as a rise of the cost), and the model's physical reasons
     (:attr:`~kftune.models.StateSpaceModel.param_hints`) on the training manoeuvres at
-    the best point's model parameters."""
+    the best point's model parameters. J is the cost as tuned: with the covariance scale
+    1, whatever calibration ``problem.cov_scale`` holds (restored afterwards)."""
     par = problem.parameterization
-    if names is None:
-        names = tuple(getattr(par, "model_names", ()))
+    names = par.model_names if names is None else tuple(names)
+    if not names:
+        return Identifiability((), float(rel_rise), 0)
     model = problem.model
     units = dict(zip(model.param_names, model.param_units))
-    start = dict(getattr(par, "model_start", {}) or {})
     reasons: dict[str, str] = {}
-    hints = getattr(model, "param_hints", None)
-    if names and hints is not None:
+    if model.param_hints is not None:
         channels = (*model.input_names, *model.measurement_names)
         runs = [(m.dt, {c: m.channel(c) for c in channels if m.has(c)}) for m in problem.manoeuvres]
-        params = getattr(problem, "params_at", None)
-        p = np.asarray(params(x_best)) if params is not None else None
-        if p is not None:
-            reasons = {k: v for k, v in hints(runs, p).items() if k in names}
+        said = model.param_hints(runs, np.asarray(problem.params_at(x_best), dtype=float))
+        reasons = {k: v for k, v in said.items() if k in names}
 
     def cost(points: np.ndarray) -> np.ndarray:
         out = problem.evaluate_batch(points)
         return np.array([getattr(e, "cost", math.inf) for e in out], dtype=float)
 
-    if not names:
-        return Identifiability((), float(rel_rise), 0)
-    return identify(
-        cost,
-        problem.space,
-        x_best,
-        names,
-        start=start,
-        units=units,
-        reasons=reasons,
-        rel_rise=rel_rise,
-    )
+    scale, problem.cov_scale = problem.cov_scale, 1.0
+    try:
+        return identify(
+            cost,
+            problem.space,
+            x_best,
+            names,
+            start=par.model_start,
+            units=units,
+            reasons=reasons,
+            rel_rise=rel_rise,
+        )
+    finally:
+        problem.cov_scale = scale
 
 
 # ---------------------------------------------------------------------------- helpers
