@@ -350,3 +350,36 @@ def test_two_parameters_that_trade_off_are_not_determined_each():
     assert k.correlations["c"] == pytest.approx(rho, rel=1e-6)
     assert not k.determined and not c.determined
     assert "it trades off with c (correlation +1.00)" in k.describe()
+
+
+def test_tune_ends_with_the_identifiability_of_the_tuned_model_parameters(small, tmp_path):
+    """kftune tune with a tuned stiffness prints its verdict after the held-out lines and
+    records it (identifiability) in the tuned file and --json, against the file's own
+    value and start; a noise-only tuning prints and records none."""
+    from conftest import run_cli
+
+    out = tmp_path / "tuned.json"
+    joint = ("--tune-model", "C_af=20000:400000")
+    res = run_cli("tune", str(small), "-n", "12", "-o", str(out), *joint)
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(out.read_text())
+    ident = doc["identifiability"]
+    rec = ident["parameters"]["C_af"]
+    assert list(ident["parameters"]) == ["C_af"]
+    assert ident["n_evals"] <= 1 + MAX_EVALS_PER_PARAMETER
+    assert rec["value"] == doc["params"]["C_af"] == doc["model_params"]["C_af"]["value"]
+    assert rec["start"] == doc["model_params"]["C_af"]["start"]
+    assert (rec["low"], rec["high"]) == (20000.0, 400000.0)
+    lines = res.stdout.splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith("tuned model parameters"))
+    assert lines[at + 1].startswith("  C_af = ")
+    assert at < next(i for i, line in enumerate(lines) if line.startswith("tuned parameters"))
+    assert "profiling the cost around the tuned point for C_af" in res.stderr
+    as_json = run_cli(
+        "tune", str(small), "-n", "12", "--json", "-o", str(tmp_path / "j.json"), *joint
+    )
+    assert json.loads(as_json.stdout)["identifiability"] == ident  # the same run again
+    assert "profiling" not in as_json.stderr
+    noise = run_cli("tune", str(small), "-n", "4", "-o", str(tmp_path / "noise.json"))
+    assert "identifiability" not in json.loads((tmp_path / "noise.json").read_text())
+    assert "tuned model parameters" not in noise.stdout and "profiling" not in noise.stderr

@@ -15,6 +15,15 @@ on the dataset's test manoeuvres, which the tuning never saw, and prints and rec
 trusted there: its ±1.96σ coverage and mean NEES (``held_out.consistency``, as ``kftune
 evaluate`` reports them).
 
+With tuned model parameters (``--tune-model``) ``tune`` then says for each whether the
+training manoeuvres determine it: its value against the recorded start, whether it sits on
+a bound, and the range over which the cost rises by less than 1 % around the tuned point,
+with the others held and with the other model parameters re-fitted — a parameter whose
+range reaches a bound or spans half its box is said to be not determined, with a physical
+reason where the model knows one (μ on data far from the friction limit). At most 10
+evaluations per parameter and one per pair; recorded as ``identifiability``
+(:mod:`kftune.tuning.identify`).
+
 When the best point lies on a bound of the search box (within 1 % of a parameter's range),
 tune says which parameter and which bound, and the file records it (``on_bounds``): the
 optimum may lie beyond. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
@@ -74,6 +83,7 @@ from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 if TYPE_CHECKING:
     from kftune.data import Dataset
     from kftune.optim import OptimizeResult
+    from kftune.tuning.identify import Identifiability
     from kftune.tuning.problem import TuningProblem
 
 TUNED_FORMAT = "kftune-tuned-1"
@@ -240,6 +250,10 @@ def run(args: argparse.Namespace) -> int:
     doc["held_out"], no_evidence = held_out(problem, result.x, dataset)
     if doc["held_out"] is not None:
         write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
+    ident, no_ident = identifiability(problem, result.x, quiet=args.quiet or args.json)
+    if ident is not None:
+        doc["identifiability"] = ident.to_dict()
+        write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
     if args.json:
         emit_json({**doc, "file": str(args.out)})
     else:
@@ -262,6 +276,10 @@ def run(args: argparse.Namespace) -> int:
                 print(line)
         elif no_evidence:
             print(f"no held-out evidence: {no_evidence}")
+        for line in ident.lines() if ident is not None else []:
+            print(line)
+        if no_ident:
+            print(f"identifiability of the tuned model parameters not measured: {no_ident}")
         print(f"tuned parameters written to {args.out}")
         dataset_arg = pick(args, config, "dataset", None)
         # no test manoeuvres: the training ones, and the hint says they are
@@ -454,6 +472,37 @@ def held_out_consistency_line(h: dict[str, Any]) -> str | None:
         f"consistent), mean NEES {nees['mean']:.3g} (1 if consistent); "
         + ("σ can be trusted there" if verdict == "consistent" else verdict)
     )
+
+
+def identifiability(
+    problem: TuningProblem, x: Any, *, quiet: bool = False
+) -> tuple[Identifiability | None, str | None]:
+    """Whether the training manoeuvres determine each tuned model parameter: its value
+    against the start, whether it sits on a bound, and the cost's profile around the tuned
+    point (:func:`kftune.tuning.identify.identify_problem`; at most 10 filter runs over the
+    training manoeuvres per parameter and one per pair of them, in this process), or
+    (None, why not); (None, None) when no model parameter was tuned. Unless ``quiet``, says
+    on standard error what it runs (it takes as long as that many evaluations)."""
+    from kftune.errors import KftuneError
+    from kftune.tuning.identify import MAX_EVALS_PER_PARAMETER, identify_problem
+
+    names = problem.parameterization.model_names
+    if not names:
+        return None, None
+    k = len(names)
+    if not quiet:
+        print(
+            f"profiling the cost around the tuned point for {', '.join(names)} (at most "
+            f"{MAX_EVALS_PER_PARAMETER * k + 1 + k * (k - 1) // 2} evaluations)…",
+            file=sys.stderr,
+            flush=True,
+        )
+    try:
+        return identify_problem(problem, x), None
+    except KeyboardInterrupt:
+        return None, "skipped (interrupted); the tuned parameters are saved"
+    except (KftuneError, ValueError) as exc:
+        return None, f"{exc}; the tuned parameters are saved"
 
 
 def _interrupted(

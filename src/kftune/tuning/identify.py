@@ -83,7 +83,8 @@ MAX_EVALS_PER_PARAMETER = 2 * (len(STEPS) + 1)
 #: What the profile holds fixed, in words (for the tuned file and the printed lines).
 METHOD = (
     "1-D profile of the cost in the search scale with the other parameters held at the "
-    "best point; curvature by second differences of the profile"
+    "best point; curvature by second differences of the profile, and over the tuned "
+    "parameters jointly from one more point per pair"
 )
 
 #: J over a batch of points: (B, d) natural units → (B,) costs, inf (or NaN) where the
