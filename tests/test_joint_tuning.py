@@ -386,3 +386,64 @@ def test_a_joint_study_resumes_exactly_after_sigkill(small, tmp_path):
     assert resumed["params"] == uninterrupted["params"]
     assert resumed["model_params"] == uninterrupted["model_params"]
     assert resumed["cost"] == uninterrupted["cost"]
+
+
+# ------------------------------------------------------------ evidence that it generalises --
+
+
+def test_held_out_shows_the_tuned_q_on_the_recorded_model(small, tmp_path):
+    """With a test split: the tuned file's held-out record has the β RMSE of the tuned Q on
+    the recorded model, as a noise-only filter on the recorded vehicle at the tuned Q gives."""
+    _, doc = _tuned(small, tmp_path, "--tune-model", "C_af=20000:400000", budget="12")
+    held = doc["held_out"]
+    ds = open_dataset(str(small))
+    noise_only = TuningProblem(ds.train, ds.vehicle, doc["r"])
+    noise_only.cov_scale = held.get("calibration_factor", 1.0)
+    metrics, _ = assess(noise_only, doc["q"], ds.test)
+    expected = np.mean([row["rmse"] for row in metrics.values()])
+    assert held["recorded_model_beta_rmse_deg"] == pytest.approx(expected, rel=1e-9)
+    assert held["beta_rmse_deg"] != held["recorded_model_beta_rmse_deg"]
+
+
+def test_held_out_line_warns_when_the_joint_filter_is_worse():
+    from kftune.cli.tune import held_out_line
+
+    base = {"split": "test", "n_manoeuvres": 4, "manual_beta_rmse_deg": 0.5}
+    worse = held_out_line({**base, "beta_rmse_deg": 0.2, "recorded_model_beta_rmse_deg": 0.15})
+    assert "tuned Q on the recorded model: β RMSE 0.150°" in worse
+    assert "warning: the tuned model parameters make the filter worse" in worse
+    better = held_out_line({**base, "beta_rmse_deg": 0.1, "recorded_model_beta_rmse_deg": 0.15})
+    assert "warning" not in better
+    manual = held_out_line({**base, "beta_rmse_deg": 0.6, "recorded_model_beta_rmse_deg": 0.7})
+    assert "worse there than the manual rule of thumb" in manual
+    assert "recorded model" not in held_out_line({**base, "beta_rmse_deg": 0.1})
+
+
+def test_leave_one_out_refits_without_the_manoeuvre_it_scores(ds, short):
+    """The refit for manoeuvre k sees only the others: replacing k by another manoeuvre
+    leaves k's refitted values as they were; the recorded-model error on k is the noise-only
+    filter's at the tuned Q."""
+    from kftune.tuning.generalise import leave_one_out
+
+    par = NoiseParameterization(model_bounds=STIFFNESS)
+    wrong = ds.vehicle.replace(C_af=0.7 * ds.vehicle.C_af)
+    x = np.array([1e-8, 1e-6, 1e-6, 0.9 * ds.vehicle.C_af, ds.vehicle.C_ar])
+    problem = TuningProblem(short, wrong, ds.r_default, parameterization=par)
+    cv = leave_one_out(problem, x)
+    assert list(cv["manoeuvres"]) == list(NAMES)
+    swapped = [*short[:2], ds["train-04-j-turn"]]
+    other = TuningProblem(swapped, wrong, ds.r_default, parameterization=par)
+    cv_other = leave_one_out(other, x)
+    last = cv["manoeuvres"][NAMES[2]]["refit_values"]
+    assert cv_other["manoeuvres"]["train-04-j-turn"]["refit_values"] == last
+    assert (
+        cv_other["manoeuvres"][NAMES[0]]["refit_values"]
+        != cv["manoeuvres"][NAMES[0]]["refit_values"]
+    )
+    noise_only = TuningProblem(short, wrong, ds.r_default)
+    metrics, _ = assess(noise_only, x[:3], short)
+    for name, row in cv["manoeuvres"].items():
+        assert row["recorded_model"] == pytest.approx(metrics[name]["rmse"], rel=1e-12)
+        assert all(2e4 <= v <= 4e5 for v in row["refit_values"].values())
+    # the refit moves towards the true front stiffness from the wrong recorded one
+    assert cv["mean_refit"] < cv["mean_recorded_model"]

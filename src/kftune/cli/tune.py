@@ -372,7 +372,11 @@ def held_out(
     manoeuvres, which the tuning never saw — mean β RMSE [deg] over those with a sideslip
     reference (None where a filter diverged), and the tuned filter's consistency pooled
     over them (``consistency``: :func:`kftune.tuning.deploy.consistency_docs`, None where
-    it diverged). Two filter runs over the test split, in this process.
+    it diverged). Two filter runs over the test split, in this process. With model
+    parameters tuned, also the tuned Q on the recorded model
+    (``recorded_model_beta_rmse_deg``, :func:`kftune.tuning.generalise.recorded_model_point`),
+    and without a test split a leave-one-out over the training manoeuvres instead
+    (``split: "train"``, ``cross_validation``: :func:`kftune.tuning.generalise.leave_one_out`).
 
     Returns:
         (evidence, why not): evidence None without test manoeuvres or sideslip output (no
@@ -382,11 +386,23 @@ def held_out(
     from kftune.errors import KftuneError
     from kftune.experiment import manual_point
     from kftune.tuning.deploy import consistency_docs
+    from kftune.tuning.generalise import leave_one_out, recorded_model_point
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import assess, first_scored, output_names
 
-    if not dataset.test or "beta" not in output_names(problem.model):
+    joint = bool(problem.parameterization.model_names)
+    if "beta" not in output_names(problem.model):
         return None, None
+    if not dataset.test:
+        if not joint or len(problem.manoeuvres) < 2:
+            return None, None
+        try:
+            cv = leave_one_out(problem, x)
+        except KeyboardInterrupt:
+            return None, "skipped (interrupted); the tuned parameters are saved"
+        except (KftuneError, ValueError) as exc:
+            return None, f"the cross-validation could not be run ({exc})"
+        return {"split": "train", "cross_validation": cv}, None
     test = [
         m for m in dataset.test if m.has("beta_ref") and m.n - first_scored(m, problem.burn_in) >= 2
     ]
@@ -394,8 +410,11 @@ def held_out(
         return None, "no test manoeuvre has a sideslip reference longer than the burn-in"
     rmse: dict[str, float | None] = {}
     consistency = None
+    points = [("tuned", x), ("manual", manual_point(problem.parameterization))]
+    if joint:  # the tuned noise on the model the user was handed
+        points.append(("recorded_model", recorded_model_point(problem, x)))
     try:
-        for key, point in (("tuned", x), ("manual", manual_point(problem.parameterization))):
+        for key, point in points:
             metrics, runs = assess(problem, point, test)
             if key == "tuned":  # pooled over the test manoeuvres, None if it diverged
                 consistency = consistency_docs(problem, test, runs)[1]
@@ -413,6 +432,7 @@ def held_out(
         "n_left_out": len(dataset.test) - len(test),
         "beta_rmse_deg": rmse["tuned"],
         "manual_beta_rmse_deg": rmse["manual"],
+        **({"recorded_model_beta_rmse_deg": rmse["recorded_model"]} if joint else {}),
         "consistency": consistency,
     }, None
 
@@ -427,7 +447,24 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
     def deg(v: float | None) -> str:
         return "diverged" if v is None else f"{v:.3f}°"
 
+    if h.get("split") == "train":
+        return cross_validation_line(h["cross_validation"])
     tuned, manual = h["beta_rmse_deg"], h["manual_beta_rmse_deg"]
+    recorded = h.get("recorded_model_beta_rmse_deg", "absent")
+    if recorded != "absent":  # model parameters tuned with the noise
+        line = held_out_line(
+            {k: v for k, v in h.items() if k != "recorded_model_beta_rmse_deg"}, cost
+        )
+        line += f"\n  tuned Q on the recorded model: β RMSE {deg(recorded)}"
+        if recorded is not None and (tuned is None or tuned > recorded):
+            line += (
+                "\nwarning: the tuned model parameters make the filter worse on the held-out "
+                "manoeuvres than the recorded ones with the same Q: they fit the training "
+                "manoeuvres, not the car (tune fewer, or on more varied manoeuvres)"
+            )
+        if manual is not None and (tuned is None or tuned > manual):
+            line += "\nwarning: the joint filter is worse there than the manual rule of thumb"
+        return line
     worse = manual is not None and (tuned is None or tuned > manual)
     left_out = h.get("n_left_out", 0)
     return (
@@ -441,6 +478,30 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
             else ""
         )
     )
+
+
+def cross_validation_line(cv: dict[str, Any]) -> str:
+    """What ``tune`` says about the leave-one-out of the tuned model parameters (no test
+    split): mean β RMSE of the refitted, joint and recorded-model filters, and a warning
+    where refitting without a manoeuvre predicts it worse than the recorded model."""
+
+    def deg(v: float | None) -> str:
+        return "n/a" if v is None else f"{v:.3f}°"
+
+    n = len(cv["manoeuvres"])
+    line = (
+        f"leave-one-out over the {n} training manoeuvres (no test split): β RMSE of each left "
+        f"out with the model parameters refitted on the others {deg(cv['mean_refit'])}, with "
+        f"the tuned Q on the recorded model {deg(cv['mean_recorded_model'])} (the joint "
+        f"filter, fitted on all of them: {deg(cv['mean_joint'])}, in-sample)"
+    )
+    refit, recorded = cv["mean_refit"], cv["mean_recorded_model"]
+    if refit is not None and recorded is not None and refit > recorded:
+        line += (
+            "\nwarning: model parameters fitted without a manoeuvre predict it worse than the "
+            "recorded ones: they fit the training manoeuvres, not the car"
+        )
+    return line
 
 
 def _cost_hint(cost: dict[str, Any] | None) -> str:
