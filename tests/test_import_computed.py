@@ -429,3 +429,19 @@ def test_the_readme_computed_channels_example_imports_the_issues_recording(tmp_p
     (tmp_path / "map.toml").write_text(block)
     (m,) = import_recordings([src], tmp_path / "map.toml").manoeuvres
     np.testing.assert_allclose(m.ay, c["vx"] * c["r"], rtol=1e-12)
+
+
+def test_a_channel_named_in_an_expression_is_in_si_units_a_column_raw(tmp_path):
+    """A column whose name is no identifier is mapped to a channel and named by it: then
+    it is that channel's SI value (m/s), where a column is the file's raw km/h."""
+    _, cols = _logger_columns()
+    cols["wheel fl"] = cols.pop("wheel_fl")
+    src = _savetxt(tmp_path / "run.csv", cols, {})
+    mapping = _mapping(
+        wfl={"column": "wheel fl", "unit": "km/h"},
+        vx={"expr": "wfl", "unit": "m/s"},
+        v_fr={"expr": "wheel_fr", "unit": "km/h"},
+    )
+    (m,) = import_recordings([src], mapping).manoeuvres
+    np.testing.assert_allclose(m.vx, cols["wheel fl"] / 3.6, rtol=1e-12)
+    np.testing.assert_allclose(m.channel("v_fr"), cols["wheel_fr"] / 3.6, rtol=1e-12)
