@@ -445,3 +445,13 @@ def test_a_channel_named_in_an_expression_is_in_si_units_a_column_raw(tmp_path):
     (m,) = import_recordings([src], mapping).manoeuvres
     np.testing.assert_allclose(m.vx, cols["wheel fl"] / 3.6, rtol=1e-12)
     np.testing.assert_allclose(m.channel("v_fr"), cols["wheel_fr"] / 3.6, rtol=1e-12)
+
+
+def test_a_lowpass_of_a_signal_with_a_bad_sample_names_its_row(tmp_path):
+    """A filter would spread one NaN over the whole recording: refused at its row."""
+    _, cols = _logger_columns()
+    cols["ax"][120] = np.nan
+    src = _savetxt(tmp_path / "run.csv", cols, UNITS)
+    mapping = _mapping(ax={"expr": "lowpass(ax, 10)", "unit": "m/s^2"})
+    with pytest.raises(DataError, match=r"row 122: ax \(expression .*1 sample\(s\) that are not"):
+        import_recordings([src], mapping)
