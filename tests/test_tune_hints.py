@@ -41,10 +41,12 @@ def _doc(space: Space, x: list[float]) -> dict:
 
 
 SPACE = Space((Param("q_vy", 1e-10, 1.0, scale="log10"), Param("ukf_alpha", 1e-3, 1.0)))
+#: What bound_lines reads of a TuningProblem: its space, and which parameters are the model's.
+PROBLEM = SimpleNamespace(space=SPACE, parameterization=SimpleNamespace(model_names=()))
 
 
 def test_widening_is_suggested_only_for_a_log10_parameter_on_its_bound():
-    problem = SimpleNamespace(space=SPACE)
+    problem = PROBLEM
     (line,) = bound_lines(_doc(SPACE, [1.05e-10, 0.5]), problem, widened=False)
     assert "q_vy" in line and "lower bound" in line and "--widen-bounds)" in line
     (line,) = bound_lines(_doc(SPACE, [1e-5, 0.999]), problem, widened=False)
@@ -53,7 +55,7 @@ def test_widening_is_suggested_only_for_a_log10_parameter_on_its_bound():
 
 
 def test_nothing_is_said_about_the_box_when_the_best_point_is_far_inside_it():
-    problem = SimpleNamespace(space=SPACE)
+    problem = PROBLEM
     assert bound_lines(_doc(SPACE, [1e-5, 0.5]), problem, widened=False) == []
     # 2 % of the range in from a bound (log10: 0.2 decades) is not on it
     assert bound_lines(_doc(SPACE, [10**-9.8, 0.5]), problem, widened=False) == []
