@@ -60,7 +60,9 @@ a ``raster`` step) are SI numbers or strings with a unit (``"5 km/h"``, ``"5 ms"
 
 ``[source] raster = <step>`` resamples a recording onto the uniform grid t₀ + k·step over
 its span (every channel linearly interpolated; MDF: see :func:`~kftune.data.readers.read_mdf`)
-before anything else: for loggers whose timestamps jitter. A step longer than
+before anything else: for loggers whose timestamps jitter. ``raster = { "<glob>" = <step>,
+… }`` resamples only the recordings whose file name or stem a glob matches (the first that
+does), for an import that mixes loggers. A step longer than
 :data:`~kftune.data.validate.GAP_STEPS` median steps is a gap and is refused, never
 bridged. Rows in later messages then count raster samples from the first data row (the
 file's rows when the raster step is the recording's own).
