@@ -447,3 +447,19 @@ def test_leave_one_out_refits_without_the_manoeuvre_it_scores(ds, short):
         assert all(2e4 <= v <= 4e5 for v in row["refit_values"].values())
     # the refit moves towards the true front stiffness from the wrong recorded one
     assert cv["mean_refit"] < cv["mean_recorded_model"]
+
+
+def test_widening_leaves_a_model_parameters_box_alone(ds, short):
+    """--widen-bounds moves the noise's log10 bounds out, never a model parameter's: two
+    decades beyond a stiffness box leave every plausible car."""
+    from kftune.experiment import tune
+
+    recorded = ds.vehicle.replace(C_af=2.5e4)  # the true 55.6 kN/rad lies beyond the box
+    boxes = {"q_vy": (1e-10, 1e-8)}
+    par = NoiseParameterization(q_bounds=boxes, model_bounds={"C_af": (2e4, 3e4)})
+    problem = TuningProblem(short, recorded, ds.r_default, parameterization=par)
+    result = tune(problem, "trbo", budget=12, seed=0, widen_bounds=True, progress=False)
+    boxes = {p["name"]: (p["low"], p["high"]) for p in result.space["params"]}
+    assert problem.parameterization.model_values(result.x)["C_af"] == pytest.approx(3e4)
+    assert boxes["C_af"] == (2e4, 3e4)
+    assert result.n_evals == 12  # on its bound, yet no second round

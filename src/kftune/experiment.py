@@ -136,7 +136,8 @@ def tune(
 
     ``widen_bounds``: while the best point lies on a bound of a log10 parameter, move that
     bound out by two decades and run the method again with the same budget (at most three
-    times; :func:`kftune.optim.minimize_widening`); the follow-up studies lie beside
+    times; :func:`kftune.optim.minimize_widening`; a tuned model parameter's box is never
+    widened: it stays within the model's plausible range); the follow-up studies lie beside
     ``storage`` (``study.widen1.db`` …) and resume with it. The result merges the runs.
 
     Raises:
@@ -189,7 +190,9 @@ def tune(
             )
 
     if widen_bounds:
-        return minimize_widening(run, problem.space, storage=storage)
+        return minimize_widening(
+            run, problem.space, storage=storage, fixed=problem.parameterization.model_names
+        )
     return run(problem.space, None if storage is None else Path(storage))
 
 

@@ -349,6 +349,7 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
             )
     for hit in doc["on_bounds"]:
         log = initial[hit["parameter"]].log if hit["parameter"] in initial else False
+        log = log and hit["parameter"] not in problem.parameterization.model_names  # fixed
         lines.append(
             f"best point on a bound: {hit['parameter']} = {hit['value']:.4g} lies within 1 % "
             f"of its {hit['side']} bound {hit['bound']:g}; the optimum may lie beyond it"

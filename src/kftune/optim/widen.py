@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +53,7 @@ def minimize_widening(
     storage: str | os.PathLike[str] | None = None,
     rounds: int = WIDEN_ROUNDS,
     decades: float = WIDEN_DECADES,
+    fixed: Collection[str] = (),
 ) -> OptimizeResult:
     """Run, and run again on a widened box while the best point lies on a bound.
 
@@ -64,6 +65,8 @@ def minimize_widening(
             (:func:`round_storage`); ``None``: no studies.
         rounds: follow-up runs at most.
         decades: how far a bound moves per widening (log10 parameters).
+        fixed: parameters whose box is never widened (a model's physical parameters, whose
+            plausible range two decades would leave).
 
     Returns:
         The merged :class:`OptimizeResult` (see the module docstring).
@@ -81,7 +84,8 @@ def minimize_widening(
             best = merge(results, sp, results[-1].status)
             if best.x is None or best.status == "stopped":
                 break
-            wider = sp.widened(sp.on_bounds(sp.to_unit(best.x)), decades)
+            hits = [h for h in sp.on_bounds(sp.to_unit(best.x)) if h.name not in fixed]
+            wider = sp.widened(hits, decades)
             if wider is sp:
                 break
             sp = wider
