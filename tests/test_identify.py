@@ -383,3 +383,58 @@ def test_tune_ends_with_the_identifiability_of_the_tuned_model_parameters(small,
     noise = run_cli("tune", str(small), "-n", "4", "-o", str(tmp_path / "noise.json"))
     assert "identifiability" not in json.loads((tmp_path / "noise.json").read_text())
     assert "tuned model parameters" not in noise.stdout and "profiling" not in noise.stderr
+
+
+def test_the_record_reads_back_from_its_json_form_and_a_damaged_one_is_named():
+    """from_dict inverts to_dict through strict JSON (a failed profile point included),
+    giving the same lines; a missing key is named with its parameter."""
+    from kftune.tuning.identify import Identifiability
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        j = quadratic(HESSIAN)(points)
+        return np.where(search_t(points)[:, 0] > 1.0, np.inf, j)  # k above 10 diverges
+
+    out = identify(cost, SPACE, X_BEST, ["k", "b", "c"], start={"k": 0.2}, reasons={"c": "idle"})
+    doc = json.loads(json.dumps(out.to_dict(), allow_nan=False))
+    back = Identifiability.from_dict(doc)
+    assert back.to_dict() == out.to_dict() and back.lines() == out.lines()
+    assert any(j == math.inf for _, j in back.parameters[0].profile)
+    del doc["parameters"]["b"]["profile"]
+    with pytest.raises(ValueError, match="parameter 'b': no 'profile'"):
+        Identifiability.from_dict(doc)
+    with pytest.raises(ValueError, match="no 'parameters'"):
+        Identifiability.from_dict({})
+
+
+def test_compare_reports_the_identifiability_of_each_tuned_method_with_its_figure(small, tmp_path):
+    """compare with a tuned model parameter records each tuned method's identifiability
+    (not the manual point's), and the report shows its lines and the profile figure;
+    kftune report rebuilds the same section from results.json, and names a damaged
+    record instead of failing."""
+    from conftest import run_cli
+
+    out = tmp_path / "report"
+    res = run_cli(
+        "compare", str(small), "--methods", "manual", "trbo", "--budget", "trbo=20",
+        "--tune-model", "C_af=20000:400000", "-o", str(out), "--quiet",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    doc = json.loads((out / "results.json").read_text())
+    by_key = {m["key"]: m for m in doc["methods"]}
+    assert "identifiability" not in by_key["manual"]["extra"]
+    rec = by_key["trbo"]["extra"]["identifiability"]["parameters"]["C_af"]
+    assert rec["value"] == by_key["trbo"]["params"]["C_af"] and rec["start"] == 55600.0
+    report = (out / "report.md").read_text()
+    section = report[report.index("## Identifiability") :].split("\n## ")[0]
+    assert "- C_af = " in section and "figures/identifiability.png" in section
+    assert (out / "figures" / "identifiability.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    again = tmp_path / "again"
+    assert run_cli("report", str(out), "-o", str(again)).returncode == 0
+    assert section in (again / "report.md").read_text()
+    del by_key["trbo"]["extra"]["identifiability"]["parameters"]["C_af"]["profile"]
+    (out / "results.json").write_text(json.dumps(doc))
+    damaged = run_cli("report", str(out), "-o", str(tmp_path / "damaged"))
+    assert damaged.returncode == 0, damaged.stderr
+    text = (tmp_path / "damaged" / "report.md").read_text()
+    assert "TR-BO (kftune): the record is damaged (parameter 'C_af': no 'profile')" in text
+    assert "figures/identifiability.png" not in text

@@ -566,6 +566,12 @@ def run_compare(
             run, betas = method_run(
                 method, result, problem, splits, None if channels is None else list(channels)
             )
+            if problem.parameterization.model_names and method != "manual":
+                from kftune.tuning.identify import identify_problem
+
+                # whether the data determine the tuned model parameters: the report's
+                # identifiability section (a profile of ≤ 10 evaluations each, one per pair)
+                run.extra["identifiability"] = identify_problem(problem, result.x).to_dict()
             runs.append(run)
             for name in shown:
                 traces[name].update(betas[name])

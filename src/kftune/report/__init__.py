@@ -149,6 +149,7 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             if stem == "parameters" and (note := parameter_note(tables[stem].header[1:])):
                 md += [note, ""]
     md += _bound_lines(results)
+    md += _identifiability_lines(results, out)
     md += _option_lines(results)
     for file, heading, caption in figures:
         md += [f"## {heading}", "", caption, "", f"![{heading}](figures/{file})", ""]
@@ -236,6 +237,40 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
         for label, h in hits
     ]
     return [*md, ""]
+
+
+def _identifiability_lines(results: ExperimentResults, out: Path) -> list[str]:
+    """Whether the training data determine each tuned model parameter, per method
+    (``extra["identifiability"]``, written by ``kftune compare`` when model parameters are
+    tuned; :mod:`kftune.tuning.identify`), with the figure of the cost's profiles (written
+    to ``out/figures``); nothing for results without tuned model parameters. A damaged
+    record is said to be so, naming the method."""
+    from kftune.tuning.identify import Identifiability
+
+    runs = [m for m in results.methods if (m.extra.get("identifiability") or {}).get("parameters")]
+    if not runs:
+        return []
+    md = ["## Identifiability of the tuned model parameters", ""]
+    shown = []
+    for m in runs:
+        try:
+            lines = Identifiability.from_dict(m.extra["identifiability"]).lines()
+        except ValueError as exc:
+            md += [f"- {m.label}: the record is damaged ({exc}); not shown", ""]
+            continue
+        shown.append(m)
+        md += [f"{m.label}: {lines[0]}", "", *(f"- {line.strip()}" for line in lines[1:]), ""]
+    if shown:
+        figure = plots.identifiability(results, [m.key for m in shown])
+        plots.save(figure, out / "figures" / "identifiability.png")
+        md += [
+            "The training cost's rise around each tuned point along one model parameter, "
+            "the others held, across the parameter's box; dashed: the recorded start value.",
+            "",
+            "![Identifiability](figures/identifiability.png)",
+            "",
+        ]
+    return md
 
 
 #: What the KPI names mean, under every KPI table.

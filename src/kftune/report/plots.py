@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -427,4 +428,62 @@ def reliability(results: ExperimentResults, split: str) -> Figure:
     which = "test" if split == "test" else "training"
     fig.suptitle(f"Reliability of the stated uncertainty, {which} manoeuvres pooled", fontsize=10)
     fig.tight_layout()
+    return fig
+
+
+def identifiability(results: ExperimentResults, keys: Sequence[str] | None = None) -> Figure:
+    """The cost's 1-D profile around each method's tuned point, one panel per tuned model
+    parameter (``MethodRun.extra["identifiability"]``, :mod:`kftune.tuning.identify`): the
+    rise of the training cost over its best value [%] (y, linear within ±1 %, logarithmic
+    beyond) against the parameter (x, on its search scale, across its box), with the other
+    parameters held; each tuned value a filled dot, the recorded start value dashed, the 1 %
+    rise that ends a parameter's range dotted. A profile point whose filter diverged is
+    drawn at the top as a cross. ``keys``: only these methods (default: every one with a
+    record)."""
+    runs = [
+        (i, m, m.extra["identifiability"])
+        for i, m in enumerate(results.methods)
+        if (m.extra.get("identifiability") or {}).get("parameters")
+        and (keys is None or m.key in keys)
+    ]
+    names = list(dict.fromkeys(n for _, _, d in runs for n in d["parameters"]))
+    rel = 100 * float(runs[0][2].get("rel_rise", 0.01)) if runs else 1.0
+    fig, axes = plt.subplots(1, max(1, len(names)), figsize=(3.6 * max(1, len(names)), 3.7),
+                             squeeze=False)  # fmt: skip
+    for ax, name in zip(axes[0], names):
+        recs = [(i, m, d["parameters"][name]) for i, m, d in runs if name in d["parameters"]]
+        rises = {
+            m.key: [(v, None if j is None else 100 * (j / r["cost"] - 1)) for v, j in r["profile"]]
+            for _, m, r in recs
+        }
+        top = max([1.0, *(y for p in rises.values() for _, y in p if y is not None)])
+        for i, m, r in recs:
+            good = [(v, y) for v, y in rises[m.key] if y is not None]
+            ax.plot([v for v, _ in good], [y for _, y in good], marker=MARKERS[i % len(MARKERS)],
+                    ms=4, lw=1.2, mfc="none", color=_colour(m.key), label=m.label)  # fmt: skip
+            ax.plot([r["value"]], [0.0], marker="o", ms=6, color=_colour(m.key))
+            failed = [v for v, y in rises[m.key] if y is None]
+            if failed:  # (an empty line off the clip would stretch the tight layout)
+                ax.plot(failed, [top] * len(failed), "x", color=_colour(m.key), ms=6, clip_on=False)
+        first = recs[0][2]
+        ax.axhline(rel, color="#808080", ls=":", lw=1.0, label=f"+{rel:g} % (range)")
+        if first.get("start") is not None:
+            ax.axvline(first["start"], color=COLOURS["reference"], ls="--", lw=1.0, label="start")
+        if first["scale"] == "log10":
+            ax.set_xscale("log")
+            _label_log_axis(ax.xaxis, first["low"], first["high"])
+        ax.set_xlim(first["low"], first["high"])
+        ax.set_yscale("symlog", linthresh=rel)
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+        bottom = min([-rel, *(y for p in rises.values() for _, y in p if y is not None)])
+        ax.set_ylim(1.5 * bottom, 2 * top)
+        unit = first.get("unit", "")
+        ax.set_xlabel(name + (f" [{unit}]" if unit and unit != "-" else "") + ", across its box")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("rise of the training cost [%]")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    if handles:  # below the panels: inside, it hides the profile near the optimum
+        fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=8)
+    fig.suptitle("Do the data determine each tuned model parameter? (others held)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     return fig

@@ -201,7 +201,52 @@ class ParameterIdentifiability:
             "better": None if self.better is None else list(self.better),
             "profile": [[v, _finite_or_none(j)] for v, j in self.profile],
             "reason": self.reason,
+            "cost": self.cost,
+            "delta_j": self.delta_j,
         }
+
+    @classmethod
+    def from_dict(cls, name: str, d: Mapping[str, Any]) -> ParameterIdentifiability:
+        """Inverse of :meth:`to_dict` (a profile point recorded as null failed: inf).
+
+        Raises:
+            ValueError: a key missing or of the wrong kind, naming it.
+        """
+        try:
+            limits = str(d["limits"])
+            better = d["better"]
+            return cls(
+                name=str(name),
+                unit=str(d["unit"]),
+                scale=str(d["scale"]),
+                value=float(d["value"]),
+                start=None if d["start"] is None else float(d["start"]),
+                low=float(d["low"]),
+                high=float(d["high"]),
+                on_bound=None if d["on_bound"] is None else str(d["on_bound"]),
+                cost=float(d["cost"]),
+                delta_j=float(d["delta_j"]),
+                curvature=_float_or_none(d["curvature"]),
+                curvature_steps=tuple((float(h), float(c)) for h, c in d["curvature_steps"]),
+                half_width=_float_or_none(d["half_width"]),
+                range_low=float(d["range"][0]),
+                range_high=float(d["range"][1]),
+                closed_low=limits in ("both", "lower"),
+                closed_high=limits in ("both", "upper"),
+                share=float(d["share_of_box"]),
+                determined=bool(d["determined"]),
+                better=None if better is None else (float(better[0]), float(better[1])),
+                profile=tuple(
+                    (float(v), math.inf if j is None else float(j)) for v, j in d["profile"]
+                ),
+                reason=None if d["reason"] is None else str(d["reason"]),
+                joint_half_width=_float_or_none(d["joint_half_width"]),
+                correlations={str(k): float(v) for k, v in dict(d["correlations"]).items()},
+            )
+        except KeyError as exc:
+            raise ValueError(f"parameter {name!r}: no {exc.args[0]!r}") from None
+        except (TypeError, ValueError, IndexError) as exc:
+            raise ValueError(f"parameter {name!r}: malformed record ({exc})") from None
 
     def describe(self) -> str:
         """One or two lines for ``kftune tune``: value against start, bound, verdict."""
@@ -274,6 +319,28 @@ class Identifiability:
             "n_evals": self.n_evals,
             "parameters": {p.name: p.to_dict() for p in self.parameters},
         }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Identifiability:
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            ValueError: a key missing or of the wrong kind, naming it (and the parameter).
+        """
+        try:
+            return cls(
+                tuple(
+                    ParameterIdentifiability.from_dict(n, p)
+                    for n, p in dict(d["parameters"]).items()
+                ),
+                float(d["rel_rise"]),
+                int(d["n_evals"]),
+                str(d["method"]),
+            )
+        except KeyError as exc:
+            raise ValueError(f"no {exc.args[0]!r}") from None
+        except (TypeError, AttributeError) as exc:
+            raise ValueError(f"malformed record ({exc})") from None
 
     def lines(self) -> list[str]:
         """What ``kftune tune`` prints; nothing without parameters."""
@@ -495,6 +562,10 @@ def _to_t(log: bool, v: float) -> float:
 
 def _from_t(log: bool, t: float) -> float:
     return 10.0**t if log else float(t)
+
+
+def _float_or_none(v: Any) -> float | None:
+    return None if v is None else float(v)
 
 
 def _finite_or_none(v: float) -> float | None:
