@@ -131,7 +131,9 @@ def test_an_optimum_beyond_a_bound_is_on_it_with_only_a_lower_limit():
     assert c.on_bound == "upper"
     assert c.limits == "lower" and not c.determined
     assert c.range_high == 100.0 and c.range_low < 100.0
-    assert "on its upper bound 100" in c.describe() and "only a lower limit" in c.describe()
+    text = c.describe()
+    assert "on its upper bound 100" in text and "only a lower limit" in text
+    assert "the optimum may lie beyond" in text and "flat" not in text
     # within 1 % of the box (in the search scale) of the lower bound counts as on it
     x_near = np.array([10 ** (-3 + 0.009 * 6), 1.0, 10.0])
     (k,) = identify(quadratic(HESSIAN), SPACE, x_near, ["k"]).parameters
@@ -157,6 +159,7 @@ def test_a_one_sided_valley_gives_only_a_lower_limit():
     # at t* − 0.1·W and t* − 0.3·W (t = 1.1 and 0.7): the end lies in that bracket
     assert 0.7 <= math.log10(c.range_low) <= 1.1
     assert c.range_high == 100.0
+    assert "the cost is flat up to the upper bound 100" in c.describe()
 
 
 @pytest.mark.parametrize("seed", range(10))

@@ -278,10 +278,20 @@ class ParameterIdentifiability:
                 "both": f"{span} with the others held, but {traded or 'not jointly'}"
                 if self.share < NOT_DETERMINED_SHARE
                 else f"the range {span} spans {100 * self.share:.0f} % of the box",
-                "lower": f"only a lower limit, ≥ {lo:.3g} (the cost is flat up to the upper "
-                f"bound {self.high:g})",
-                "upper": f"only an upper limit, ≤ {hi:.3g} (the cost is flat down to the "
-                f"lower bound {self.low:g})",
+                "lower": f"only a lower limit, ≥ {lo:.3g} ("
+                + (
+                    "it sits on the upper bound: the optimum may lie beyond"
+                    if self.on_bound == "upper"
+                    else f"the cost is flat up to the upper bound {self.high:g}"
+                )
+                + ")",
+                "upper": f"only an upper limit, ≤ {hi:.3g} ("
+                + (
+                    "it sits on the lower bound: the optimum may lie beyond"
+                    if self.on_bound == "lower"
+                    else f"the cost is flat down to the lower bound {self.low:g}"
+                )
+                + ")",
                 "none": f"the cost is flat across the box [{self.low:g}, {self.high:g}]",
             }[self.limits]
             text += f": NOT determined by these data — {what}"
