@@ -441,3 +441,21 @@ def test_compare_reports_the_identifiability_of_each_tuned_method_with_its_figur
     text = (tmp_path / "damaged" / "report.md").read_text()
     assert "TR-BO (kftune): the record is damaged (parameter 'C_af': no 'profile')" in text
     assert "figures/identifiability.png" not in text
+
+
+def test_a_negative_cost_takes_its_rise_relative_to_its_magnitude():
+    """A cost that can be negative (an innovation log-likelihood): ΔJ is 1 % of |J*|, and
+    the range is √(2·ΔJ/H_ii) as for a positive one."""
+    offset = -5.0 - J_BEST  # J* = −5
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        return quadratic(HESSIAN)(points) + offset
+
+    (k,) = identify(cost, SPACE, X_BEST, ["k"]).parameters
+    assert k.cost == pytest.approx(-5.0) and k.delta_j == pytest.approx(0.05)
+    half = math.sqrt(2 * 0.05 / HESSIAN[0, 0])
+    assert math.log10(k.range_high / k.value) == pytest.approx(half, rel=1e-6)
+    from kftune.tuning.identify import rise_pct
+
+    assert rise_pct(-4.95, -5.0) == pytest.approx(1.0)  # a rise, in % of |J*|
+    assert rise_pct(2.02, 2.0) == pytest.approx(1.0) and rise_pct(0.5, 0.0) == 50.0

@@ -440,6 +440,8 @@ def identifiability(results: ExperimentResults, keys: Sequence[str] | None = Non
     rise that ends a parameter's range dotted. A profile point whose filter diverged is
     drawn at the top as a cross. ``keys``: only these methods (default: every one with a
     record)."""
+    from kftune.tuning.identify import rise_pct
+
     runs = [
         (i, m, m.extra["identifiability"])
         for i, m in enumerate(results.methods)
@@ -453,7 +455,7 @@ def identifiability(results: ExperimentResults, keys: Sequence[str] | None = Non
     for ax, name in zip(axes[0], names):
         recs = [(i, m, d["parameters"][name]) for i, m, d in runs if name in d["parameters"]]
         rises = {
-            m.key: [(v, None if j is None else 100 * (j / r["cost"] - 1)) for v, j in r["profile"]]
+            m.key: [(v, None if j is None else rise_pct(j, r["cost"])) for v, j in r["profile"]]
             for _, m, r in recs
         }
         top = max([1.0, *(y for p in rises.values() for _, y in p if y is not None)])

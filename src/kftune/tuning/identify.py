@@ -298,7 +298,7 @@ class ParameterIdentifiability:
         if self.better is not None:
             v, j = self.better
             text += (
-                f"; the cost is lower at {self.name} = {v:.4g} ({100 * (j / self.cost - 1):+.2g} "
+                f"; the cost is lower at {self.name} = {v:.4g} ({rise_pct(j, self.cost):+.2g} "
                 "%): the search had not converged along it"
             )
         if self.reason and not self.determined:
@@ -572,6 +572,12 @@ def _to_t(log: bool, v: float) -> float:
 
 def _from_t(log: bool, t: float) -> float:
     return 10.0**t if log else float(t)
+
+
+def rise_pct(j: float, j_best: float) -> float:
+    """100·(J − J*)/|J*| [%]: the rise of the cost over its best value, also for a cost
+    that can be negative (a log-likelihood); relative to 1 where J* = 0."""
+    return 100.0 * (j - j_best) / (abs(j_best) or 1.0)
 
 
 def _float_or_none(v: Any) -> float | None:
