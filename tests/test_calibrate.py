@@ -8,12 +8,16 @@ estimate of the Kalman filter does not depend on a common scale of Q, R and P0),
 
 from __future__ import annotations
 
+import json
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
+from conftest import run_cli
 from kftune.filters import EKF
 from kftune.models.linear import linear_model
 from kftune.tuning.calibrate import (
@@ -211,3 +215,111 @@ def test_a_manoeuvre_dominated_by_bias_is_named():
     assert cal.as_dict()["warning"] == cal.warning
     del errs["offset"]
     assert fit_scale(runs(errs)).warning is None
+
+
+def test_scaling_after_the_run_is_the_run_with_scaled_q_r_and_p0_of_a_linear_filter():
+    """What kftune applies (covariances c times larger after the run, the estimate kept) is,
+    for a Kalman filter, the run with c·Q, c·R and c·P0: kftune's EKF and UKF of the linear
+    model and FilterPy's KalmanFilter run so give the same states, c·P and NIS/c."""
+    from kftune.filters import UKF
+    from kftune.tuning.problem import scaled_covariances
+
+    c = 0.37
+    z = RUNS[1][1][:500]
+    for filt in (EKF(), UKF()):
+        base = filt.run(MODEL, None, z, 1.0, Q, R, x0=[0, 0], P0=P0)
+        rerun = filt.run(MODEL, None, z, 1.0, c * Q, c * R, x0=[0, 0], P0=c * P0)
+        got = scaled_covariances(base, c)
+        np.testing.assert_allclose(got.x, rerun.x, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(got.P_diag, rerun.P_diag, rtol=1e-9)
+        np.testing.assert_allclose(got.nis, rerun.nis, rtol=1e-9)
+        np.testing.assert_allclose(got.log_det_s, rerun.log_det_s, rtol=1e-9, atol=1e-12)
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.x, kf.P, kf.F, kf.H = np.zeros(2), np.diag(c * P0), F, H
+    kf.Q, kf.R = np.diag(c * Q), np.diag(c * R)
+    var = []
+    for k in range(len(z)):
+        if k:
+            kf.predict()
+        kf.update(z[k])
+        var.append(np.diag(kf.P).copy())
+    np.testing.assert_allclose(got.P_diag, np.array(var), rtol=1e-9)
+
+
+# ------------------------------------------------------------------ tune, evaluate, files
+@pytest.fixture(scope="module")
+def tuned(small, tmp_path_factory) -> Path:
+    """A tuned file of the small dataset (3 evaluations), calibrated by tune."""
+    out = tmp_path_factory.mktemp("cal") / "t.json"
+    res = run_cli("tune", small, "-n", "3", "-o", out)
+    assert res.returncode == 0, res.stderr
+    assert "calibrated σ: covariances × " in res.stdout
+    return out
+
+
+def test_tune_records_the_factor_and_evaluate_applies_it_without_moving_the_estimate(small, tuned):
+    """The file's calibration (top level and deployment, the same factor); evaluate --params
+    with it and --no-calibration: the same β RMSE to the last digit, the NEES c times
+    smaller; the training NEES of the record is 1 after calibration."""
+    doc = json.loads(tuned.read_text())
+    cal, dep = doc["calibration"], doc["deployment"]["calibration"]
+    c = cal["factor"]
+    assert dep["factor"] == c and c > 1 and cal["fitted_on"] == "train"
+    assert cal["channel"] == "beta" and cal["criterion"] == "nees"
+    assert cal["train"]["after"]["mean_nees"] == pytest.approx(1.0, abs=TOLERANCE)
+    assert cal["estimate_shift"]["rms"] == 0.0
+    assert doc["held_out"]["calibration_factor"] == c
+    runs = {}
+    for flag in ((), ("--no-calibration",)):
+        res = run_cli("evaluate", small, "--params", tuned, "--split", "test", "--json", *flag)
+        assert res.returncode == 0, res.stderr
+        runs[flag] = json.loads(res.stdout)
+    on, off = runs[()], runs[("--no-calibration",)]
+    assert on["cov_scale"] == c and off["cov_scale"] == 1.0
+    assert on["average"]["rmse"] == off["average"]["rmse"]
+    nees_on = on["consistency"]["channels"]["beta"]["nees"]["mean"]
+    nees_off = off["consistency"]["channels"]["beta"]["nees"]["mean"]
+    assert nees_on == pytest.approx(nees_off / c, rel=1e-9)
+    assert on["consistency"] == doc["held_out"]["consistency"]
+
+
+@pytest.mark.parametrize(
+    ("edit", "named"),
+    [
+        (lambda d: d["calibration"].update(factor=-1.0), "'calibration'"),
+        (lambda d: d["deployment"]["calibration"].update(factor=3.0), "disagree"),
+        (lambda d: d.update(calibration=None), "'deployment.calibration' is set"),
+        (lambda d: d["deployment"].update(calibration=None), "edited in one place only"),
+    ],
+)
+def test_a_damaged_calibration_is_refused_naming_the_file_and_key(
+    small, tuned, tmp_path, edit, named
+):
+    doc = json.loads(tuned.read_text())
+    edit(doc)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    for cmd in (("evaluate", small, "--params", bad), ("export", bad, "-o", "-")):
+        res = run_cli(*cmd)
+        assert res.returncode == 3, res.stdout + res.stderr
+        assert str(bad) in res.stderr and named in res.stderr and "Traceback" not in res.stderr
+
+
+def test_the_scale_round_trips_through_every_export_format(tuned, tmp_path):
+    """json, yaml, C header, MATLAB: Q and R as tuned (what runs) and the factor, each read
+    back as the same double (C: compiled and printed with %.17g where a compiler exists)."""
+    doc = json.loads(tuned.read_text())
+    c = doc["calibration"]["factor"]
+    texts = {}
+    for fmt, suffix in (("json", ".json"), ("yaml", ".yaml"), ("c", ".h"), ("matlab", ".m")):
+        out = tmp_path / f"f{suffix}"
+        assert run_cli("export", tuned, "-f", fmt, "-o", out).returncode == 0
+        texts[fmt] = out.read_text()
+    exported = json.loads(texts["json"])
+    assert exported["covariance_scale"] == c and exported["q_diag"] == doc["q"]
+    got = re.search(r"^covariance_scale: (\S+)$", texts["yaml"], re.M)
+    assert got and float(got[1]) == c
+    got = re.search(r"#define KFTUNE_COVARIANCE_SCALE (\S+)", texts["c"])
+    assert got and float(got[1]) == c
+    got = re.search(r"^kf\.covariance_scale = (\S+);", texts["matlab"], re.M)
+    assert got and float(got[1]) == c

@@ -282,17 +282,22 @@ def test_tune_then_evaluate_json(small, tmp_path):
     assert doc["method"] == "trbo" and doc["n_evals"] == 6  # the default method
     assert set(doc["params"]) == {"q_vx", "q_vy", "q_r"}
     assert json.loads(out.read_text())["cost"] == doc["cost"]
-    ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
+    ev = kftune(
+        "evaluate", str(small), "--params", str(out), "--split", "train", "--json",
+        "--no-calibration",
+    )  # fmt: skip
     assert ev.returncode == 0, ev.stderr
     evd = json.loads(ev.stdout)
-    # the tuned cost on the training split is what tune reported
-    assert evd["cost"] == pytest.approx(doc["cost"], rel=1e-12)
+    # the tuned cost on the training split is what tune reported, of the filter as tuned
+    assert evd["cost"] == pytest.approx(doc["cost"], rel=1e-12) and evd["cov_scale"] == 1.0
     assert set(evd["manoeuvres"]) == set(SMALL_TRAIN)
     assert {"rmse", "mae", "rmse_non", "mae_non"} <= set(evd["average"])
     manual = kftune("evaluate", str(small), "--manual", "--json")
     assert manual.returncode == 0 and json.loads(manual.stdout)["q"] == [1e-6, 1e-4, 1e-6]
-    # tune's held-out evidence is what evaluate finds on the test split, tuned and manual
+    # tune's held-out evidence is what evaluate finds on the test split, tuned (and
+    # calibrated, as it is deployed) and manual
     held = doc["held_out"]
+    assert held["calibration_factor"] == doc["calibration"]["factor"] != 1.0
     assert held["n_manoeuvres"] == len(SMALL_TEST)
     for args, key in (
         (("--params", str(out)), "beta_rmse_deg"),
@@ -314,7 +319,10 @@ def test_no_held_out_evidence_without_test_manoeuvres(tmp_path):
 
 def test_a_dataset_normalised_cost_is_recorded_and_evaluated_the_same_way(small, tmp_path):
     out = tmp_path / "tuned.json"
-    res = kftune("tune", str(small), "-n", "4", "--normalise", "dataset", "--json", "-o", str(out))
+    res = kftune(
+        "tune", str(small), "-n", "4", "--normalise", "dataset", "--json", "-o", str(out),
+        "--no-calibration",  # the cost of the filter as tuned
+    )  # fmt: skip
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     assert json.loads(out.read_text())["cost_spec"]["normalise"] == "dataset"
@@ -889,10 +897,13 @@ def test_evaluate_runs_the_tuned_files_r_as_estimate_and_export_do(small, tmp_pa
     cfg = tmp_path / "r0.toml"
     cfg.write_text("r0 = { vx = 1.0 }\n")
     out = tmp_path / "t.json"
-    res = kftune("tune", str(small), "--config", str(cfg), "-n", "3", "-q", "-o", str(out))
+    res = kftune(
+        "tune", str(small), "--config", str(cfg), "-n", "3", "-q", "-o", str(out),
+        "--no-calibration",  # the cost of the filter as tuned
+    )  # fmt: skip
     assert res.returncode == 0, res.stderr
     doc = json.loads(out.read_text())
-    assert doc["r"][0] == 1.0
+    assert doc["r"][0] == 1.0 and doc["calibration"] is None
     ev = kftune("evaluate", str(small), "--params", str(out), "--split", "train", "--json")
     assert ev.returncode == 0, ev.stderr
     got = json.loads(ev.stdout)

@@ -101,7 +101,7 @@ def test_beta_std_matches_a_monte_carlo_of_the_gaussian_posterior():
 def test_estimate_equals_run_ukf_for_the_same_parameters(tuned):
     from kftune.cli.evaluate import read_tuned
 
-    tf = TunedFilter.from_document(read_tuned(tuned), str(tuned))
+    tf = TunedFilter.from_document(read_tuned(tuned), str(tuned), calibrated=False)
     ds = default_dataset()
     m = ds[MANOEUVRE]
     est = estimate(tf, m, ds.vehicle)
@@ -114,6 +114,27 @@ def test_estimate_equals_run_ukf_for_the_same_parameters(tuned):
     np.testing.assert_array_equal(c["innovation_ay"], ref.innovation[:, 1])
     np.testing.assert_array_equal(c["beta_ref"], m.beta_ref)
     assert est.units["beta_std"] == "rad" and est.units["innovation_ay"] == "m/s^2"
+
+
+def test_the_calibrated_estimate_is_the_tuned_one_with_covariances_c_times_larger(tuned):
+    """The tuned file's calibration factor c applied: run_ukf's estimate with the tuned q and
+    r, its variances times c (σ and β's σ times √c) and its NIS over c."""
+    from kftune.cli.evaluate import read_tuned
+
+    doc = read_tuned(tuned)
+    tf = TunedFilter.from_document(doc, str(tuned))
+    c = doc["calibration"]["factor"]
+    assert tf.cov_scale == c and c != 1.0
+    ds = default_dataset()
+    m = ds[MANOEUVRE]
+    cols = estimate(tf, m, ds.vehicle).columns
+    ref = run_ukf(m.u, m.z, m.dt, ds.vehicle, tf.q, tf.r, settings=UKFSettings())
+    np.testing.assert_array_equal(np.column_stack([cols["vx"], cols["vy"], cols["r"]]), ref.x)
+    np.testing.assert_allclose(cols["vy_std"], np.sqrt(c * ref.P_diag[:, 1]), rtol=1e-12)
+    np.testing.assert_allclose(
+        cols["beta_std"], np.sqrt(c) * beta_std(ref.x, ref.P_diag), rtol=1e-12
+    )
+    np.testing.assert_allclose(cols["nis"], ref.nis / c, rtol=1e-12)
 
 
 class _NoReference:
@@ -288,7 +309,8 @@ def numbers(doc: dict) -> dict[str, float]:
 def test_json_export_holds_the_tuned_values(tuned, tmp_path):
     doc = json.loads(export(tuned, tmp_path, "json", ".json").read_text())
     src = json.loads(tuned.read_text())
-    assert doc["q_diag"] == src["q"] and doc["r_diag"] == src["r"]
+    assert doc["q_diag"] == src["q"] and doc["r_diag"] == src["r"]  # what runs
+    assert doc["covariance_scale"] == src["calibration"]["factor"] != 1.0
     assert doc["dt"] == src["deployment"]["dt"]
     assert doc["vehicle_m"] == src["deployment"]["vehicle"]["m"]
     assert doc["states"] == ["vx", "vy", "r"] and doc["q_units"][2] == "(rad/s)^2"
@@ -315,6 +337,7 @@ def test_c_header_compiles_and_its_values_round_trip(tuned, tmp_path):
     assert text.rstrip().endswith("#endif /* KFTUNE_FILTER_H */")
     assert "sha256 " + doc["dataset_sha256"] in text
     prints = ['printf("dt %.17g\\n", KFTUNE_DT);']
+    prints.append('printf("covariance_scale %.17g\\n", KFTUNE_COVARIANCE_SCALE);')
     for name, n in (("Q_DIAG", 3), ("R_DIAG", 3), ("MODEL_PARAMS", 9)):
         prints += [f'printf("{name} {i} %.17g\\n", KFTUNE_{name}[{i}]);' for i in range(n)]
     for key in ("alpha", "beta", "kappa"):
@@ -342,6 +365,7 @@ def test_c_header_compiles_and_its_values_round_trip(tuned, tmp_path):
     for key in ("alpha", "beta", "kappa"):
         assert float(got[f"ukf_{key}"]) == doc[f"ukf_{key}"]
     assert float(got["vehicle_m"]) == doc["vehicle_m"]
+    assert float(got["covariance_scale"]) == doc["covariance_scale"]
     assert got["n 3"] == "1"
 
 
@@ -402,6 +426,7 @@ def test_matlab_export_parses_to_the_json_values(tuned, tmp_path):
     got = parse_matlab(script.read_text())
     assert got["dt"] == doc["dt"]
     assert got["q_diag"] == doc["q_diag"] and got["r_diag"] == doc["r_diag"]
+    assert got["covariance_scale"] == doc["covariance_scale"]
     assert got["model_params"] == doc["model_params"]
     assert got["states"] == doc["states"] and got["q_units"] == doc["q_units"]
     assert got["vehicle.m"] == doc["vehicle_m"] and got["vehicle.name"] == doc["vehicle_name"]

@@ -35,7 +35,10 @@ It refuses (exit 3) recordings whose sample time differs from the tuned one by m
 1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones, as
 ``kftune evaluate --params`` does; --force runs anyway, on the tuned vehicle, and warns.
 Files written before kftune recorded the sample time and vehicle are run with the
-recording's vehicle, with a warning. Exit 1 when the filter diverged on a manoeuvre (its
+recording's vehicle, with a warning. Its standard deviations, NIS and
+figure's band carry the file's calibration factor c (covariances c times larger, fitted by
+``tune`` so that its σ matches its errors; the estimate is the same); --no-calibration
+leaves it out. Exit 1 when the filter diverged on a manoeuvre (its
 rows from that step on are empty).
 """
 
@@ -58,7 +61,13 @@ from kftune.cli._common import (
     write_output,
     writing,
 )
-from kftune.cli.evaluate import add_force, check_recordings, read_tuned, require_named_model
+from kftune.cli.evaluate import (
+    add_force,
+    add_no_calibration,
+    check_recordings,
+    read_tuned,
+    require_named_model,
+)
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.errors import ConfigError, UsageError, excerpt
 
@@ -111,6 +120,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--no-plot", action="store_true", help="write no figures")
     add_force(p, "run the filter")
+    add_no_calibration(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -159,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
             "which it runs; --model names the model file of a filter tuned with one"
         )
     require_named_model(doc, args.params, args.model)
-    tuned = TunedFilter.from_document(doc, str(args.params))
+    tuned = TunedFilter.from_document(doc, str(args.params), calibrated=args.calibrated)
     dataset = open_dataset(args.dataset)
     if args.manoeuvre:
         unknown = [n for n in args.manoeuvre if n not in dataset.names]
@@ -183,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
         "out": str(args.out),
         "format": args.format,
         "warnings": notes,
+        "cov_scale": tuned.cov_scale,
         "manoeuvres": {},
     }
     stems: dict[str, str] = {}  # manoeuvre → the stem of its files
@@ -331,6 +342,11 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
     if len(rows) > 1:
         runs["all"] = doc["consistency"]  # pooled sample by sample
     print("\n".join(consistency_lines(runs, width)))
+    if doc["cov_scale"] != 1.0:
+        print(
+            f"calibrated: covariances × {doc['cov_scale']:.4g} as the tuned file records "
+            "(--no-calibration: the filter's own)"
+        )
     files = f"{len(rows)} {doc['format']} file{'s' if len(rows) != 1 else ''}"
     print(f"estimates written to {doc['out']} ({files})")
 

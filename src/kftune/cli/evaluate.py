@@ -9,7 +9,10 @@ scored are refused when no dataset is named (the bundled one would be scored by 
 and scored with a warning when one is. As ``kftune estimate`` does, it refuses (exit 3)
 manoeuvres whose sample time differs from the one the file was tuned at by more than 1 %
 (Q is a variance per step) or a vehicle other than the tuned one; --force scores them
-anyway, with a warning, on the tuned vehicle.
+anyway, with a warning, on the tuned vehicle. A tuned file's filter runs with its
+calibration factor c (its covariances reported c times larger, fitted by ``tune`` so that
+its σ matches its errors, its estimate unchanged; --json: "cov_scale"); --no-calibration
+runs it as tuned.
 
 --split picks the manoeuvres: test (the default), train or all. Without --split, a dataset
 that has no test manoeuvres is scored on all of them, with a warning that these are the
@@ -89,6 +92,7 @@ def register(subparsers: Any) -> None:
         help="which manoeuvres (default test; all when the dataset has no test manoeuvres)",
     )
     add_force(p, "score the --params file's filter")
+    add_no_calibration(p)
     p.set_defaults(func=run)
 
 
@@ -100,6 +104,20 @@ def add_force(parser: argparse.ArgumentParser, what: str) -> None:
         action="store_true",
         help=f"{what} even when the recordings' sample time or vehicle differ from the tuned "
         "ones (warns; the tuned vehicle is used)",
+    )
+
+
+def add_no_calibration(parser: argparse.ArgumentParser) -> None:
+    """``--no-calibration`` of the commands that run a tuned file's filter (``evaluate``,
+    ``estimate``): by default they apply the file's calibration factor c (covariances
+    reported c times larger, :mod:`kftune.tuning.calibrate`), as ``export`` deploys it."""
+    parser.add_argument(
+        "--no-calibration",
+        dest="calibrated",
+        action="store_false",
+        help="run the --params file's filter without its calibration factor c (by default "
+        "its covariances P and S are reported c times larger, which makes its σ match its "
+        "errors; the estimate is the same)",
     )
 
 
@@ -216,11 +234,12 @@ def read_tuned(path: Path) -> dict[str, Any]:
         raise DataError(f"unusable filter or cost settings: {exc}", file=str(path)) from None
     if not isinstance(doc["params"], dict):
         raise DataError("'params' must be an object of parameter values", file=str(path))
-    from kftune.tuning.deploy import tuned_for, tuned_model_params
+    from kftune.tuning.deploy import calibration_factor, tuned_for, tuned_model_params
 
     tuned_for(doc, str(path))  # the record's sample time and vehicle
     tuned_model_params(doc, str(path))  # model parameters tuned with the noise
     _check_deployment(doc, path)
+    calibration_factor(doc, str(path))  # the calibration, in both places alike
     _locate_model(doc, path)
     for key, value, strict in (
         ("burn_in", doc.get("burn_in", 0.0), False),  # [s], >= 0
@@ -353,7 +372,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data import open_dataset
     from kftune.experiment import channel_units, manual_point
     from kftune.filters import UKFSettings
-    from kftune.tuning.deploy import TunedFilter, consistency_docs
+    from kftune.tuning.deploy import TunedFilter, calibration_factor, consistency_docs
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import (
         FilterDivergedError,
@@ -368,6 +387,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.force and args.params is None:
         raise UsageError("--force applies to a tuned file's filter (--params) only")
+    if not args.calibrated and args.params is None:
+        raise UsageError("--no-calibration applies to a tuned file's filter (--params) only")
     config = load_config(args.config, "evaluate")
     tuned = read_tuned(args.params) if args.params is not None else None
     if tuned is not None:
@@ -451,6 +472,8 @@ def run(args: argparse.Namespace) -> int:
         model=fs.spec,
         filter=fs.filter,
     )
+    if tuned is not None and args.calibrated:  # the filter as deployed
+        problem.cov_scale = calibration_factor(tuned, str(args.params))
     with problem:
         try:
             cost: float | None = problem.evaluate(x).cost
@@ -473,6 +496,7 @@ def run(args: argparse.Namespace) -> int:
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
         "model_params": problem.parameterization.model_values(x),
+        "cov_scale": problem.cov_scale,
         "cost": cost,
         "cost_kind": spec.kind,
         "cost_estimate": spec.estimate,
@@ -569,6 +593,11 @@ def _print_table(doc: dict[str, Any]) -> None:
         )
     if doc["cost"] is not None:
         print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
+    if doc["cov_scale"] != 1.0:
+        print(
+            f"calibrated: covariances × {doc['cov_scale']:.4g} as the tuned file records "
+            "(--no-calibration: the filter's own)"
+        )
     from kftune.report.tables import consistency_lines
 
     runs = {name: row["consistency"] for name, row in rows.items()}

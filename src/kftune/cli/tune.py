@@ -83,6 +83,7 @@ from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 if TYPE_CHECKING:
     from kftune.data import Dataset
     from kftune.optim import OptimizeResult
+    from kftune.tuning.calibrate import Calibration
     from kftune.tuning.identify import Identifiability
     from kftune.tuning.problem import TuningProblem
 
@@ -143,6 +144,15 @@ def register(subparsers: Any) -> None:
         help="when the best point lies on a bound of a log10 parameter, widen that bound by "
         "two decades and tune again with the same budget (at most 3 times, so up to 4× the "
         "budget in all: 400 evaluations with TR-BO's default)",
+    )
+    p.add_argument(
+        "--no-calibration",
+        dest="calibrate",
+        action="store_false",
+        help="do not fit the covariance scale c after the search (by default the filter's "
+        "covariances are reported c times larger, c fitted so that its β σ matches its errors "
+        "on the training manoeuvres, its estimate unchanged; the file records c, and "
+        "evaluate, estimate and export apply it)",
     )
     p.add_argument(
         "--out",
@@ -247,8 +257,15 @@ def run(args: argparse.Namespace) -> int:
     # an interrupted run's best-so-far (see _interrupted) is superseded now
     with contextlib.suppress(OSError):
         _partial(args.out).unlink(missing_ok=True)
+    cal, no_calibration = calibrate(problem, result.x) if args.calibrate else (None, None)
+    if cal is not None:
+        from kftune.tuning.deploy import calibration_record
+
+        doc["calibration"] = cal.as_dict("train")
+        doc["deployment"]["calibration"] = calibration_record(cal.factor)
+        problem.cov_scale = cal.factor  # the held-out evidence is the calibrated filter's
     doc["held_out"], no_evidence = held_out(problem, result.x, dataset)
-    if doc["held_out"] is not None:
+    if doc["held_out"] is not None or cal is not None:
         write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
     ident, no_ident = identifiability(problem, result.x, quiet=args.quiet or args.json)
     if ident is not None:
@@ -270,6 +287,12 @@ def run(args: argparse.Namespace) -> int:
             print(line)
         for line in bound_lines(doc, problem, widen):
             print(line)
+        if cal is not None:
+            from kftune.tuning.calibrate import summary_line
+
+            print(summary_line(cal))
+        elif no_calibration:
+            print(f"σ not calibrated: {no_calibration}")
         if doc["held_out"] is not None:
             print(held_out_line(doc["held_out"], doc["cost_spec"]))
             if (line := held_out_consistency_line(doc["held_out"])) is not None:
@@ -365,6 +388,22 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
     return lines
 
 
+def calibrate(problem: TuningProblem, x: Any) -> tuple[Calibration | None, str | None]:
+    """The covariance scale c fitted on the training manoeuvres at the tuned point
+    (:func:`kftune.tuning.calibrate.calibrate`, a few filter runs), or (None, why not): the
+    filter diverged when scaled, or was interrupted (the tuned file is written before)."""
+    from kftune.errors import KftuneError
+    from kftune.tuning.calibrate import CalibrationError
+    from kftune.tuning.calibrate import calibrate as fit
+
+    try:
+        return fit(problem, x), None
+    except KeyboardInterrupt:
+        return None, "skipped (interrupted); the tuned parameters are saved uncalibrated"
+    except (CalibrationError, KftuneError, ValueError) as exc:
+        return None, f"{exc}; the tuned file records the filter uncalibrated"
+
+
 def held_out(
     problem: TuningProblem, x: Any, dataset: Dataset
 ) -> tuple[dict[str, Any] | None, str | None]:
@@ -372,7 +411,8 @@ def held_out(
     the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
     manoeuvres, which the tuning never saw — mean β RMSE [deg] over those with a sideslip
     reference (None where a filter diverged), and the tuned filter's consistency pooled
-    over them (``consistency``: :func:`kftune.tuning.deploy.consistency_docs`, None where
+    over them (both with the problem's ``cov_scale``, the calibration; the manual rule
+    uncalibrated) (``consistency``: :func:`kftune.tuning.deploy.consistency_docs`, None where
     it diverged). Two filter runs over the test split, in this process. With model
     parameters tuned, also the tuned Q on the recorded model
     (``recorded_model_beta_rmse_deg``, :func:`kftune.tuning.generalise.recorded_model_point`),
@@ -411,11 +451,13 @@ def held_out(
         return None, "no test manoeuvre has a sideslip reference longer than the burn-in"
     rmse: dict[str, float | None] = {}
     consistency = None
+    scale = problem.cov_scale
     points = [("tuned", x), ("manual", manual_point(problem.parameterization))]
-    if joint:  # the tuned noise on the model the user was handed
+    if joint:  # the tuned noise on the model the user was handed (calibrated alike)
         points.append(("recorded_model", recorded_model_point(problem, x)))
     try:
         for key, point in points:
+            problem.cov_scale = 1.0 if key == "manual" else scale
             metrics, runs = assess(problem, point, test)
             if key == "tuned":  # pooled over the test manoeuvres, None if it diverged
                 consistency = consistency_docs(problem, test, runs)[1]
@@ -427,6 +469,8 @@ def held_out(
         return None, "skipped (interrupted); the tuned parameters are saved"
     except (KftuneError, ValueError) as exc:
         return None, f"the test manoeuvres could not be scored ({exc})"
+    finally:
+        problem.cov_scale = scale
     return {
         "split": "test",
         "n_manoeuvres": len(test),
@@ -435,6 +479,7 @@ def held_out(
         "manual_beta_rmse_deg": rmse["manual"],
         **({"recorded_model_beta_rmse_deg": rmse["recorded_model"]} if joint else {}),
         "consistency": consistency,
+        "calibration_factor": scale,
     }, None
 
 
@@ -660,5 +705,10 @@ def tuned_document(
         "q": q.tolist(),
         "r": r.tolist(),
         "ukf": {"alpha": ukf.alpha, "beta": ukf.beta, "kappa": ukf.kappa},
-        "deployment": {**deployment_record(problem, result.x, dataset), "model": model},
+        "calibration": None,  # filled in by tune after the file is first written
+        "deployment": {
+            **deployment_record(problem, result.x, dataset),
+            "model": model,
+            "calibration": None,
+        },
     }

@@ -9,6 +9,10 @@ version) — as a mapping whose values are numbers, strings, null or flat lists 
 The four writers render that one mapping, so they agree by construction; every float is
 written with Python's ``repr`` (the shortest text that reads back as the same double).
 
+A calibrated filter (``tune`` fitted a covariance scale c, :mod:`kftune.tuning.calibrate`)
+runs with ``q_diag`` and ``r_diag`` as tuned; ``covariance_scale`` (c) multiplies every
+covariance it reports (P, and S for the NIS and gating), so that its σ matches its errors.
+
 The YAML is written by hand (the mapping is flat; PyYAML is not a dependency): keys
 plain, strings double-quoted with JSON escapes, floats always with a decimal point and a
 signed exponent so that YAML 1.1 readers (PyYAML) read them as floats, not strings.
@@ -91,6 +95,9 @@ def export_document(tuned: Mapping[str, Any], source: str) -> dict[str, Any]:
             for key, value in vehicle.items():
                 doc[f"vehicle_{key}"] = None if value is None else float(value)
         doc["initial_state"] = str(dep["initial_state"])
+        cal = dep.get("calibration")
+        if cal is not None:  # the reported covariances' factor; Q and R run as they are
+            doc["covariance_scale"] = float(cal["factor"])
         ds = dep["dataset"]
         doc.update(
             dataset=str(ds["name"]),
@@ -196,7 +203,15 @@ def provenance(doc: Mapping[str, Any], source: str) -> str:
             f"on dataset {doc['dataset']!r} ({doc['dataset_manoeuvres']} manoeuvres, "
             f"{doc['dataset_samples']} samples, sha256 {doc['dataset_sha256']}),",
             f"exported from {source} by {doc['exported_with']} (tuned with {doc['tuned_with']}).",
-            "Q and R are diagonal; Q is the process-noise variance per step of dt.",
+            "Q and R are diagonal; Q is the process-noise variance per step of dt."
+            + (
+                " Calibrated: run with Q and R as they are and multiply every covariance the"
+                " filter reports (P, and S for the NIS) by covariance_scale ="
+                f" {doc['covariance_scale']!r}; running with scaled Q and R instead moves a"
+                " UKF's estimate."
+                if "covariance_scale" in doc
+                else ""
+            ),
             f"Initial state: {doc['initial_state']}",
         ]
     )
@@ -272,6 +287,12 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
         [f"{s} [{u}]" for s, u in zip(doc["measurements"], doc["r_units"])],
         "measurement-noise variances, diagonal of R, in measurement order",
     )
+    if "covariance_scale" in doc:
+        out.append(
+            f"#define {p}COVARIANCE_SCALE {_float(doc['covariance_scale'])} "
+            "/* multiply the reported P and S by it (calibration); Q and R run as they are */"
+        )
+        out.append("")
     array(
         "MODEL_PARAMS",
         doc["model_params"],
@@ -324,6 +345,7 @@ def to_matlab(doc: Mapping[str, Any], source: str, var: str = "kf") -> str:
         "q_diag": "per step of dt: "
         + ", ".join(f"{s} [{u}]" for s, u in zip(doc["states"], doc["q_units"])),
         "r_diag": ", ".join(f"{s} [{u}]" for s, u in zip(doc["measurements"], doc["r_units"])),
+        "covariance_scale": "multiply the reported P and S by it; Q and R run as they are",
         "model_params": ", ".join(
             f"{s} [{u}]" for s, u in zip(doc["model_param_names"], doc["model_param_units"])
         ),

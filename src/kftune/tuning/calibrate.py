@@ -4,10 +4,14 @@ Running a Kalman filter with c·Q, c·R and c·P0 instead of Q, R and P0 scales 
 covariance it computes by c and leaves its gain, and so its estimate, unchanged:
 P⁻_k = F P_{k−1} Fᵀ + Q, S_k = H P⁻_k Hᵀ + R and K_k = P⁻_k Hᵀ S_k⁻¹ are homogeneous of
 degrees 1, 1 and 0 in (P0, Q, R) (Simon, *Optimal State Estimation*, 2006, eq. 5.19), so
-by induction P_k(c) = c·P_k(1) and x̂_k(c) = x̂_k(1). A UKF or EKF of a nonlinear model keeps
-this nearly: its sigma points spread by √c and its linearisation moves with them, so the
-estimate moves a little (:class:`Calibration` measures by how much). The filter tuned for
-accuracy keeps its estimate; its standard deviations are multiplied by √c.
+by induction P_k(c) = c·P_k(1) and x̂_k(c) = x̂_k(1); an EKF's Jacobians, taken at that
+estimate, stay too. A UKF run so would spread its sigma points √c times wider through the
+nonlinear model and move its estimate: measured on the tuned single-track UKF (c of 3–600)
+by 34–50 % of its β RMSE, its test β RMSE 1–14 % worse (BENCHMARKS.md "Calibrated
+uncertainty"). So the calibrated filter is defined as the tuned filter whose reported
+covariances are multiplied by c (P_k·c, S_k·c:
+:meth:`kftune.tuning.problem.FilterSpec.run`'s ``cov_scale``) — for a Kalman filter and an
+EKF exactly the run with c·Q, c·R and c·P0, for a UKF the same without moving its estimate.
 
 :func:`fit_scale` fits c on runs of the filter (the training manoeuvres after tuning) so that
 its stated uncertainty matches its errors, by one of :data:`CRITERIA`:
@@ -21,9 +25,10 @@ its stated uncertainty matches its errors, by one of :data:`CRITERIA`:
   measurements (S_k scales by c, so NIS by 1/c). It calibrates the innovations, not the
   state errors: nothing else can be checked without a reference.
 
-The filter's errors change slightly with c (nonlinear filter), so c is found by the fixed
-point c ← c·ρ(c), ρ the criterion's required factor at c (1 when met), a handful of runs:
-for a linear filter ρ(c·ρ(1)) = 1 exactly, one iteration.
+c is found by the fixed point c ← c·ρ(c), ρ the criterion's required factor at c (1 when
+met): with the covariances scaled after the run, ρ(c·ρ(1)) = 1 exactly, two runs; a runner
+that reran the filter with scaled covariances (the UKF variant measured and not kept)
+takes a handful.
 
 Where a single scale cannot work: each manoeuvre has its own factor c_m (the criterion on its
 samples alone) and a *bias share* b_m = Σ_c n_c·ē_c² / Σ e_k² of its normalised errors
@@ -151,7 +156,7 @@ class Calibration:
     """A fitted covariance scale and the evidence for it.
 
     Attributes:
-        factor: c; run the filter with c·Q, c·R and c·P0.
+        factor: c; the filter's covariances are reported c times larger.
         criterion: what c was fitted by (:data:`CRITERIA` or ``"nis"``).
         channels: the channels whose errors it was fitted on (empty for ``"nis"``).
         n_runs: filter runs over the manoeuvres it took (the first at c = 1).
@@ -279,7 +284,8 @@ def fit_scale(
     """Fit one covariance scale c by the fixed point c ← c·ρ(c) (module docstring).
 
     Args:
-        run: c → the runs of the filter with c·Q, c·R and c·P0 over the manoeuvres it is
+        run: c → the runs of the filter with covariances c times larger (for a Kalman
+            filter: with c·Q, c·R and c·P0) over the manoeuvres it is
             fitted on (each :class:`RunErrors` with the same channels); raises
             :class:`CalibrationError` when the filter diverges.
         criterion: one of :data:`CRITERIA`; ``"nis"`` is used instead when no run has an
@@ -434,7 +440,7 @@ def summary_line(cal: Calibration) -> str:
     """What ``tune`` prints: the factor, the training coverage before → after, the shift of
     the estimate, and the warning where one scale cannot work."""
     what = cal.channels[0] if cal.channels else "the innovations"
-    head = f"calibrated σ: Q, R and P0 × {cal.factor:.3g} ({cal.criterion} on {what}, training"
+    head = f"calibrated σ: covariances × {cal.factor:.3g} ({cal.criterion} on {what}, training"
     if cal.before is not None and cal.after is not None:
         (a68, a95), (b68, b95) = cal.before.coverage, cal.after.coverage
         head += (

@@ -206,6 +206,8 @@ class TunedFilter:
         burn_in: [s] left out of the KPIs at each manoeuvre's start.
         source: the file it came from (for messages).
         document: the whole file.
+        cov_scale: the calibration factor c its runs apply (covariances reported c times
+            larger, :func:`calibration_factor`), 1 for an uncalibrated one.
         model_params: name → the tuned value of each model parameter tuned with the noise
             (:func:`tuned_model_params`; ``vehicle`` already holds them).
     """
@@ -221,6 +223,7 @@ class TunedFilter:
     burn_in: float
     source: str
     document: Mapping[str, Any]
+    cov_scale: float = 1.0
     model_params: Mapping[str, float] = field(default_factory=dict)
 
     def params_of(self, model: StateSpaceModel, recorded: np.ndarray) -> np.ndarray:
@@ -232,9 +235,12 @@ class TunedFilter:
         return p
 
     @classmethod
-    def from_document(cls, doc: Mapping[str, Any], source: str) -> TunedFilter:
+    def from_document(
+        cls, doc: Mapping[str, Any], source: str, *, calibrated: bool = True
+    ) -> TunedFilter:
         """From a tuned-parameters file already read and checked by
-        :func:`kftune.cli.evaluate.read_tuned` (``q``, ``ukf``, ``params`` are valid).
+        :func:`kftune.cli.evaluate.read_tuned` (``q``, ``ukf``, ``params`` are valid);
+        ``calibrated``: apply the file's calibration factor (False: the filter as tuned).
 
         Raises:
             DataError: naming ``source``, when ``r`` is missing or not one positive number
@@ -264,6 +270,7 @@ class TunedFilter:
             burn_in=float(doc.get("burn_in", 0.0)),
             source=source,
             document=doc,
+            cov_scale=calibration_factor(doc, source) if calibrated else 1.0,
             model_params=tuned_model_params(doc, source),
         )
 
@@ -323,6 +330,74 @@ def tuned_for(doc: Mapping[str, Any], source: str) -> tuple[float | None, Vehicl
         except (TypeError, ValueError) as exc:
             raise DataError(f"'deployment.vehicle': {exc}", file=source) from None
     return None if dt is None else float(dt), vehicle
+
+
+#: How a calibrated filter is deployed, in the record itself (``deployment.calibration``).
+CALIBRATION_CONVENTION = (
+    "the filter runs with Q, R and the initial-state rule as recorded (the tuned values); "
+    "every covariance it reports is multiplied by factor: P (its standard deviations by "
+    "sqrt(factor)) and the innovation covariance S (for the NIS and gating). For a Kalman "
+    "filter or an EKF this equals running with factor*Q, factor*R and factor*P0; a UKF run "
+    "so would spread its sigma points and move its estimate, so do not"
+)
+
+
+def calibration_record(factor: float) -> dict[str, Any]:
+    """The ``"calibration"`` of a deployment record: the factor c that the reported
+    covariances are multiplied by, and :data:`CALIBRATION_CONVENTION` saying so (Q and R,
+    beside it, stay the tuned values: what runs)."""
+    return {
+        "factor": float(factor),
+        "applies_to": "reported covariances: P and S",
+        "convention": CALIBRATION_CONVENTION,
+    }
+
+
+def calibration_factor(doc: Mapping[str, Any], source: str) -> float:
+    """The calibration factor c a tuned-parameters file records (``calibration.factor``,
+    the same as ``deployment.calibration.factor``), 1.0 when it records none (null, or a
+    file of an older kftune). The one check of these keys: every reader of tuned files goes
+    through it (:func:`kftune.cli.evaluate.read_tuned`).
+
+    Raises:
+        DataError: naming ``source`` and the key, when ``calibration`` is not null or an
+            object whose ``factor`` is a positive finite number, or the deployment record's
+            factor disagrees with it.
+    """
+    cal = doc.get("calibration")
+    dep = doc.get("deployment")
+    dep_cal = dep.get("calibration") if isinstance(dep, Mapping) else None
+    if cal is None:
+        if dep_cal is not None:
+            raise DataError(
+                "'deployment.calibration' is set but 'calibration' is null: edited in one "
+                "place only? make both null (uncalibrated) or tune again",
+                file=source,
+            )
+        return 1.0
+    factor = cal.get("factor") if isinstance(cal, Mapping) else None
+    if not (finite_number(factor) and factor > 0):
+        raise DataError(
+            f"'calibration' must be null or an object whose 'factor' is a positive number, "
+            f"got {cal!r:.60}",
+            file=source,
+        )
+    if not isinstance(dep, Mapping) or "Q" not in dep:
+        return float(factor)
+    if not isinstance(dep_cal, Mapping):
+        raise DataError(
+            "'calibration' is set but 'deployment.calibration' is not an object: edited in "
+            "one place only? make both null (uncalibrated) or tune again",
+            file=source,
+        )
+    got = dep_cal.get("factor")
+    if not (finite_number(got) and math.isclose(got, factor, rel_tol=1e-9)):
+        raise DataError(
+            f"'calibration.factor' ({factor!r}) and 'deployment.calibration.factor' "
+            f"({got!r:.40}) disagree: edited in one place only? make them equal or tune again",
+            file=source,
+        )
+    return float(factor)
 
 
 def unrecorded(doc: Mapping[str, Any]) -> list[str]:
@@ -444,16 +519,19 @@ def reference(m: Manoeuvre, channel: str = "beta_ref") -> np.ndarray | None:
 def estimate(
     tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams, *, probe: bool = True
 ) -> Estimates:
-    """Run ``tuned`` (its Q and R, not re-estimated) over ``m`` with ``vehicle``'s
-    parameters, at the manoeuvre's own sample time; ``probe``: run the model's hooks
+    """Run ``tuned`` (its Q and R, not re-estimated, with its calibration factor
+    ``cov_scale``) over ``m`` with ``vehicle``'s parameters, at the manoeuvre's own sample
+    time; ``probe``: run the model's hooks
     first (:meth:`~kftune.tuning.problem.FilterSpec.probe`; False: the caller did, on
     every manoeuvre at once)."""
     fs = filter_spec(tuned.model, tuned.filter, vehicle)
     model = fs.model
+    params = tuned.params_of(model, fs.params)  # a vehicle model's: already in vehicle
     if probe:
         fs.probe([m], tuned.r, tuned.q, tuned.settings)
-    params = tuned.params_of(fs.model, fs.params)  # a vehicle model's: already in vehicle
-    res = fs.run(m, vehicle, tuned.q, tuned.r, tuned.settings, params=params)
+    res = fs.run(
+        m, vehicle, tuned.q, tuned.r, tuned.settings, params=params, cov_scale=tuned.cov_scale
+    )
     return estimates_of(model, res, m)
 
 

@@ -567,6 +567,20 @@ def first_scored(m: Manoeuvre, burn_in: float) -> int:
     return int(np.searchsorted(m.t - m.t[0], burn_in - 1e-9 * m.dt))
 
 
+def scaled_covariances(res: RunResult, c: float) -> RunResult:
+    """A run's result with its covariances c times larger and its estimate as it is: P_diag·c,
+    NIS/c (S·c), log det S + m·ln c — the run with c·Q, c·R and c·P0 of a Kalman filter or
+    EKF (:meth:`FilterSpec.run`'s ``cov_scale``)."""
+    log_det = res.log_det_s
+    m = res.innovation.shape[1]
+    return replace(
+        res,
+        P_diag=res.P_diag * c,
+        nis=res.nis / c,
+        log_det_s=None if log_det is None else log_det + m * math.log(c),
+    )
+
+
 @dataclass(frozen=True)
 class FilterSpec:
     """Which filter runs which model: the paper's pair (single-track UKF) runs on the
@@ -662,12 +676,14 @@ class FilterSpec:
             q: (n,) and r: (m,) the noise variances. settings: the UKF's sigma points.
             params: (n_p,) the model's parameter vector for this run (None: :attr:`params`,
                 or for the paper's kernel ``vehicle``).
-            cov_scale: c > 0: the filter runs with c·Q, c·R and c·P0, where x0 and P0 are
-                the model's prior rule evaluated with the unscaled r (the single-track
-                kernel: :func:`~kftune.models.sideslip.single_track_prior`). The Kalman
-                gain is homogeneous of degree 0 in (P, Q, R), so an EKF's estimate is
-                unchanged and its covariances scale by c; a UKF's sigma points spread
-                √c times wider, which moves its estimate slightly on a nonlinear model.
+            cov_scale: c > 0: the calibration (:mod:`kftune.tuning.calibrate`): the filter
+                runs with Q, R and its default prior as given, and reports every covariance
+                c times larger (P_diag·c, NIS/c, log det S + m·ln c). For a Kalman filter and
+                an EKF this is exactly the run with c·Q, c·R and c·P0 (the gain is
+                homogeneous of degree 0 in (P, Q, R), so the estimate, and with it the
+                EKF's Jacobians, stay); a UKF run so would spread its sigma points √c times
+                wider and move its estimate (by 34–50 % of its β RMSE on the benchmarks,
+                BENCHMARKS.md "Calibrated uncertainty"), so the UKF keeps the tuned filter's.
         """
         c = float(cov_scale)
         if not (math.isfinite(c) and c > 0):
@@ -675,29 +691,12 @@ class FilterSpec:
         if self.fast:
             assert vehicle is not None or params is not None  # filter_spec refuses none
             p = vehicle if params is None else params
-            if c == 1.0:
-                return run_ukf(m.u, m.z, m.dt, p, q, r, settings=settings)
-            from kftune.models.sideslip import single_track_prior
-
-            x0, P0 = single_track_prior(m.z[0], np.asarray(r, float), np.zeros(0))
-            return run_ukf(
-                m.u, m.z, m.dt, p, c * np.asarray(q, float), c * np.asarray(r, float),
-                x0=x0, P0=c * P0, settings=settings,
-            )  # fmt: skip
-        u, z = self.inputs(m)
-        p = self.params if params is None else np.asarray(params, dtype=float)
-        filt = self.filter_object(settings)
-        if c == 1.0:
-            return filt.run(self.model, u, z, m.dt, q, r, params=p)
-        if self.model.initial_state is None:
-            raise ValueError(f"model {self.model.name!r} has no prior rule to scale")
-        x0, P0 = self.model.initial_state(
-            np.ascontiguousarray(z[0], float), np.asarray(r, float), p
-        )
-        return filt.run(
-            self.model, u, z, m.dt, c * np.asarray(q, float), c * np.asarray(r, float),
-            params=p, x0=x0, P0=c * np.asarray(P0, float),
-        )  # fmt: skip
+            res = run_ukf(m.u, m.z, m.dt, p, q, r, settings=settings)
+        else:
+            u, z = self.inputs(m)
+            p = self.params if params is None else np.asarray(params, dtype=float)
+            res = self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=p)
+        return res if c == 1.0 else scaled_covariances(res, c)
 
     def filter_object(self, settings: UKFSettings) -> ModelFilter:
         """The generic filter (the UKF with these sigma-point settings)."""
