@@ -323,3 +323,29 @@ def test_the_scale_round_trips_through_every_export_format(tuned, tmp_path):
     assert got and float(got[1]) == c
     got = re.search(r"^kf\.covariance_scale = (\S+);", texts["matlab"], re.M)
     assert got and float(got[1]) == c
+
+
+def test_compare_shows_the_calibrated_consistency_and_the_same_kpis(small):
+    """A method's run as compare records it: the KPIs are the uncalibrated filter's to the
+    last digit, the consistency is the calibrated one's (NEES c times smaller), and the
+    consistency table carries c."""
+    from kftune.data import open_dataset
+    from kftune.experiment import method_run, tune
+    from kftune.report.results import ExperimentResults
+    from kftune.report.tables import consistency_table
+    from kftune.tuning.deploy import consistency_docs
+    from kftune.tuning.problem import TuningProblem, assess
+
+    ds = open_dataset(small)
+    problem = TuningProblem(ds.train, ds.vehicle, ds.r_default)
+    result = tune(problem, "manual", progress=False)
+    run, _ = method_run("manual", result, problem, {"test": ds.test})
+    c = run.extra["calibration"]["factor"]
+    assert c > 1 and problem.cov_scale == 1.0  # restored
+    metrics, runs = assess(problem, result.x, ds.test)
+    assert run.metrics["test"] == metrics
+    nees = consistency_docs(problem, ds.test, runs)[1]["channels"]["beta"]["nees"]["mean"]
+    got = run.consistency["test"]["channels"]["beta"]["nees"]["mean"]
+    assert got == pytest.approx(nees / c, rel=1e-9)
+    table = consistency_table(ExperimentResults(meta={}, methods=[run]), "test")
+    assert table.header[-2] == "Covariances × c (calibration)" and table.rows[0][-2] == c

@@ -191,7 +191,7 @@ def tune(
 
     if widen_bounds:
         return minimize_widening(
-            run, problem.space, storage=storage, fixed=problem.parameterization.model_names
+            run, problem.space, storage=storage, fixed=()
         )
     return run(problem.space, None if storage is None else Path(storage))
 
@@ -355,7 +355,11 @@ def method_run(
 
     Each split's consistency (pooled over its manoeuvres, with the points of the
     reliability figure: :func:`~kftune.tuning.deploy.consistency_docs`) goes in
-    ``MethodRun.consistency``.
+    ``MethodRun.consistency``: of the calibrated filter, as ``kftune tune`` deploys it (its
+    covariances c times larger, c fitted on the problem's training manoeuvres:
+    :func:`~kftune.tuning.calibrate.calibrate`; the estimate, and so every KPI, is the
+    same); the calibration's record in ``extra["calibration"]`` (None where it could not
+    be fitted: the filter as tuned then).
 
     Returns:
         (the :class:`MethodRun`, manoeuvre → β estimate [rad] ``beta_<key>`` for every
@@ -370,25 +374,32 @@ def method_run(
     averages: dict[str, dict[str, float]] = {}
     consistency: dict[str, dict[str, Any] | None] = {}
     betas: dict[str, dict[str, np.ndarray]] = {}
-    for split, manoeuvres in splits.items():
-        if not manoeuvres:
-            continue
-        per, runs = assess(problem, result.x, manoeuvres, channels)
-        metrics[split] = per
-        consistency[split] = consistency_docs(problem, manoeuvres, runs, RELIABILITY_LEVELS)[1]
-        if channels is None:
-            averages[split] = average_kpis(per.values())
-        else:
-            averages[split] = average_kpis(per.values(), [f"rmse_{c}" for c in channels])
-        by_name = {m.name: m for m in manoeuvres}
-        for name, res in runs.items():
-            if channels is None:
-                betas[name] = {f"beta_{key}": model_output(res, "beta")}
+    calibration = _calibration(problem, result.x)
+    scale = problem.cov_scale
+    problem.cov_scale = 1.0 if calibration is None else calibration["factor"]
+    try:
+        for split, manoeuvres in splits.items():
+            if not manoeuvres:
                 continue
-            estimate = problem.cost_spec.estimate
-            betas[name] = {
-                f"{c}_{key}": channel_estimate(by_name[name], res, c, estimate)[0] for c in channels
-            }
+            per, runs = assess(problem, result.x, manoeuvres, channels)
+            metrics[split] = per
+            consistency[split] = consistency_docs(problem, manoeuvres, runs, RELIABILITY_LEVELS)[1]
+            if channels is None:
+                averages[split] = average_kpis(per.values())
+            else:
+                averages[split] = average_kpis(per.values(), [f"rmse_{c}" for c in channels])
+            by_name = {m.name: m for m in manoeuvres}
+            for name, res in runs.items():
+                if channels is None:
+                    betas[name] = {f"beta_{key}": model_output(res, "beta")}
+                    continue
+                estimate = problem.cost_spec.estimate
+                betas[name] = {
+                    f"{c}_{key}": channel_estimate(by_name[name], res, c, estimate)[0]
+                    for c in channels
+                }
+    finally:
+        problem.cov_scale = scale
     q, r_diag, ukf = problem.decode(result.x)
     run = MethodRun(
         key=key,
@@ -415,9 +426,22 @@ def method_run(
             ],
             "on_bounds": on_bounds(result),
             "options": result.options,  # every option, defaults included (e.g. TSBO's mode)
+            "calibration": calibration,
         },
     )
     return run, betas
+
+
+def _calibration(problem: TuningProblem, x: np.ndarray | None) -> dict[str, Any] | None:
+    """The record of the covariance scale fitted on ``problem``'s (training) manoeuvres at
+    ``x`` (:meth:`kftune.tuning.calibrate.Calibration.as_dict`), None where it cannot be
+    fitted (a diverged run, nothing to fit on)."""
+    from kftune.tuning.calibrate import CalibrationError, calibrate
+
+    try:
+        return calibrate(problem, x).as_dict("train")
+    except (CalibrationError, ValueError):
+        return None
 
 
 def cost_slice(

@@ -319,7 +319,9 @@ def consistency_table(results: ExperimentResults, split: str) -> Table:
     """Whether each method's tuned filter has standard deviations that can be trusted on
     ``split``, pooled sample by sample over its manoeuvres: per referenced channel, the
     coverage of the ±1σ and ±1.96σ intervals [%], the mean NEES and its 95 % band (for the
-    errors' effective sample count), the mean NIS against m and its band, and a verdict
+    errors' effective sample count), the mean NIS against m and its band, the calibration
+    factor c its covariances carry (fitted on the training manoeuvres, its estimate
+    unchanged; – where none was fitted, or in results written before) and a verdict
     (:func:`sigma_verdict`). A method whose filter diverged on a manoeuvre of the split has
     one row saying so."""
     dof = next(
@@ -340,6 +342,7 @@ def consistency_table(results: ExperimentResults, split: str) -> Table:
         "NEES 95 % band",
         f"Mean NIS ({m_text})",
         "NIS 95 % band",
+        "Covariances × c (calibration)",
         "σ",
     )
     rows: list[tuple[object, ...]] = []
@@ -347,8 +350,11 @@ def consistency_table(results: ExperimentResults, split: str) -> Table:
         if split not in m.consistency:
             continue
         doc = m.consistency[split]
+        cal = m.extra.get("calibration")
+        factor = cal.get("factor") if isinstance(cal, dict) else None
+        factor = float(factor) if isinstance(factor, (int, float)) else math.nan
         if doc is None:
-            rows.append((m.label, "–", *(math.nan,) * 3, "", math.nan, "", "diverged"))
+            rows.append((m.label, "–", *(math.nan,) * 3, "", math.nan, "", factor, "diverged"))
             continue
         nis = doc.get("nis") or {}
         for i, (channel, ch) in enumerate(doc["channels"].items()):
@@ -363,6 +369,7 @@ def consistency_table(results: ExperimentResults, split: str) -> Table:
                     _band(nees["band_eff"]),
                     _float(nis.get("mean")) if i == 0 else math.nan,
                     _band(nis.get("band")) if i == 0 else "",
+                    factor if i == 0 else math.nan,
                     sigma_verdict(nees),
                 )
             )
