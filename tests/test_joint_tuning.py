@@ -449,17 +449,45 @@ def test_leave_one_out_refits_without_the_manoeuvre_it_scores(ds, short):
     assert cv["mean_refit"] < cv["mean_recorded_model"]
 
 
-def test_widening_leaves_a_model_parameters_box_alone(ds, short):
+def test_widening_leaves_a_model_parameters_box_alone(ds, short, monkeypatch):
     """--widen-bounds moves the noise's log10 bounds out, never a model parameter's: two
     decades beyond a stiffness box leave every plausible car."""
-    from kftune.experiment import tune
+    import kftune.experiment as experiment
+    from kftune.optim import minimize_widening
 
-    recorded = ds.vehicle.replace(C_af=2.5e4)  # the true 55.6 kN/rad lies beyond the box
-    boxes = {"q_vy": (1e-10, 1e-8)}
-    par = NoiseParameterization(q_bounds=boxes, model_bounds={"C_af": (2e4, 3e4)})
-    problem = TuningProblem(short, recorded, ds.r_default, parameterization=par)
-    result = tune(problem, "trbo", budget=12, seed=0, widen_bounds=True, progress=False)
-    boxes = {p["name"]: (p["low"], p["high"]) for p in result.space["params"]}
-    assert problem.parameterization.model_values(result.x)["C_af"] == pytest.approx(3e4)
-    assert boxes["C_af"] == (2e4, 3e4)
-    assert result.n_evals == 12  # on its bound, yet no second round
+    space = {"q_vy": (1e-3, 1e-1, "log10"), "C_af": (2e4, 3e4, "log10")}
+
+    def run(sp, storage):  # the best point lies on both upper bounds
+        return kftune.minimize(lambda x: 0.0, sp, "manual", points=[[1e-1, 3e4]])
+
+    boxes = {
+        p["name"]: (p["low"], p["high"]) for p in minimize_widening(run, space).space["params"]
+    }
+    assert boxes["C_af"] != (2e4, 3e4) and boxes["q_vy"] != (1e-3, 1e-1)  # unless fixed
+    kept = minimize_widening(run, space, fixed=("C_af",)).space["params"]
+    boxes = {p["name"]: (p["low"], p["high"]) for p in kept}
+    assert boxes["C_af"] == (2e4, 3e4) and boxes["q_vy"] != (1e-3, 1e-1)
+    # and tune names the problem's model parameters as fixed
+    seen = {}
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return minimize_widening(*args, **kwargs)
+
+    monkeypatch.setattr(experiment, "minimize_widening", spy)
+    par = NoiseParameterization(model_bounds={"C_af": (2e4, 1e5)})
+    problem = TuningProblem(short, ds.vehicle, ds.r_default, parameterization=par)
+    experiment.tune(problem, "random", budget=2, widen_bounds=True, progress=False)
+    assert tuple(seen["fixed"]) == ("C_af",)
+
+
+def test_a_joint_problem_travels_to_another_process_whole(ds, short):
+    """What a Dask worker receives (the pickled problem) runs each point's model."""
+    import pickle
+
+    par = NoiseParameterization(model_bounds=STIFFNESS)
+    problem = TuningProblem(short, ds.vehicle, ds.r_default, parameterization=par)
+    x = np.array([1e-5, 1e-3, 1e-5, 4e4, 9e4])
+    copy = pickle.loads(pickle.dumps(problem))
+    assert copy.score_manoeuvres(x, [1]) == problem.score_manoeuvres(x, [1])
+    assert copy(x) == problem(x) != problem(manual_point(problem.parameterization))

@@ -156,3 +156,26 @@ def test_unknown_model_and_filter_are_refused(tmp_path):
     assert res.returncode == 3 and "does not exist" in res.stderr
     res = kftune("tune", "--filter", "pf", "-n", "2")
     assert res.returncode == 2 and "--filter" in res.stderr
+
+
+def test_a_model_files_parameters_are_tuned_and_evaluated(small, tmp_path):
+    """A model of one's own (no vehicle, no declared ranges): its parameter joins the
+    search from its default, the tuned file records it, and evaluate runs it (the training
+    cost again, which the model's default would not give)."""
+    model = tmp_path / "my_model.py"
+    shutil.copyfile(EXAMPLE, model)
+    out = tmp_path / "tuned.json"
+    res = kftune("tune", str(small), "--model", str(model), "--tune-model", "C_f=2e4:4e5",
+                  "-n", "10", "-q", "--no-calibration", "-o", str(out))  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(out.read_text())
+    from kftune.models.user import load_model
+
+    defaults = dict(zip(load_model(str(model)).param_names, load_model(str(model)).param_defaults))
+    assert doc["model_params"]["C_f"]["start"] == defaults["C_f"]
+    tuned = doc["model_params"]["C_f"]["value"]
+    assert {e["name"]: e["value"] for e in doc["deployment"]["model_params"]}["C_f"] == tuned
+    ev = kftune("evaluate", str(small), "--params", str(out), "--model", str(model),
+                 "--split", "train", "--json")  # fmt: skip
+    assert ev.returncode == 0, ev.stderr
+    assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)

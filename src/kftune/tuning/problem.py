@@ -1087,14 +1087,15 @@ class TuningProblem:
 
     def vehicle_at(self, x: Sequence[float] | np.ndarray) -> VehicleParams | None:
         """The vehicle of a point: the recorded one with the point's tuned model parameters
-        (None for a model without a vehicle).
+        (None for a model without a vehicle; unchanged for a model whose parameters do not
+        come from the vehicle, which runs :meth:`params_at`).
 
         Raises:
             ValueError: a value the vehicle refuses (outside its plausible range).
         """
         values = self.parameterization.model_values(x)
-        if self.vehicle is None or not values:
-            return self.vehicle
+        if self.vehicle is None or not values or not self._fs.model.needs_vehicle:
+            return self.vehicle  # a model not of the vehicle: its parameters by params_at
         return self.vehicle.replace(**values)
 
     def params_at(self, x: Sequence[float] | np.ndarray) -> np.ndarray:
