@@ -254,6 +254,7 @@ def tuned(small, tmp_path_factory) -> Path:
     res = run_cli("tune", small, "-n", "3", "-o", out)
     assert res.returncode == 0, res.stderr
     assert "calibrated σ: covariances × " in res.stdout
+    assert "the estimate is unchanged" in res.stdout
     return out
 
 

@@ -65,6 +65,10 @@ DEFAULT_CRITERION = "nees"
 SPREAD_LIMIT = 4.0
 #: Bias share at or above which a manoeuvre's errors are called dominated by bias.
 BIAS_DOMINATED = 0.5
+#: The mean NIS/m outside which ``tune`` says that the innovations ask for another scale
+#: than the one fitted on the state errors (a factor 2 either way: χ² bands of a few
+#: thousand samples are far narrower, so this flags only a plain disagreement).
+NIS_RANGE: tuple[float, float] = (0.5, 2.0)
 #: Fixed-point iterations at most, and the relative change of c that ends them.
 MAX_ITERATIONS = 8
 TOLERANCE = 1e-3
@@ -204,7 +208,7 @@ class Calibration:
             return f"σ {k:.2g}× too small there" if k > 1 else f"σ {1 / k:.2g}× too large there"
 
         biased = [f for f in bad if f.bias_share >= BIAS_DOMINATED]
-        other = [f for f in bad if f.bias_share < BIAS_DOMINATED or math.isnan(f.bias_share)]
+        other = [f for f in bad if f not in biased]
         parts = []
         if biased:
             parts.append(
@@ -216,16 +220,23 @@ class Calibration:
             )
         if other:
             parts.append(
-                "own factor more than "
-                + f"{SPREAD_LIMIT:g}× off on "
+                f"own factor more than {SPREAD_LIMIT:g}× off on "
                 + ", ".join(f"{f.name!r} ({sigma(f)})" for f in other)
             )
+        seen = []
+        if any(f.factor > self.factor for f in bad):
+            seen.append(
+                "where σ is too small the calibrated ±1.96σ band misses the reference for "
+                "long stretches (a slowly varying bias no zero-mean σ describes)"
+            )
+        if any(f.factor < self.factor for f in bad):
+            seen.append("where σ is too large the band is wider than the errors there need")
         return (
             "one scale cannot make every manoeuvre consistent: "
             + "; ".join(parts)
-            + ". What you see: on those manoeuvres the calibrated ±1.96σ band still misses "
-            "(or far overstates) the errors — a slowly varying bias that no zero-mean σ "
-            "describes — while the pooled coverage is right"
+            + ". What you see: "
+            + "; ".join(seen)
+            + " — the coverage pooled over all manoeuvres is right, on each it is not"
         )
 
     def as_dict(self, fitted_on: str = "train") -> dict[str, Any]:
@@ -452,9 +463,18 @@ def summary_line(cal: Calibration) -> str:
         scale = math.degrees(1.0) if what == "beta" else 1.0
         rel = cal.shift_rms / cal.rmse if cal.rmse > 0 else math.nan
         head += (
-            f"; the estimate moves by {cal.shift_rms * scale:.2g}{unit} RMS "
+            "; the estimate is unchanged"
+            if cal.shift_rms == 0.0
+            else f"; the estimate moves by {cal.shift_rms * scale:.2g}{unit} RMS "
             f"({100 * rel:.2g} % of its RMSE)"
         )
+        lo, hi = NIS_RANGE
+        if math.isfinite(cal.nis_after) and not lo <= cal.nis_after <= hi:
+            head += (
+                f"\n  the innovations ask for another scale: mean NIS/m {cal.nis_before:.3g} → "
+                f"{cal.nis_after:.3g} (1 if consistent) — the {what} errors are not the noise "
+                "that Q and R describe (model error); gate measurements on the NIS with care"
+            )
     else:
         head += (
             f": no reference, fitted on the NIS — mean NIS/m {cal.nis_before:.3g} → "
