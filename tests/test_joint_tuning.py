@@ -491,3 +491,16 @@ def test_a_joint_problem_travels_to_another_process_whole(ds, short):
     copy = pickle.loads(pickle.dumps(problem))
     assert copy.score_manoeuvres(x, [1]) == problem.score_manoeuvres(x, [1])
     assert copy(x) == problem(x) != problem(manual_point(problem.parameterization))
+
+
+def test_models_lists_the_parameters_tune_model_can_search():
+    from kftune.vehicle.params import PLAUSIBLE_RANGES
+
+    res = run_cli("models", "--model", "single-track", "--json")
+    assert res.returncode == 0, res.stderr
+    params = {p["name"]: p for p in json.loads(res.stdout)["models"][0]["parameters"]}
+    assert list(params) == ["m", "Iz", "a", "b", "h", "C_af", "C_ar", "C_x", "mu"]
+    assert params["C_af"]["range"] == list(PLAUSIBLE_RANGES["C_af"][:2])
+    assert params["mu"]["unit"] == "-"
+    text = run_cli("models", "--model", "single-track").stdout
+    assert "C_af [N/rad] 1000…2e+06" in text

@@ -2,8 +2,10 @@
 
 Lists the built-in models (and, with ``--model FILE.py``, your own): their states, inputs,
 measurements and outputs with units, which are the data channels a filter reads by name and
-the ``q_<state>`` parameters ``tune`` searches, and the channels a dataset needs for them:
-t, the inputs and measurements by name, and ``<output>_ref`` for a cost on an output.
+the ``q_<state>`` parameters ``tune`` searches, the model's parameters with their
+plausible ranges (what ``tune --tune-model NAME=LOW:HIGH`` can search with the noise), and
+the channels a dataset needs for them: t, the inputs and measurements by name, and
+``<output>_ref`` for a cost on an output.
 """
 
 from __future__ import annotations
@@ -41,6 +43,15 @@ def describe(model: Any) -> dict[str, Any]:
         "inputs": pairs(model.input_names, model.input_units),
         "measurements": pairs(model.measurement_names, model.measurement_units),
         "outputs": list(output_names(model)),
+        "parameters": [
+            {
+                "name": n,
+                "unit": u,
+                "default": v,
+                "range": list(model.param_ranges[n]) if n in model.param_ranges else None,
+            }
+            for n, u, v in zip(model.param_names, model.param_units, model.param_defaults)
+        ],
         "jacobians": "analytic" if model.F is not None and model.H is not None else "numerical",
         "data": {
             "channels": ["t", *model.input_names, *model.measurement_names],
@@ -66,6 +77,12 @@ def run(args: argparse.Namespace) -> int:
             cells = ", ".join(f"{c['name']} [{c['unit']}]" for c in d[key]) or "none"
             print(f"  {key:13s} {cells}")
         print(f"  {'outputs':13s} {', '.join(d['outputs']) or 'none'}")
+        cells = ", ".join(
+            f"{c['name']} [{c['unit']}]"
+            + (f" {c['range'][0]:g}…{c['range'][1]:g}" if c["range"] is not None else "")
+            for c in d["parameters"]
+        )
+        print(f"  {'parameters':13s} {cells or 'none'}")
         print(f"  {'EKF Jacobians':13s} {d['jacobians']}")
         data = d["data"]
         refs = ", ".join(data["references"])
