@@ -29,6 +29,7 @@ from kftune.tuning.calibrate import (
     required_factor,
 )
 from kftune.tuning.consistency import channel_consistency, pool
+from kftune.tuning.cost import CostSpec
 
 F = np.array([[1.0, 0.1], [0.0, 0.95]])
 H = np.array([[1.0, 0.0]])
@@ -350,3 +351,29 @@ def test_compare_shows_the_calibrated_consistency_and_the_same_kpis(small):
     assert got == pytest.approx(nees / c, rel=1e-9)
     table = consistency_table(ExperimentResults(meta={}, methods=[run]), "test")
     assert table.header[-2] == "Covariances × c (calibration)" and table.rows[0][-2] == c
+
+
+def test_a_model_without_beta_is_fitted_on_its_referenced_states_else_on_the_nis():
+    """The CTRV tracker (no β): c is fitted on the states with a reference (v_ref,
+    omega_ref), pooled, to a mean NEES of 1; without any reference on the NIS (mean NIS = m
+    after it), and the record says so."""
+    from kftune.data.manoeuvre import Manoeuvre
+    from kftune.experiment import manual_point
+    from kftune.tuning.calibrate import calibrate, problem_runs
+    from kftune.tuning.problem import TuningProblem
+    from test_data_schema import ctrv_manoeuvre
+
+    ms = [ctrv_manoeuvre(f"run-{i}", "train", i) for i in (1, 2)]
+    problem = TuningProblem(ms, None, [0.25, 0.25], model="ctrv", cost=CostSpec(kind="nis"))
+    x = manual_point(problem.parameterization)
+    cal = calibrate(problem, x)
+    assert set(cal.channels) == {"v", "omega"} and cal.criterion == "nees"
+    assert required_factor(problem_runs(problem, x, ms)(cal.factor), "nees") == pytest.approx(
+        1.0, abs=TOLERANCE
+    )
+    bare = [
+        Manoeuvre(m.name, m.kind, m.split, m.t, px=m.channel("px"), py=m.channel("py")) for m in ms
+    ]
+    cal = calibrate(problem, x, bare)
+    assert cal.criterion == "nis" and cal.as_dict()["channel"] == "nis"
+    assert cal.nis_after == pytest.approx(1.0, abs=TOLERANCE)
