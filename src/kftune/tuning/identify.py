@@ -50,8 +50,9 @@ the **joint range** √(2·ΔJ·(H⁻¹)_ii) with the other reported parameters 
 quadratic, and the correlations of the estimates (:func:`_joint`); a parameter whose joint
 range spans half its box or more is not determined either. The noise parameters stay held:
 a curvature matrix over every coordinate (18 more evaluations at d = 6, tried on the
-bundled set) widened the ranges by about 2× only, short of the re-optimised profile's:
-the valley a re-fit follows is not quadratic on the scale of the steps.
+bundled set's TR-BO point) is no substitute: it was indefinite there (a negative curvature
+along q_r, whose box spans ten decades), and the valley a re-fit follows is not quadratic
+on the scale of the steps.
 
 Cost: at most ``MAX_EVALS_PER_PARAMETER·k + 1 + k(k−1)/2`` evaluations for k reported
 parameters (34 for C_af, C_ar and μ), in two batches.
