@@ -279,6 +279,14 @@ def test_tuned_file_records_the_model_parameters_and_every_reader_runs_them(smal
     metrics, _ = assess(problem, x, ds.test)
     for name, row in metrics.items():
         assert got["manoeuvres"][name]["rmse"] == pytest.approx(row["rmse"], rel=1e-9)
+    # estimate writes the β of the filter at the tuned point
+    m = ds.test[0]
+    est = run_cli("estimate", str(small), "--params", str(out), "--manoeuvre", m.name,
+                  "--no-plot", "-o", str(tmp_path / "est"), "--json")  # fmt: skip
+    assert est.returncode == 0, est.stderr
+    table = json.loads(est.stdout)["manoeuvres"][m.name]["file"]
+    beta = np.genfromtxt(table, delimiter=",", names=True)["beta"]
+    np.testing.assert_allclose(beta, problem.run(x, m).beta, rtol=1e-12, atol=1e-15)
     value = rec["C_af"]["value"]
     exported = {}
     for fmt in ("json", "yaml", "c", "matlab"):

@@ -7,6 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import run_cli as kftune
@@ -179,3 +180,18 @@ def test_a_model_files_parameters_are_tuned_and_evaluated(small, tmp_path):
                  "--split", "train", "--json")  # fmt: skip
     assert ev.returncode == 0, ev.stderr
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
+    # estimate runs the tuned C_f too: its states are the filter's at the tuned point
+    from kftune.data import open_dataset
+    from kftune.tuning.problem import NoiseParameterization, TuningProblem
+
+    est = kftune("estimate", str(small), "--params", str(out), "--model", str(model),
+                 "--no-plot", "-o", str(tmp_path / "est"), "--json")  # fmt: skip
+    assert est.returncode == 0, est.stderr
+    ds = open_dataset(str(small))
+    m = ds.train[0]
+    table = json.loads(est.stdout)["manoeuvres"][m.name]["file"]
+    vy = np.genfromtxt(table, delimiter=",", names=True)["vy"]
+    par = NoiseParameterization(model_bounds={"C_f": (2e4, 4e5)})
+    problem = TuningProblem(ds.train, ds.vehicle, doc["r"], parameterization=par, model=str(model))
+    run = problem.run([*doc["q"], tuned], m)
+    np.testing.assert_allclose(vy, run.x[:, 1], rtol=1e-12, atol=1e-15)
