@@ -512,3 +512,23 @@ def test_models_lists_the_parameters_tune_model_can_search():
     assert params["mu"]["unit"] == "-"
     text = run_cli("models", "--model", "single-track").stdout
     assert "C_af [N/rad] 1000…2e+06" in text
+
+
+def test_compare_tunes_model_parameters_with_every_method_and_reports_them(small, tmp_path):
+    out = tmp_path / "cmp"
+    res = run_cli("compare", str(small), "--methods", "manual", "random", "ga", "--budget",
+                  "random=4", "--budget", "ga=8", "--tune-model", "C_af=20000:400000",
+                  "-o", str(out), "--quiet")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert results["meta"]["model_parameters"]["C_af"] == {"start": 55600.0, "unit": "N/rad"}
+    params = {m["key"]: m["params"] for m in results["methods"]}
+    assert params["manual"]["C_af"] == 55600.0
+    assert all(2e4 <= p["C_af"] <= 4e5 for p in params.values())
+    report = (out / "report.md").read_text()
+    assert "| Method | q_vx | q_vy | q_r | C_af |" in report
+    assert "C_af [N/rad]: model parameters tuned with the noise" in report
+    # a noise-only comparison's results are as before
+    from kftune.report import parameter_note
+
+    assert "model parameters" not in parameter_note(("q_vx", "q_vy", "q_r", "gain"))

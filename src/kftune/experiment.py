@@ -191,7 +191,7 @@ def tune(
 
     if widen_bounds:
         return minimize_widening(
-            run, problem.space, storage=storage, fixed=()
+            run, problem.space, storage=storage, fixed=problem.parameterization.model_names
         )
     return run(problem.space, None if storage is None else Path(storage))
 
@@ -641,6 +641,12 @@ def run_compare(
     }
     if channels is not None:  # absent: the sideslip report (results as before)
         meta["scored_channels"] = channels
+    par = problem.parameterization
+    if par.model_names:  # absent: a noise-only comparison (results as before)
+        units = dict(zip(problem.model.param_names, problem.model.param_units))
+        meta["model_parameters"] = {
+            n: {"start": par.model_start[n], "unit": units[n]} for n in par.model_names
+        }
     results = ExperimentResults(meta=meta, methods=runs, cost_slice=sl, traces=traces)
     results.save(out)
     return results

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from kftune.data.io import file_stem
 from kftune.report import plots
@@ -146,7 +147,9 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
             if stem.startswith("kpi_"):
                 md += [MAE_NOTE if channels is None else RMSE_NOTE, ""]
-            if stem == "parameters" and (note := parameter_note(tables[stem].header[1:])):
+            tuned = results.meta.get("model_parameters")
+            tuned = tuned if isinstance(tuned, dict) else None
+            if stem == "parameters" and (note := parameter_note(tables[stem].header[1:], tuned)):
                 md += [note, ""]
     md += _bound_lines(results)
     md += _identifiability_lines(results, out)
@@ -283,9 +286,12 @@ MAE_NOTE = (
 )
 
 
-def parameter_note(names: Sequence[str]) -> str:
+def parameter_note(names: Sequence[str], model: Mapping[str, Any] | None = None) -> str:
     """What the parameter table's columns are, for the kinds of parameter it holds (the
-    names of :class:`~kftune.tuning.problem.TuningProblem`'s space); "" for none known."""
+    names of :class:`~kftune.tuning.problem.TuningProblem`'s space; ``model``: the tuned
+    model parameters, name → ``{"start", "unit"}``, the results' ``model_parameters``);
+    "" for none known."""
+    model = model or {}
     parts = []
     if any(n.startswith("q_") for n in names):
         units = "(m/s)² for vx and vy, (rad/s)² for r" if {"q_vx", "q_r"} <= set(names) else ""
@@ -299,6 +305,16 @@ def parameter_note(names: Sequence[str]) -> str:
         parts.append("r_<measurement>_scale: the factor on that measurement's variance in R₀")
     if any(n.startswith("ukf_") for n in names):
         parts.append("ukf_alpha, ukf_beta, ukf_kappa: the sigma-point parameters (dimensionless)")
+    tuned = [n for n in names if n in model]
+    if tuned:
+        parts.append(
+            ", ".join(
+                f"{n} [{model[n].get('unit', '')}]" if isinstance(model[n], Mapping) else n
+                for n in tuned
+            )
+            + ": model parameters tuned with the noise (the manual row: their recorded "
+            "values, where the search started)"
+        )
     return "; ".join(parts) + "." if parts else ""
 
 
