@@ -532,3 +532,20 @@ def test_compare_tunes_model_parameters_with_every_method_and_reports_them(small
     from kftune.report import parameter_note
 
     assert "model parameters" not in parameter_note(("q_vx", "q_vy", "q_r", "gain"))
+
+
+def test_tune_model_names_are_checked_against_the_chosen_model():
+    """The command line's --tune-model is checked against the model the command runs (a
+    model file's own parameter names), not the single-track model's."""
+    import argparse
+
+    from kftune.cli._common import parameterization
+    from kftune.errors import UsageError
+    from kftune.models.user import load_model
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "linear_bicycle.py"
+    args = argparse.Namespace(tune_model=[("C_f", 2e4, 4e5, None)])
+    par = parameterization(args, {}, load_model(str(example)))
+    assert par.model_names == ("C_f",)
+    with pytest.raises(UsageError, match=r"--tune-model C_f: .*'C_f' is not a parameter"):
+        parameterization(args, {}, get_model("single-track"))

@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--methods: a method listed twice: {args.methods}")
     output_dir(args.out, "--out", command_inputs(args, config))
     dataset = open_dataset(pick(args, config, "dataset", None))
-    filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named
+    fs = filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named
     methods = args.methods or config.get("methods")
     idle = [m for m, _ in args.budget or [] if m not in (methods or COMPARE_METHODS)]
     if idle:
@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         seed=pick(args, config, "seed", 0),
         budgets={**config.get("budgets", {}), **dict(args.budget or [])},
         cost=cost_spec(args, config),
-        parameterization=parameterization(args, config),
+        parameterization=parameterization(args, config, fs.model),  # its tune_model names
         workers=pick(args, config, "workers", 1),
         burn_in=burn_in(args, config),
         method_options=config.get("options", {}),
