@@ -377,3 +377,15 @@ def test_a_model_without_beta_is_fitted_on_its_referenced_states_else_on_the_nis
     cal = calibrate(problem, x, bare)
     assert cal.criterion == "nis" and cal.as_dict()["channel"] == "nis"
     assert cal.nis_after == pytest.approx(1.0, abs=TOLERANCE)
+
+
+def test_a_filter_that_diverges_is_not_calibrated_and_says_where(small):
+    """Q of 1e9 everywhere: the filter diverges; calibrate names the manoeuvre and why."""
+    from kftune.data import open_dataset
+    from kftune.tuning.calibrate import CalibrationError, calibrate
+    from kftune.tuning.problem import TuningProblem
+
+    ds = open_dataset(small)
+    problem = TuningProblem(ds.train, ds.vehicle, ds.r_default)
+    with pytest.raises(CalibrationError, match=f"diverged on manoeuvre '{ds.train[0].name}' \\("):
+        calibrate(problem, np.array([1e9, 1e9, 1e9]))

@@ -409,8 +409,10 @@ def problem_runs(
             res = scaled.run(x, m)
             if res.diverged:
                 raise CalibrationError(
-                    f"the filter diverged on manoeuvre {m.name!r} with its covariances "
-                    f"scaled by {c:.3g}"
+                    f"the filter diverged on manoeuvre {m.name!r} ({res.diverged_reason})"
+                    if c == 1.0
+                    else f"the filter diverged on manoeuvre {m.name!r} with its covariances "
+                    f"scaled by {c:.3g} ({res.diverged_reason})"
                 )
             est = estimates_of(problem.model, res, m)
             cols = est.columns
