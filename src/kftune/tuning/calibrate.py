@@ -453,7 +453,8 @@ def summary_line(cal: Calibration) -> str:
     """What ``tune`` prints: the factor, the training coverage before → after, the shift of
     the estimate, and the warning where one scale cannot work."""
     what = cal.channels[0] if cal.channels else "the innovations"
-    head = f"calibrated σ: covariances × {cal.factor:.3g} ({cal.criterion} on {what}, training"
+    shown = {"beta": "β"}.get(what, what)
+    head = f"calibrated σ: covariances × {cal.factor:.3g} ({cal.criterion} on {shown}, training"
     if cal.before is not None and cal.after is not None:
         (a68, a95), (b68, b95) = cal.before.coverage, cal.after.coverage
         head += (
@@ -474,7 +475,7 @@ def summary_line(cal: Calibration) -> str:
         if math.isfinite(cal.nis_after) and not lo <= cal.nis_after <= hi:
             head += (
                 f"\n  the innovations ask for another scale: mean NIS/m {cal.nis_before:.3g} → "
-                f"{cal.nis_after:.3g} (1 if consistent) — the {what} errors are not the noise "
+                f"{cal.nis_after:.3g} (1 if consistent) — the {shown} errors are not the noise "
                 "that Q and R describe (model error); gate measurements on the NIS with care"
             )
     else:
