@@ -294,6 +294,8 @@ def test_tuned_file_records_the_model_parameters_and_every_reader_runs_them(smal
         assert res.returncode == 0, res.stderr
         exported[fmt] = res.stdout
     assert json.loads(exported["json"])["vehicle_C_af"] == value
+    assert json.loads(exported["json"])["tuned_model_param_names"] == ["C_af", "C_ar"]
+    assert all("C_af (recorded 55600)" in text for text in exported.values() if text[0] != "{")
     patterns = {
         "yaml": r"vehicle_C_af: (\S+)",
         "c": r"#define KFTUNE_VEHICLE_C_AF (\S+)",

@@ -89,6 +89,10 @@ def export_document(tuned: Mapping[str, Any], source: str) -> dict[str, Any]:
         doc["model_param_names"] = [str(e["name"]) for e in mp]
         doc["model_param_units"] = [str(e["unit"]) for e in mp]
         doc["model_params"] = [float(e["value"]) for e in mp]
+        tuned_mp = tuned.get("model_params") or {}
+        if tuned_mp:  # tuned with the noise: the values above are the tuned ones
+            doc["tuned_model_param_names"] = [str(n) for n in tuned_mp]
+            doc["tuned_model_param_starts"] = [float(e["start"]) for e in tuned_mp.values()]
         if dep["vehicle"] is not None:  # None: a model that is not a car's
             vehicle = dict(dep["vehicle"])
             doc["vehicle_name"] = str(vehicle.pop("name", ""))
@@ -211,6 +215,21 @@ def provenance(doc: Mapping[str, Any], source: str) -> str:
                 " UKF's estimate."
                 if "covariance_scale" in doc
                 else ""
+            ),
+            *(
+                [
+                    "Model parameters tuned with the noise (the values below are the tuned "
+                    "ones): "
+                    + ", ".join(
+                        f"{n} (recorded {v:.6g})"
+                        for n, v in zip(
+                            doc["tuned_model_param_names"], doc["tuned_model_param_starts"]
+                        )
+                    )
+                    + "."
+                ]
+                if "tuned_model_param_names" in doc
+                else []
             ),
             f"Initial state: {doc['initial_state']}",
         ]
