@@ -551,3 +551,23 @@ def test_tune_model_names_are_checked_against_the_chosen_model():
     assert par.model_names == ("C_f",)
     with pytest.raises(UsageError, match=r"--tune-model C_f: .*'C_f' is not a parameter"):
         parameterization(args, {}, get_model("single-track"))
+
+
+@pytest.mark.parametrize(
+    ("edit", "says"),
+    [
+        (lambda d: d.update(model_params=[1]), "'model_params' must be an object"),
+        (lambda d: d["model_params"]["C_af"].update(value="big"), "'model_params.C_af' must be"),
+        (lambda d: d["model_params"]["C_af"].update(value=1e6), r"'model_params.C_af': value"),
+        (lambda d: d["model_params"]["C_af"].update(scale="ln"), "scale must be log10 or"),
+    ],
+)
+def test_a_damaged_model_params_record_is_refused_naming_file_and_key(small, tmp_path, edit, says):
+    out, doc = _tuned(small, tmp_path, "--tune-model", "C_af=20000:400000", budget="4")
+    edit(doc)
+    out.write_text(json.dumps(doc))
+    for command in (["evaluate", str(small), "--params"], ["export"]):
+        res = run_cli(*command, str(out), *(["-o", "-"] if command == ["export"] else []))
+        assert res.returncode == 3, res.stderr
+        assert re.search(says, res.stderr) and str(out) in res.stderr, res.stderr
+        assert "Traceback" not in res.stderr
