@@ -85,6 +85,32 @@ def test_the_default_design_probes_the_faces_of_log10_parameters_only():
     assert make_optimizer("trbo", logs).options()["init_design"] == "axial"
 
 
+def test_the_default_design_probes_thirds_of_a_narrow_log10_box():
+    """A log10 box of at most two decades — a physical quantity's plausible range, such as
+    a cornering stiffness in [2e4, 4e5] N/rad or μ in [0.4, 1.6] — gets DIRECT's thirds (its
+    faces are implausible cars), while a variance's box of 10 decades keeps its faces; a
+    space of narrow log10 boxes only is recorded as "direct"."""
+    space = {
+        "q": (1e-10, 1.0, "log10"),
+        "C": (2e4, 4e5, "log10"),
+        "mu": (0.4, 1.6, "log10"),
+        "r": (1e-2, 1e2, "log10"),
+    }
+    opt = make_optimizer("trbo", space, seed=0)
+    u = []
+    for _ in range(9):
+        t = opt.ask()
+        u.append(t.u)
+        opt.tell(t, 1.0)
+    want = np.full((9, 4), 0.5)
+    for k, at in enumerate([(0.0, 1.0), (1 / 6, 5 / 6), (1 / 6, 5 / 6), (0.0, 1.0)]):
+        want[1 + 2 * k, k], want[2 + 2 * k, k] = at
+    np.testing.assert_allclose(u, want, atol=1e-15)
+    assert opt.options()["init_design"] == "auto"
+    narrow = {"C": (2e4, 4e5, "log10"), "mu": (0.4, 1.6, "log10")}
+    assert make_optimizer("trbo", narrow).options()["init_design"] == "direct"
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_corner_minimum_found_exactly_in_40(seed):
     res = minimize(corner, CUBE3, "trbo", budget=40, seed=seed)
@@ -304,3 +330,37 @@ def test_axis_probes_in_batches_propose_no_point_twice():
     assert [r for r in opt.history if r.acquisition == "axis-probe"]
     gaps = np.max(np.abs(u[:, None, :] - u[None, :, :]), axis=2) + np.eye(len(u))
     assert gaps.min() > 1e-9
+
+
+def test_x0_is_evaluated_first_and_the_run_ends_no_worse():
+    """``x0``: the given points (natural units) are the first proposals, then the design
+    (without a point that coincides with one); the best value is at most x0's, and a run
+    given a point deep in a narrow basin that its own 30 evaluations miss ends there."""
+
+    def narrow(x: np.ndarray) -> float:  # flat 1 except a narrow dip (0) at (0.9, 0.1)
+        return float(1.0 - np.exp(-np.sum((x[:2] - np.array([0.9, 0.1])) ** 2) / 1e-4))
+
+    cube2 = {"a": (0.0, 1.0), "b": (0.0, 1.0)}
+    plain = minimize(narrow, cube2, "trbo", budget=30, seed=0)
+    assert plain.fun > 0.5  # the dip is missed without x0: the test can fail
+    seeded = minimize(narrow, cube2, "trbo", budget=30, seed=0, x0=[0.9, 0.1])
+    assert seeded.history[0].x == (0.9, 0.1)
+    assert seeded.fun == pytest.approx(0.0, abs=1e-12)
+    opt = make_optimizer("trbo", cube2, x0=[[0.5, 0.5], [0.2, 0.7]])
+    u = []
+    for _ in range(6):
+        t = opt.ask()
+        u.append(t.u)
+        opt.tell(t, 1.0)
+    np.testing.assert_allclose(u[:3], [[0.5, 0.5], [0.2, 0.7], [1 / 6, 0.5]], atol=1e-15)
+    assert opt.options()["x0"] == [[0.5, 0.5], [0.2, 0.7]]
+    assert "x0" not in make_optimizer("trbo", cube2).options()  # old studies resume
+
+
+@pytest.mark.parametrize(
+    ("x0", "match"),
+    [([0.5], "2 finite numbers"), ([0.5, 2.0], "b = 2 lies outside"), ("ab", "numbers")],
+)
+def test_x0_outside_the_box_or_misshapen_is_refused(x0, match):
+    with pytest.raises(ValueError, match=match):
+        make_optimizer("trbo", {"a": (0.0, 1.0), "b": (0.0, 1.0)}, x0=x0)

@@ -6,19 +6,26 @@ it and nothing restarts. TR-BO keeps TSBO's ideas — a surrogate of the whole r
 stage, and a global one — but lets them alternate for the whole budget:
 
 * **Design** (``init_design="auto"``): the centre, then two points on each axis through
-  it — for a log10 parameter the centres of its two faces of the box (``"axial"``, the
-  axial points of a face-centred composite design), for a linear one DIRECT's first
-  trisection, the centre ± 1/3 (``"direct"``). A log10 parameter here is a variance
-  spanning decades whose two ends are regimes — a noise too small to matter, a model
-  ignored — where the cost flattens into plateaus, and optima lie on or next to its
-  bounds (on five of six datasets measured J* has a coordinate on a bound); probing every
-  face from the start is what reaches them (DIRECT's points instead left 17 of 40 seeds
-  above 3 % of J* on the bundled set at 40 evaluations, median 2.1 % against 0.49 %). A
-  linear box carries no such prior, and there the face centres can lead into a
-  boundary-side basin: on Hartmann-6 they led every seed into the second basin (regret
-  0.119 at 100 evaluations), DIRECT's points every seed into the global one (4.4e-5;
-  Optuna's GP 1.6e-4), and over the whole synthetic suite the two designs are level
-  (paired per seed, lower in 87 and higher in 73 of 160 runs).
+  it — for a wide log10 parameter (a box of more than :data:`WIDE_DECADES` decades) the
+  centres of its two faces of the box (``"axial"``, the axial points of a face-centred
+  composite design), for any other DIRECT's first trisection, the centre ± 1/3
+  (``"direct"``). A wide log10 parameter here is a variance spanning decades whose two
+  ends are regimes — a noise too small to matter, a model ignored — where the cost
+  flattens into plateaus, and optima lie on or next to its bounds (on five of six datasets
+  measured J* has a coordinate on a bound); probing every face from the start is what
+  reaches them (DIRECT's points instead left 17 of 40 seeds above 3 % of J* on the bundled
+  set at 40 evaluations, median 2.1 % against 0.49 %). A linear box carries no such prior,
+  and there the face centres can lead into a boundary-side basin: on Hartmann-6 they led
+  every seed into the second basin (regret 0.119 at 100 evaluations), DIRECT's points
+  every seed into the global one (4.4e-5; Optuna's GP 1.6e-4), and over the whole
+  synthetic suite the two designs are level (paired per seed, lower in 87 and higher in
+  73 of 160 runs). Nor does a narrow log10 box, the plausible range of a physical
+  quantity around its guess (a cornering stiffness in [2e4, 4e5] N/rad, 1.3 decades; a
+  friction coefficient in [0.4, 1.6]): its faces are cars nobody has, the first basin
+  they lead into is an artefact of the box, and the optimum lies inside. Tuning Q with
+  C_af, C_ar and μ of a wrongly guessed vehicle (bundled set, d = 6, TR-BO at 100, seeds
+  0–4) the face centres left the median cost 19 % above the thirds' (BENCHMARKS.md,
+  "Tuning model parameters"). Q's boxes (10 decades) and R's factors (4) keep the faces.
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
   δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
@@ -109,6 +116,9 @@ WARPS = ("none", "log", "log-min")
 INIT_DESIGNS = ("auto", "axial", "direct", "sobol")
 #: Where the design's two points on an axis lie (unit cube): the faces, or DIRECT's thirds.
 DESIGN_AXIS_POINTS = {"axial": (0.0, 1.0), "direct": (1.0 / 6.0, 5.0 / 6.0)}
+#: ``init_design="auto"`` probes the faces of a log10 parameter whose box spans more than
+#: this many decades (a variance), DIRECT's thirds of any other (module docstring).
+WIDE_DECADES = 2.0
 RESTARTS = ("alternate", "fresh", "incumbent")
 #: Axis probes: sampled points count as on the incumbent's line when their other
 #: coordinates are within this distance (max-norm, unit cube) of the incumbent's.
@@ -119,6 +129,14 @@ AXIS_MIN_GAP = 0.02
 LENGTH_SCALE_BOUNDS = (0.05, 20.0)
 #: An improvement must beat the incumbent by this share of its magnitude (TuRBO's 1e-3).
 IMPROVEMENT_RTOL = 1e-3
+
+
+def auto_design(param: Any) -> str:
+    """The axis points ``init_design="auto"`` gives a :class:`~kftune.space.Param`:
+    ``"axial"`` (face centres) for a log10 box of more than :data:`WIDE_DECADES` decades,
+    ``"direct"`` (DIRECT's thirds) for any other."""
+    wide = param.scale == "log10" and math.log10(param.high / param.low) > WIDE_DECADES
+    return "axial" if wide else "direct"
 
 
 class TrustRegionBO(Optimizer):
@@ -132,11 +150,16 @@ class TrustRegionBO(Optimizer):
             :data:`LENGTH_SCALE_BOUNDS`.
         n_init: points of the initial design (default 2d + 1: the centre and the face
             centres).
-        init_design: ``"auto"`` (``"axial"`` along log10 parameters, ``"direct"`` along
-            linear ones; recorded as ``"axial"`` or ``"direct"`` when all are alike),
+        init_design: ``"auto"`` (``"axial"`` along log10 parameters whose box spans more
+            than :data:`WIDE_DECADES` decades, ``"direct"`` along the others; recorded as
+            ``"axial"`` or ``"direct"`` when all are alike),
             ``"axial"`` (centre, face centres, then Sobol points), ``"direct"`` (centre,
             centre ± 1/3 along each axis, then Sobol points) or ``"sobol"`` (centre, then
             scrambled Sobol points).
+        x0: points (natural units; one (d,) or several (k, d), inside the box) evaluated
+            first, before the design — a known good point, such as the optimum of Q tuned
+            on the recorded model when the model's parameters join the search, so the run
+            ends no worse than it (a design point that coincides with one is left out).
         warp: output warping, ``"log-min"``, ``"log"`` (log y when y > 0) or ``"none"``.
         warp_delta: δ of ``"log-min"`` as a share of (median − min) of the values.
         length_init, length_min, length_max: trust-region side in the unit cube.
@@ -177,6 +200,7 @@ class TrustRegionBO(Optimizer):
         surrogate_options: dict[str, Any] | None = None,
         n_init: int | None = None,
         init_design: str = "auto",
+        x0: Any = None,
         warp: str = "log-min",
         warp_delta: float = 0.1,
         length_init: float = 0.2,
@@ -250,7 +274,7 @@ class TrustRegionBO(Optimizer):
         self.n_candidates, self.refit_every = int(n_candidates), int(refit_every)
         self.full_fit_until = int(full_fit_until)
         if init_design == "auto":  # one kind of parameter: say which (and old studies resume)
-            kinds = {"axial" if p.scale == "log10" else "direct" for p in self.space.params}
+            kinds = {auto_design(p) for p in self.space.params}
             init_design = kinds.pop() if len(kinds) == 1 else "auto"
         self.init_design, self.warp, self.faces = init_design, warp, bool(faces)
         self.restart = restart
@@ -273,7 +297,12 @@ class TrustRegionBO(Optimizer):
             surrogate, seed=int(seeds[1].generate_state(1)[0]), **self.surrogate_options
         )
         self._n_restarts = self.surrogate.n_restarts
-        self._design = self._initial_design(np.random.default_rng(seeds[2]))
+        self.x0 = self._check_x0(x0)
+        design = self._initial_design(np.random.default_rng(seeds[2]))
+        if self.x0 is not None:
+            u0 = np.clip(self.space.to_unit(self.x0), 0.0, 1.0)
+            design = np.vstack([u0, design[~coincides(design, u0, SAME_POINT_ATOL)]])
+        self._design = design
         self._X = np.empty((0, d))
         self._y: list[float | None] = []
         self.length = self.length_init
@@ -293,6 +322,35 @@ class TrustRegionBO(Optimizer):
         self._round: dict[str, Any] | None = None
         self._round_of: dict[int, dict[str, Any]] = {}
 
+    def _check_x0(self, x0: Any) -> np.ndarray | None:
+        """``x0`` as a (k, d) array of points inside the box (natural units), or None.
+
+        Raises:
+            ValueError: not numbers of the space's dimension, or outside the box (naming
+                the parameter).
+        """
+        if x0 is None:
+            return None
+        d = self.space.dim
+        try:
+            x = np.array(x0, dtype=float, ndmin=2)
+        except (TypeError, ValueError):
+            raise ValueError(f"x0 must be points of {d} numbers, got {x0!r}") from None
+        if x.ndim != 2 or x.shape[1] != d or x.shape[0] == 0 or not np.all(np.isfinite(x)):
+            raise ValueError(
+                f"x0 must be one point or a list of points of {d} finite numbers "
+                f"({', '.join(self.space.names)}), got shape {x.shape}"
+            )
+        for p, col in zip(self.space.params, x.T, strict=True):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = p.to_unit(col)
+            bad = ~np.isfinite(u) | (u < -1e-9) | (u > 1.0 + 1e-9)
+            if bad.any():
+                raise ValueError(
+                    f"x0: {p.name} = {col[bad][0]:g} lies outside its box [{p.low:g}, {p.high:g}]"
+                )
+        return x
+
     def _initial_design(self, rng: np.random.Generator) -> np.ndarray:
         """(n_init, d): the centre, two points on each axis (the face centres, ``"axial"``,
         or the centre ± 1/3, ``"direct"``; per parameter with ``"auto"``), then Sobol
@@ -302,9 +360,7 @@ class TrustRegionBO(Optimizer):
         if self.init_design != "sobol":
             at = [
                 DESIGN_AXIS_POINTS[
-                    self.init_design
-                    if self.init_design != "auto"
-                    else ("axial" if p.scale == "log10" else "direct")
+                    self.init_design if self.init_design != "auto" else auto_design(p)
                 ]
                 for p in self.space.params
             ]
@@ -322,6 +378,8 @@ class TrustRegionBO(Optimizer):
         extra = {}  # left out at its default, so studies from before the option resume
         if self.improvement_rtol != IMPROVEMENT_RTOL:
             extra["improvement_rtol"] = self.improvement_rtol
+        if self.x0 is not None:
+            extra["x0"] = self.x0.tolist()
         return {
             "surrogate": self.surrogate_name,
             "surrogate_options": {
