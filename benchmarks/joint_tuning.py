@@ -19,8 +19,13 @@ With ``--wrong`` and no factors the filter gets the recorded vehicle (``noise`` 
 joint tuning of parameters its authors identified costs anything).
 
 Methods: any label of ``kftune.optim.METHODS`` (default: TR-BO, Optuna TPE, CMA-ES, random,
-GA). Budgets per configuration (``--budgets`` gives one list for all): d ≤ 6 at 50 and
-100, d = 9 at 75 and 150. A budget-independent method (TR-BO, TPE, CMA-ES, random) runs
+GA), and ``trbo-faces``: TR-BO whose design probes the faces of every log10 box (its
+``"auto"`` design before a narrow box got DIRECT's thirds), for the side-by-side; and
+``trbo-seeded``: TR-BO whose joint search starts (``x0``) from the optimum of a noise-only
+TR-BO run at the start model (100 evaluations more; see :func:`run_unit`).
+
+Budgets per configuration (``--budgets`` gives one list for all): d ≤ 6 at 50 and 100,
+d = 9 at 75 and 150. A budget-independent method (TR-BO, TPE, CMA-ES, random) runs
 once at the largest budget and is read as prefixes; GA runs once per budget.
 
 J* of a configuration: the lowest training cost any run of this invocation found in it
@@ -53,6 +58,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import itertools
 import json
 import math
 import os
@@ -67,13 +73,14 @@ import numpy as np
 
 import kftune
 from kftune.data import open_dataset
-from kftune.errors import KftuneError
+from kftune.errors import ConfigError, KftuneError
 from kftune.experiment import manual_point
 from kftune.optim import METHODS, PeerUnavailableError
 from kftune.tuning.cost import NORMALISATIONS, CostSpec
 from kftune.tuning.problem import FilterDivergedError, NoiseParameterization, TuningProblem
 from ukf_tuning import (  # benchmarks/ is the script's path
     _CONTEXT,
+    LABELS,
     gap_pct,
     is_budget_independent,
     json_safe,
@@ -97,6 +104,12 @@ CONFIGS: dict[str, tuple[dict[str, tuple[float, float]], str, bool]] = {
 }
 DEFAULT_WRONG = ("C_af=0.7", "C_ar=1.4", "mu=0.8")
 DEFAULT_METHODS = ("trbo", "optuna-tpe", "cma", "random", "ga")
+#: TR-BO with the face centres of every log10 box in its design (its "auto" design before
+#: narrow log10 boxes got DIRECT's thirds): the side-by-side of that change.
+LABELS.setdefault("trbo-faces", ("trbo", {"init_design": "axial"}))
+LABELS.setdefault("trbo-seeded", ("trbo", {}))  # its x0 is set per run (run_unit)
+#: Evaluations of the noise-only TR-BO run that seeds ``trbo-seeded``.
+SEED_BUDGET = 100
 PEERS = ("optuna-tpe", "optuna-gp", "cma", "random", "ga")
 #: Targets: median gap at (d, budget) [%].
 GAP_TARGETS = (("d5", 100, 1.0), ("d9", 150, 2.0))
@@ -153,7 +166,25 @@ def run_unit(
     seed: int,
     budgets: list[int],
 ) -> dict[str, Any]:
-    """Every budget of one (configuration, method, seed), as ``ukf_tuning.run_unit``."""
+    """Every budget of one (configuration, method, seed), as ``ukf_tuning.run_unit``.
+
+    ``trbo-seeded``: first TR-BO tunes Q alone on the start model (the ``noise``
+    configuration, :data:`SEED_BUDGET` evaluations, the same seed); its optimum, with the
+    model parameters at their start values and R unscaled, is TR-BO's ``x0`` in the joint
+    search — which then ends no worse than noise-only tuning, at twice the evaluations."""
+    seeded_from = None
+    if label == "trbo-seeded":
+        build(dataset, wrong, normalise, "noise")
+        noise = tuning_run("trbo", seed, SEED_BUDGET)
+        i = int(np.argmin(noise["values"]))
+        values = dict(zip(_CONTEXT["problem"].space.names, noise["x"][i], strict=True))
+        build(dataset, wrong, normalise, config)
+        par = _CONTEXT["problem"].parameterization
+        values.update(par.model_start)
+        values.update(dict.fromkeys(par.r_names, 1.0))
+        x0 = [values[n] for n in _CONTEXT["problem"].space.names]
+        LABELS["trbo-seeded"] = ("trbo", {"x0": x0})
+        seeded_from = {"J": noise["values"][i], "x0": x0, "evaluations": SEED_BUDGET}
     build(dataset, wrong, normalise, config)
     problem = _CONTEXT["problem"]
     cache: dict[tuple, float] = {}
@@ -164,7 +195,7 @@ def run_unit(
         return cache[x]
 
     try:
-        independent = is_budget_independent(label)
+        independent = is_budget_independent("trbo" if label == "trbo-seeded" else label)
         if independent:
             run = tuning_run(label, seed, max(budgets))
             cells = {b: read_at(run, b, rmse) for b in budgets}
@@ -181,6 +212,7 @@ def run_unit(
             "config": config,
             "label": label,
             "seed": seed,
+            "seeded_from": seeded_from,
             "prefix_read": independent,
             "budgets": {str(b): c for b, c in cells.items()},
         }
@@ -199,25 +231,44 @@ def start_point(dataset: str | None, wrong: dict[str, float], normalise: str, co
     return json_safe({"J": j, "test_rmse_deg": test_beta_rmse(tuple(x)), "x": x.tolist()})
 
 
-def summarise(units: list[dict], budgets: dict[str, list[int]]) -> dict[str, Any]:
-    """Per configuration: J* (best of every run), and per method and budget the gaps, test
-    β RMSE and tuned model parameters over seeds."""
+def config_best(units: list[dict], config: str) -> tuple[float, str, int, str] | None:
+    """(lowest J, method, seed, budget) over every run of ``config`` (None: none ran)."""
+    rows = [u for u in units if u["config"] == config and "skipped" not in u]
+    if not rows:
+        return None
+    return min(
+        (num(c["best"]), u["label"], u["seed"], b) for u in rows for b, c in u["budgets"].items()
+    )
+
+
+def summarise(
+    units: list[dict], budgets: dict[str, list[int]], reference: Sequence[dict] = ()
+) -> dict[str, Any]:
+    """Per configuration: J*, and per method and budget the gaps, test β RMSE and tuned
+    model parameters over seeds.
+
+    J* is the lowest cost any run of the configuration found — and, for one with model
+    parameters, at most the ``noise`` configuration's: its point (Q tuned at the start
+    values, R unscaled) lies in the joint space, so a joint run above it has not found what
+    noise-only tuning found (``jstar_found_by`` then names ``noise``). ``reference``: units of
+    other runs (long ones, ``--reference``) that count for J* only."""
     out: dict[str, Any] = {}
+    noise = config_best(units, "noise")
     for config in dict.fromkeys(u["config"] for u in units):
-        rows = [u for u in units if u["config"] == config and "skipped" not in u]
-        if not rows:
+        best = config_best(units, config)
+        if best is None:
             continue
-        best = min(
-            (num(c["best"]), u["label"], u["seed"], b)
-            for u in rows
-            for b, c in u["budgets"].items()
-        )
+        rows = [u for u in units if u["config"] == config and "skipped" not in u]
+        found = {"method": best[1], "seed": best[2], "budget": int(best[3])}
+        ref = config_best(list(reference), config)
+        if ref is not None and ref[0] < best[0]:
+            best = ref
+            found = {"reference": ref[1], "seed": ref[2], "budget": int(ref[3])}
+        if CONFIGS[config][0] and noise is not None and noise[0] < best[0]:
+            best = noise
+            found = {"config": "noise", "method": noise[1], "seed": noise[2]}
         jstar = best[0]
-        s: dict[str, Any] = {
-            "jstar": jstar,
-            "jstar_found_by": {"method": best[1], "seed": best[2], "budget": int(best[3])},
-            "methods": {},
-        }
+        s: dict[str, Any] = {"jstar": jstar, "jstar_found_by": found, "methods": {}}
         for label in dict.fromkeys(u["label"] for u in rows):
             mine = sorted((u for u in rows if u["label"] == label), key=lambda u: u["seed"])
             m: dict[str, Any] = {"seeds": [u["seed"] for u in mine]}
@@ -246,9 +297,11 @@ def summarise(units: list[dict], budgets: dict[str, list[int]]) -> dict[str, Any
     return out
 
 
-def trbo_median_rmse(summary: dict[str, Any], config: str, budget: int, seeds: list[int]) -> Any:
-    """TR-BO's median test β RMSE at ``budget`` over ``seeds`` (None if not run)."""
-    m = summary.get(config, {}).get("methods", {}).get("trbo")
+def trbo_median_rmse(
+    summary: dict[str, Any], config: str, budget: int, seeds: list[int], label: str = "trbo"
+) -> Any:
+    """``label``'s median test β RMSE at ``budget`` over ``seeds`` (None if not run)."""
+    m = summary.get(config, {}).get("methods", {}).get(label)
     if m is None or str(budget) not in m:
         return None
     vals = [v for s, v in zip(m["seeds"], m[str(budget)]["test_rmse_deg"]) if s in seeds]
@@ -268,10 +321,12 @@ def targets(summary: dict[str, Any], recorded: bool) -> list[dict[str, Any]]:
             }
         )
 
-    for config, budget, limit in GAP_TARGETS:
-        c = summary.get(config, {}).get("methods", {}).get("trbo", {}).get(str(budget))
+    for (config, budget, limit), label in itertools.product(GAP_TARGETS, ("trbo", "trbo-seeded")):
+        c = summary.get(config, {}).get("methods", {}).get(label, {}).get(str(budget))
+        if c is None and label != "trbo":
+            continue
         add(
-            f"TR-BO median gap at {budget} ({config}) <= {limit:g} %",
+            f"{label} median gap at {budget} ({config}) <= {limit:g} %",
             None if c is None else c["median_gap_pct"] <= limit,
             "not run" if c is None else f"{c['median_gap_pct']:.3f} %",
         )
@@ -294,7 +349,27 @@ def targets(summary: dict[str, Any], recorded: bool) -> list[dict[str, Any]]:
             f"rising on seeds {mono['rising_seeds']}",
         )
     seeds = [0, 1, 2]
-    joint = trbo_median_rmse(summary, "d5" if recorded else "d6", 100, seeds)
+    for label in ("trbo", "trbo-seeded"):
+        joint_target(out, summary, recorded, seeds, label)
+    return out
+
+
+def joint_target(
+    out: list[dict[str, Any]],
+    summary: dict[str, Any],
+    recorded: bool,
+    seeds: list[int],
+    label: str,
+) -> None:
+    """The held-out targets of joint tuning with ``label`` (appended to ``out``)."""
+
+    def add(target: str, ok: bool | None, detail: str) -> None:
+        verdict = "n/a" if ok is None else "PASS" if ok else "FAIL"
+        out.append({"target": f"{label}: {target}", "result": verdict, "detail": detail})
+
+    joint = trbo_median_rmse(summary, "d5" if recorded else "d6", 100, seeds, label)
+    if joint is None and label != "trbo":
+        return
     if recorded:
         noise = trbo_median_rmse(summary, "noise", 100, seeds)
         add(
@@ -316,7 +391,6 @@ def targets(summary: dict[str, Any], recorded: bool) -> list[dict[str, Any]]:
             else f"{joint:.4f} vs {true:.4f} deg ({100 * (joint / true - 1):+.1f} %); "
             + ("" if wrong is None else f"noise-only on the wrong vehicle {wrong:.4f} deg"),
         )
-    return out
 
 
 def print_tables(summary: dict[str, Any], starts: dict[str, Any]) -> None:
@@ -325,8 +399,8 @@ def print_tables(summary: dict[str, Any], starts: dict[str, Any]) -> None:
         st = starts.get(config, {})
         print(
             f"\n{config} (d = {len(s.get('dim_names', [])) or '?'}): J* = {s['jstar']:.6f} "
-            f"(found by {s['jstar_found_by']['method']} seed {s['jstar_found_by']['seed']} "
-            f"at {s['jstar_found_by']['budget']}); start point J = {num(st.get('J')):.6f}, "
+            f"(found by {' '.join(f'{k} {v}' for k, v in s['jstar_found_by'].items())}); "
+            f"start point J = {num(st.get('J')):.6f}, "
             f"test β RMSE {num(st.get('test_rmse_deg'), math.nan):.4f}°\n"
         )
         head = "| method | budget | gap median [%] | worst [%] | test β RMSE median [°] |"
@@ -343,6 +417,21 @@ def print_tables(summary: dict[str, Any], starts: dict[str, Any]) -> None:
                     + "".join(f" {c['median_model_params'][n]:.4g} |" for n in names)
                     + f" {mono['n'] - len(mono['rising_seeds'])}/{mono['n']} |"
                 )
+
+
+def read_units(path: Path) -> dict[str, Any]:
+    """A ``--json-out`` file of this script (units, starts, budgets, seeds).
+
+    Raises:
+        ConfigError: it is not one, naming the file.
+    """
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: not a readable JSON file ({exc})") from None
+    if not isinstance(data, dict) or data.get("benchmark") != "joint_tuning" or "units" not in data:
+        raise ConfigError(f"{path}: not a --json-out file of joint_tuning.py (no units)")
+    return data
 
 
 def default_budgets(config: str) -> list[int]:
@@ -362,12 +451,31 @@ def main(argv: list[str] | None = None) -> int:
         "none: the recorded vehicle)",
     )
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
-    ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=list(METHODS))
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        default=list(DEFAULT_METHODS),
+        choices=[*METHODS, "trbo-faces", "trbo-seeded"],
+    )
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
     ap.add_argument("--budgets", type=int, nargs="+", default=None, help="for every config")
     ap.add_argument("--normalise", choices=NORMALISATIONS, default="manoeuvre")
     ap.add_argument("--json-out", type=Path, default=None, help="also write the units here")
+    ap.add_argument(
+        "--reference",
+        type=Path,
+        nargs="+",
+        default=[],
+        help="--json-out files of other runs (e.g. long CMA-ES runs) whose units count for J*",
+    )
+    ap.add_argument(
+        "--from",
+        dest="from_json",
+        type=Path,
+        default=None,
+        help="summarise the units of this --json-out file instead of running",
+    )
     args = ap.parse_args(argv)
     try:
         wrong = parse_scales(args.wrong)
@@ -385,7 +493,20 @@ def main(argv: list[str] | None = None) -> int:
     starts: dict[str, Any] = {}
     units: list[dict[str, Any]] = []
     try:
-        for config in args.configs:
+        reference = [u for path in args.reference for u in read_units(path)["units"]]
+        if args.from_json is not None:
+            stored = read_units(args.from_json)
+            units, starts = stored["units"], stored["starts"]
+            budgets = {c: b for c, b in stored["budgets"].items() if c in args.configs}
+            units = [u for u in units if u["config"] in budgets]
+            seeds = stored["seeds"]
+            args.dataset = None if stored["dataset"] == "bundled" else stored["dataset"]
+            wrong, args.normalise = stored["wrong"], stored["normalise"]
+    except KftuneError as exc:
+        print(f"joint_tuning: error: {exc}", file=sys.stderr)
+        return 3
+    try:
+        for config in args.configs if args.from_json is None else ():
             starts[config] = start_point(args.dataset, wrong, args.normalise, config)
             print(
                 f"{config}: d = {_CONTEXT['problem'].space.dim}, "
@@ -418,7 +539,7 @@ def main(argv: list[str] | None = None) -> int:
     except KftuneError as exc:
         print(f"joint_tuning: error: {exc}", file=sys.stderr)
         return 3
-    summary = summarise(units, budgets)
+    summary = summarise(units, budgets, reference)
     for config, s in summary.items():
         build(args.dataset, wrong, args.normalise, config)
         s["dim_names"] = list(_CONTEXT["problem"].space.names)
