@@ -23,9 +23,11 @@ stage, and a global one — but lets them alternate for the whole budget:
   quantity around its guess (a cornering stiffness in [2e4, 4e5] N/rad, 1.3 decades; a
   friction coefficient in [0.4, 1.6]): its faces are cars nobody has, the first basin
   they lead into is an artefact of the box, and the optimum lies inside. Tuning Q with
-  C_af, C_ar and μ of a wrongly guessed vehicle (bundled set, d = 6, TR-BO at 100, seeds
-  0–4) the face centres left the median cost 19 % above the thirds' (BENCHMARKS.md,
-  "Tuning model parameters"). Q's boxes (10 decades) and R's factors (4) keep the faces.
+  C_af, C_ar and μ of a wrongly guessed vehicle (bundled set, seeds 0–9) the thirds gave
+  the lower cost on 8 of 10 seeds at d = 6 (100 evaluations, median 6 % lower) and at
+  d = 9 (with R's diagonal, 150), on 3 of 10 at d = 5 (μ held wrong; median 1.8 % higher)
+  (BENCHMARKS.md, "Tuning model parameters"). Q's boxes (10 decades) and R's factors (4)
+  keep the faces, so a Q-only or Q-and-R search proposes exactly what it did before.
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
   δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
