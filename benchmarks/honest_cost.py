@@ -12,7 +12,7 @@ filter on the test manoeuvres:
   N(β̂, σ_β²) (``--cost nlpd`` / ``--cost crps``, β alone); ``nlpd-rscale``,
   ``crps-rscale``: the same with one scale factor of R tuned too (``--tune-r-scale``);
   and, with ``--configs``, ``nrmse-rscale``, ``crps-rscale-wide`` (R's scale in
-  [1e-2, 1e4]) and ``crps-rdiag`` (R's diagonal tuned);
+  [1e-2, 1e4]), ``crps-rdiag`` and ``nrmse-rdiag`` (R's diagonal tuned);
 * ``nis``, ``pem``, ``msp``: the reference-free costs (no target: what they achieve);
 * ``manual``: the rule of thumb Q = diag(1e-6, 1e-4, 1e-6), untuned, for scale.
 
@@ -82,6 +82,7 @@ CONFIGS: dict[str, tuple[CostSpec, dict[str, Any]]] = {
     "nrmse-rscale": (CostSpec(), RSCALE),
     "crps-rscale-wide": (CostSpec(kind="crps"), RSCALE_WIDE),
     "crps-rdiag": (CostSpec(kind="crps"), RDIAG),
+    "nrmse-rdiag": (CostSpec(), RDIAG),
 }
 #: What a run without ``--configs`` tunes.
 DEFAULT_CONFIGS = list(CONFIGS)[:10]
