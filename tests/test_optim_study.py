@@ -135,7 +135,7 @@ def test_existing_study_needs_resume_and_same_settings(tmp_path):
     cases = [
         ({"method": "ga"}, "method"),
         ({"seed": 1}, "seed"),
-        ({"budget": 5}, "budget"),
+        ({"budget": 3}, "budget"),  # a smaller one (a larger one continues the study)
         ({"space": {"a": (-5.0, 10.0), "q": (1e-9, 1.0, "log10")}}, "space"),
     ]
     for change, key in cases:

@@ -55,6 +55,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "estimate",
     "export",
     "report",
+    "study",
     "dataset",
     "models",
     "demo",

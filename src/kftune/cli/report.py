@@ -22,7 +22,11 @@ def register(subparsers: Any) -> None:
     p = add_command(
         subparsers, "report", "rebuild the report from stored results (no re-running)", __doc__
     )
-    p.add_argument("results", type=Path, help="directory holding results.json")
+    p.add_argument(
+        "results",
+        type=Path,
+        help="directory holding results.json (for one tune run's study: kftune study show)",
+    )
     p.add_argument("--out", "-o", type=Path, help="write the report here (default: RESULTS)")
     p.add_argument("--json", action="store_true", help="print the tables as one JSON object")
     p.set_defaults(func=run)
@@ -34,6 +38,20 @@ def run(args: argparse.Namespace) -> int:
     from kftune.report.results import TRACES_FILE
     from kftune.report.tables import scored_channels
 
+    if args.results.is_file():
+        from kftune.cli.study import not_a_study_hint
+        from kftune.errors import ConfigError
+        from kftune.optim.study import is_study
+
+        if is_study(args.results):
+            raise ConfigError(
+                f"{args.results} is a study (tune --storage): report rebuilds a compare "
+                f"run's folder; look at the study with kftune study show {args.results} "
+                f"(kftune study plot {args.results} -o DIR for its figures)"
+            )
+        hint = not_a_study_hint(args.results)
+        if hint is not None:
+            raise ConfigError(f"{hint}; report rebuilds a compare run's folder")
     results = ExperimentResults.load(args.results)
     if not results.traces:
         which = (

@@ -116,8 +116,10 @@ def register(subparsers: Any) -> None:
         "--resume",
         action="store_true",
         help="continue the study in --storage where it stopped, with the settings it was "
-        "created with (the same -n, method, seed and data; for a larger budget start a new "
-        "study)",
+        "created with (the same method, seed and data); a larger -n continues a finished "
+        "study of trbo, random, optuna-tpe, optuna-gp or cma (its stored evaluations are "
+        "proposed again as they were, then the run goes on); tsbo and ga plan their run by "
+        "the budget and are refused",
     )
     p.add_argument(
         "--timeout",

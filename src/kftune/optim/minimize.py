@@ -235,7 +235,11 @@ def minimize(
     if batched:
         q = batch if batch is not None else max(1, int(engine.workers))  # type: ignore[union-attr]
         settings["batch"] = q  # the proposals depend on q: a resume must use the same
-    study = Study.open(storage, settings, resume=resume) if storage is not None else None
+    study = (
+        Study.open(storage, settings, resume=resume, extendable=opt.budget_independent)
+        if storage is not None
+        else None
+    )
     if batched and engine is None:
         engine = SerialEngine(fun)
     evaluator = _Evaluator(fun, timeout)

@@ -38,7 +38,14 @@ sits on the side file ``<study>.lock`` instead (Windows cannot delete a file hel
 A study remembers the settings it was created with (method, seed, budget, search space,
 method options, and the caller's description of the objective, e.g. the dataset and cost of
 a tuning problem); resuming with different settings is refused with a :class:`ConfigError`
-naming the setting, because the replay could not reproduce the stored proposals.
+naming the setting, because the replay could not reproduce the stored proposals. One
+exception: a larger budget for a method whose proposals never depend on it
+(``Optimizer.budget_independent``: TR-BO, random, the Optuna samplers, CMA-ES) continues a
+finished study — the stored evaluations are proposed again as they were, then the run goes
+on, exactly as a run started with the larger budget. TSBO and GA plan their run by the
+budget and are refused.
+
+:func:`read_study` reads a study without writing to it or taking its lock.
 """
 
 from __future__ import annotations
@@ -50,6 +57,7 @@ import sqlite3
 import stat
 import sys
 import weakref
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -217,13 +225,25 @@ class Study:
 
     # ------------------------------------------------------------------ opening
     @classmethod
-    def open(cls, path: str | os.PathLike[str], settings: dict[str, Any], *, resume: bool) -> Study:
+    def open(
+        cls,
+        path: str | os.PathLike[str],
+        settings: dict[str, Any],
+        *,
+        resume: bool,
+        extendable: bool = False,
+    ) -> Study:
         """Create a study, or reopen one to resume it.
 
         Args:
             path: the SQLite file (created if absent).
             settings: ``method``, ``seed``, ``budget``, ``space`` (dict), ``options`` (dict).
             resume: reopen an existing study (an absent file simply starts a new one).
+            extendable: the method's proposals do not depend on its budget
+                (``Optimizer.budget_independent``), so a resume may ask for a larger budget
+                than the stored one: the stored trials are proposed again as they were and
+                the run continues after them; the stored budget becomes the new one. Without
+                it a larger budget is refused, saying why.
 
         Raises:
             StudyInUseError: another process has the study open.
@@ -249,7 +269,7 @@ class Study:
                 f"{lock.path.name}); wait for it to finish or use another storage file"
             )
         try:
-            conn = cls._connect(p, settings, resume=resume)
+            conn = cls._connect(p, settings, resume=resume, extendable=extendable)
         except BaseException:
             if created:  # nothing finished can be in it: remove what the failed start left
                 for leftover in (real, *(real.with_name(real.name + e) for e in _SIDE_FILES)):
@@ -260,7 +280,9 @@ class Study:
         return cls(p, conn, lock, settings)
 
     @classmethod
-    def _connect(cls, p: Path, settings: dict[str, Any], *, resume: bool) -> sqlite3.Connection:
+    def _connect(
+        cls, p: Path, settings: dict[str, Any], *, resume: bool, extendable: bool = False
+    ) -> sqlite3.Connection:
         """Open the database, then create the study in it or check the stored settings."""
         existed = p.exists() and p.stat().st_size > 0
         try:
@@ -278,7 +300,13 @@ class Study:
                         f"study {p} already exists ({n} evaluations stored); pass "
                         "resume=True to continue it or choose another storage file"
                     )
-                _check_settings(p, stored, settings)
+                _check_settings(p, stored, settings, extendable=extendable)
+                if stored.get("budget") != settings.get("budget"):  # a larger one, allowed
+                    with _transaction(conn):
+                        conn.execute(
+                            "UPDATE meta SET value = ? WHERE key = 'settings'",
+                            (json.dumps(settings, allow_nan=False, sort_keys=True),),
+                        )
             else:
                 cls._create(conn, settings)
         except BaseException as exc:
@@ -366,36 +394,7 @@ class Study:
             ).fetchall()
         except sqlite3.DatabaseError as exc:
             raise StudyError(f"study {self.path} cannot be read: {exc}") from None
-        done: list[EvalRecord] = []
-        running: dict[int, list[float]] = {}
-        for i, (number, state, u, record) in enumerate(rows):
-            if number != i:
-                raise StudyError(f"study {self.path}: trial numbers have a gap at {i}")
-            if state not in (RUNNING, COMPLETE, FAILED):
-                raise StudyError(f"study {self.path}: trial {i} has an unknown state")
-            try:
-                if state == RUNNING:
-                    running[i] = [float(v) for v in json.loads(u)]
-                else:
-                    rec = EvalRecord.from_dict(json.loads(record))
-                    if rec.number != i or rec.state != state:
-                        raise ValueError("the record disagrees with its row")
-                    done.append(rec)
-            except (
-                TypeError,
-                ValueError,
-                KeyError,
-                AttributeError,
-                ArithmeticError,
-                RecursionError,
-            ):
-                column = "u" if state == RUNNING else "record"
-                raise StudyError(
-                    f"study {self.path}: trial {i} ({state}) is damaged: column {column!r} "
-                    "does not hold what kftune wrote there; resume from an intact copy of the "
-                    "study or start a new one"
-                ) from None
-        return done, running
+        return _parse_rows(self.path, rows)
 
     def write_proposal(self, number: int, u: list[float]) -> None:
         """Store a proposal (state ``running``) before it is evaluated; committed on return.
@@ -482,6 +481,97 @@ class Study:
         self.close()
 
 
+@dataclass(frozen=True)
+class StoredStudy:
+    """What a study file holds, read without changing it (:func:`read_study`).
+
+    Attributes:
+        path: the SQLite file.
+        settings: ``method``, ``seed``, ``budget``, ``space`` (``{"params": [{name, low,
+            high, scale}, …]}``), ``options``, ``objective`` (and ``batch``), as stored.
+        records: the finished evaluations (complete or failed), in trial order.
+        running: the trial numbers stored as ``running`` (in flight when its process
+            stopped, or still running in another process).
+    """
+
+    path: Path
+    settings: dict[str, Any]
+    records: list[EvalRecord]
+    running: list[int]
+
+
+def read_study(path: str | os.PathLike[str]) -> StoredStudy:
+    """Read a study without writing to it or taking its lock: a study that a ``tune`` run
+    holds open can be looked at while it runs. Opened read-only through its write-ahead
+    log where one lies beside it (it may hold the newest evaluations), otherwise as
+    immutable (nothing is created beside it, also in a read-only folder).
+
+    Raises:
+        StudyError: the file is missing, not a regular file, not a kftune study, of another
+            format version, or a row is damaged (named by its trial number).
+    """
+    p = Path(path)
+    try:
+        mode = os.stat(p).st_mode
+    except OSError as exc:
+        raise StudyError(f"study {p}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise StudyError(f"study {p}: is not a regular file (expected a kftune study file)")
+    if not is_study(p):
+        raise StudyError(
+            f"{p} is not a kftune study (expected the SQLite file that tune --storage writes)"
+        )
+    wal = p.with_name(p.name + "-wal").exists()
+    uri = f"{p.resolve().as_uri()}?{'mode=ro' if wal else 'immutable=1'}"
+    try:
+        with contextlib.closing(sqlite3.connect(uri, uri=True)) as conn:
+            settings = Study._read_meta(p, conn)
+            rows = conn.execute(
+                "SELECT number, state, u, record FROM trials ORDER BY number"
+            ).fetchall()
+    except sqlite3.Error as exc:
+        raise StudyError(f"study {p} cannot be read: {exc}") from None
+    done, running = _parse_rows(p, rows)
+    return StoredStudy(path=p, settings=settings, records=done, running=sorted(running))
+
+
+def _parse_rows(
+    path: Path, rows: list[tuple[Any, ...]]
+) -> tuple[list[EvalRecord], dict[int, list[float]]]:
+    """The finished records and the running proposals of a study's ``trials`` rows
+    ``(number, state, u, record)`` in trial order (see :meth:`Study.rows`)."""
+    done: list[EvalRecord] = []
+    running: dict[int, list[float]] = {}
+    for i, (number, state, u, record) in enumerate(rows):
+        if number != i:
+            raise StudyError(f"study {path}: trial numbers have a gap at {i}")
+        if state not in (RUNNING, COMPLETE, FAILED):
+            raise StudyError(f"study {path}: trial {i} has an unknown state")
+        try:
+            if state == RUNNING:
+                running[i] = [float(v) for v in json.loads(u)]
+            else:
+                rec = EvalRecord.from_dict(json.loads(record))
+                if rec.number != i or rec.state != state:
+                    raise ValueError("the record disagrees with its row")
+                done.append(rec)
+        except (
+            TypeError,
+            ValueError,
+            KeyError,
+            AttributeError,
+            ArithmeticError,
+            RecursionError,
+        ):
+            column = "u" if state == RUNNING else "record"
+            raise StudyError(
+                f"study {path}: trial {i} ({state}) is damaged: column {column!r} "
+                "does not hold what kftune wrote there; resume from an intact copy of the "
+                "study or start a new one"
+            ) from None
+    return done, running
+
+
 class _transaction:
     """``BEGIN IMMEDIATE`` … ``COMMIT`` on an autocommit connection; rolled back when the
     body or the commit fails (a failed rollback — SQLite may have rolled back already — is
@@ -508,13 +598,27 @@ class _transaction:
             self.conn.execute("ROLLBACK")
 
 
-def _check_settings(p: Path, stored: dict[str, Any], current: dict[str, Any]) -> None:
+def _check_settings(
+    p: Path, stored: dict[str, Any], current: dict[str, Any], *, extendable: bool = False
+) -> None:
     """Refuse to resume with other settings, naming the first that differs (inside the
-    method's options: the option)."""
+    method's options: the option). A larger budget passes where ``extendable``; elsewhere
+    it is refused with the reason (the method plans its run by the budget)."""
     for key in sorted(set(stored) | set(current)):
         old, new = stored.get(key), current.get(key)
         if old == new:
             continue
+        if key == "budget" and _is_count(old) and _is_count(new) and new > old:
+            if extendable:
+                continue
+            raise ConfigError(
+                f"study {p} was created with budget {old}, and its method "
+                f"{stored.get('method')!r} plans its run by the budget (how long each stage "
+                f"or generation lasts), so with budget {new} it would not propose the stored "
+                f"evaluations again; resume it with budget {old}, or start a new study for "
+                f"budget {new} (the methods whose proposals do not depend on the budget — "
+                "trbo, random, optuna-tpe, optuna-gp, cma — can be continued so)"
+            )
         if key == "options" and isinstance(old, dict) and isinstance(new, dict):
             sub = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
             key, old, new = f"{key}.{sub}", old.get(sub, "(not set)"), new.get(sub, "(not set)")
@@ -531,3 +635,8 @@ def _check_settings(p: Path, stored: dict[str, Any], current: dict[str, Any]) ->
             f"this run asks for {key} = {json.dumps(new, ensure_ascii=False)}; resume it with "
             "the same settings or use another storage file"
         )
+
+
+def _is_count(v: Any) -> bool:
+    """Whether ``v`` is an evaluation count (an int, not a bool)."""
+    return isinstance(v, int) and not isinstance(v, bool)
