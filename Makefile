@@ -1,33 +1,43 @@
 # kftune — two entry points: `make run` (the main job) and `make test` (the suite).
-# Both create .venv on first use; `make venv` only prepares it.
+# Both create .venv on first use. `make run` installs kftune with only what the main job
+# needs (numpy, scipy, numba, matplotlib, tqdm, threadpoolctl); `make test` adds the extras
+# the suite, the linter and the benchmarks use (the references, the peer optimisers, Dask,
+# the import readers, the simulator). Each set has its own marker in .venv, so `make test`
+# after `make run` installs only the rest, and an edit of pyproject.toml reinstalls both.
+# `make venv` prepares the main job's environment only.
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed
+RUN_STAMP  := $(VENV)/.installed-run
+TEST_STAMP := $(VENV)/.installed-test
 EXTRAS := test,simulate,peers,dev,dask,import
 # Where `make run` writes its report.
 REPORT ?= report
 
 .PHONY: venv run test lint bench clean
 
-venv: $(STAMP)
+venv: $(RUN_STAMP)
 
-$(STAMP): pyproject.toml
+$(RUN_STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e .
+	@touch $@
+
+$(TEST_STAMP): $(RUN_STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[$(EXTRAS)]"
-	@touch $(STAMP)
+	@touch $@
 
 # --force: a second `make run` starts afresh (the job takes seconds) instead of refusing to
 # overwrite the studies of the first; `kftune compare --resume` continues an interrupted one.
-run: $(STAMP)
+run: $(RUN_STAMP)
 	$(BIN)/kftune compare --out $(REPORT) --force
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(BIN)/ruff check src tests benchmarks examples
 	$(BIN)/ruff format --check src tests benchmarks examples
 
