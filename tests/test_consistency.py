@@ -292,7 +292,10 @@ def test_estimate_says_what_its_mean_nis_should_be(small, tuned, tmp_path):
     for row in doc["manoeuvres"].values():
         assert row["mean_nis"] > 0
         check_doc(row["consistency"])
-    check_doc(doc["consistency"])
+    assert doc["consistency"] is None  # training and test: pooled within each split only
+    assert set(doc["consistency_by_split"]) == {"train", "test"}
+    for pooled in doc["consistency_by_split"].values():
+        check_doc(pooled)
     text = run_cli("estimate", small, "--params", tuned, "-o", out, "-m", SMALL_TEST[0])
     assert text.returncode == 0 and "Traceback" not in text.stderr
     assert "NIS (m=3)" in text.stdout and "95% band" in text.stdout

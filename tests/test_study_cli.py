@@ -219,3 +219,59 @@ def test_tune_resume_with_a_larger_n_continues_the_study(small, tmp_path):
     assert len(rows) == 7 and rows[:4] == first
     shown = json.loads(run_cli("study", "show", db, "--json").stdout)
     assert shown["budget"] == 7 and shown["finished"] == 7
+
+
+# ---------------------------------------------------------------------- estimate by split
+SPLITS = ("train", "test")
+
+
+@pytest.fixture(scope="module")
+def tuned(small, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("tuned") / "t.json"
+    res = run_cli("tune", small, "-m", "manual", "-o", out, "--no-calibration")
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+def estimate_json(small: Path, tuned: Path, out: Path, *args: str) -> dict:
+    res = run_cli("estimate", small, "--params", tuned, "-o", out, "--no-plot", "--json", *args)
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout)
+
+
+def test_estimate_never_averages_across_splits(small, tuned, tmp_path):
+    from conftest import SMALL_TEST, SMALL_TRAIN
+
+    doc = estimate_json(small, tuned, tmp_path / "all")
+    assert doc["average"] is None and doc["consistency"] is None
+    for split, names in (("train", SMALL_TRAIN), ("test", SMALL_TEST)):
+        rmse = [doc["manoeuvres"][n]["kpis"]["rmse"] for n in names]
+        assert doc["averages"][split]["rmse"] == pytest.approx(np.mean(rmse), rel=1e-12)
+        assert doc["averages"][split]["n_manoeuvres"] == len(names)
+    text = run_cli("estimate", small, "--params", tuned, "-o", tmp_path / "t", "--no-plot")
+    firsts = [ln.split()[:2] for ln in text.stdout.splitlines()]
+    assert ["average", "train"] in firsts and ["average", "test"] in firsts
+    assert not any(f[:1] == ["average"] and len(f) > 1 and f[1] not in SPLITS for f in firsts)
+    # the test split: by --split, by a pattern, and as evaluate scores it
+    by_split = estimate_json(small, tuned, tmp_path / "s", "--split", "test")
+    by_glob = estimate_json(small, tuned, tmp_path / "g", "-m", "test-*")
+    assert list(by_split["manoeuvres"]) == list(by_glob["manoeuvres"]) == list(SMALL_TEST)
+    assert by_split["average"] == by_glob["average"] == by_split["averages"]["test"]
+    assert list(by_split["averages"]) == ["test"]
+    ev = run_cli("evaluate", small, "--params", tuned, "--split", "test", "--json")
+    assert ev.returncode == 0, ev.stderr
+    held = json.loads(ev.stdout)["average"]["rmse"]
+    assert by_split["average"]["rmse"] == pytest.approx(held, rel=1e-9)
+    assert by_split["average"]["rmse"] != pytest.approx(doc["averages"]["train"]["rmse"])
+
+
+def test_estimate_patterns_are_checked_against_the_split(small, tuned, tmp_path):
+    res = run_cli(
+        "estimate", small, "--params", tuned, "-o", tmp_path, "--split", "train", "-m", "test-*"
+    )
+    assert res.returncode == 3 and "no manoeuvre of the train split matches" in res.stderr
+    res = run_cli("estimate", small, "--params", tuned, "-o", tmp_path, "-m", "zz*")
+    assert res.returncode == 3 and "--manoeuvre: no manoeuvre 'zz*'" in res.stderr
+    assert not list(tmp_path.iterdir())  # refused before any output
+    res = run_cli("estimate", small, "--params", tuned, "-o", tmp_path, "--split", "held")
+    assert res.returncode == 2

@@ -3,7 +3,8 @@
 Reads the filter from a file written by ``kftune tune`` (``--params tuned.json``) — its Q
 and R as tuned, not re-estimated from the recordings — and runs it on every manoeuvre of
 DATASET: a kftune dataset (its folder or manifest), a directory in the revs-250lm layout,
-or 'default'; ``--manoeuvre`` picks some. Raw recordings (CSV, Parquet, MAT, MDF4 files)
+or 'default'; ``--split train|test|all`` (default all) and ``--manoeuvre`` pick some
+(``-m`` takes names or shell patterns: -m 'test-*'). Raw recordings (CSV, Parquet, MAT, MDF4 files)
 are imported into a dataset first: kftune dataset import FILE... --mapping MAP -o DIR.
 
 For each manoeuvre it writes, into ``--out`` (default ./estimates), one table (CSV, or
@@ -24,8 +25,11 @@ one figure (``--no-plot`` leaves them out):
 
 With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error, and both
 for |ay| ≥ 4 m/s², in degrees) after the file's burn-in; for another model, the RMSE of
-each referenced state or output in its unit. And whether the filter's standard deviations
-can be trusted (consistency, after the burn-in, per manoeuvre and over all of them): for
+each referenced state or output in its unit. Averages are taken within a split, never
+across: a run over training and test manoeuvres prints one average per split (--json:
+"averages" by split; "average" only where every manoeuvre run is of one split). And
+whether the filter's standard deviations can be trusted (consistency, after the burn-in,
+per manoeuvre and over all of them, pooled within a split): for
 each channel with a standard deviation and a reference, the share of samples inside its
 ±1σ and ±1.96σ intervals (68.3 % and 95 % when consistent) and the mean NEES (1), and the
 mean NIS of the m measurements (m), each mean with its 95 % χ² band (--json: "consistency";
@@ -72,6 +76,7 @@ from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.errors import ConfigError, UsageError, excerpt
 
 FORMATS = ("csv", "parquet")
+SPLITS = ("train", "test", "all")
 
 
 def register(subparsers: Any) -> None:
@@ -107,7 +112,14 @@ def register(subparsers: Any) -> None:
         "-m",
         action="append",
         metavar="NAME",
-        help="only this manoeuvre (repeat for more; default: all)",
+        help="only this manoeuvre, or those matching a shell pattern such as 'test-*' "
+        "(repeat for more; default: all of --split)",
+    )
+    p.add_argument(
+        "--split",
+        choices=SPLITS,
+        default="all",
+        help="the manoeuvres of this split only (default all; averages are per split)",
     )
     p.add_argument(
         "--out", "-o", type=Path, default=Path("estimates"), help="folder (default ./estimates)"
@@ -171,16 +183,7 @@ def run(args: argparse.Namespace) -> int:
     require_named_model(doc, args.params, args.model)
     tuned = TunedFilter.from_document(doc, str(args.params), calibrated=args.calibrated)
     dataset = open_dataset(args.dataset)
-    if args.manoeuvre:
-        unknown = [n for n in args.manoeuvre if n not in dataset.names]
-        if unknown:
-            raise ConfigError(
-                f"--manoeuvre: no manoeuvre {unknown[0]!r} in dataset {dataset.name!r}; it has "
-                f"{list(dataset.names)}"
-            )
-        manoeuvres = [dataset[n] for n in dict.fromkeys(args.manoeuvre)]
-    else:
-        manoeuvres = list(dataset.manoeuvres)
+    manoeuvres = pick_manoeuvres(dataset, args.split, args.manoeuvre)
     vehicle, notes = check_recordings(tuned.document, args.params, dataset, manoeuvres, args.force)
     # the model it was tuned with, loaded once before any output (a lost one is named)
     fs = filter_spec_of(args, {}, vehicle, (args.params, tuned.document))
@@ -207,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
         for suffix in (".parquet" if parquet else ".csv", ".png"):
             refuse_inputs(args.out / f"{stem}{suffix}", "--out", reads)
     args.out.mkdir(parents=True, exist_ok=True)
-    kpis: list[dict[str, float]] = []
+    kpis: dict[str, dict[str, float]] = {}  # manoeuvre → its KPIs
     ran: dict[str, Any] = {}  # manoeuvre → (it, its estimates; None where it diverged)
     diverged: list[str] = []
     keep = "nothing else is lost; fix it and run the command again"
@@ -260,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
                 kpi = sideslip_kpis(
                     est.columns["beta"][k0:], est.columns["beta_ref"][k0:], m.ay[k0:]
                 )
-            kpis.append(kpi)
+            kpis[m.name] = kpi
             row["kpis"] = {k: _num(v) for k, v in kpi.items()}
         elif others:  # the RMSE of each referenced channel, in its unit, after the burn-in
             k0 = first_scored(m, tuned.burn_in)
@@ -275,11 +278,26 @@ def run(args: argparse.Namespace) -> int:
             row["units"] = {c: est.units.get(c, "") for c in others}
         ran[m.name] = (m, None if est.result.diverged else est)
         out["manoeuvres"][m.name] = row
-    out["average"] = {k: _num(v) for k, v in average_kpis(kpis).items()} if kpis else None
-    # after the burn-in, as the KPIs; none pooled when it diverged anywhere
-    each, out["consistency"] = consistency_of(fs.model, tuned.burn_in, ran)
-    for name, doc in each.items():
-        out["manoeuvres"][name]["consistency"] = doc
+    # averages and pooled consistency within a split, never across (held-out evidence
+    # mixed with training manoeuvres would read as neither)
+    splits = {s: [m for m in manoeuvres if m.split == s] for s in ("train", "test")}
+    splits = {s: ms for s, ms in splits.items() if ms}
+    out["averages"] = {}
+    out["consistency_by_split"] = {}
+    for split, ms in splits.items():
+        rows = [kpis[m.name] for m in ms if m.name in kpis]
+        out["averages"][split] = (
+            {k: _num(v) for k, v in average_kpis(rows).items()} if rows else None
+        )
+        # after the burn-in, as the KPIs; none pooled when it diverged anywhere
+        each, out["consistency_by_split"][split] = consistency_of(
+            fs.model, tuned.burn_in, {m.name: ran[m.name] for m in ms}
+        )
+        for name, doc in each.items():
+            out["manoeuvres"][name]["consistency"] = doc
+    one = next(iter(splits)) if len(splits) == 1 else None
+    out["average"] = None if one is None else out["averages"][one]
+    out["consistency"] = None if one is None else out["consistency_by_split"][one]
     if args.json:
         emit_json(out)
     else:
@@ -327,10 +345,14 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
             cells = [k.get(c) for c in ("rmse", "mae", "rmse_non", "mae_non")] if with_kpis else []
             cells += [row.get("rmse", {}).get(c) for c in units]
             print(f"{name:{width}s} " + " ".join(_cell(v, w) for v, w in zip(cells, widths)))
-    if doc["average"] is not None:
-        avg = doc["average"]
+    averages = {s: a for s, a in doc["averages"].items() if a is not None}
+    for split, avg in averages.items():
         cells = [_cell(avg.get(c)) for c in ("rmse", "mae", "rmse_non", "mae_non")]
-        print(f"{'average':{width}s} " + " ".join(cells))
+        label = "average" if len(doc["averages"]) == 1 else f"average {split}"
+        print(f"{label:{width}s} " + " ".join(cells))
+    if averages:
+        if len(doc["averages"]) > 1:
+            print("averages per split, never across training and test manoeuvres")
         print(
             "β KPIs in degrees against the reference"
             + (f", after a burn-in of {burn_in:g} s" if burn_in else "")
@@ -339,8 +361,9 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
     from kftune.report.tables import consistency_lines
 
     runs = {name: row["consistency"] for name, row in rows.items()}
-    if len(rows) > 1:
-        runs["all"] = doc["consistency"]  # pooled sample by sample
+    if len(rows) > 1:  # pooled sample by sample, within a split
+        for split, pooled in doc["consistency_by_split"].items():
+            runs["all" if len(doc["consistency_by_split"]) == 1 else split] = pooled
     print("\n".join(consistency_lines(runs, width)))
     if doc["cov_scale"] != 1.0:
         print(
@@ -353,3 +376,40 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
 
 def _cell(v: float | None, width: int = 10) -> str:
     return f"{'–':>{width}s}" if v is None else f"{v:{width}.4f}"
+
+
+def pick_manoeuvres(dataset: Any, split: str, patterns: list[str] | None) -> list[Any]:
+    """The manoeuvres of ``split`` (``train``, ``test`` or ``all``) whose names match one
+    of ``patterns`` (names or shell patterns, :func:`fnmatch.fnmatchcase`; None: all), in
+    dataset order.
+
+    Raises:
+        ConfigError: (exit 3) a pattern that matches no manoeuvre of the dataset, or none of
+            the split, naming it and what there is; a split the dataset has none of.
+    """
+    import fnmatch
+
+    names = list(dataset.names)
+    in_split = [m for m in dataset.manoeuvres if split == "all" or m.split == split]
+    if not in_split:
+        raise ConfigError(
+            f"--split {split}: dataset {dataset.name!r} has no {split} manoeuvres; use --split all"
+        )
+    if not patterns:
+        return in_split
+
+    def matches(name: str, pattern: str) -> bool:  # a name with [ ] is also itself
+        return name == pattern or fnmatch.fnmatchcase(name, pattern)
+
+    for pattern in dict.fromkeys(patterns):
+        if not any(matches(n, pattern) for n in names):
+            raise ConfigError(
+                f"--manoeuvre: no manoeuvre {pattern!r} in dataset {dataset.name!r}; it has {names}"
+            )
+        if not any(matches(m.name, pattern) for m in in_split):
+            raise ConfigError(
+                f"--manoeuvre {pattern!r}: no manoeuvre of the {split} split matches it in "
+                f"dataset {dataset.name!r}; its {split} manoeuvres are "
+                f"{[m.name for m in in_split]}"
+            )
+    return [m for m in in_split if any(matches(m.name, p) for p in patterns)]
