@@ -114,6 +114,13 @@ def test_plot_draws_the_running_best_and_each_parameter_in_its_box(study, tmp_pa
     assert best.get_ydata() == pytest.approx([t["best_so_far"] for t in s["trials"]])
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert any(lbl.startswith("failed (") for lbl in labels)
+    # every complete evaluation is drawn: inside the axis, or marked on top of it
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    inside = lines["cost of each evaluation"].get_ydata()
+    top = [ln for lbl, ln in lines.items() if lbl.startswith("cost above the axis")]
+    n_top = len(top[0].get_xdata()) if top else 0
+    assert len(inside) + n_top == sum(t["state"] == "complete" for t in s["trials"])
+    assert max(inside) <= ax.get_ylim()[1]
     pa, pb = figs["parameters.png"].axes[:2]
     assert pa.get_ylim() == pytest.approx((0.0, 1.0)) and pa.get_yscale() == "linear"
     assert pb.get_ylim() == pytest.approx((1e-4, 10.0)) and pb.get_yscale() == "log"
@@ -275,3 +282,26 @@ def test_estimate_patterns_are_checked_against_the_split(small, tuned, tmp_path)
     assert not list(tmp_path.iterdir())  # refused before any output
     res = run_cli("estimate", small, "--params", tuned, "-o", tmp_path, "--split", "held")
     assert res.returncode == 2
+
+
+def test_a_far_off_cost_is_marked_on_top_not_squeezing_the_best_so_far():
+    from kftune.cli.study import _figures
+
+    costs = [1.0, 0.5, 9.0, 0.45, 0.44, 0.43, 0.43, 0.42, 0.42, 0.41, 0.41, 0.4]
+    best = np.minimum.accumulate(costs).tolist()
+    s = {
+        "study": "s.db",
+        "method": "random",
+        "seed": 0,
+        "parameters": [{"name": "a", "low": 0.0, "high": 1.0, "scale": "linear"}],
+        "best": {"number": 11, "cost": 0.4, "params": {"a": 0.5}},
+        "trials": [
+            {"number": i, "state": "complete", "cost": c, "best_so_far": b, "params": {"a": 0.5}}
+            for i, (c, b) in enumerate(zip(costs, best))
+        ],
+    }
+    ax = _figures(s)["convergence.png"].axes[0]
+    assert ax.get_ylim()[1] < 2.0  # the axis ends near the first best, not at 9
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    top = lines["cost above the axis (1), drawn at the top"]
+    assert list(top.get_xdata()) == [2]

@@ -252,8 +252,17 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
     finite = cost[ok]
     log_y = finite.size > 0 and bool(np.all(finite > 0)) and finite.max() / finite.min() > 30
 
+    # the axis ends above the first best and most costs, so that a few far-off points do
+    # not squeeze the best so far into a flat line at the bottom; those are marked on top
+    top = None
+    if finite.size and not log_y:
+        low = float(finite.min())
+        high = max(float(best[np.isfinite(best)][0]), float(np.quantile(finite, 0.9)))
+        top = high + 0.08 * (high - low) if high > low else None
+    above = ok & (cost > top) if top is not None else np.zeros_like(ok)
     fig, ax = plt.subplots(figsize=(8.0, 4.0))
-    ax.plot(n[ok], cost[ok], "o", ms=3.5, color="0.55", label="cost of each evaluation")
+    shown = ok & ~above
+    ax.plot(n[shown], cost[shown], "o", ms=3.5, color="0.55", label="cost of each evaluation")
     ax.step(n, best, where="post", color="C0", lw=2.0, label="best so far")
     if s["best"] is not None:
         ax.plot(
@@ -266,6 +275,18 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
         )
     if log_y:
         ax.set_yscale("log")
+    if top is not None:
+        ax.set_ylim(top=top)
+    if above.any():
+        ax.plot(
+            n[above],
+            np.full(above.sum(), ax.get_ylim()[1]),
+            "^",
+            color="0.55",
+            ms=6,
+            clip_on=False,
+            label=f"cost above the axis ({above.sum()}), drawn at the top",
+        )
     if (~ok).any():
         top = ax.get_ylim()[1]
         ax.plot(
@@ -280,7 +301,7 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
         ax.set_ylim(top=top)
     ax.set_xlabel("evaluation")
     ax.set_ylabel("cost")
-    ax.set_title(f"{Path(s['study']).name}: {s['method']}, seed {s['seed']}", fontsize=10)
+    ax.set_title(f"{Path(s['study']).name}: {s['method']}, seed {s['seed']}", fontsize=10, pad=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     conv = fig
@@ -300,7 +321,7 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
         if p["scale"] == "log10":
             a.set_yscale("log")
         a.set_ylim(p["low"], p["high"])
-        a.set_title(p["name"], fontsize=9)
+        a.set_title(p["name"], fontsize=9, pad=7)  # clear of the points on the upper bound
         a.set_xlabel("evaluation", fontsize=8)
         a.tick_params(labelsize=7)
         a.grid(alpha=0.3)
