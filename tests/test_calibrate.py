@@ -285,6 +285,29 @@ def test_tune_records_the_factor_and_evaluate_applies_it_without_moving_the_esti
     assert on["consistency"] == doc["held_out"]["consistency"]
 
 
+def test_evaluate_reports_the_cost_as_tuned_and_the_calibrated_one_apart(small, tmp_path):
+    """A likelihood cost (nlpd) moves with the covariance scale: evaluate on the training
+    split reports the cost tune minimised (its recorded J*, scale 1) whether or not the
+    calibration is applied, and the calibrated filter's value under its own key, different
+    from it where c ≠ 1."""
+    out = tmp_path / "nlpd.json"
+    res = run_cli("tune", small, "-n", "3", "--cost", "nlpd", "-o", out)
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(out.read_text())
+    c = doc["calibration"]["factor"]
+    assert not math.isclose(c, 1.0, rel_tol=1e-3)
+    runs = {}
+    for flag in ((), ("--no-calibration",)):
+        res = run_cli("evaluate", small, "--params", out, "--split", "train", "--json", *flag)
+        assert res.returncode == 0, res.stderr
+        runs[flag] = json.loads(res.stdout)
+    on, off = runs[()], runs[("--no-calibration",)]
+    assert on["cost"] == pytest.approx(doc["cost"], rel=1e-9)
+    assert off["cost"] == pytest.approx(doc["cost"], rel=1e-9)
+    assert off["cost_calibrated"] == off["cost"]
+    assert not math.isclose(on["cost_calibrated"], on["cost"], rel_tol=1e-6)
+
+
 @pytest.mark.parametrize(
     ("edit", "named"),
     [

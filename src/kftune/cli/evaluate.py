@@ -62,7 +62,10 @@ from kftune.errors import ConfigError, DataError, DataWarning, UsageError, excer
 from kftune.tuning.kpi import KPI_NAMES
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from kftune.data import Dataset, Manoeuvre
+    from kftune.tuning.problem import TuningProblem
     from kftune.vehicle.params import VehicleParams
 
 
@@ -375,7 +378,6 @@ def run(args: argparse.Namespace) -> int:
     from kftune.tuning.deploy import TunedFilter, calibration_factor, consistency_docs
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import (
-        FilterDivergedError,
         NoiseParameterization,
         TuningProblem,
         assess,
@@ -472,13 +474,17 @@ def run(args: argparse.Namespace) -> int:
         model=fs.spec,
         filter=fs.filter,
     )
-    if tuned is not None and args.calibrated:  # the filter as deployed
-        problem.cov_scale = calibration_factor(tuned, str(args.params))
+    # the cost as tune minimised it (covariance scale 1): nis, pem, nlpd and crps move with
+    # the scale, so the calibrated filter's value is reported apart, never as the cost
+    scale = (
+        calibration_factor(tuned, str(args.params))
+        if tuned is not None and args.calibrated
+        else 1.0
+    )
     with problem:
-        try:
-            cost: float | None = problem.evaluate(x).cost
-        except FilterDivergedError:
-            cost = None
+        cost = _cost_or_none(problem, x)
+        problem.cov_scale = scale  # the filter as deployed: its σ, for the consistency
+        cost_calibrated = cost if scale == 1.0 else _cost_or_none(problem, x)
         metrics, results = assess(problem, x, manoeuvres)
     missing = missing_references(problem, manoeuvres)
     consistency, pooled = consistency_docs(problem, manoeuvres, results)
@@ -498,6 +504,7 @@ def run(args: argparse.Namespace) -> int:
         "model_params": problem.parameterization.model_values(x),
         "cov_scale": problem.cov_scale,
         "cost": cost,
+        "cost_calibrated": cost_calibrated,
         "cost_kind": spec.kind,
         "cost_estimate": spec.estimate,
         "cost_normalise": spec.normalise,
@@ -535,6 +542,17 @@ def run(args: argparse.Namespace) -> int:
     more = f" (and {len(where) - 1} more)" if len(where) > 1 else ""
     print(f"kftune: failed: {reason}; first: {first}{more}", file=sys.stderr)
     return EXIT_FAILURE
+
+
+def _cost_or_none(problem: TuningProblem, x: np.ndarray) -> float | None:
+    """The problem's cost at ``x`` with its current covariance scale; None where the filter
+    diverges (the cost is then undefined)."""
+    from kftune.tuning.problem import FilterDivergedError
+
+    try:
+        return problem.evaluate(x).cost
+    except FilterDivergedError:
+        return None
 
 
 def _num(v: float) -> float | None:
@@ -592,7 +610,11 @@ def _print_table(doc: dict[str, Any]) -> None:
             f"{len(lacking)} of {len(rows)} manoeuvres lack (first: {lacking[0]!r})"
         )
     if doc["cost"] is not None:
-        print(f"cost J ({doc['cost_kind']}) on the {doc['split']} split: {doc['cost']:.5g}")
+        split, cost = doc["split"], doc["cost"]
+        print(f"cost J ({doc['cost_kind']}) on the {split} split, as tuned: {cost:.5g}")
+    calibrated = doc.get("cost_calibrated")
+    if doc["cov_scale"] != 1.0 and calibrated is not None and calibrated != doc["cost"]:
+        print(f"cost J of the calibrated filter (covariances × c): {calibrated:.5g}")
     if doc["cov_scale"] != 1.0:
         print(
             f"calibrated: covariances × {doc['cov_scale']:.4g} as the tuned file records "
