@@ -3,16 +3,20 @@ tuned filter's β σ honest on the test manoeuvres without costing accuracy?
 
 Per dataset (the bundled one, ``../shared/data/revs-250lm`` where it exists, and any
 dataset directory given, e.g. a fresh noise draw of ``kftune dataset generate --seed N``)
-and seed, ``kftune tune``'s default setting: TR-BO at ``--budget`` evaluations of the
-paper's cost on the training manoeuvres. Then, side by side in one run, the tuned filter on
+and seed, TR-BO at ``--budget`` evaluations on the training manoeuvres of the paper's cost
+(``--setting paper``, the default) or of the CRPS of β with Q and R's diagonal tuned
+(``--setting crps-rdiag``). Then, side by side in one run, the tuned filter on
 the test manoeuvres
 
 * uncalibrated (c = 1, what ``kftune tune`` wrote before calibration);
 * calibrated by each criterion of :data:`kftune.tuning.calibrate.CRITERIA` (``nees``:
   mean NEES of β = 1, the Gaussian likelihood's maximum; ``coverage95``: ±1.96σ covers
-  95 %), c fitted on the training manoeuvres (:func:`kftune.tuning.calibrate.calibrate`):
-  the covariances reported c times larger (what kftune does), and, tried and not kept
-  (``-rerun``), the UKF rerun with c·Q, c·R and c·P0, which moves its estimate;
+  95 %; ``median``: the median NEES at χ²₁'s; ``reliability``: the reliability curve over
+  the levels 0.50–0.99 nearest its diagonal; ``minimax``: the worse of the 68 %/95 %
+  misses least; ``crps``: the mean CRPS least), c fitted on the training manoeuvres
+  (:func:`kftune.tuning.calibrate.calibrate`): the covariances reported c times larger
+  (what kftune does), and with ``--rerun``, tried and not kept (``-rerun``), the UKF rerun
+  with c·Q, c·R and c·P0, which moves its estimate;
 
 each scored as ``kftune evaluate --params`` scores it: mean test β RMSE [deg]
 (:func:`kftune.tuning.problem.assess`), β coverage of ±1σ and ±1.96σ pooled over the test
@@ -23,13 +27,14 @@ fit says that one scale cannot serve every manoeuvre.
 
 Targets (issue "honest uncertainty", medians over the seeds): test β RMSE within 3 % of the
 uncalibrated filter's; ±1σ covering 60–76 %, ±1.96σ 90–98 %; NIS in its band on at least
-half of the test manoeuvres.
+half of the test manoeuvres. The summary counts, per criterion, the (dataset, level) pairs
+whose median test coverage lies inside its target band, and the same over single seeds.
 
 Usage::
 
     nice -n 10 .venv/bin/python benchmarks/calibration.py
     nice -n 10 .venv/bin/python benchmarks/calibration.py --datasets default /tmp/fresh7 \
-        --seeds 3 --budget 100
+        --seeds 3 --budget 100 [--criteria nees median] [--rerun]
 
 Prints a table and, as its last line, one JSON object with the figures.
 """
@@ -53,14 +58,37 @@ from kftune.experiment import tune
 from kftune.filters import run_ukf
 from kftune.models.sideslip import single_track_prior
 from kftune.tuning.calibrate import CRITERIA, calibrate
+from kftune.tuning.cost import CostSpec
 from kftune.tuning.deploy import consistency_docs
 from kftune.tuning.kpi import average_kpis
-from kftune.tuning.problem import TuningProblem, assess, default_r0, filter_spec
+from kftune.tuning.problem import (
+    NoiseParameterization,
+    TuningProblem,
+    assess,
+    default_r0,
+    filter_spec,
+)
 
-#: The calibrated variants: each criterion with the covariances scaled after the run (kept),
-#: and with the UKF rerun with c·Q, c·R and c·P0 (tried).
-VARIANTS = (*CRITERIA, *(f"{c}-rerun" for c in CRITERIA))
 REVS = Path(__file__).resolve().parents[2] / "shared" / "data" / "revs-250lm"
+#: What is tuned (``--setting``): cost and NoiseParameterization options.
+SETTINGS: dict[str, tuple[CostSpec, dict[str, Any]]] = {
+    "paper": (CostSpec(), {}),
+    "crps-rdiag": (CostSpec(kind="crps"), {"tune_r": "diag"}),
+}
+#: The target bands of the test coverage of ±1σ and ±1.96σ (issue "honest uncertainty").
+TARGETS = {"cov68": (0.60, 0.76), "cov95": (0.90, 0.98)}
+
+
+def variants(criteria: list[str], rerun: bool) -> list[str]:
+    """The calibrated variants: each criterion with the covariances scaled after the run
+    (kept), and with ``rerun`` also the UKF rerun with c·Q, c·R and c·P0 (tried)."""
+    return [*criteria, *(f"{c}-rerun" for c in criteria if rerun)]
+
+
+def inside(cov: float | None, key: str) -> bool:
+    """Whether a test coverage lies in its target band (:data:`TARGETS`)."""
+    lo, hi = TARGETS[key]
+    return cov is not None and lo <= cov <= hi
 
 
 class Rerun(TuningProblem):
@@ -101,20 +129,29 @@ def scored(problem: TuningProblem, x: np.ndarray, test: list[Any]) -> dict[str, 
     }
 
 
-def run_dataset(name: str, seeds: int, budget: int) -> dict[str, Any]:
+def run_dataset(
+    name: str, seeds: int, budget: int, criteria: list[str], rerun: bool, setting: str = "paper"
+) -> dict[str, Any]:
     """Every seed's tuned, and calibrated, filter on one dataset."""
     ds = open_dataset(name)
     fs = filter_spec("single-track", "ukf", ds.vehicle)
     test = [m for m in ds.test if m.has("beta_ref")]
     rows = []
     for seed in range(seeds):
-        problem = Rerun(ds.train, ds.vehicle, default_r0(fs.model, ds))
+        cost, options = SETTINGS[setting]
+        problem = Rerun(
+            ds.train,
+            ds.vehicle,
+            default_r0(fs.model, ds),
+            cost=cost,
+            parameterization=NoiseParameterization(**options),
+        )
         t0 = time.perf_counter()
         result = tune(problem, "trbo", budget=budget, seed=seed, progress=False)
         t_tune = time.perf_counter() - t0
         row: dict[str, Any] = {"seed": seed, "tune_s": t_tune, "cost": result.fun}
         row["uncalibrated"] = scored(problem, result.x, test)
-        for crit in CRITERIA:
+        for crit in criteria:
             t0 = time.perf_counter()
             cal = calibrate(problem, result.x, criterion=crit)
             t_cal = time.perf_counter() - t0
@@ -134,6 +171,8 @@ def run_dataset(name: str, seeds: int, budget: int) -> dict[str, Any]:
                 per_manoeuvre=rec["per_manoeuvre"],
             )
             row[crit] = got
+            if not rerun:
+                continue
             problem.rerun = True  # tried: the UKF rerun with c·Q, c·R and c·P0
             t0 = time.perf_counter()
             cal = calibrate(problem, result.x, criterion=crit)
@@ -162,26 +201,28 @@ def run_dataset(name: str, seeds: int, budget: int) -> dict[str, Any]:
             f"{u['nis_inside']}/{u['n_test']}",
             flush=True,
         )
-        for crit in VARIANTS:
+        for crit in variants(criteria, rerun):
             g = row[crit]
             print(
-                f"  {crit:10s}: c {g['factor']:.4g} ({g['n_runs']} runs, "
+                f"  {crit:11s}: c {g['factor']:.4g} ({g['n_runs']} runs, "
                 f"{g['calibrate_s']:.2f} s); β RMSE {g['rmse']:.4f}° "
                 f"(×{g['rmse'] / u['rmse']:.4f}), cov68 {g['cov68']:.3f} cov95 "
                 f"{g['cov95']:.3f} NEES {g['nees']:.3g}, NIS in band "
                 f"{g['nis_inside']}/{g['n_test']}; train shift {g['train_shift_deg']:.3g}° "
-                f"({100 * g['train_shift_rel']:.2g} % of RMSE)"
+                f"({100 * g['train_shift_rel']:.2g} % of RMSE); train cov68 "
+                f"{g['train_cov68']:.3f} cov95 {g['train_cov95']:.3f}"
                 + ("; WARNS" if g["warning"] else ""),
                 flush=True,
             )
     return {"dataset": Path(name).name, "n_test": len(test), "seeds": rows}
 
 
-def medians(result: dict[str, Any]) -> dict[str, Any]:
-    """Medians over seeds of each variant's figures, and the RMSE ratio to uncalibrated."""
+def medians(result: dict[str, Any], names: list[str]) -> dict[str, Any]:
+    """Medians over seeds of each variant's figures, the RMSE ratio to uncalibrated, and
+    how many seeds' test coverages of ±1σ and ±1.96σ lie inside their targets."""
     out: dict[str, Any] = {}
     rows = result["seeds"]
-    for variant in ("uncalibrated", *VARIANTS):
+    for variant in ("uncalibrated", *names):
         v = [r[variant] for r in rows]
         med = {
             k: statistics.median(x[k] for x in v)
@@ -191,9 +232,11 @@ def medians(result: dict[str, Any]) -> dict[str, Any]:
             med["rmse_ratio"] = statistics.median(
                 x["rmse"] / r["uncalibrated"]["rmse"] for x, r in zip(v, rows)
             )
-            for k in ("factor", "train_shift_deg", "train_shift_rel"):
+            for k in ("factor", "train_shift_deg", "train_shift_rel", "train_cov68", "train_cov95"):
                 med[k] = statistics.median(x[k] for x in v)
             med["warned"] = sum(1 for x in v if x["warning"])
+        for key in TARGETS:
+            med[f"{key}_seeds_inside"] = sum(1 for x in v if inside(x[key], key))
         out[variant] = med
     return out
 
@@ -203,10 +246,27 @@ def main() -> None:
     ap.add_argument("--datasets", nargs="+", help="datasets (default: bundled, revs-250lm)")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--budget", type=int, default=100)
+    ap.add_argument(
+        "--criteria", nargs="+", choices=CRITERIA, default=list(CRITERIA), help="c fitted by"
+    )
+    ap.add_argument(
+        "--setting",
+        choices=list(SETTINGS),
+        default="paper",
+        help="what is tuned: the paper's NRMSE of β with Q (default), or the CRPS of β with "
+        "Q and R's diagonal",
+    )
+    ap.add_argument(
+        "--rerun", action="store_true", help="also the UKF rerun with c·Q, c·R, c·P0 (tried)"
+    )
     args = ap.parse_args()
     names = args.datasets or ["default", *([str(REVS)] if REVS.is_dir() else [])]
+    shown = variants(args.criteria, args.rerun)
     t0 = time.perf_counter()
-    results = [run_dataset(n, args.seeds, args.budget) for n in names]
+    results = [
+        run_dataset(n, args.seeds, args.budget, args.criteria, args.rerun, args.setting)
+        for n in names
+    ]
     print()
     print(
         "dataset | variant | c | test β RMSE [°] | ratio | cov68 | cov95 | NEES | NIS in band "
@@ -214,7 +274,7 @@ def main() -> None:
     )
     summary = []
     for res in results:
-        med = medians(res)
+        med = medians(res, shown)
         summary.append({"dataset": res["dataset"], "n_test": res["n_test"], "median": med})
         for variant, m in med.items():
             print(
@@ -228,10 +288,36 @@ def main() -> None:
                     else "– | –"
                 )
             )
+    print()
+    print(
+        "variant | (dataset, level) pairs inside the targets, medians over seeds | "
+        "(dataset, level, seed) inside | median RMSE ratio, worst dataset"
+    )
+    pairs: dict[str, Any] = {}
+    for variant in ("uncalibrated", *shown):
+        meds = [s["median"][variant] for s in summary]
+        n_med = sum(1 for m in meds for key in TARGETS if inside(m[key], key))
+        n_seed = sum(m[f"{key}_seeds_inside"] for m in meds for key in TARGETS)
+        worst = max(m.get("rmse_ratio", 1.0) for m in meds)
+        pairs[variant] = {
+            "median_inside": n_med,
+            "of": len(TARGETS) * len(meds),
+            "seeds_inside": n_seed,
+            "seeds_of": len(TARGETS) * len(meds) * args.seeds,
+            "worst_rmse_ratio": worst,
+        }
+        print(
+            f"{variant} | {n_med}/{len(TARGETS) * len(meds)} | "
+            f"{n_seed}/{len(TARGETS) * len(meds) * args.seeds} | {worst:.4f}"
+        )
     print(
         json.dumps(
             {
                 "benchmark": "calibration",
+                "criteria": args.criteria,
+                "setting": args.setting,
+                "targets": TARGETS,
+                "inside_targets": pairs,
                 "seeds": args.seeds,
                 "budget": args.budget,
                 "python": platform.python_version(),

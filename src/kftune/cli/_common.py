@@ -10,6 +10,8 @@ unknown key is an error, not silently ignored::
     budget = 40                    # tune only
     timeout = 30.0                 # tune only: per-evaluation limit [s], at most 1e6
     widen_bounds = false           # tune only: see kftune tune --widen-bounds
+    calibration = "crps"           # tune only: the covariance scale's criterion, or "none"
+                                   #   (= --no-calibration; see kftune tune --calibration)
     methods = ["manual", "ga", "tsbo-gp", "tsbo-tsp", "trbo"]   # compare only
     budgets = { ga = 225, tsbo-tsp = 40 }               # compare only
     seed = 0
@@ -62,6 +64,7 @@ from typing import TYPE_CHECKING, Any
 
 from kftune.errors import ConfigError, DataError, RunFailedError, UsageError, excerpt
 from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
+from kftune.tuning.calibrate import CRITERIA
 from kftune.tuning.cost import CHANNELS, COST_KINDS, NORMALISATIONS
 
 if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
@@ -78,6 +81,10 @@ MAX_BUDGET = 100_000
 #: hundred thousand processes).
 MAX_WORKERS = 4 * (os.cpu_count() or 1)
 
+#: Values of ``calibration`` (``tune --calibration``): a criterion of
+#: :data:`kftune.tuning.calibrate.CRITERIA`, or "none" (no calibration).
+CALIBRATIONS: tuple[str, ...] = (*CRITERIA, "none")
+
 #: Keys a configuration file may hold, with the TOML type expected.
 CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "dataset": str,
@@ -92,6 +99,7 @@ CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
     "workers": int,
     "timeout": (int, float),
     "widen_bounds": bool,
+    "calibration": str,
     "scheduler": str,
     "batch": int,
     "burn_in": (int, float),
@@ -106,6 +114,7 @@ USED_ONLY_BY: dict[str, set[str]] = {
     "budget": {"tune"},
     "timeout": {"tune"},
     "widen_bounds": {"tune"},
+    "calibration": {"tune"},
     "scheduler": {"tune"},
     "batch": {"tune"},
     "methods": {"compare"},
@@ -187,6 +196,10 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
         raise ConfigError(f"{p}: methods {unknown} are not among {list(METHODS)}")
     for method, opts in data.get("options", {}).items():
         if method not in METHODS or not isinstance(opts, dict):
+    if "calibration" in data and data["calibration"] not in CALIBRATIONS:
+        raise ConfigError(
+            f"{p}: calibration {excerpt(data['calibration'])} is not one of {list(CALIBRATIONS)}"
+        )
             raise ConfigError(
                 f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
                 f"{list(METHODS)}, got {method!r}"

@@ -416,6 +416,9 @@ def export_optuna(stored: Any, path: Path, name: str) -> int:
                 )
             )
         storage.engine.dispose()
+        umask = os.umask(0o022)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # as a plain write would make it (mkstemp's is 0600)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

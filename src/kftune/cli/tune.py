@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING, Any
 from kftune import __version__
 from kftune.cli._common import (
     BUDGET,
+    CALIBRATIONS,
     MAX_BUDGET,
     TIMEOUT_SECONDS,
     add_command,
@@ -82,6 +83,7 @@ from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 
 if TYPE_CHECKING:
     from kftune.data import Dataset
+from kftune.tuning.calibrate import DEFAULT_CRITERION
     from kftune.optim import OptimizeResult
     from kftune.tuning.calibrate import Calibration
     from kftune.tuning.identify import Identifiability
@@ -154,7 +156,17 @@ def register(subparsers: Any) -> None:
         help="do not fit the covariance scale c after the search (by default the filter's "
         "covariances are reported c times larger, c fitted so that its β σ matches its errors "
         "on the training manoeuvres, its estimate unchanged; the file records c, and "
-        "evaluate, estimate and export apply it)",
+        'evaluate, estimate and export apply it); config calibration = "none"',
+    )
+    p.add_argument(
+        "--calibration",
+        choices=CALIBRATIONS,
+        metavar="CRITERION",
+        help=f"what c is fitted by: {DEFAULT_CRITERION} (default: the mean CRPS of the β "
+        "errors least, which held the test errors best across datasets), nees (mean NEES 1), "
+        "coverage95, median (median NEES at χ²₁'s), reliability (coverage over 50-99 %% "
+        "nearest nominal), minimax (the worse 68 %%/95 %% miss least), or none (= "
+        "--no-calibration); config calibration = CRITERION",
     )
     p.add_argument(
         "--out",
@@ -184,6 +196,10 @@ def run(args: argparse.Namespace) -> int:
     if args.storage is not None:
         output_file(args.storage, "--storage", command_inputs(args, config, study=False))
     widen = bool(pick(args, config, "widen_bounds", False))
+    if not args.calibrate and args.calibration not in (None, "none"):
+        raise UsageError(f"--no-calibration contradicts --calibration {args.calibration}")
+    criterion = "none" if not args.calibrate else pick(args, config, "calibration", None)
+    criterion = criterion or DEFAULT_CRITERION
     if args.resume and args.storage is not None and not args.storage.exists():
         raise ConfigError(
             f"--resume: study file {args.storage} does not exist (a misspelt name would "
@@ -259,7 +275,9 @@ def run(args: argparse.Namespace) -> int:
     # an interrupted run's best-so-far (see _interrupted) is superseded now
     with contextlib.suppress(OSError):
         _partial(args.out).unlink(missing_ok=True)
-    cal, no_calibration = calibrate(problem, result.x) if args.calibrate else (None, None)
+    cal, no_calibration = (
+        calibrate(problem, result.x, criterion) if criterion != "none" else (None, None)
+    )
     if cal is not None:
         from kftune.tuning.deploy import calibration_record
 
@@ -390,10 +408,13 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
     return lines
 
 
-def calibrate(problem: TuningProblem, x: Any) -> tuple[Calibration | None, str | None]:
-    """The covariance scale c fitted on the training manoeuvres at the tuned point
-    (:func:`kftune.tuning.calibrate.calibrate`, a few filter runs), or (None, why not): the
-    filter diverged when scaled, or was interrupted (the tuned file is written before)."""
+def calibrate(
+    problem: TuningProblem, x: Any, criterion: str = DEFAULT_CRITERION
+) -> tuple[Calibration | None, str | None]:
+    """The covariance scale c fitted by ``criterion`` on the training manoeuvres at the
+    tuned point (:func:`kftune.tuning.calibrate.calibrate`, a few filter runs), or (None,
+    why not): the filter diverged when scaled, or was interrupted (the tuned file is written
+    before)."""
     from kftune.errors import KftuneError
     from kftune.tuning.calibrate import CalibrationError
     from kftune.tuning.calibrate import calibrate as fit

@@ -21,6 +21,21 @@ its stated uncertainty matches its errors, by one of :data:`CRITERIA`:
   (∂/∂c [Σ ln(c σ_k²) + e_k²/(c σ_k²)] = 0 ⇔ c = (1/N) Σ e_k²/σ_k²).
 * ``"coverage95"``: the interval ±1.96σ covers 95 % of the errors: c = (q₉₅(|e_k|/σ_k) /
   1.96)², q₉₅ the 95th percentile.
+* ``"median"``: the median of (e_k/σ_k)² equals χ²₁'s median (0.455): c = median(z²) /
+  0.455, z = e/σ. The mean NEES is pulled up by the few large errors of heavy tails; the
+  median is not (a breakdown point of 50 %).
+* ``"reliability"``: c minimising the mean absolute difference between the observed share
+  of |z| ≤ z_p·√c and the nominal p over the levels p = 0.50, 0.51, …, 0.99
+  (:data:`RELIABILITY_LEVELS`, z_p = Φ⁻¹((1 + p)/2)): the reliability curve of the
+  interval ±z_p·σ brought to its diagonal as a whole, not at one level.
+* ``"minimax"``: c minimising the worse of the misses of the ±1σ and ±1.96σ coverages
+  (68.27 % and 95 %), each in units of its binomial standard deviation √(p(1 − p))
+  (0.465 and 0.218: a point of coverage at 95 % counts 2.1× one at 68 %, as the
+  targets' 90–98 % and 60–76 % half-widths of 4 and 8 points say).
+* ``"crps"`` (the default): c minimising the mean continuous ranked probability score of the errors
+  under N(0, c·σ_k²) (Gneiting & Raftery 2007, a proper scoring rule; in each channel's
+  unit, channels summed), where Σ_k σ_k·(2φ(z_k/s) − 1/√π) = 0 with s = √c (the score's
+  derivative in s; it is convex in s, so the root is its minimum).
 * ``"nis"`` (chosen when no channel has a reference): mean NIS = m, the number of
   measurements (S_k scales by c, so NIS by 1/c). It calibrates the innovations, not the
   state errors: nothing else can be checked without a reference.
@@ -57,9 +72,9 @@ if TYPE_CHECKING:
     from kftune.tuning.problem import TuningProblem
 
 #: The criteria :func:`fit_scale` fits c by (module docstring).
-CRITERIA: tuple[str, ...] = ("nees", "coverage95")
+CRITERIA: tuple[str, ...] = ("nees", "coverage95", "median", "reliability", "minimax", "crps")
 #: The criterion ``kftune tune`` uses (chosen by benchmarks/calibration.py, BENCHMARKS.md).
-DEFAULT_CRITERION = "nees"
+DEFAULT_CRITERION = "crps"
 #: A manoeuvre whose own factor differs from the common one by more than this (either way)
 #: is one that the common scale cannot make consistent (σ off by more than √4 = 2×).
 SPREAD_LIMIT = 4.0
@@ -72,6 +87,10 @@ NIS_RANGE: tuple[float, float] = (0.5, 2.0)
 #: Fixed-point iterations at most, and the relative change of c that ends them.
 MAX_ITERATIONS = 8
 TOLERANCE = 1e-3
+#: The levels p of the ``"reliability"`` criterion: 0.50, 0.51, …, 0.99.
+RELIABILITY_LEVELS: tuple[float, ...] = tuple(round(0.5 + 0.01 * i, 2) for i in range(50))
+#: χ²₁'s median, (Φ⁻¹(0.75))² (the ``"median"`` criterion's target).
+CHI2_1_MEDIAN = 0.454936423119572
 #: The range c is kept in (a filter whose σ is off by more than 1000× is not calibrated
 #: by scaling, it is mis-tuned).
 FACTOR_RANGE: tuple[float, float] = (1e-6, 1e6)
@@ -116,13 +135,17 @@ def required_factor(runs: Sequence[RunErrors], criterion: str) -> float:
     ``criterion`` (1 when met), pooled over ``runs``; NaN with nothing to count.
 
     ``"nees"``: (1/N) Σ (e_k/σ_k)² over every channel; ``"coverage95"``: (q₉₅(|e_k/σ_k|) /
-    1.96)²; ``"nis"``: (1/N) Σ NIS_k / m.
+    1.96)²; ``"median"``: median((e_k/σ_k)²) / χ²₁'s median; ``"reliability"``,
+    ``"minimax"``, ``"crps"``: the scale that minimises their loss (module docstring);
+    ``"nis"``: (1/N) Σ NIS_k / m.
     """
     if criterion == "nis":
         terms = [r.nis[np.isfinite(r.nis)] for r in runs if r.nis is not None]
         n = sum(t.size for t in terms)
         m = max((r.m for r in runs), default=0)
         return float(sum(t.sum() for t in terms) / (n * m)) if n and m else math.nan
+    if criterion == "crps":
+        return _crps_factor(runs)
     e = [v for r in runs for v in r.normalised().values()]
     e = np.concatenate(e) if e else np.zeros(0)
     if not e.size:
@@ -131,7 +154,84 @@ def required_factor(runs: Sequence[RunErrors], criterion: str) -> float:
         return float(np.mean(e * e))
     if criterion == "coverage95":
         return float((np.quantile(np.abs(e), 0.95) / z_of(0.95)) ** 2)
+    if criterion == "median":
+        return float(np.median(e * e) / CHI2_1_MEDIAN)
+    if criterion == "reliability":
+        return _coverage_fit(np.abs(e), RELIABILITY_LEVELS, "mean")
+    if criterion == "minimax":
+        return _coverage_fit(np.abs(e), (0.682689492137086, 0.95), "max")
     raise ValueError(f"criterion must be one of {[*CRITERIA, 'nis']}, got {criterion!r}")
+
+
+def _coverage_fit(a: np.ndarray, levels: Sequence[float], how: str) -> float:
+    """The factor c (on the variances) minimising the mean (``how="mean"``) absolute miss
+    |share(a ≤ z_p·√c) − p| over ``levels``, or the largest (``"max"``) in units of
+    √(p(1 − p)); ``a`` (N,) the |e/σ| [-].
+
+    Each level's miss is least at its own c_p = (q_p(a)/z_p)² and grows away from it, so the
+    minimum lies between the smallest and largest c_p: those and 400 log-spaced scales
+    between them are scored; then, between the neighbours of the best of them, the loss —
+    a step function of c, stepping where z_p·√c passes a sample — at every step's midpoint,
+    and the middle of the lowest run taken. Scale-equivariant: a times k gives c times k².
+    """
+    a = np.sort(a)
+    p = np.asarray(levels, dtype=float)
+    z = np.array([z_of(v) for v in p])
+    own = (np.quantile(a, p) / z) ** 2
+    own = own[own > 0]
+    if not own.size:
+        return math.nan
+
+    def loss(c: np.ndarray) -> np.ndarray:
+        shares = np.searchsorted(a, z[None, :] * np.sqrt(c)[:, None], side="right") / a.size
+        miss = np.abs(shares - p[None, :])
+        return miss.mean(axis=1) if how == "mean" else (miss / np.sqrt(p * (1 - p))).max(axis=1)
+
+    lo, hi = float(own.min()), float(own.max())
+    grid = np.unique(np.concatenate([own, np.geomspace(lo, hi, 400) if hi > lo else own]))
+    i = int(np.argmin(loss(grid)))
+    left, right = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    steps = [(a[(a >= zp * math.sqrt(left)) & (a <= zp * math.sqrt(right))] / zp) ** 2 for zp in z]
+    edges = np.unique(np.concatenate([[left, right], *steps]))
+    mids = np.concatenate([edges, np.sqrt(edges[:-1] * edges[1:])])
+    mids.sort()
+    score = loss(mids)
+    best = np.flatnonzero(score <= score.min() + 1e-12)
+    gaps = np.flatnonzero(np.diff(best) > 1)  # the first run of lowest steps ends there
+    last = best[gaps[0]] if gaps.size else best[-1]
+    return float(math.sqrt(mids[best[0]] * mids[last]))
+
+
+def _crps_factor(runs: Sequence[RunErrors]) -> float:
+    """The factor c minimising Σ_k CRPS(N(0, c·σ_k²); e_k) over every channel's samples
+    (module docstring): the root in s = √c of Σ_k σ_k·(2φ(e_k/(s·σ_k)) − 1/√π), which
+    rises from −Σσ/√π (s → 0, unless an error is 0) to Σσ·(2φ(0) − 1/√π) > 0; NaN with
+    nothing to count."""
+    from scipy.optimize import brentq
+
+    e_all, s_all = [], []
+    for r in runs:
+        for ch, e in r.err.items():
+            s = r.std[ch]
+            ok = np.isfinite(e) & np.isfinite(s) & (s > 0)
+            e_all.append(e[ok])
+            s_all.append(s[ok])
+    if not e_all or not sum(v.size for v in e_all):
+        return math.nan
+    e, sd = np.concatenate(e_all), np.concatenate(s_all)
+    z = e / sd
+    inv_sqrt_pi = 1.0 / math.sqrt(math.pi)
+
+    def slope(log_s: float) -> float:
+        w = z * math.exp(-log_s)
+        return float(np.dot(sd, 2.0 * np.exp(-0.5 * w * w) / math.sqrt(2 * math.pi) - inv_sqrt_pi))
+
+    lo, hi = (0.5 * math.log(v) for v in FACTOR_RANGE)
+    if slope(lo) >= 0:
+        return FACTOR_RANGE[0]
+    if slope(hi) <= 0:
+        return FACTOR_RANGE[1]
+    return float(math.exp(2.0 * brentq(slope, lo, hi, xtol=1e-10, rtol=1e-12)))
 
 
 def bias_share(run: RunErrors) -> float:
