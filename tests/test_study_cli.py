@@ -305,3 +305,20 @@ def test_a_far_off_cost_is_marked_on_top_not_squeezing_the_best_so_far():
     lines = {ln.get_label(): ln for ln in ax.get_lines()}
     top = lines["cost above the axis (1), drawn at the top"]
     assert list(top.get_xdata()) == [2]
+
+
+def test_a_running_trial_is_counted_and_left_out_of_the_export(study, tmp_path):
+    import shutil
+
+    from kftune.optim.study import Study, read_study
+
+    db = tmp_path / "cut.db"
+    shutil.copy(study, db)
+    with Study.open(db, read_study(db).settings, resume=True) as open_study:
+        open_study.write_proposal(30, [0.5, 0.5])  # in flight when its process was killed
+    doc = json.loads(run_cli("study", "show", db, "--json").stdout)
+    assert doc["running"] == [30] and doc["finished"] == 30
+    assert "1 running or cut off" in run_cli("study", "show", db).stdout
+    pytest.importorskip("optuna")
+    res = run_cli("study", "export", db, "--optuna", tmp_path / "o.db")
+    assert res.returncode == 0 and "30 trials" in res.stdout and "1 running left out" in res.stdout

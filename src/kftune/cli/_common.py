@@ -191,15 +191,15 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
             _check_keys(data[section], keys, f"{p} [{section}]")
     if "method" in data and data["method"] not in METHODS:
         raise ConfigError(f"{p}: method {data['method']!r} is not one of {list(METHODS)}")
+    if "calibration" in data and data["calibration"] not in CALIBRATIONS:
+        raise ConfigError(
+            f"{p}: calibration {excerpt(data['calibration'])} is not one of {list(CALIBRATIONS)}"
+        )
     unknown = [m for m in data.get("methods", []) if m not in METHODS]
     if unknown:
         raise ConfigError(f"{p}: methods {unknown} are not among {list(METHODS)}")
     for method, opts in data.get("options", {}).items():
         if method not in METHODS or not isinstance(opts, dict):
-    if "calibration" in data and data["calibration"] not in CALIBRATIONS:
-        raise ConfigError(
-            f"{p}: calibration {excerpt(data['calibration'])} is not one of {list(CALIBRATIONS)}"
-        )
             raise ConfigError(
                 f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
                 f"{list(METHODS)}, got {method!r}"

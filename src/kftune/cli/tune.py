@@ -80,10 +80,10 @@ from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from kftune.errors import ConfigError, RunFailedError, UsageError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
+from kftune.tuning.calibrate import DEFAULT_CRITERION
 
 if TYPE_CHECKING:
     from kftune.data import Dataset
-from kftune.tuning.calibrate import DEFAULT_CRITERION
     from kftune.optim import OptimizeResult
     from kftune.tuning.calibrate import Calibration
     from kftune.tuning.identify import Identifiability
