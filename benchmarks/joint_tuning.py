@@ -440,6 +440,7 @@ def default_budgets(config: str) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global SEED_BUDGET
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", default=None, help="dataset directory (default: bundled)")
     ap.add_argument(
@@ -456,6 +457,13 @@ def main(argv: list[str] | None = None) -> int:
         nargs="+",
         default=list(DEFAULT_METHODS),
         choices=[*METHODS, "trbo-faces", "trbo-seeded"],
+    )
+    ap.add_argument(
+        "--seed-budget",
+        type=int,
+        default=SEED_BUDGET,
+        help=f"evaluations of trbo-seeded's noise-only run (default {SEED_BUDGET}); with "
+        "--budgets n - N it is tune's two-stage split of n",
     )
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
@@ -481,8 +489,9 @@ def main(argv: list[str] | None = None) -> int:
         wrong = parse_scales(args.wrong)
     except argparse.ArgumentTypeError as exc:
         ap.error(str(exc))
-    if args.seeds < 1 or args.seed_offset < 0:
-        ap.error("--seeds must be >= 1 and --seed-offset >= 0")
+    if args.seeds < 1 or args.seed_offset < 0 or args.seed_budget < 1:
+        ap.error("--seeds and --seed-budget must be >= 1 and --seed-offset >= 0")
+    SEED_BUDGET = args.seed_budget
     if args.budgets is not None and any(b < 1 for b in args.budgets):
         ap.error(f"--budgets must be positive integers, got {args.budgets}")
     budgets = {
@@ -560,6 +569,7 @@ def main(argv: list[str] | None = None) -> int:
         "wrong": wrong,
         "normalise": args.normalise,
         "seeds": seeds,
+        "seed_budget": SEED_BUDGET,
         "budgets": budgets,
         "starts": starts,
         "summary": summary,

@@ -21,7 +21,7 @@ import kftune
 from conftest import run_cli, wait_until
 from kftune.data import default_dataset, open_dataset, save_dataset
 from kftune.errors import ConfigError
-from kftune.experiment import MANUAL_Q, manual_point
+from kftune.experiment import MANUAL_Q, NOISE_STAGE_SHARE, manual_point
 from kftune.models import get_model
 from kftune.tuning.problem import NoiseParameterization, TuningProblem, assess, filter_spec
 
@@ -257,7 +257,9 @@ def test_tuned_file_records_the_model_parameters_and_every_reader_runs_them(smal
         "tune_model = { C_af = [20000.0, 400000.0], C_ar = [20000.0, 400000.0] }\n"
         'model_scale = { C_ar = "linear" }\n'
     )
-    out, doc = _tuned(small, tmp_path, "--config", str(config))
+    # random search, one stage: its point is not the recorded model (TR-BO's joint search,
+    # seeded with the noise-only optimum, may end there on a short budget)
+    out, doc = _tuned(small, tmp_path, "--config", str(config), "-m", "random")
     ds = open_dataset(str(small))
     rec = doc["model_params"]
     assert list(rec) == ["C_af", "C_ar"]
@@ -361,41 +363,132 @@ def _completed(db: Path) -> int:
         return 0
 
 
-def test_a_joint_study_resumes_exactly_after_sigkill(small, tmp_path):
-    budget = "30"
+def _sigkill_when(db: Path, n: int, args: list[str], out: Path) -> None:
+    """Start ``kftune *args -o out`` and SIGKILL it once ``db`` holds n finished evaluations."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kftune", *args, "-o", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        wait_until(lambda: _completed(db) >= n, proc, f"{n} finished evaluations in {db.name}")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+
+
+@pytest.mark.parametrize("stage", ["noise-only", "joint"])
+def test_a_joint_study_resumes_exactly_after_sigkill_in_either_stage(small, tmp_path, stage):
+    """40 evaluations in two stages (10 + 30 with the share of 1/4, each stage's study file
+    beside --storage); killed in the first or in the second, the resumed run keeps every
+    finished evaluation and ends as the uninterrupted one."""
+    budget = "40"
+    n1 = round(40 * NOISE_STAGE_SHARE)
+    n_stage = n1 if stage == "noise-only" else 40 - n1
     joint = ["--tune-model", "C_af=20000:400000", "--tune-model", "mu=0.4:1.6:linear"]
     full = run_cli("tune", str(small), "-n", budget, "--quiet", "-o", str(tmp_path / "full.json"),
                    *joint)  # fmt: skip
     assert full.returncode == 0, full.stderr
     db = tmp_path / "study.db"
+    first = tmp_path / "study.noise-only.db"
+    killed_in = first if stage == "noise-only" else db
     args = ["tune", str(small), "-n", budget, "--quiet", "--storage", str(db), *joint]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "kftune", *args, "-o", str(tmp_path / "killed.json")],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        wait_until(lambda: _completed(db) >= 8, proc, "8 finished evaluations in the study")
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    n_before = _completed(db)
-    assert 8 <= n_before < 30, "the run was not killed mid-way"
-    with sqlite3.connect(db) as conn:
+    _sigkill_when(killed_in, n_stage // 2, args, tmp_path / "killed.json")
+    n_before = _completed(killed_in)
+    assert n_stage // 2 <= n_before < n_stage, "the run was not killed mid-way through the stage"
+    if stage == "noise-only":
+        assert not db.exists(), "the joint study started before the first stage ended"
+    else:
+        assert _completed(first) == n1
+    with sqlite3.connect(killed_in) as conn:
         before = conn.execute("SELECT number, value FROM trials WHERE state='complete'").fetchall()
-    # another box is another objective: refused
-    other = run_cli(*args[:-1], "mu=0.5:1.6:linear", "--resume", "-o", str(tmp_path / "o.json"))
-    assert other.returncode == 3, other.stderr
+    if stage == "joint":  # another box is another objective: refused
+        other = run_cli(*args[:-1], "mu=0.5:1.6:linear", "--resume", "-o", str(tmp_path / "o.json"))
+        assert other.returncode == 3, other.stderr
     res = run_cli(*args, "--resume", "-o", str(tmp_path / "resumed.json"))
     assert res.returncode == 0, res.stderr
-    with sqlite3.connect(db) as conn:
+    with sqlite3.connect(killed_in) as conn:
         after = dict(conn.execute("SELECT number, value FROM trials WHERE state='complete'"))
-    assert len(after) == 30 and all(after[n] == v for n, v in before)
+    assert len(after) == n_stage and all(after[n] == v for n, v in before)
+    assert _completed(first) == n1 and _completed(db) == 40 - n1
     resumed = json.loads((tmp_path / "resumed.json").read_text())
     uninterrupted = json.loads((tmp_path / "full.json").read_text())
     assert resumed["params"] == uninterrupted["params"]
     assert resumed["model_params"] == uninterrupted["model_params"]
     assert resumed["cost"] == uninterrupted["cost"]
+    assert resumed["stages"] == {**uninterrupted["stages"], "noise_storage": str(first)}
+
+
+def test_a_joint_tuning_seeds_its_search_with_the_noise_only_optimum(small, tmp_path):
+    """-n 24 with --storage: 6 evaluations of Q alone on the recorded model (a study of its
+    own, the noise-only problem's), then 18 of the joint search whose first evaluated point
+    is that study's best with the model at its recorded values, at the same cost; the tuned
+    file and the held-out line name the noise-only filter, whose held-out β RMSE is the
+    recorded-vehicle filter's at that Q."""
+    from kftune.optim.study import read_study
+
+    db = tmp_path / "study.db"
+    res = run_cli("tune", str(small), "-n", "24", "--storage", str(db), "-o",
+                  str(tmp_path / "t.json"), "--tune-model", "C_af=20000:400000",
+                  "--cost", "nrmse")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    n1 = round(24 * NOISE_STAGE_SHARE)
+    assert f"24 evaluations in two stages: {n1} of the noise alone" in res.stderr
+    assert f"after 24 evaluations ({n1} + {24 - n1}" in res.stdout
+    first = read_study(tmp_path / "study.noise-only.db")
+    joint = read_study(db)
+    assert len(first.records) == n1 and len(joint.records) == 24 - n1
+    assert [p["name"] for p in first.settings["space"]["params"]] == ["q_vx", "q_vy", "q_r"]
+    best = min((r for r in first.records if r.ok), key=lambda r: r.value)
+    ds = open_dataset(str(small))
+    seed = joint.records[0]
+    assert seed.params["C_af"] == pytest.approx(ds.vehicle.C_af, rel=1e-12)
+    for name in ("q_vx", "q_vy", "q_r"):
+        assert seed.params[name] == pytest.approx(best.params[name], rel=1e-9)
+    assert seed.value == pytest.approx(best.value, rel=1e-9)
+    doc = json.loads((tmp_path / "t.json").read_text())
+    assert doc["cost"] <= best.value
+    st = doc["stages"]
+    assert (st["total"], st["noise_budget"], st["joint_budget"]) == (24, n1, 24 - n1)
+    assert st["noise_only"]["cost"] == pytest.approx(best.value, rel=1e-9)
+    held = doc["held_out"]
+    recorded = TuningProblem(ds.train, ds.vehicle, doc["r"])
+    recorded.cov_scale = held["calibration_factor"]
+    q = [best.params[n] for n in ("q_vx", "q_vy", "q_r")]
+    metrics, _ = assess(recorded, q, ds.test)
+    expected = np.mean([row["rmse"] for row in metrics.values()])
+    assert held["noise_only_beta_rmse_deg"] == pytest.approx(expected, rel=1e-9)
+    assert "noise-only filter (Q tuned alone, first stage): β RMSE" in res.stdout
+
+
+def test_a_noise_only_tuning_and_other_methods_run_in_one_stage(small, tmp_path):
+    """No model parameter, or a method that cannot start from a point: one study, no
+    stages record."""
+    runs = {"noise": [], "random": ["-m", "random", "--tune-model", "C_af=20000:400000"]}
+    for name, extra in runs.items():
+        _, doc = _tuned(small, tmp_path, "--storage", str(tmp_path / f"{name}.db"), *extra,
+                        budget="8")  # fmt: skip
+        assert "stages" not in doc and doc["n_evals"] == 8
+        assert not (tmp_path / f"{name}.noise-only.db").exists()
+
+
+def test_a_config_x0_is_accepted_and_a_bad_one_refused_naming_the_key(small, tmp_path):
+    """[options.trbo] x0 is a point of the tuned space: the run checks it (the joint search
+    then starts there, in one stage); one outside the box is refused naming x0 and the
+    parameter, exit 3."""
+    ds = open_dataset(str(small))
+    x0 = [1e-6, 1e-4, 1e-6, ds.vehicle.C_af]
+    config = tmp_path / "x0.toml"
+    config.write_text(f"[options.trbo]\nx0 = {x0!r}\n")
+    joint = ["--tune-model", "C_af=20000:400000", "--cost", "nrmse"]  # Q and C_af: 4 numbers
+    _, doc = _tuned(small, tmp_path, "--config", str(config), *joint, budget="6")
+    assert "stages" not in doc
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f"[options.trbo]\nx0 = {[*x0[:3], 1e6]!r}\n")
+    res = run_cli("tune", str(small), "-n", "6", "--quiet", "--config", str(bad), "-o",
+                  str(tmp_path / "b.json"), *joint)  # fmt: skip
+    assert res.returncode == 3, res.stderr
+    assert "x0" in res.stderr and "C_af" in res.stderr and "Traceback" not in res.stderr
 
 
 # ------------------------------------------------------------ evidence that it generalises --
@@ -404,7 +497,9 @@ def test_a_joint_study_resumes_exactly_after_sigkill(small, tmp_path):
 def test_held_out_shows_the_tuned_q_on_the_recorded_model(small, tmp_path):
     """With a test split: the tuned file's held-out record has the β RMSE of the tuned Q on
     the recorded model, as a noise-only filter on the recorded vehicle at the tuned Q gives."""
-    _, doc = _tuned(small, tmp_path, "--tune-model", "C_af=20000:400000", budget="12")
+    # random search: one stage, whose point is not the recorded model
+    _, doc = _tuned(small, tmp_path, "--tune-model", "C_af=20000:400000", "-m", "random",
+                    budget="12")  # fmt: skip
     held = doc["held_out"]
     ds = open_dataset(str(small))
     noise_only = TuningProblem(ds.train, ds.vehicle, doc["r"])
@@ -424,6 +519,12 @@ def test_held_out_line_warns_when_the_joint_filter_is_worse():
     assert "warning: the tuned model parameters make the filter worse" in worse
     better = held_out_line({**base, "beta_rmse_deg": 0.1, "recorded_model_beta_rmse_deg": 0.15})
     assert "warning" not in better
+    joint = {**base, "recorded_model_beta_rmse_deg": 0.15, "noise_only_beta_rmse_deg": 0.12}
+    noisy = held_out_line({**joint, "beta_rmse_deg": 0.13})
+    assert "noise-only filter (Q tuned alone, first stage): β RMSE 0.120°" in noisy
+    assert "warning: the joint filter is 8.3 % worse" in noisy
+    assert "keeps the joint filter" in noisy
+    assert "noise-only one" not in held_out_line({**joint, "beta_rmse_deg": 0.12})
     manual = held_out_line({**base, "beta_rmse_deg": 0.6, "recorded_model_beta_rmse_deg": 0.7})
     assert "worse there than the manual rule of thumb" in manual
     assert "recorded model" not in held_out_line({**base, "beta_rmse_deg": 0.1})

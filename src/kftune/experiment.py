@@ -32,6 +32,7 @@ from kftune.optim import (
     DEFAULT_METHOD,
     MAX_TIMEOUT,
     METHODS,
+    OptimizationInterrupted,
     OptimizeResult,
     is_study,
     make_optimizer,
@@ -107,6 +108,75 @@ def manual_point(parameterization: NoiseParameterization) -> np.ndarray:
     return np.clip(x, space.lows, space.highs)
 
 
+#: Share of a joint tuning's budget (model parameters tuned with the noise) spent on its
+#: first stage, the noise alone at the recorded model; the second, the joint search, starts
+#: from that stage's best (TR-BO's ``x0``) and so ends no worse than it. Measured on the
+#: bundled set with a wrong vehicle and on revs-250lm (BENCHMARKS.md, "Tuning model
+#: parameters": the budget split of the two stages).
+NOISE_STAGE_SHARE = 0.25
+#: Methods whose search can start from a given point (their option ``x0``): a joint tuning
+#: with one of them runs in two stages (:func:`staging`); the others search the joint box
+#: at once.
+SEEDABLE_METHODS: tuple[str, ...] = ("trbo",)
+
+
+@dataclass(frozen=True)
+class Staging:
+    """How a joint tuning splits its budget: ``noise_budget`` evaluations of the noise
+    alone at the recorded model (stage 1, its study in ``noise_storage``), then
+    ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two."""
+
+    total: int
+    noise_budget: int
+    joint_budget: int
+    noise_storage: Path | None
+
+    def line(self) -> str:
+        """What ``tune`` says about the split."""
+        return (
+            f"{self.total} evaluations in two stages: {self.noise_budget} of the noise alone "
+            f"at the recorded model, then {self.joint_budget} of the joint search starting "
+            "from its best"
+        )
+
+
+def noise_stage_storage(storage: str | Path | None) -> Path | None:
+    """The study file of a joint tuning's first stage: ``<stem>.noise-only<suffix>`` beside
+    ``storage`` (None without storage)."""
+    if storage is None:
+        return None
+    p = Path(storage)
+    return p.with_name(f"{p.stem}.noise-only{p.suffix}")
+
+
+def staging(
+    problem: TuningProblem,
+    method: str,
+    budget: int | None,
+    *,
+    options: Mapping[str, Any] | None = None,
+    engine: Engine | None = None,
+    storage: str | Path | None = None,
+) -> Staging | None:
+    """The two stages of a joint tuning (:class:`Staging`), or None where it runs in one:
+    no model parameter tuned, a method that cannot start from a point
+    (:data:`SEEDABLE_METHODS`), a start point the user gave (option ``x0``), a Dask engine
+    (it holds the joint problem), or a budget below 2. ``budget`` None: the method's
+    default. The split is :data:`NOISE_STAGE_SHARE`."""
+    if (
+        not problem.parameterization.model_names
+        or method not in SEEDABLE_METHODS
+        or "x0" in (options or {})
+        or engine is not None
+    ):
+        return None
+    total = budget if budget is not None else make_optimizer(method, problem.space).budget
+    if total < 2:
+        return None
+    noise = min(total - 1, max(1, round(total * NOISE_STAGE_SHARE)))
+    return Staging(total, noise, total - noise, noise_stage_storage(storage))
+
+
 def tune(
     problem: TuningProblem,
     method: str = DEFAULT_METHOD,
@@ -133,6 +203,14 @@ def tune(
 
     The study (``storage``) records the problem's :meth:`~TuningProblem.fingerprint`, so
     resuming it on other data, another cost or another model is refused.
+
+    With model parameters tuned and a method of :data:`SEEDABLE_METHODS` (TR-BO), the
+    budget runs in two stages (:func:`staging`): the noise alone at the recorded model
+    (:meth:`TuningProblem.noise_only`, its study ``<stem>.noise-only<suffix>`` beside
+    ``storage``), then the joint search from that stage's best (TR-BO's ``x0``: evaluated
+    first, so the joint result is never worse on the training cost). The result is the
+    second stage's; its ``options["x0"]`` holds the first stage's best in the joint space.
+    A Ctrl-C in the first stage raises with its best so far lifted into the joint space.
 
     ``widen_bounds``: while the best point lies on a bound of a log10 parameter, move that
     bound out by two decades and run the method again with the same budget (at most three
@@ -170,6 +248,42 @@ def tune(
             "it with workers = 1 (the worker cannot share its time limit with a pool)"
         )
 
+    stages = staging(problem, method, budget, options=opts, engine=engine, storage=storage)
+    if stages is not None:
+        from kftune.tuning.generalise import joint_point
+
+        noise = problem.noise_only()
+        try:
+            with ProgressBar(
+                stages.noise_budget,
+                f"{LABELS.get(method, method)}, noise only",
+                enabled=progress,
+                note=problem.compile_note(),
+            ) as bar:
+                first = minimize(
+                    noise,
+                    noise.space,
+                    method,
+                    budget=stages.noise_budget,
+                    seed=seed,
+                    storage=None if stages.noise_storage is None else str(stages.noise_storage),
+                    resume=resume,
+                    timeout=timeout,
+                    callback=bar,
+                    objective=noise.fingerprint(),
+                    batch=batch,
+                    **opts,
+                )
+        except OptimizationInterrupted as stop:  # its best so far, as a point of the problem
+            raise OptimizationInterrupted(_lifted(problem, stop.result)) from None
+        finally:
+            noise.close()
+        if first.x is not None:  # every evaluation failed: the joint search starts cold
+            opts["x0"] = [joint_point(problem, first.x).tolist()]
+        budget = total = stages.joint_budget
+        # the joint study is created after the first stage's: a resume starts it then
+        resume = resume and storage is not None and Path(storage).exists()
+
     def run(space: Any, study: Path | None) -> OptimizeResult:
         label = LABELS.get(method, method)
         with ProgressBar(total, label, enabled=progress, note=problem.compile_note()) as bar:
@@ -194,6 +308,22 @@ def tune(
             run, problem.space, storage=storage, fixed=problem.parameterization.model_names
         )
     return run(problem.space, None if storage is None else Path(storage))
+
+
+def _lifted(problem: TuningProblem, result: OptimizeResult) -> OptimizeResult:
+    """A first stage's result (noise-only space) with its best point in ``problem``'s joint
+    space (the model parameters at their start), for what an interrupted run keeps."""
+    from kftune.tuning.generalise import joint_point
+
+    if result.x is None:
+        return replace(result, space=problem.space.to_dict())
+    x = joint_point(problem, result.x)
+    return replace(
+        result,
+        x=x,
+        params=dict(zip(problem.space.names, x.tolist())),
+        space=problem.space.to_dict(),
+    )
 
 
 def on_bounds(result: OptimizeResult) -> list[dict[str, Any]]:
@@ -577,19 +707,31 @@ def run_compare(
             problem(manual_point(problem.parameterization))
         for method in settings.methods:
             storage = studies / f"{file_stem(method)}.db"  # a registry name: unchanged
+            budget = settings.budgets.get(method, compare_budget(method))
+            options = settings.method_options.get(method)
+            # a joint tuning with TR-BO runs in two stages, as tune's (the first one's study
+            # beside the method's: studies/trbo.noise-only.db)
+            stages = staging(problem, method, budget, options=options, storage=storage)
+            first = noise_stage_storage(storage)
             result = tune(
                 problem,
                 method,
-                budget=settings.budgets.get(method, compare_budget(method)),
+                budget=budget,
                 seed=settings.seed,
                 storage=storage,
-                resume=resume and storage.exists(),
+                resume=resume and (storage.exists() or (first is not None and first.exists())),
                 progress=progress,
-                options=settings.method_options.get(method),
+                options=options,
             )
             run, betas = method_run(
                 method, result, problem, splits, None if channels is None else list(channels)
             )
+            if stages is not None:
+                run.extra["stages"] = {
+                    "total": stages.total,
+                    "noise_budget": stages.noise_budget,
+                    "joint_budget": stages.joint_budget,
+                }
             if problem.parameterization.model_names and method != "manual":
                 from kftune.tuning.identify import identify_problem
 
@@ -630,7 +772,9 @@ def run_compare(
         + f"] ({', '.join(problem.model.measurement_names)} variances)",
         "seed": settings.seed,
         "burn_in_s": settings.burn_in,
-        "budgets": {r.key: r.n_evals for r in runs},
+        "budgets": {  # a two-stage joint tuning: both stages
+            r.key: r.n_evals + r.extra.get("stages", {}).get("noise_budget", 0) for r in runs
+        },
         "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "kftune_version": __version__,
         "command": command,

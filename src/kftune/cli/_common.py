@@ -146,6 +146,11 @@ _SECTION_KEYS = {
 }
 
 
+#: Method options that hold points of the tuned space, checked by the run (the space's
+#: dimension is not known when the configuration is read).
+_POINT_OPTIONS: frozenset[tuple[str, str]] = frozenset({("manual", "points"), ("trbo", "x0")})
+
+
 def load_config(path: str | Path | None, command: str | None = None) -> dict[str, Any]:
     """Read and check a TOML configuration; ``None`` gives an empty one.
 
@@ -204,9 +209,10 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
                 f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
                 f"{list(METHODS)}, got {method!r}"
             )
-        # names and values, on a one-parameter space, before anything runs (manual points
-        # depend on the tuned space's dimension: the run checks them)
-        checkable = {k: v for k, v in opts.items() if not (method == "manual" and k == "points")}
+        # names and values, on a one-parameter space, before anything runs (points — the
+        # manual method's and TR-BO's start points — depend on the tuned space's
+        # dimension: the run checks them)
+        checkable = {k: v for k, v in opts.items() if (method, k) not in _POINT_OPTIONS}
         try:
             make_optimizer(method, {"x": (0.0, 1.0)}, seed=0, **checkable)
         except PeerUnavailableError:

@@ -420,7 +420,7 @@ def calibrate(
     from kftune.tuning.calibrate import calibrate as fit
 
     try:
-        return fit(problem, x), None
+        return fit(problem, x, criterion=criterion), None
     except KeyboardInterrupt:
         return None, "skipped (interrupted); the tuned parameters are saved uncalibrated"
     except (CalibrationError, KftuneError, ValueError) as exc:

@@ -49,6 +49,26 @@ def recorded_model_point(problem: TuningProblem, x: Sequence[float] | np.ndarray
     return out
 
 
+def joint_point(problem: TuningProblem, x_noise: Sequence[float] | np.ndarray) -> np.ndarray:
+    """(d,) the point of ``problem``'s joint space that is the point ``x_noise`` of its
+    :meth:`~TuningProblem.noise_only` space (the noise parameters, natural units) with every
+    tuned model parameter at its start (recorded) value: the same filter, so the same cost.
+
+    Raises:
+        ValueError: ``x_noise`` is not a point of the noise-only space.
+    """
+    par = problem.parameterization
+    noise_names = [n for n in par.space.names if n not in par.model_names]
+    x_noise = np.asarray(x_noise, dtype=float)
+    if x_noise.shape != (len(noise_names),):
+        raise ValueError(
+            f"expected a point of {len(noise_names)} noise parameters {noise_names}, got shape "
+            f"{x_noise.shape}"
+        )
+    values = {**dict(zip(noise_names, x_noise.tolist())), **par.model_start}
+    return np.array([values[n] for n in par.space.names], dtype=float)
+
+
 def beta_rmse_deg(problem: TuningProblem, x: np.ndarray, m: Any) -> float | None:
     """β RMSE [deg] of the filter at x on manoeuvre m after the burn-in (None: it
     diverged, or m has no sideslip reference)."""

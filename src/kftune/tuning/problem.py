@@ -11,6 +11,7 @@ that ran away to an impossible sideslip or speed, see :mod:`kftune.filters._kern
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -1348,6 +1349,21 @@ class TuningProblem:
         return self._fs.run(
             manoeuvre, vehicle, q, r, settings, params=params, cov_scale=self.cov_scale
         )
+
+    def noise_only(self) -> TuningProblem:
+        """This problem with no model parameter tuned: the same manoeuvres, recorded model,
+        R, cost and burn-in, the noise (and sigma-point) parameters alone — the first stage
+        of a joint tuning, and what ``kftune tune`` without ``--tune-model`` would tune (the
+        same fingerprint). Shares nothing mutable: close it after use when ``workers`` > 1
+        (it starts its own pool)."""
+        other = copy.copy(self)
+        other.parameterization = replace(
+            self.parameterization, model_bounds={}, model_scales={}, model_start={}
+        )
+        other._model_index = []
+        other._pool = None
+        other.cov_scale = 1.0
+        return other
 
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
