@@ -307,7 +307,8 @@ def test_joint_tuning_far_from_the_friction_limit_determines_the_stiffnesses_not
     assert not mu.determined and mu.limits in ("lower", "none"), mu.describe()
     assert mu.reason is not None and "% of μ·g, no sample near the friction limit" in mu.reason
     lines = "\n".join(out.lines())
-    assert "mu = " in lines and "NOT determined" in lines and "friction limit" in lines
+    verdict = "not assessed" if mu.better is not None else "NOT determined"
+    assert "mu = " in lines and verdict in lines and "friction limit" in lines
     json.dumps(out.to_dict(), allow_nan=False)
 
 
@@ -459,3 +460,92 @@ def test_a_negative_cost_takes_its_rise_relative_to_its_magnitude():
 
     assert rise_pct(-4.95, -5.0) == pytest.approx(1.0)  # a rise, in % of |J*|
     assert rise_pct(2.02, 2.0) == pytest.approx(1.0) and rise_pct(0.5, 0.0) == 50.0
+
+
+@pytest.mark.parametrize("shift", [0.0, 1e3, -1e3])
+def test_a_mean_log_likelihood_ends_its_range_at_the_likelihood_ratio_rise(shift):
+    """For a mean negative log-likelihood over N samples the range ends where N·ΔJ is
+    χ²₁(0.95)/2 (scipy's quantile), whatever constant the units add to J: the half-width
+    along k is √(2ΔJ/H_kk) for J* = 2, 1002 and −998 alike; the NRMSE kinds keep the
+    relative rise (no absolute one)."""
+    from scipy.stats import chi2
+
+    from kftune.tuning.identify import rise_of
+
+    n = 4000
+    delta_j = rise_of("nlpd", n)
+    assert delta_j == pytest.approx(chi2.ppf(0.95, df=1) / 2 / n, rel=1e-12)
+    assert rise_of("pem", n) == delta_j
+    assert rise_of("nrmse", n) is None and rise_of("crps", n) is None
+
+    def cost(points: np.ndarray) -> np.ndarray:
+        return quadratic(HESSIAN)(points) + shift
+
+    out = identify(cost, SPACE, X_BEST, ["k"], abs_rise=delta_j, n_scored=n)
+    (k,) = out.parameters
+    assert k.delta_j == delta_j and out.abs_rise == delta_j and out.n_scored == n
+    half = math.sqrt(2 * delta_j / HESSIAN[0, 0])
+    assert math.log10(k.range_high / k.value) == pytest.approx(half, rel=1e-6)
+    assert "N = 4000 scored samples" in out.lines()[0]
+    back = type(out).from_dict(json.loads(json.dumps(out.to_dict(), allow_nan=False)))
+    assert back.abs_rise == delta_j and back.n_scored == n
+
+
+def test_an_indefinite_curvature_matrix_leaves_no_parameter_determined():
+    """Each profile alone is a narrow valley (positive H_kk, H_cc), but the cross term
+    makes H indefinite (a saddle): the joint check cannot be made, so neither parameter
+    is called determined, and the text says why."""
+    a, b = 200.0, 2000.0
+    hessian = np.diag([a, 0.0, b])
+    hessian[0, 2] = hessian[2, 0] = 2.0 * math.sqrt(a * b)  # correlation 2: a saddle
+    assert np.linalg.eigvalsh(hessian[np.ix_([0, 2], [0, 2])]).min() < 0
+    k, c = identify(quadratic(hessian), SPACE, X_BEST, ["k", "c"]).parameters
+    for rec in (k, c):
+        assert rec.limits == "both" and rec.share < NOT_DETERMINED_SHARE
+        assert not rec.determined and rec.joint_half_width is None
+        assert "not checked jointly: the curvature matrix is not positive definite" in (
+            rec.describe()
+        )
+
+
+def test_a_profile_point_below_the_tuned_one_leaves_the_parameter_not_assessed():
+    """A narrow valley along b whose bottom lies 0.08 beside the tuned point: the profile
+    closes on both sides within 1 % of the box, but the cost is lower at a profile point,
+    so no range and no verdict are given: "not assessed", naming the lower point."""
+    t_best = search_t(X_BEST)[0] + np.array([0.0, 0.08, 0.0])
+    (b,) = identify(quadratic(HESSIAN, t_best), SPACE, X_BEST, ["b"]).parameters
+    assert b.limits == "both" and b.share < NOT_DETERMINED_SHARE
+    assert b.better is not None and b.better[1] < b.cost
+    text = b.describe()
+    assert not b.determined
+    assert "not assessed: the search had not converged along b (the cost is lower at b =" in text
+    assert "determined" not in text and " … " not in text
+
+
+def test_a_model_files_hints_cannot_fail_tune_nor_flood_its_text():
+    """param_hints is a model file's code: an exception becomes one line naming its type,
+    a long text is cut, names that are not tuned (or not names) are ignored."""
+    from types import SimpleNamespace
+
+    from kftune.tuning.identify import HINT_CHARS, _hints
+
+    def model(hook):
+        return SimpleNamespace(param_hints=hook, input_names=(), measurement_names=())
+
+    def problem(hook):
+        return SimpleNamespace(model=model(hook), manoeuvres=[], params_at=lambda x: x)
+
+    def raises(runs, params):
+        raise ZeroDivisionError("secret /home/user/model.py line 3")
+
+    said = _hints(problem(raises), np.zeros(1), ["C_af"])
+    assert said == {"C_af": "hint failed: ZeroDivisionError"}
+    long = _hints(
+        problem(lambda runs, p: {"C_af": "x" * 5000, "mu": "not tuned", 3: "odd"}),
+        np.zeros(1),
+        ["C_af"],
+    )
+    assert list(long) == ["C_af"] and len(long["C_af"]) < HINT_CHARS + 40
+    assert _hints(problem(lambda runs, p: {"C_af": "short"}), np.zeros(1), ["C_af"]) == {
+        "C_af": "short"
+    }

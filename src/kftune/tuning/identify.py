@@ -33,7 +33,14 @@ and one at x* shared by all.
 * **Determined** when the range is closed on both sides (the cost rises by ΔJ before
   either bound) and spans less than :data:`NOT_DETERMINED_SHARE` of the box; otherwise the
   parameter is said plainly to be not determined — only a lower limit, only an upper limit,
-  or flat across the box. ΔJ is :data:`REL_RISE` (1 %) of J*.
+  or flat across the box. ΔJ is chosen by the cost's kind (:func:`rise_of`): for a cost
+  that is a mean negative log-likelihood per scored sample (``nlpd``, ``pem``: shifted by
+  unit-dependent constants, J* may be near 0 or negative, so a share of |J*| means
+  nothing) the likelihood-ratio rise ΔJ = χ²₁(0.95)/(2N) ≈ 1.92/N with N the scored
+  samples, pooled over the manoeuvres (the profile range is then a 95 % likelihood-ratio
+  interval; the samples of a recording are correlated, so N overstates the independent
+  information and the interval is if anything too narrow); for any other cost (the NRMSE
+  kinds) :data:`REL_RISE` (1 %) of |J*|.
 
 The profile is conditional (the other coordinates held, not re-optimised at each point)
 because a re-optimised profile costs a tuning run per point — some hundred evaluations
@@ -78,6 +85,14 @@ if TYPE_CHECKING:
 
 #: Relative rise of the cost that marks the edge of a parameter's confidence range.
 REL_RISE = 0.01
+#: Costs that are a mean negative log-likelihood per scored sample: their range ends at
+#: the likelihood-ratio rise (:func:`rise_of`), not at a share of |J*|.
+MEAN_NLL_KINDS: tuple[str, ...] = ("nlpd", "pem")
+#: What a parameter's range is when the search matrix over the tuned parameters has no
+#: positive definite quadratic: the one-parameter profile cannot rule out a trade-off.
+NOT_JOINT = (
+    "not checked jointly: the curvature matrix is not positive definite — parameters may trade off"
+)
 #: A parameter whose range spans at least this share of its box is not determined.
 NOT_DETERMINED_SHARE = 0.5
 #: Correlations of at least this size are named with a parameter.
@@ -130,6 +145,8 @@ class ParameterIdentifiability:
         correlations: other reported parameter → the correlation
             (H⁻¹)_ij / √((H⁻¹)_ii·(H⁻¹)_jj) of the two estimates (near ±1: the data
             determine a combination of them, not each).
+        joint_note: why the joint check could not be made (:data:`NOT_JOINT`), None
+            where it was made or not needed; such a parameter is not determined.
     """
 
     name: str
@@ -156,6 +173,7 @@ class ParameterIdentifiability:
     reason: str | None = None
     joint_half_width: float | None = None
     correlations: Mapping[str, float] = field(default_factory=dict)
+    joint_note: str | None = None
 
     @property
     def ratio(self) -> float | None:
@@ -209,6 +227,7 @@ class ParameterIdentifiability:
             "reason": self.reason,
             "cost": self.cost,
             "delta_j": self.delta_j,
+            "joint_note": self.joint_note,
         }
 
     @classmethod
@@ -248,6 +267,7 @@ class ParameterIdentifiability:
                 reason=None if d["reason"] is None else str(d["reason"]),
                 joint_half_width=_float_or_none(d["joint_half_width"]),
                 correlations={str(k): float(v) for k, v in dict(d["correlations"]).items()},
+                joint_note=None if d.get("joint_note") is None else str(d["joint_note"]),
             )
         except KeyError as exc:
             raise ValueError(f"parameter {name!r}: no {exc.args[0]!r}") from None
@@ -264,6 +284,13 @@ class ParameterIdentifiability:
         if self.on_bound is not None:
             bound = self.low if self.on_bound == "lower" else self.high
             text += f", on its {self.on_bound} bound {bound:g}"
+        if self.better is not None:  # not a minimum along it: no range can be read
+            v, j = self.better
+            text += (
+                f": not assessed: the search had not converged along {self.name} (the cost "
+                f"is lower at {self.name} = {v:.4g}, {rise_pct(j, self.cost):+.2g} %)"
+            )
+            return text + (f"\n      {self.reason}" if self.reason else "")
         lo, hi = self.range_low, self.range_high
         span = f"{lo:.3g} … {hi:.3g}"
         partner = max(self.correlations.items(), key=lambda kv: abs(kv[1]), default=None)
@@ -281,7 +308,8 @@ class ParameterIdentifiability:
                 text += f"; {traded}"
         else:
             what = {
-                "both": f"{span} with the others held, but {traded or 'not jointly'}"
+                "both": f"{span} with the others held, but "
+                + (traded or self.joint_note or "not jointly")
                 if self.share < NOT_DETERMINED_SHARE
                 else f"the range {span} spans {100 * self.share:.0f} % of the box",
                 "lower": f"only a lower limit, ≥ {lo:.3g} ("
@@ -301,12 +329,6 @@ class ParameterIdentifiability:
                 "none": f"the cost is flat across the box [{self.low:g}, {self.high:g}]",
             }[self.limits]
             text += f": NOT determined by these data — {what}"
-        if self.better is not None:
-            v, j = self.better
-            text += (
-                f"; the cost is lower at {self.name} = {v:.4g} ({rise_pct(j, self.cost):+.2g} "
-                "%): the search had not converged along it"
-            )
         if self.reason and not self.determined:
             text += f"\n      {self.reason}"
         return text
@@ -318,13 +340,18 @@ class Identifiability:
 
     Attributes:
         parameters: one record per reported parameter, in search-space order.
-        rel_rise: ΔJ / J*. n_evals: the cost evaluations spent. method: what was held.
+        rel_rise: ΔJ / |J*| where the range ends at a relative rise. n_evals: the cost
+            evaluations spent. method: what was held.
+        abs_rise: ΔJ itself where the range ends at an absolute rise (a mean negative
+            log-likelihood: :func:`rise_of`), else None; n_scored: the N of that rise.
     """
 
     parameters: tuple[ParameterIdentifiability, ...]
     rel_rise: float
     n_evals: int
     method: str = METHOD
+    abs_rise: float | None = None
+    n_scored: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``identifiability`` of the tuned file and ``--json``)."""
@@ -333,6 +360,8 @@ class Identifiability:
             "rel_rise": self.rel_rise,
             "not_determined_share": NOT_DETERMINED_SHARE,
             "n_evals": self.n_evals,
+            "abs_rise": self.abs_rise,
+            "n_scored": self.n_scored,
             "parameters": {p.name: p.to_dict() for p in self.parameters},
         }
 
@@ -352,6 +381,8 @@ class Identifiability:
                 float(d["rel_rise"]),
                 int(d["n_evals"]),
                 str(d["method"]),
+                _float_or_none(d.get("abs_rise")),
+                None if d.get("n_scored") is None else int(d["n_scored"]),
             )
         except KeyError as exc:
             raise ValueError(f"no {exc.args[0]!r}") from None
@@ -362,10 +393,16 @@ class Identifiability:
         """What ``kftune tune`` prints; nothing without parameters."""
         if not self.parameters:
             return []
+        rise = (
+            f"{100 * self.rel_rise:g} %"
+            if self.abs_rise is None
+            else f"χ²₁(0.95)/2N = {self.abs_rise:.3g} (a likelihood-ratio 95 % interval, "
+            f"N = {self.n_scored} scored samples)"
+        )
         out = [
-            f"tuned model parameters (range: where the cost rises by less than "
-            f"{100 * self.rel_rise:g} % with the other parameters held, narrower than with "
-            f"them re-fitted; {self.n_evals} extra evaluations):"
+            f"tuned model parameters (range: where the cost rises by less than {rise} with "
+            f"the other parameters held, narrower than with them re-fitted; {self.n_evals} "
+            "extra evaluations):"
         ]
         out += [f"  {p.describe()}" for p in self.parameters]
         return out
@@ -381,6 +418,8 @@ def identify(
     units: Mapping[str, str] | None = None,
     reasons: Mapping[str, str] | None = None,
     rel_rise: float = REL_RISE,
+    abs_rise: float | None = None,
+    n_scored: int | None = None,
 ) -> Identifiability:
     """Profile the cost along each parameter in ``names`` around ``x_best`` (module
     docstring): at most :data:`MAX_EVALS_PER_PARAMETER` evaluations per parameter and one
@@ -395,10 +434,12 @@ def identify(
         reasons: name → a physical reason the data may not determine it (printed with a
             parameter found not determined).
         rel_rise: ΔJ / |J*|, the rise that ends a range (> 0).
+        abs_rise: ΔJ itself (> 0), in place of ``rel_rise`` (a mean negative
+            log-likelihood: :func:`rise_of`); n_scored: its N, recorded with it.
 
     Raises:
-        ValueError: a name not in the space, a point outside it, ``rel_rise`` ≤ 0, or a
-            best point whose cost is not finite.
+        ValueError: a name not in the space, a point outside it, ``rel_rise`` or
+            ``abs_rise`` ≤ 0, or a best point whose cost is not finite.
     """
     x = np.asarray(x_best, dtype=float)
     if x.shape != (space.dim,):
@@ -410,6 +451,10 @@ def identify(
         raise ValueError("x_best lies outside the search space")
     if not (isinstance(rel_rise, (int, float)) and rel_rise > 0 and math.isfinite(rel_rise)):
         raise ValueError(f"rel_rise must be a positive number, got {rel_rise!r}")
+    if abs_rise is not None and not (
+        isinstance(abs_rise, (int, float)) and abs_rise > 0 and math.isfinite(abs_rise)
+    ):
+        raise ValueError(f"abs_rise must be a positive number, got {abs_rise!r}")
     plans = {n: _profile_offsets(space, x, space.names.index(n)) for n in names}
     points = [x]
     for n, offsets in plans.items():
@@ -427,7 +472,10 @@ def identify(
     j0 = float(values[0])
     if not math.isfinite(j0):
         raise ValueError("the cost at the best point is not finite")
-    delta_j = rel_rise * abs(j0) if j0 != 0 else rel_rise
+    if abs_rise is not None:
+        delta_j = float(abs_rise)
+    else:
+        delta_j = rel_rise * abs(j0) if j0 != 0 else rel_rise
     records = []
     k = 1
     for n, offsets in plans.items():
@@ -448,7 +496,29 @@ def identify(
             )
         )
     pairs = _joint(cost, space, x, records, plans, values, delta_j)
-    return Identifiability(tuple(pairs[0]), float(rel_rise), len(points) + pairs[1])
+    return Identifiability(
+        tuple(pairs[0]),
+        float(rel_rise),
+        len(points) + pairs[1],
+        abs_rise=None if abs_rise is None else float(abs_rise),
+        n_scored=n_scored if abs_rise is not None else None,
+    )
+
+
+def rise_of(kind: str, n_scored: int) -> float | None:
+    """The absolute rise ΔJ that ends a range for a cost of ``kind`` over ``n_scored``
+    samples, or None for the relative :data:`REL_RISE`: a mean negative log-likelihood
+    per sample (:data:`MEAN_NLL_KINDS`) rises by χ²₁(0.95)/(2N) at the edge of the 95 %
+    likelihood-ratio interval (N·ΔJ = 1.92: twice the log-likelihood ratio is χ²₁),
+    whatever constant the units add to J; the NRMSE kinds scale with the error, so a
+    share of J* is the invariant rise there."""
+    if kind not in MEAN_NLL_KINDS:
+        return None
+    if n_scored <= 0:
+        raise ValueError(f"need a positive number of scored samples, got {n_scored!r}")
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(0.95, 1)) / (2.0 * n_scored)
 
 
 def _joint(
@@ -502,8 +572,12 @@ def _joint(
             raise np.linalg.LinAlgError
         np.linalg.cholesky(hess)
         cov = np.linalg.inv(hess)
-    except np.linalg.LinAlgError:
-        return list(records), len(points)  # no joint quadratic: the profile's word stands
+    except np.linalg.LinAlgError:  # no joint quadratic: a trade-off cannot be ruled out
+        unchecked = {r.name for r in curved}
+        return [
+            replace(r, determined=False, joint_note=NOT_JOINT) if r.name in unchecked else r
+            for r in records
+        ], len(points)
     sd = np.sqrt(np.diag(cov))
     joint = {}
     for a, r in enumerate(curved):
@@ -535,19 +609,20 @@ def identify_problem(
     as a rise of the cost), and the model's physical reasons
     (:attr:`~kftune.models.StateSpaceModel.param_hints`) on the training manoeuvres at
     the best point's model parameters. J is the cost as tuned: with the covariance scale
-    1, whatever calibration ``problem.cov_scale`` holds (restored afterwards)."""
+    1, whatever calibration ``problem.cov_scale`` holds (restored afterwards). The rise
+    that ends a range follows the cost's kind (:func:`rise_of`, N the samples scored after
+    the burn-in over all manoeuvres)."""
+    from kftune.tuning.problem import first_scored
+
     par = problem.parameterization
     names = par.model_names if names is None else tuple(names)
     if not names:
         return Identifiability((), float(rel_rise), 0)
     model = problem.model
     units = dict(zip(model.param_names, model.param_units))
-    reasons: dict[str, str] = {}
-    if model.param_hints is not None:
-        channels = (*model.input_names, *model.measurement_names)
-        runs = [(m.dt, {c: m.channel(c) for c in channels if m.has(c)}) for m in problem.manoeuvres]
-        said = model.param_hints(runs, np.asarray(problem.params_at(x_best), dtype=float))
-        reasons = {k: v for k, v in said.items() if k in names}
+    reasons = _hints(problem, x_best, names)
+    n_scored = sum(m.n - first_scored(m, problem.burn_in) for m in problem.manoeuvres)
+    abs_rise = rise_of(problem.cost_spec.kind, n_scored)
 
     def cost(points: np.ndarray) -> np.ndarray:
         out = problem.evaluate_batch(points)
@@ -564,9 +639,41 @@ def identify_problem(
             units=units,
             reasons=reasons,
             rel_rise=rel_rise,
+            abs_rise=abs_rise,
+            n_scored=n_scored,
         )
     finally:
         problem.cov_scale = scale
+
+
+#: The most characters of a model's hint that are kept (a model file's text).
+HINT_CHARS = 200
+
+
+def _hints(
+    problem: TuningProblem, x_best: Sequence[float] | np.ndarray, names: Sequence[str]
+) -> dict[str, str]:
+    """The model's physical reasons (:attr:`~kftune.models.StateSpaceModel.param_hints`)
+    for the tuned ``names``, on the training manoeuvres at the best point. The hook may
+    come from a user's model file: an exception is reported as one line naming its type
+    (no traceback), texts are cut to :data:`HINT_CHARS`, names not tuned are ignored."""
+    from kftune.errors import excerpt
+
+    model = problem.model
+    if model.param_hints is None:
+        return {}
+    channels = (*model.input_names, *model.measurement_names)
+    runs = [(m.dt, {c: m.channel(c) for c in channels if m.has(c)}) for m in problem.manoeuvres]
+    try:
+        said = model.param_hints(runs, np.asarray(problem.params_at(x_best), dtype=float))
+        items = list(dict(said).items())
+    except Exception as exc:  # a model file's code: its failure is no failure of tune
+        return {n: f"hint failed: {type(exc).__name__}" for n in names}
+    return {
+        k: v if isinstance(v, str) and len(v) <= HINT_CHARS else excerpt(v, HINT_CHARS)
+        for k, v in items
+        if isinstance(k, str) and k in names
+    }
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -673,7 +780,8 @@ def _record(
         closed_low=closed_lo,
         closed_high=closed_hi,
         share=float(min(share, 1.0)),
-        determined=closed_lo and closed_hi and share < NOT_DETERMINED_SHARE,
+        # a lower profile point: x* is no minimum along it, so no range can be read
+        determined=closed_lo and closed_hi and share < NOT_DETERMINED_SHARE and better is None,
         better=better,
         profile=tuple(profile),
         reason=reason,
