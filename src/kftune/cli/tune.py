@@ -84,12 +84,16 @@ from kftune.tuning.calibrate import DEFAULT_CRITERION
 
 if TYPE_CHECKING:
     from kftune.data import Dataset
+    from kftune.experiment import Staging
     from kftune.optim import OptimizeResult
     from kftune.tuning.calibrate import Calibration
     from kftune.tuning.identify import Identifiability
     from kftune.tuning.problem import TuningProblem
 
 TUNED_FORMAT = "kftune-tuned-1"
+#: A held-out β RMSE above another by at most this factor is no worse: the same filter run
+#: from a point that went through the unit cube and back differs in the last digits.
+SAME_RMSE = 1.0 + 1e-6
 
 
 def register(subparsers: Any) -> None:
@@ -200,14 +204,22 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--no-calibration contradicts --calibration {args.calibration}")
     criterion = "none" if not args.calibrate else pick(args, config, "calibration", None)
     criterion = criterion or DEFAULT_CRITERION
-    if args.resume and args.storage is not None and not args.storage.exists():
+    from kftune.experiment import noise_stage_storage
+
+    first_stage = noise_stage_storage(args.storage)  # a joint tuning's first stage
+    if (
+        args.resume
+        and args.storage is not None
+        and not args.storage.exists()
+        and not (first_stage is not None and first_stage.exists())
+    ):
         raise ConfigError(
             f"--resume: study file {args.storage} does not exist (a misspelt name would "
             "start afresh); leave out --resume to start a new study there"
         )
     if args.storage is not None and not args.resume:
-        for k in range(WIDEN_ROUNDS + 1 if widen else 1):
-            study = round_storage(args.storage, k)
+        studies = [round_storage(args.storage, k) for k in range(WIDEN_ROUNDS + 1 if widen else 1)]
+        for study in [*studies, first_stage]:
             if study is not None and study.exists():
                 raise ConfigError(
                     f"study file {study} already exists; pass --resume to continue it, or "
@@ -216,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     result = problem = dataset = None
     try:  # from here on a Ctrl-C says what was kept, also before the first evaluation
         from kftune.data import open_dataset
-        from kftune.experiment import require_success, tune
+        from kftune.experiment import require_success, staging, tune
         from kftune.optim import OptimizationInterrupted
         from kftune.optim.engine import EngineLostError
         from kftune.tuning.problem import TuningProblem, check_units, default_r0
@@ -244,17 +256,24 @@ def run(args: argparse.Namespace) -> int:
             filter=fs.filter,
         )
         with problem, _engine(problem, scheduler, workers) as engine:
+            budget = pick(args, config, "budget", None)
+            options = config.get("options", {}).get(method)
+            stages = staging(
+                problem, method, budget, options=options, engine=engine, storage=args.storage
+            )
+            if stages is not None and not (args.quiet or args.json):
+                print(stages.line(), file=sys.stderr, flush=True)
             try:
                 result = tune(
                     problem,
                     method,
-                    budget=pick(args, config, "budget", None),
+                    budget=budget,
                     seed=pick(args, config, "seed", 0),
                     storage=args.storage,
                     resume=args.resume,
                     timeout=pick(args, config, "timeout", None),
                     progress=False if (args.quiet or args.json) else None,
-                    options=config.get("options", {}).get(method),
+                    options=options,
                     widen_bounds=widen,
                     engine=engine,
                     batch=pick(args, config, "batch", None),
@@ -270,6 +289,10 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     require_success(result, method)
     doc = tuned_document(result, problem, dataset, args.out)
+    noise_x = None
+    if stages is not None and result.options.get("x0"):  # the first stage's best
+        noise_x = result.options["x0"][0]
+        doc["stages"] = stages_record(stages, result, noise_x, problem)
     # The result first: nothing after this line can lose it.
     write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out", _kept(args))
     # an interrupted run's best-so-far (see _interrupted) is superseded now
@@ -284,7 +307,7 @@ def run(args: argparse.Namespace) -> int:
         doc["calibration"] = cal.as_dict("train")
         doc["deployment"]["calibration"] = calibration_record(cal.factor)
         problem.cov_scale = cal.factor  # the held-out evidence is the calibrated filter's
-    doc["held_out"], no_evidence = held_out(problem, result.x, dataset)
+    doc["held_out"], no_evidence = held_out(problem, result.x, dataset, noise_only=noise_x)
     if doc["held_out"] is not None or cal is not None:
         write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
     ident, no_ident = identifiability(problem, result.x, quiet=args.quiet or args.json)
@@ -294,13 +317,21 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json({**doc, "file": str(args.out)})
     else:
+        evals = f"{result.n_evals} evaluations ({result.n_failed} failed)"
+        if "stages" in doc:  # the failures are the joint search's; its first is stage 1's best
+            st = doc["stages"]
+            evals = (
+                f"{st['noise_budget'] + result.n_evals} evaluations ({st['noise_budget']} + "
+                f"{result.n_evals}, {result.n_failed} of the joint search failed)"
+            )
         print(
-            f"{method}: best cost {result.fun:.5g} after {result.n_evals} evaluations "
-            f"({result.n_failed} failed) on {len(dataset.train)} training manoeuvres of "
-            f"{dataset.name!r}"
+            f"{method}: best cost {result.fun:.5g} after {evals} on {len(dataset.train)} "
+            f"training manoeuvres of {dataset.name!r}"
         )
         if problem.model_spec != "single-track" or problem.filter != "ukf":
             print(f"  model {problem.model.name!r}, filter {problem.filter}")
+        if "stages" in doc:
+            print(stages_line(doc["stages"]))
         for name, value in (result.params or {}).items():
             print(f"  {name:10s} = {value:.4e}")
         for line in failure_lines(result):
@@ -427,8 +458,38 @@ def calibrate(
         return None, f"{exc}; the tuned file records the filter uncalibrated"
 
 
+def stages_record(
+    stages: Staging, result: OptimizeResult, noise_x: Any, problem: TuningProblem
+) -> dict[str, Any]:
+    """The tuned file's ``stages``: how a joint tuning split its budget, and the first
+    stage's best — the noise-only filter (its point in the joint space, the model at its
+    recorded values; its cost is the joint search's first evaluation)."""
+    first = result.history[0] if result.history else None
+    return {
+        "total": stages.total,
+        "noise_budget": stages.noise_budget,
+        "joint_budget": stages.joint_budget,
+        "noise_storage": None if stages.noise_storage is None else str(stages.noise_storage),
+        "noise_only": {
+            "cost": first.value if first is not None else None,
+            "params": dict(zip(problem.space.names, [float(v) for v in noise_x])),
+        },
+    }
+
+
+def stages_line(rec: dict[str, Any]) -> str:
+    """What ``tune`` says about a joint tuning's two stages (its ``stages`` record)."""
+    cost = rec["noise_only"]["cost"]
+    return (
+        f"  in two stages: {rec['noise_budget']} evaluations of the noise alone at the "
+        "recorded model (best cost "
+        + ("failed" if cost is None else f"{cost:.5g}")
+        + f"), then {rec['joint_budget']} of the joint search starting from it"
+    )
+
+
 def held_out(
-    problem: TuningProblem, x: Any, dataset: Dataset
+    problem: TuningProblem, x: Any, dataset: Dataset, noise_only: Any = None
 ) -> tuple[dict[str, Any] | None, str | None]:
     """The evidence that the lower training cost is the better filter: the tuned filter and
     the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
@@ -441,6 +502,9 @@ def held_out(
     (``recorded_model_beta_rmse_deg``, :func:`kftune.tuning.generalise.recorded_model_point`),
     and without a test split a leave-one-out over the training manoeuvres instead
     (``split: "train"``, ``cross_validation``: :func:`kftune.tuning.generalise.leave_one_out`).
+    ``noise_only``: the first stage's best of a two-stage joint tuning (a point of the
+    joint space, the model at its recorded values), scored alike
+    (``noise_only_beta_rmse_deg``, calibrated with the same c).
 
     Returns:
         (evidence, why not): evidence None without test manoeuvres or sideslip output (no
@@ -478,6 +542,8 @@ def held_out(
     points = [("tuned", x), ("manual", manual_point(problem.parameterization))]
     if joint:  # the tuned noise on the model the user was handed (calibrated alike)
         points.append(("recorded_model", recorded_model_point(problem, x)))
+    if noise_only is not None:  # the noise tuned alone at that model (calibrated alike)
+        points.append(("noise_only", noise_only))
     try:
         for key, point in points:
             problem.cov_scale = 1.0 if key == "manual" else scale
@@ -501,6 +567,7 @@ def held_out(
         "beta_rmse_deg": rmse["tuned"],
         "manual_beta_rmse_deg": rmse["manual"],
         **({"recorded_model_beta_rmse_deg": rmse["recorded_model"]} if joint else {}),
+        **({"noise_only_beta_rmse_deg": rmse["noise_only"]} if noise_only is not None else {}),
         "consistency": consistency,
         "calibration_factor": scale,
     }, None
@@ -521,11 +588,21 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
     tuned, manual = h["beta_rmse_deg"], h["manual_beta_rmse_deg"]
     recorded = h.get("recorded_model_beta_rmse_deg", "absent")
     if recorded != "absent":  # model parameters tuned with the noise
-        line = held_out_line(
-            {k: v for k, v in h.items() if k != "recorded_model_beta_rmse_deg"}, cost
-        )
+        joint_keys = ("recorded_model_beta_rmse_deg", "noise_only_beta_rmse_deg")
+        line = held_out_line({k: v for k, v in h.items() if k not in joint_keys}, cost)
+        noise = h.get("noise_only_beta_rmse_deg", "absent")
+        if noise != "absent":  # the first stage of a two-stage joint tuning
+            line += f"\n  noise-only filter (Q tuned alone, first stage): β RMSE {deg(noise)}"
         line += f"\n  tuned Q on the recorded model: β RMSE {deg(recorded)}"
-        if recorded is not None and (tuned is None or tuned > recorded):
+        if noise not in ("absent", None) and (tuned is None or tuned > noise * SAME_RMSE):
+            worse = "diverged" if tuned is None else f"{100 * (tuned / noise - 1):.1f} % worse"
+            line += (
+                f"\nwarning: the joint filter is {worse} on the held-out manoeuvres than the "
+                "noise-only one; the tuned file keeps the joint filter (choosing by these "
+                "data would leave no held-out evidence): tune without --tune-model to deploy "
+                "the noise alone, or tune on more varied manoeuvres"
+            )
+        if recorded is not None and (tuned is None or tuned > recorded * SAME_RMSE):
             line += (
                 "\nwarning: the tuned model parameters make the filter worse on the held-out "
                 "manoeuvres than the recorded ones with the same Q: they fit the training "
