@@ -549,3 +549,13 @@ def test_a_model_files_hints_cannot_fail_tune_nor_flood_its_text():
     assert _hints(problem(lambda runs, p: {"C_af": "short"}), np.zeros(1), ["C_af"]) == {
         "C_af": "short"
     }
+
+
+def test_the_reports_range_line_sits_at_the_recorded_rise():
+    """The figure's dotted line: a relative record's rise in %, an absolute one (a mean
+    log-likelihood) as its share of |J*| (0.01 over J* = −2: 0.5 %)."""
+    from kftune.report.plots import _range_rise_pct
+
+    assert _range_rise_pct({"rel_rise": 0.01, "parameters": {"k": {"cost": 2.0}}}) == 1.0
+    rec = {"rel_rise": 0.01, "abs_rise": 0.01, "parameters": {"k": {"cost": -2.0}}}
+    assert _range_rise_pct(rec) == pytest.approx(0.5)

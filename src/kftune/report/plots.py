@@ -431,6 +431,17 @@ def reliability(results: ExperimentResults, split: str) -> Figure:
     return fig
 
 
+def _range_rise_pct(record: dict[str, Any]) -> float:
+    """The rise that ends a range in an identifiability record, in % of |J*|: its relative
+    rise, or its absolute one (a mean negative log-likelihood) over its first |J*|."""
+    from kftune.tuning.identify import rise_pct
+
+    first = next(iter(record["parameters"].values()))
+    if record.get("abs_rise") is not None and first["cost"] != 0:
+        return rise_pct(first["cost"] + float(record["abs_rise"]), first["cost"])
+    return 100 * float(record.get("rel_rise", 0.01))
+
+
 def identifiability(results: ExperimentResults, keys: Sequence[str] | None = None) -> Figure:
     """The cost's 1-D profile around each method's tuned point, one panel per tuned model
     parameter (``MethodRun.extra["identifiability"]``, :mod:`kftune.tuning.identify`): the
@@ -449,7 +460,7 @@ def identifiability(results: ExperimentResults, keys: Sequence[str] | None = Non
         and (keys is None or m.key in keys)
     ]
     names = list(dict.fromkeys(n for _, _, d in runs for n in d["parameters"]))
-    rel = 100 * float(runs[0][2].get("rel_rise", 0.01)) if runs else 1.0
+    rel = _range_rise_pct(runs[0][2]) if runs else 1.0
     fig, axes = plt.subplots(1, max(1, len(names)), figsize=(3.6 * max(1, len(names)), 3.7),
                              squeeze=False)  # fmt: skip
     for ax, name in zip(axes[0], names):
