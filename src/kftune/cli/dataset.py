@@ -393,25 +393,27 @@ def plot_manoeuvre(m: Manoeuvre) -> Any:
     axes[0].set_ylabel("δ road wheel [°]")
     axes[1].plot(t, m.ay, lw=0.6, label="ay")
     axes[1].plot(t, m.ax, lw=0.6, label="ax")
-    axes[1].axhline(4.0, color="grey", lw=0.5, ls=":")
-    axes[1].axhline(-4.0, color="grey", lw=0.5, ls=":")
+    for sign in (1.0, -1.0):  # where the _NON KPIs start (|ay| >= 4 m/s²)
+        axes[1].axhline(sign * 4.0, color="grey", lw=0.8, ls=":",
+                        label="|ay| = 4 m/s²\n(KPIs _NON above)" if sign > 0 else None)  # fmt: skip
     axes[1].set_ylabel("acceleration [m/s²]")
-    axes[1].legend(loc="upper right", fontsize=8)
     axes[2].plot(t, np.degrees(m.r), lw=0.6)
     axes[2].set_ylabel("yaw rate [°/s]")
     axes[3].plot(t, m.vx, lw=0.8, label="vx measured")
     if "vx_true" in m.extra:
         axes[3].plot(t, m.extra["vx_true"], lw=0.8, ls="--", label="vx true")
-        axes[3].legend(loc="upper right", fontsize=8)
     axes[3].set_ylabel("speed [m/s]")
     axes[4].plot(t, np.degrees(m.beta_ref), lw=0.6, label="β reference")
     if "beta_true" in m.extra:
         axes[4].plot(t, np.degrees(m.extra["beta_true"]), lw=0.8, ls="--", label="β true")
-        axes[4].legend(loc="upper right", fontsize=8)
     axes[4].set_ylabel("sideslip β [°]")
     axes[4].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
     for ax in axes:
         ax.grid(True, lw=0.3)
+        if len(ax.get_legend_handles_labels()[0]) > 1 or ax is axes[1]:
+            # beside the axes: inside, it covered the signals of a long manoeuvre
+            ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8,
+                      borderaxespad=0)  # fmt: skip
     fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
     fig.tight_layout()
     return fig
