@@ -807,7 +807,8 @@ def test_tune_ends_with_a_command_that_runs(small, tmp_path):
     ev = kftune(*argv[1:])
     assert ev.returncode == 0, ev.stderr
     assert "test split" in ev.stdout
-    assert "RMSE r °/s RMSE ay m/s²" in ev.stdout  # every column with its unit
+    # every column with its unit, and what the yaw rate and ay are scored against
+    assert "r vs meas °/s ay vs meas m/s²" in ev.stdout
 
 
 def test_without_test_manoeuvres_tune_and_evaluate_use_the_training_ones(tmp_path):

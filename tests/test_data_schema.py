@@ -125,7 +125,10 @@ def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_
     table = kftune("evaluate", str(track), "--params", str(out))
     assert table.returncode == 0, table.stderr
     assert "RMSE v" in table.stdout and "run-3" in table.stdout
-    assert "RMSE px m" in table.stdout and "RMSE v m/s" in table.stdout  # with units
+    # with units; a measurement scored against the measured channel says so
+    assert "RMSE px vs meas m" in table.stdout and "RMSE v m/s" in table.stdout
+    assert "RMSE v vs meas" not in table.stdout  # v is scored against v_ref
+    assert got["average"]["rmse_px_vs_measured"] == got["average"]["rmse_px"]
     assert got["units"] == {"px": "m", "py": "m", "v": "m/s", "omega": "rad/s"}
     # the tuned tracking filter runs on the recordings and exports (no vehicle anywhere)
     est = kftune("estimate", str(track), "--params", str(out), "-o", str(tmp_path / "est"))
