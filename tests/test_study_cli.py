@@ -322,3 +322,18 @@ def test_a_running_trial_is_counted_and_left_out_of_the_export(study, tmp_path):
     pytest.importorskip("optuna")
     res = run_cli("study", "export", db, "--optuna", tmp_path / "o.db")
     assert res.returncode == 0 and "30 trials" in res.stdout and "1 running left out" in res.stdout
+
+
+def test_a_two_stage_joint_tuning_refuses_another_budget_before_touching_a_study(small, tmp_path):
+    db, out = tmp_path / "j.db", tmp_path / "j.json"
+    common = ("tune", small, "--tune-model", "mu=0.8:1.6", "--cost", "nrmse", "--storage", db)
+    first = run_cli(*common, "-n", "8", "-o", out, "--no-calibration")
+    assert first.returncode == 0, first.stderr
+    noise = tmp_path / "j.noise-only.db"
+    before = (sql_rows(noise), sql_rows(db))
+    res = run_cli(*common, "-n", "16", "-o", out, "--no-calibration", "--resume")
+    assert res.returncode == 3 and "cannot be continued with another budget" in res.stderr
+    assert (sql_rows(noise), sql_rows(db)) == before
+    from kftune.optim.study import read_study
+
+    assert read_study(noise).settings["budget"] == 2  # a quarter of 8, as planned

@@ -60,6 +60,8 @@ from kftune.cli._common import (
     BUDGET,
     CALIBRATIONS,
     MAX_BUDGET,
+    RECOMMENDED_COST,
+    RECOMMENDED_TUNE_R,
     TIMEOUT_SECONDS,
     add_command,
     add_common,
@@ -73,11 +75,12 @@ from kftune.cli._common import (
     output_file,
     parameterization,
     pick,
+    recommended,
     split_model_file,
     write_output,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from kftune.errors import ConfigError, RunFailedError, UsageError
+from kftune.errors import ConfigError, ObjectiveMismatchError, RunFailedError, UsageError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 from kftune.tuning.calibrate import DEFAULT_CRITERION
@@ -125,7 +128,8 @@ def register(subparsers: Any) -> None:
         "created with (the same method, seed and data); a larger -n continues a finished "
         "study of trbo, random, optuna-tpe, optuna-gp or cma (its stored evaluations are "
         "proposed again as they were, then the run goes on); tsbo and ga plan their run by "
-        "the budget and are refused",
+        "the budget and are refused, and so is a two-stage joint tuning (--tune-model), "
+        "whose joint search starts from the first stage's best",
     )
     p.add_argument(
         "--timeout",
@@ -180,6 +184,31 @@ def register(subparsers: Any) -> None:
         help="where to write the tuned parameters (default tuned.json)",
     )
     p.set_defaults(func=run)
+
+
+def _check_staged_budget(stages: Any) -> None:
+    """Refuse to resume a two-stage joint tuning with another budget, before either study
+    is touched: the split between the stages follows the budget, and the joint search
+    starts from the first stage's best, so the first stage run longer would move that
+    start and the stored joint evaluations could not be proposed again.
+
+    Raises:
+        ConfigError: the first stage's study was planned for another number of evaluations.
+    """
+    from kftune.optim.study import read_study
+
+    first = stages.noise_storage
+    if first is None or not first.exists():
+        return
+    stored = read_study(first).settings.get("budget")
+    if stored != stages.noise_budget:
+        raise ConfigError(
+            f"--resume: this joint tuning runs in two stages and its first stage ({first}) "
+            f"was planned for {stored} evaluations of the noise alone, but -n "
+            f"{stages.total} gives it {stages.noise_budget}; the joint search starts from "
+            "the first stage's best, so a two-stage tuning cannot be continued with another "
+            "budget: resume it with the -n it was started with, or start a new study"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -261,6 +290,8 @@ def run(args: argparse.Namespace) -> int:
             stages = staging(
                 problem, method, budget, options=options, engine=engine, storage=args.storage
             )
+            if args.resume and stages is not None:
+                _check_staged_budget(stages)
             if stages is not None and not (args.quiet or args.json):
                 print(stages.line(), file=sys.stderr, flush=True)
             try:
@@ -284,6 +315,15 @@ def run(args: argparse.Namespace) -> int:
             except EngineLostError as lost:  # the Dask scheduler went away
                 _interrupted(args, lost.result, problem, dataset, failure=str(lost))
                 return EXIT_FAILURE
+            except ObjectiveMismatchError as exc:
+                if not recommended(args, config, fs.model):
+                    raise
+                raise ObjectiveMismatchError(
+                    f"{exc}. This run tunes kftune tune's default, the {RECOMMENDED_COST} "
+                    f"cost with R's diagonal (tune_r = {RECOMMENDED_TUNE_R!r}); a study "
+                    "started with the paper's NRMSE and Q alone (tune's default before) "
+                    "resumes with --cost nrmse"
+                ) from None
     except KeyboardInterrupt:  # loading, starting or stopping workers: keep what there is
         _interrupted(args, result, problem, dataset)
         return EXIT_INTERRUPTED
