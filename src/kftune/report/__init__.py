@@ -96,10 +96,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
         while stem in stems:  # two names reduced to the same stem
             stem = stem.removesuffix(".png") + "_.png"
         stems.add(stem)
-        shown = tuple(k for k in ("ga", "tsbo-tsp", "trbo") if k in keys)
+        shown = tuple(m.key for m in results.methods)  # every method, none left out
         kind = results.meta.get("manoeuvres", {}).get(name, {}).get("kind", "")
-        if channels is not None:  # a model of one's own: every method, none left out
-            shown = tuple(m.key for m in results.methods)
         labels = ", ".join(results.method(k).label for k in shown)
         if channels is not None:
             plots.save(plots.channel_traces(results, name, shown), out / "figures" / stem)
@@ -120,7 +118,9 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
                 f"Sideslip estimate, {name}"
                 + (f" ({kind})" if kind else "")
                 + " (cf. paper Figs. 8–10)",
-                f"β estimated by the filters tuned by {labels} against the reference.",
+                f"β estimated by the filters of {labels} against the reference (top), "
+                "and each tuned filter's error in a panel of its own with the manual "
+                "filter's in grey behind it.",
             )
         )
     if results.cost_slice:

@@ -38,7 +38,7 @@ COLOURS = {
     "trbo": "#ff7f0e",  # orange
     "optuna-tpe": "#ff00ff",  # magenta (was cyan, too close to TSBO-GP's blue)
     "optuna-gp": "#bcbd22",  # olive
-    "cma": "#e377c2",  # pink
+    "cma": "#00008b",  # navy (was pink, beside Optuna TPE's magenta)
     "reference": "#000000",
     "estimate": "#1b9e77",  # teal
 }
@@ -72,38 +72,55 @@ def save(fig: Figure, path: str | Path, dpi: int = 130) -> Path:
 
 
 def convergence(results: ExperimentResults) -> Figure:
-    """Fig. 6: best cost so far against evaluations (left) and against wall time (right)."""
+    """Fig. 6: best cost so far against evaluations (left) and against wall time (right),
+    both on log axes: budgets of very different size (a GA's 225 evaluations beside a
+    Bayesian optimiser's 40) each get their share of the width. Every method in its
+    colour and with its own marker (:data:`MARKERS`, report order), so that two curves
+    that run together, or two similar colours, stay apart; a fixed point (the manual
+    filter) is a dotted line."""
     fig, (ax_n, ax_t) = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for m in results.methods:
+    for i, m in enumerate(results.methods):
         best = m.best_so_far()
         if m.n_evals <= 1:  # a fixed point (manual tuning): a reference line
             for ax in (ax_n, ax_t):
                 ax.axhline(m.best_cost, color=_colour(m.key), ls=":", label=m.label)
             continue
         n = np.arange(1, best.size + 1)
-        ax_n.step(n, best, where="post", color=_colour(m.key), label=m.label)
-        ax_t.step(m.history_time_s, best, where="post", color=_colour(m.key), label=m.label)
+        style = {
+            "color": _colour(m.key),
+            "marker": MARKERS[i % len(MARKERS)],
+            "ms": 5,
+            "mfc": "none",
+            "markevery": 0.12,  # spaced on the page, not by index: log axes
+            "drawstyle": "steps-post",
+            "label": m.label,
+        }
+        ax_n.plot(n, best, **style)
+        ax_t.plot(m.history_time_s, best, **style)
     ax_n.set_xlabel("cost evaluations")
     ax_t.set_xlabel("tuning wall time [s]")
-    ax_t.set_xscale("log")
-    _label_log_axis(ax_t.xaxis, *ax_t.get_xlim())
+    for ax in (ax_n, ax_t):
+        ax.set_xscale("log")
+        _label_log_axis(ax.xaxis, *ax.get_xlim())
     ax_n.set_ylabel("best cost J [-]")
     for ax in (ax_n, ax_t):
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
+    _label_log_axis(ax_n.yaxis, *ax_n.get_ylim(), vertical=True)  # 0.4, not 4×10⁻¹
     ax_n.legend(fontsize=8)
     fig.suptitle("Convergence of the tuning methods (training set)")
     return fig
 
 
-def _label_log_axis(axis: Any, low: float, high: float) -> None:
+def _label_log_axis(axis: Any, low: float, high: float, vertical: bool = False) -> None:
     """Label a log axis with plain numbers (0.002, not 2×10⁻³), as many as fit: the
     decades over two decades and more, also the 2s and 5s over one, also the 3s under one,
     every tick under 0.3 of a decade (matplotlib labelled every minor tick of a span under
-    a decade in scientific notation, and the labels ran together)."""
+    a decade in scientific notation, and the labels ran together). ``vertical``: a y axis,
+    whose labels stack rather than run together: every tick under a decade."""
     decades = math.log10(high / low) if 0 < low < high else 2.0
     shown = (
-        set(range(1, 10)) if decades < 0.3
+        set(range(1, 10)) if decades < (1.0 if vertical else 0.3)
         else {1, 2, 3, 5} if decades < 1
         else {1, 2, 5} if decades < 2
         else {1}
@@ -155,34 +172,78 @@ def improvement(
     return fig
 
 
+#: Dash patterns of the tuned methods' β curves, in the order drawn: tuned filters often
+#: coincide, and a dash lets the one beneath show through.
+LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1.5)), (0, (6, 2, 1, 2)), (0, (3, 3)))
+
+
+def _rmse(error: np.ndarray) -> float:
+    """Root mean square of the finite samples of ``error`` (NaN when there are none)."""
+    finite = error[np.isfinite(error)]
+    return float(np.sqrt(np.mean(finite**2))) if finite.size else math.nan
+
+
 def beta_trace(
     results: ExperimentResults,
     manoeuvre: str,
-    methods: tuple[str, ...] = ("ga", "tsbo-tsp", "trbo"),
+    methods: Sequence[str] | None = None,
 ) -> Figure:
-    """Figs. 8–10: sideslip estimate against the reference in one manoeuvre, with errors."""
+    """Figs. 8–10: the sideslip β [deg] of every method's filter against the reference in
+    one manoeuvre (top), and each tuned method's error [deg] in a panel of its own with the
+    manual filter's error behind it in grey (below; one panel per method, a common y
+    axis), so that no filter hides another and each is read against the manual baseline
+    that every table compares with. ``methods``: the keys to draw, in this order (default:
+    every method of ``results`` with a trace here); "manual" is drawn as the reference
+    filter, grey and dashed, never in a panel of its own."""
     tr = results.traces[manoeuvre]
     t = tr["t"]
     ref = np.degrees(tr["beta_ref"])
-    fig, (ax, ax_e) = plt.subplots(
-        2, 1, figsize=(8, 4.8), sharex=True, gridspec_kw={"height_ratios": [2, 1]}
+    keys = [m.key for m in results.methods] if methods is None else list(methods)
+    keys = [k for k in keys if f"beta_{k}" in tr]
+    tuned = [k for k in keys if k != "manual"]
+    manual = np.degrees(tr["beta_manual"]) if "manual" in keys else None
+    rows = max(1, len(tuned))
+    fig, axes = plt.subplots(
+        1 + rows,
+        1,
+        figsize=(8, 3.0 + 0.95 * rows),
+        sharex=True,
+        gridspec_kw={"height_ratios": [3.0] + [1.0] * rows},
+        squeeze=False,
+        layout="constrained",  # the gap for the panels' caption only above the first
     )
-    ax.plot(t, ref, color=COLOURS["reference"], lw=1.4, label="reference")
-    for key in methods:
-        if f"beta_{key}" not in tr:
-            continue
+    ax, panels = axes[0, 0], axes[1:, 0]
+    ax.plot(t, ref, color=COLOURS["reference"], lw=1.6, label="reference")
+    if manual is not None:
+        label = f"{results.method('manual').label}, RMSE {_rmse(manual - ref):.3f}°"
+        ax.plot(t, manual, color=COLOURS["manual"], lw=1.1, ls="--", label=label)
+    for i, key in enumerate(tuned):
         est = np.degrees(tr[f"beta_{key}"])
-        label = results.method(key).label
-        ax.plot(t, est, color=_colour(key), lw=1.0, label=label)
-        ax_e.plot(t, est - ref, color=_colour(key), lw=0.9, label=label)
+        label = f"{results.method(key).label}, RMSE {_rmse(est - ref):.3f}°"
+        ax.plot(t, est, color=_colour(key), lw=1.1, ls=LINESTYLES[i % len(LINESTYLES)],
+                label=label)  # fmt: skip
+        e = panels[i]
+        if manual is not None:
+            e.plot(t, manual - ref, color=COLOURS["manual"], lw=0.8, alpha=0.7,
+                   label=results.method("manual").label)  # fmt: skip
+        e.plot(t, est - ref, color=_colour(key), lw=0.8, label=results.method(key).label)
+        e.axhline(0.0, color="black", lw=0.5)
+        # the panel's name as its y label, in the method's colour: inside, it lay on data
+        name = results.method(key).label.replace(" (", "\n(")
+        e.set_ylabel(name, fontsize=8, color=_colour(key))
+    if not tuned and manual is not None:
+        panels[0].plot(t, manual - ref, color=COLOURS["manual"], lw=0.8)
+    for e in panels[1:]:
+        e.sharey(panels[0])
     kind = results.meta.get("manoeuvres", {}).get(manoeuvre, {}).get("kind", "")
-    ax.set_title(f"Sideslip angle, {manoeuvre}" + (f" ({kind})" if kind else ""))
+    fig.suptitle(f"Sideslip angle, {manoeuvre}" + (f" ({kind})" if kind else ""))
     ax.set_ylabel("β [deg]")
-    ax.legend(fontsize=8)
-    ax_e.axhline(0.0, color="black", lw=0.6)
-    ax_e.set_ylabel("error [deg]")
-    ax_e.set_xlabel("time [s]")
-    for a in (ax, ax_e):
+    # above the axes: inside, the legend covered the curves of a long manoeuvre
+    ax.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=3, frameon=False)
+    behind = f"; grey: {results.method('manual').label}" if manual is not None else ""
+    panels[0].set_title(f"error: estimate − reference [deg]{behind}", fontsize=8, loc="left")
+    panels[-1].set_xlabel("time [s]")
+    for a in axes[:, 0]:
         a.grid(True, alpha=0.3)
     return fig
 
@@ -230,7 +291,12 @@ def channel_traces(
 
 
 def cost_slice(results: ExperimentResults) -> Figure:
-    """Fig. 2: a one-dimensional slice of the cost with the GP and tSP fits (±2 std)."""
+    """Fig. 2: a one-dimensional slice of the cost with the GP and tSP fits (±2 std).
+
+    The y axis holds the whole dense curve (the fits' bands may leave it) and, for a cost
+    that is nowhere negative, starts at 0 or above; a grid point whose filter diverged (no
+    cost, NaN in ``cost_slice["cost"]``) is a cross along the top, so that the curve's end
+    there is not read as the edge of the box."""
     sl = results.cost_slice
     if not sl:
         raise ValueError("these results hold no cost slice")
@@ -273,25 +339,33 @@ def cost_slice(results: ExperimentResults) -> Figure:
         gp, tsp = fits["gp"], fits["tsp"]
         dmean = np.max(np.abs(np.subtract(tsp["mean"], gp["mean"])))
         ratio = np.divide(tsp["std"], gp["std"])
-        ax.text(
-            0.02,
-            0.04,
+        ax.text(  # above the axes: inside, it lay on the curve's low plateau
+            0.5,
+            1.01,
             f"max |mean tSP − mean GP| = {dmean:.2g}; std tSP/GP in "
             f"[{np.min(ratio):.2f}, {np.max(ratio):.2f}]",
             transform=ax.transAxes,
+            ha="center",
+            va="bottom",
             fontsize=8,
         )
     if sl.get("log_scale", True):
         ax.set_xscale("log")
-    lo, hi = np.nanmin(cost), np.nanmax(cost)
-    if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
-        pad = 0.25 * (hi - lo)
-        ax.set_ylim(lo - pad, hi + pad)
+    finite = np.isfinite(cost)
+    if finite.any():
+        lo, hi = float(np.min(cost[finite])), float(np.max(cost[finite]))
+        pad = 0.25 * (hi - lo) if hi > lo else 0.25 * max(abs(hi), 1.0)
+        bottom = lo - pad if lo < 0 else max(0.0, lo - pad)  # a cost >= 0: no axis below 0
+        ax.set_ylim(bottom, hi + pad)
+        if not finite.all():  # on the page whatever the axis: at 90 % of its height
+            y = bottom + 0.9 * (hi + pad - bottom)
+            ax.plot(grid[~finite], np.full(int((~finite).sum()), y), "x", color="black",
+                    ms=6, label="filter diverged (no cost)")  # fmt: skip
     through = sl.get("through", "best")
     ax.set_xlabel(f"{sl['parameter']} (other parameters at the {through} optimum)")
     ax.set_ylabel("cost J [-]")
-    ax.set_title("GP and Student-t process fits of a slice of the cost")
-    ax.legend(fontsize=8)
+    ax.set_title("GP and Student-t process fits of a slice of the cost", pad=16)
+    ax.legend(fontsize=8, loc="best")
     ax.grid(True, which="both", alpha=0.3)
     return fig
 
