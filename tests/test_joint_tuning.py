@@ -661,6 +661,15 @@ def test_tune_model_names_are_checked_against_the_chosen_model():
         (lambda d: d["model_params"]["C_af"].update(value="big"), "'model_params.C_af' must be"),
         (lambda d: d["model_params"]["C_af"].update(value=1e6), r"'model_params.C_af': value"),
         (lambda d: d["model_params"]["C_af"].update(scale="ln"), "scale must be log10 or"),
+        (lambda d: d["model_params"]["C_af"].update(low=-1.0), "needs a positive lower bound"),
+        (
+            lambda d: d["model_params"]["C_af"].update(low=1e6, high=1e6, value=1e6, start=1e6),
+            "'model_params'.*low < high",
+        ),
+        (
+            lambda d: d["model_params"].update(C_zz=d["model_params"].pop("C_af")),
+            "'model_params.C_zz': the model has no parameter 'C_zz'",
+        ),
     ],
 )
 def test_a_damaged_model_params_record_is_refused_naming_file_and_key(small, tmp_path, edit, says):

@@ -382,7 +382,13 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data import open_dataset
     from kftune.experiment import channel_units, manual_point
     from kftune.filters import UKFSettings
-    from kftune.tuning.deploy import TunedFilter, calibration_factor, consistency_docs
+    from kftune.tuning.deploy import (
+        TunedFilter,
+        calibration_factor,
+        consistency_docs,
+        parameterization_of,
+        tuned_model_params,
+    )
     from kftune.tuning.kpi import average_kpis
     from kftune.tuning.problem import (
         NoiseParameterization,
@@ -445,17 +451,9 @@ def run(args: argparse.Namespace) -> int:
                 r_scale * float(params.get(f"r_{m}_scale", 1.0)) for m in model.measurement_names
             ]
         # the model parameters as tuned (a vehicle model's are in its vehicle already)
-        record = tuned.get("model_params") or {}
-        x = np.array([*tuned["q"], *factors, *(float(e["value"]) for e in record.values())])
-        par = NoiseParameterization(
-            tune_r="diag",
-            default_settings=ukf,
-            states=model.state_names,
-            measurements=model.measurement_names,
-            model_bounds={n: (e["low"], e["high"]) for n, e in record.items()},
-            model_scales={n: e.get("scale", "log10") for n, e in record.items()},
-            model_start={n: e["start"] for n, e in record.items()},
-        )
+        par = parameterization_of(tuned, str(args.params), model, ukf)
+        values = tuned_model_params(tuned, str(args.params))
+        x = np.array([*tuned["q"], *factors, *(values[n] for n in par.model_names)])
     else:
         par = parameterization(args, config, model)
         par = NoiseParameterization(

@@ -91,6 +91,9 @@ def export_document(tuned: Mapping[str, Any], source: str) -> dict[str, Any]:
         doc["model_params"] = [float(e["value"]) for e in mp]
         tuned_mp = tuned.get("model_params") or {}
         if tuned_mp:  # tuned with the noise: the values above are the tuned ones
+            from kftune.tuning.deploy import tuned_model_params
+
+            tuned_model_params(tuned, source, doc["model_param_names"])  # names checked
             doc["tuned_model_param_names"] = [str(n) for n in tuned_mp]
             doc["tuned_model_param_starts"] = [float(e["start"]) for e in tuned_mp.values()]
         if dep["vehicle"] is not None:  # None: a model that is not a car's

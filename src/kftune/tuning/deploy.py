@@ -23,11 +23,12 @@ from typing import Any
 import numpy as np
 
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.errors import DataError
+from kftune.errors import DataError, excerpt
 from kftune.filters import UKFSettings
 from kftune.models import StateSpaceModel, get_model, model_names
 from kftune.models.user import model_file_sha256
 from kftune.tuning.problem import (
+    NoiseParameterization,
     RunResult,
     TuningProblem,
     beta_std,
@@ -145,15 +146,21 @@ def model_params_record(problem: TuningProblem, x: Any) -> dict[str, dict[str, A
     }
 
 
-def tuned_model_params(doc: Mapping[str, Any], source: str) -> dict[str, float]:
+def tuned_model_params(
+    doc: Mapping[str, Any], source: str, param_names: Sequence[str] | None = None
+) -> dict[str, float]:
     """The tuned model parameters of a tuned-parameters file, name → value (``model_params``;
     empty for a file without it: noise only, or an older kftune). The one check of the key:
     every reader of tuned files goes through it (:func:`kftune.cli.evaluate.read_tuned`).
+    ``param_names``: the model's parameters, where the model is known (each name must be
+    one of them).
 
     Raises:
         DataError: naming ``source`` and the key, when ``model_params`` is not an object of
             ``{value, start, low, high, scale}`` objects with finite numbers, low ≤ start,
-            value ≤ high, scale log10 or linear.
+            value ≤ high, scale log10 or linear, a box the search could not have had
+            (low ≥ high, a log10 scale over low ≤ 0: :class:`NoiseParameterization`'s
+            rules), or a name not among ``param_names``.
     """
     record = doc.get("model_params", {})
     if not isinstance(record, Mapping):
@@ -186,8 +193,52 @@ def tuned_model_params(doc: Mapping[str, Any], source: str) -> dict[str, float]:
             )
         if entry.get("scale", "log10") not in ("log10", "linear"):
             raise DataError(f"{where}: scale must be log10 or linear", file=source)
+        if param_names is not None and name not in param_names:
+            raise DataError(
+                f"{where}: the model has no parameter {excerpt(name, 40)}; its parameters: "
+                f"{', '.join(param_names)}",
+                file=source,
+            )
         out[str(name)] = float(nums["value"])
+    try:  # each box as the search took it: the one rule of bounds and scales
+        _parameterization_of(record)
+    except ValueError as exc:
+        raise DataError(f"'model_params': {exc}", file=source) from None
     return out
+
+
+def _parameterization_of(
+    record: Mapping[str, Any], settings: UKFSettings | None = None, model: Any = None
+) -> NoiseParameterization:
+    """The search's parameterisation from a ``model_params`` record (R's diagonal tuned: a
+    tuned file records R whole); ``model`` names the states and measurements."""
+    extra: dict[str, Any] = {}
+    if model is not None:
+        extra = {"states": model.state_names, "measurements": model.measurement_names}
+    return NoiseParameterization(
+        tune_r="diag",
+        default_settings=settings or UKFSettings(),
+        model_bounds={n: (e["low"], e["high"]) for n, e in record.items()},
+        model_scales={n: e["scale"] for n, e in record.items() if "scale" in e},
+        model_start={n: e["start"] for n, e in record.items()},
+        **extra,
+    )
+
+
+def parameterization_of(
+    doc: Mapping[str, Any], source: str, model: StateSpaceModel, settings: UKFSettings
+) -> NoiseParameterization:
+    """The parameterisation a tuned-parameters file was searched in, for ``model``: Q's and
+    R's diagonals and the tuned model parameters with their recorded boxes, scales (absent:
+    :class:`NoiseParameterization`'s rule, log10 for a positive box) and start values. Its
+    point is ``[*q, *r_factors, *model_params values]``.
+
+    Raises:
+        DataError: naming ``source`` and the key, for a damaged ``model_params``
+            (:func:`tuned_model_params`, the names checked against ``model``).
+    """
+    tuned_model_params(doc, source, model.param_names)
+    return _parameterization_of(doc.get("model_params") or {}, settings, model)
 
 
 @dataclass(frozen=True)
@@ -228,7 +279,12 @@ class TunedFilter:
 
     def params_of(self, model: StateSpaceModel, recorded: np.ndarray) -> np.ndarray:
         """(n_p,) the parameter vector the tuned filter runs: ``recorded`` (the model's
-        parameters of the recordings or defaults) with the tuned values in their places."""
+        parameters of the recordings or defaults) with the tuned values in their places.
+
+        Raises:
+            DataError: naming the file and the key, for a tuned name ``model`` lacks.
+        """
+        tuned_model_params(self.document, self.source, model.param_names)
         p = np.array(recorded, dtype=float)
         for name, value in self.model_params.items():
             p[model.param_names.index(name)] = value
