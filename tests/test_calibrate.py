@@ -555,3 +555,33 @@ def test_a_filter_that_diverges_is_not_calibrated_and_says_where(small):
     problem = TuningProblem(ds.train, ds.vehicle, ds.r_default)
     with pytest.raises(CalibrationError, match=f"diverged on manoeuvre '{ds.train[0].name}' \\("):
         calibrate(problem, np.array([1e9, 1e9, 1e9]))
+
+
+def test_compare_records_why_a_filter_was_not_calibrated_and_the_report_says_so(small):
+    """A diverging point: the record is None and the reason names the manoeuvre; the
+    report's note says which filters are calibrated, names one that is not with its
+    reason, and says results without any record show the filters as tuned."""
+    from types import SimpleNamespace
+
+    from kftune.data import open_dataset
+    from kftune.experiment import _calibration
+    from kftune.report import calibration_note
+    from kftune.tuning.problem import TuningProblem
+
+    ds = open_dataset(small)
+    problem = TuningProblem(ds.train, ds.vehicle, ds.r_default)
+    record, why = _calibration(problem, np.array([1e9, 1e9, 1e9]))
+    assert record is None and f"diverged on manoeuvre '{ds.train[0].name}'" in why
+
+    def run(label: str, **extra: object) -> SimpleNamespace:
+        return SimpleNamespace(label=label, consistency={"test": {}}, extra=extra)
+
+    ok = run("TR-BO", calibration={"factor": 2.0})
+    bad = run("Manual", calibration=None, calibration_failed=why)
+    assert calibration_note(SimpleNamespace(methods=[ok])).startswith("each filter here is")
+    mixed = calibration_note(SimpleNamespace(methods=[ok, bad]))
+    assert "each filter with a factor c here is calibrated" in mixed
+    assert f"Not calibrated (shown as tuned): Manual: {why}" in mixed
+    old = calibration_note(SimpleNamespace(methods=[run("TR-BO"), run("Manual")]))
+    assert "shown as tuned: these results record no calibration" in old
+    assert "calibrated as kftune tune deploys it" not in old

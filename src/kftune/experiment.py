@@ -489,7 +489,9 @@ def method_run(
     covariances c times larger, c fitted on the problem's training manoeuvres:
     :func:`~kftune.tuning.calibrate.calibrate`; the estimate, and so every KPI, is the
     same); the calibration's record in ``extra["calibration"]`` (None where it could not
-    be fitted: the filter as tuned then).
+    be fitted: the filter as tuned then, and why in ``extra["calibration_failed"]``). The
+    manual rule of thumb is calibrated alike, with its own c: it is a baseline of accuracy,
+    which no calibration moves, and its σ is compared as it would be deployed.
 
     Returns:
         (the :class:`MethodRun`, manoeuvre → β estimate [rad] ``beta_<key>`` for every
@@ -504,7 +506,7 @@ def method_run(
     averages: dict[str, dict[str, float]] = {}
     consistency: dict[str, dict[str, Any] | None] = {}
     betas: dict[str, dict[str, np.ndarray]] = {}
-    calibration = _calibration(problem, result.x)
+    calibration, calibration_failed = _calibration(problem, result.x)
     scale = problem.cov_scale
     problem.cov_scale = 1.0 if calibration is None else calibration["factor"]
     try:
@@ -557,21 +559,26 @@ def method_run(
             "on_bounds": on_bounds(result),
             "options": result.options,  # every option, defaults included (e.g. TSBO's mode)
             "calibration": calibration,
+            "calibration_failed": calibration_failed,
         },
     )
     return run, betas
 
 
-def _calibration(problem: TuningProblem, x: np.ndarray | None) -> dict[str, Any] | None:
-    """The record of the covariance scale fitted on ``problem``'s (training) manoeuvres at
-    ``x`` (:meth:`kftune.tuning.calibrate.Calibration.as_dict`), None where it cannot be
-    fitted (a diverged run, nothing to fit on)."""
+def _calibration(
+    problem: TuningProblem, x: np.ndarray | None
+) -> tuple[dict[str, Any] | None, str | None]:
+    """(the record of the covariance scale fitted on ``problem``'s (training) manoeuvres at
+    ``x`` (:meth:`kftune.tuning.calibrate.Calibration.as_dict`), None; or None, why it
+    could not be fitted: a diverged run, nothing to fit on)."""
     from kftune.tuning.calibrate import CalibrationError, calibrate
 
+    if x is None:
+        return None, "no tuned point"
     try:
-        return calibrate(problem, x).as_dict("train")
-    except (CalibrationError, ValueError):
-        return None
+        return calibrate(problem, x).as_dict("train"), None
+    except (CalibrationError, ValueError) as exc:
+        return None, str(exc)
 
 
 def cost_slice(

@@ -523,9 +523,11 @@ def held_out(
     the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
     manoeuvres, which the tuning never saw — mean β RMSE [deg] over those with a sideslip
     reference (None where a filter diverged), and the tuned filter's consistency pooled
-    over them (both with the problem's ``cov_scale``, the calibration; the manual rule
-    uncalibrated) (``consistency``: :func:`kftune.tuning.deploy.consistency_docs`, None where
-    it diverged). Two filter runs over the test split, in this process. With model
+    over them (with the problem's ``cov_scale``, the calibration) (``consistency``:
+    :func:`kftune.tuning.deploy.consistency_docs`, None where it diverged). The manual rule
+    is a baseline of accuracy here: its β RMSE, which no calibration moves, so its own c is
+    not fitted (``kftune compare`` shows its σ calibrated with its own c, as every filter's).
+    Two filter runs over the test split, in this process. With model
     parameters tuned, also the tuned Q on the recorded model
     (``recorded_model_beta_rmse_deg``, :func:`kftune.tuning.generalise.recorded_model_point`),
     and without a test split a leave-one-out over the training manoeuvres instead

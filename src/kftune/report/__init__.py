@@ -181,11 +181,35 @@ CONSISTENCY_NOTE = (
     "NIS of the m measurements (m when right). Each band holds the mean with 95 % "
     "probability for a consistent filter; the NEES band counts the errors' effective number "
     "of independent samples (successive errors are correlated). A filter tuned for accuracy "
-    "alone can be accurate and still state a σ several times too small; each filter here is "
-    "calibrated as kftune tune deploys it: its covariances multiplied by the factor c fitted "
-    "on the training manoeuvres (mean β NEES 1 there), which leaves its estimate, and every "
-    "accuracy figure above, unchanged."
+    "alone can be accurate and still state a σ several times too small; "
 )
+#: The note's end, by what the results record of each filter's calibration.
+CALIBRATED_NOTE = (
+    "{which} calibrated as kftune tune deploys it: its covariances multiplied by the factor "
+    "c fitted on the training manoeuvres, which leaves its estimate, and every accuracy "
+    "figure above, unchanged."
+)
+
+
+def calibration_note(results: ExperimentResults) -> str:
+    """What the consistency table's filters are, from each run's record: calibrated (a
+    factor c), not calibrated and why (``calibration_failed``), or results from before
+    the calibration (no record: the filters as tuned)."""
+    runs = [m for m in results.methods if m.consistency]
+    done = [m for m in runs if isinstance(m.extra.get("calibration"), dict)]
+    if not done:
+        return "the filters here are shown as tuned: these results record no calibration."
+    if len(done) == len(runs):
+        return CALIBRATED_NOTE.format(which="each filter here is")
+    failed = "; ".join(
+        f"{m.label}: {m.extra.get('calibration_failed') or 'no calibration recorded'}"
+        for m in runs
+        if m not in done
+    )
+    return (
+        CALIBRATED_NOTE.format(which="each filter with a factor c here is")
+        + f" Not calibrated (shown as tuned): {failed}."
+    )
 
 
 def _consistency_lines(
@@ -202,7 +226,8 @@ def _consistency_lines(
             "",
         ]
     table = tables[f"consistency_{split}"]
-    md = [f"## {table.title}", "", table.to_markdown(), "", CONSISTENCY_NOTE, ""]
+    note = CONSISTENCY_NOTE + calibration_note(results)
+    md = [f"## {table.title}", "", table.to_markdown(), "", note, ""]
     if not any((d := m.consistency.get(split)) and d.get("reliability") for m in results.methods):
         return md
     plots.save(plots.reliability(results, split), out / "figures" / "reliability.png")
