@@ -455,3 +455,31 @@ def test_a_lowpass_of_a_signal_with_a_bad_sample_names_its_row(tmp_path):
     mapping = _mapping(ax={"expr": "lowpass(ax, 10)", "unit": "m/s^2"})
     with pytest.raises(DataError, match=r"row 122: ax \(expression .*1 sample\(s\) that are not"):
         import_recordings([src], mapping)
+
+
+def test_mean_takes_at_most_sixteen_arguments_and_never_stacks_them():
+    """mean(…) of 16 channels is their mean (numpy's); of 17 it is refused with the limit;
+    its memory is a running sum: the peak (tracemalloc, which numpy reports to) stays a
+    few arrays for 16 arguments of 10^6 samples, where stacking them took 16."""
+    import tracemalloc
+
+    from kftune.data.expr import MAX_MEAN_ARGS
+
+    sixteen = ", ".join(["a", "b"] * (MAX_MEAN_ARGS // 2))
+    np.testing.assert_allclose(
+        parse(f"mean({sixteen})").evaluate({"a": A, "b": B}, T), (A + B) / 2, rtol=1e-13
+    )
+    with pytest.raises(
+        ExprError, match=r"mean\(\) at character 1 takes 1 to 16 argument\(s\).*got 17"
+    ):
+        parse(f"mean({sixteen}, a)")
+    n = 10**6
+    big, t = np.linspace(0.0, 1.0, n), np.arange(n) * 0.01
+    expression = parse(f"mean({', '.join(['a'] * MAX_MEAN_ARGS)})")
+    tracemalloc.start()
+    try:
+        expression.evaluate({"a": big}, t)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 5 * big.nbytes, peak / big.nbytes

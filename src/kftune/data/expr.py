@@ -59,6 +59,10 @@ LOWPASS_ORDER = 2
 #: Names that are not values of the recording: the time [s] and π.
 RESERVED = ("t", "pi")
 
+#: The most arguments ``mean`` takes (four wheel speeds need four; a longer list is a
+#: mistake or an attempt on the memory).
+MAX_MEAN_ARGS = 16
+
 #: Function name → (fewest, most arguments; None: any number), what it computes.
 FUNCTIONS: dict[str, tuple[int, int | None, str]] = {
     "abs": (1, 1, "|x|"),
@@ -67,7 +71,7 @@ FUNCTIONS: dict[str, tuple[int, int | None, str]] = {
     "cos": (1, 1, "cosine (radians)"),
     "tan": (1, 1, "tangent (radians)"),
     "atan2": (2, 2, "atan2(y, x) in radians"),
-    "mean": (1, None, "element-wise mean of the arguments"),
+    "mean": (1, MAX_MEAN_ARGS, "element-wise mean of the arguments"),
     "clip": (3, 3, "clip(x, lo, hi)"),
     "gradient": (1, 1, "dx/dt per second"),
     "diff": (1, 1, "dx/dt per second (as gradient)"),
@@ -207,6 +211,11 @@ class Expression:
             return _BINARY[type(node.op)](left, self._eval(node.right, values, t))
         assert isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
         name = node.func.id
+        if name == "mean":  # a running sum: one array at a time, not all of them stacked
+            total = self._eval(node.args[0], values, t)
+            for a in node.args[1:]:
+                total = total + self._eval(a, values, t)
+            return total / len(node.args)
         args = [self._eval(a, values, t) for a in node.args]
         if name == "abs":
             return np.abs(args[0])
@@ -214,8 +223,6 @@ class Expression:
             return getattr(np, name)(args[0])
         if name == "atan2":
             return np.arctan2(args[0], args[1])
-        if name == "mean":
-            return np.mean(np.stack(np.broadcast_arrays(*args)), axis=0)
         if name == "clip":
             return np.clip(args[0], float(args[1]), float(args[2]))
         if name in ("gradient", "diff"):
@@ -330,7 +337,13 @@ def _check(node: ast.AST, text: str, names: dict[str, None], depth: int) -> None
         low, high, what = FUNCTIONS[name]
         n = len(node.args)
         if n < low or (high is not None and n > high):
-            wanted = f"{low}" if low == high else f"at least {low}"
+            wanted = (
+                f"at least {low}"
+                if high is None
+                else f"{low}"
+                if low == high
+                else f"{low} to {high}"
+            )
             raise ExprError(f"{name}(){where} takes {wanted} argument(s) ({what}), got {n}")
         if name in ("clip", "lowpass"):
             numbers = [_number(a) for a in node.args[1:]]
