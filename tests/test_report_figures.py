@@ -201,3 +201,19 @@ def test_evaluate_says_r_and_ay_are_scored_against_the_measurement(small):
     table = run_cli("evaluate", str(small), "--manual", "--split", "test")
     assert "r vs meas °/s" in table.stdout and "ay vs meas m/s²" in table.stdout
     assert "vs meas: RMSE against the measured channel" in table.stdout
+
+
+def test_the_estimates_band_is_not_hidden_by_the_filters_start():
+    """σ from P0 at the start (5° decaying in 0.1 s to 0.1°) set the axis, and the band of
+    the remaining 20 s was a flat line at the bottom, too narrow to see."""
+    t = np.arange(0.0, 20.0, 0.01)
+    rng = np.random.default_rng(0)
+    ref = np.radians(2.0 * np.sin(t))
+    est = ref + np.radians(rng.normal(0.0, 0.1, t.size))
+    std = np.radians(0.1 + 5.0 * np.exp(-t / 0.1))
+    fig = plots.estimate_trace(t, est, std, ref, "β")
+    title = fig.axes[0].get_title()
+    assert "too narrow to see" not in title and "covers" in title
+    low, high = fig.axes[1].get_ylim()  # the error panel
+    assert high - low < 1.5 and high > 0.2 and low < -0.2  # [deg]: the later ±0.2° band
+    plots.plt.close("all")

@@ -410,7 +410,14 @@ def estimate_trace(
             ax_e.fill_between(t, -band, band, color=colour, alpha=0.25, lw=0, label="±2σ")
         ax_e.plot(t, est - ref, color=colour, lw=0.9, label="estimate − reference")
         ax_e.set_ylabel(f"error [{shown_unit}]")
-        ax_e.legend(fontsize=8, loc="best")
+        if beta_std is not None:
+            _fit_band(ax_e, [est - ref], np.zeros_like(est), band)
+        # above the panel (the x tick labels of the one above are hidden): inside, it
+        # covered the error
+        ax_e.legend(fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2,
+                    frameon=False, borderaxespad=0.1)  # fmt: skip
+    if beta_std is not None:
+        _fit_band(ax, [est] if beta_ref is None else [est, show(beta_ref)], est, band)
     if beta_std is not None:  # judged on the error's scale where it is shown
         error = None if beta_ref is None else est - show(beta_ref)
         title += _band_note(axes[-1, 0], band, error, shown_unit)
@@ -421,6 +428,25 @@ def estimate_trace(
     for a in axes[:, 0]:
         a.grid(True, alpha=0.3)
     return fig
+
+
+def _fit_band(ax: Any, lines: Sequence[np.ndarray], centre: np.ndarray, half: np.ndarray) -> None:
+    """Set ``ax``'s y limits to hold every sample of ``lines`` (each (N,)) and the ±``half``
+    (N,) band about ``centre`` (N,) from the first sample where the band is at most three
+    times its median half-width: the filter's start, where σ comes from P0 and is many
+    times its later value, set the axis, and the band and the error over the rest of the
+    manoeuvre were a flat line (the start's band runs off the axes instead)."""
+    values = np.concatenate([np.ravel(v) for v in lines])
+    values = values[np.isfinite(values)]
+    finite = np.isfinite(half)
+    if finite.any():
+        settled = np.flatnonzero(finite & (half <= 3.0 * np.median(half[finite])))
+        k0 = int(settled[0]) if settled.size else 0
+        low_b, high_b = (centre - half)[k0:], (centre + half)[k0:]
+        values = np.concatenate([values, low_b[np.isfinite(low_b)], high_b[np.isfinite(high_b)]])
+    if values.size and values.max() > values.min():
+        pad = 0.05 * (values.max() - values.min())
+        ax.set_ylim(values.min() - pad, values.max() + pad)
 
 
 #: The narrowest ±2σ band that can be seen [points, 1/72 in]: about 3.6 pixels at the
