@@ -6,8 +6,8 @@ P⁻_k = F P_{k−1} Fᵀ + Q, S_k = H P⁻_k Hᵀ + R and K_k = P⁻_k Hᵀ S_k
 degrees 1, 1 and 0 in (P0, Q, R) (Simon, *Optimal State Estimation*, 2006, eq. 5.19), so
 by induction P_k(c) = c·P_k(1) and x̂_k(c) = x̂_k(1); an EKF's Jacobians, taken at that
 estimate, stay too. A UKF run so would spread its sigma points √c times wider through the
-nonlinear model and move its estimate: measured on the tuned single-track UKF (c of 3–600)
-by 34–50 % of its β RMSE, its test β RMSE 1–14 % worse (BENCHMARKS.md "Calibrated
+nonlinear model and move its estimate, by a large share of its β RMSE and with a worse
+test β RMSE on the tuned single-track UKF (measured in BENCHMARKS.md, "Calibrated
 uncertainty"). So the calibrated filter is defined as the tuned filter whose reported
 covariances are multiplied by c (P_k·c, S_k·c:
 :meth:`kftune.tuning.problem.FilterSpec.run`'s ``cov_scale``) — for a Kalman filter and an

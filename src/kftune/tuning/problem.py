@@ -683,8 +683,8 @@ class FilterSpec:
                 an EKF this is exactly the run with c·Q, c·R and c·P0 (the gain is
                 homogeneous of degree 0 in (P, Q, R), so the estimate, and with it the
                 EKF's Jacobians, stay); a UKF run so would spread its sigma points √c times
-                wider and move its estimate (by 34–50 % of its β RMSE on the benchmarks,
-                BENCHMARKS.md "Calibrated uncertainty"), so the UKF keeps the tuned filter's.
+                wider and move its estimate (by how much: BENCHMARKS.md, "Calibrated
+                uncertainty"), so the UKF keeps the tuned filter's.
         """
         c = float(cov_scale)
         if not (math.isfinite(c) and c > 0):
