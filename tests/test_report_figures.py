@@ -217,3 +217,27 @@ def test_the_estimates_band_is_not_hidden_by_the_filters_start():
     low, high = fig.axes[1].get_ylim()  # the error panel
     assert high - low < 1.5 and high > 0.2 and low < -0.2  # [deg]: the later ±0.2° band
     plots.plt.close("all")
+
+
+def test_a_models_channel_figure_shows_every_method_and_the_manual_one_dashed():
+    """For a model reported by its channels: a filter on another's curve (GA exactly on
+    TR-BO's here) was hidden under it."""
+    t = np.linspace(0.0, 10.0, 1001)
+    runs, trace = [], {"t": t, "v_ref": 10.0 + np.sin(t)}
+    for key, label, err in (("manual", "Manual", 0.5), ("ga", "GA", 0.1), ("trbo", "TR-BO", 0.1)):
+        runs.append(
+            MethodRun(key=key, label=label, params={}, best_cost=1.0, n_evals=1,
+                      wall_time_s=1.0, history_cost=[1.0], history_time_s=[1.0])
+        )  # fmt: skip
+        trace[f"v_{key}"] = trace["v_ref"] + err * np.sin(3.0 * t)
+    results = ExperimentResults(
+        meta={"scored_channels": {"v": "m/s"}}, methods=runs, traces={"run": trace}
+    )
+    fig = plots.channel_traces(results, "run", ("manual", "ga", "trbo"))
+    pixels = _pixels(fig)
+    for key, label, _ in (("manual", "Manual", 0), ("ga", "GA", 0), ("trbo", "TR-BO", 0)):
+        assert label in _legend_texts(fig)
+        assert _count(pixels, plots.COLOURS[key]) > 100, f"{label} cannot be seen"
+    manual = next(line for line in fig.axes[0].get_lines() if line.get_label() == "Manual")
+    assert manual.get_linestyle() == "--"
+    plots.plt.close("all")

@@ -267,13 +267,18 @@ def channel_traces(
             continue
         ref = np.asarray(tr[f"{c}_ref"], dtype=float)
         ax.plot(t, ref, color=COLOURS["reference"], lw=1.4, label="reference")
+        tuned = 0
         for key in methods:
             if f"{c}_{key}" not in tr:
                 continue
             est = np.asarray(tr[f"{c}_{key}"], dtype=float)
             label = results.method(key).label
-            ax.plot(t, est, color=_colour(key), lw=1.0, label=label)
-            ax_e.plot(t, est - ref, color=_colour(key), lw=0.9, label=label)
+            # the manual filter dashed grey as in the β figure; the tuned ones each with
+            # its dash, so that one on another's curve still shows
+            ls = "--" if key == "manual" else LINESTYLES[tuned % len(LINESTYLES)]
+            tuned += key != "manual"
+            ax.plot(t, est, color=_colour(key), lw=1.0, ls=ls, label=label)
+            ax_e.plot(t, est - ref, color=_colour(key), lw=0.9, ls=ls, label=label)
         ax.set_ylabel(f"{c}{unit}")
         ax_e.axhline(0.0, color="black", lw=0.6)
         ax_e.set_ylabel(f"error {c}{unit}")
