@@ -637,6 +637,28 @@ def test_compare_tunes_model_parameters_with_every_method_and_reports_them(small
     assert "model parameters" not in parameter_note(("q_vx", "q_vy", "q_r", "gain"))
 
 
+def test_compare_stages_trbo_as_tune_does(small, tmp_path):
+    """compare --tune-model with TR-BO: the same two stages (the first one's study beside
+    the method's), its first joint evaluation the noise-only optimum, and the budget
+    recorded as the total asked for."""
+    from kftune.optim.study import read_study
+
+    out = tmp_path / "cmp"
+    res = run_cli("compare", str(small), "--methods", "trbo", "--budget", "trbo=16",
+                  "--tune-model", "C_af=20000:400000", "-o", str(out), "--quiet")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    n1 = round(16 * NOISE_STAGE_SHARE)
+    first = read_study(out / "studies" / "trbo.noise-only.db")
+    joint = read_study(out / "studies" / "trbo.db")
+    assert (len(first.records), len(joint.records)) == (n1, 16 - n1)
+    best = min((r for r in first.records if r.ok), key=lambda r: r.value)
+    assert joint.records[0].value == pytest.approx(best.value, rel=1e-9)
+    results = json.loads((out / "results.json").read_text())
+    assert results["meta"]["budgets"]["trbo"] == 16
+    (run,) = results["methods"]
+    assert run["extra"]["stages"] == {"total": 16, "noise_budget": n1, "joint_budget": 16 - n1}
+
+
 def test_tune_model_names_are_checked_against_the_chosen_model():
     """The command line's --tune-model is checked against the model the command runs (a
     model file's own parameter names), not the single-track model's."""
