@@ -86,16 +86,22 @@ def test_the_default_design_probes_the_faces_of_log10_parameters_only():
 
 
 def test_the_default_design_probes_thirds_of_a_narrow_log10_box():
-    """A log10 box of at most two decades — a physical quantity's plausible range, such as
+    """A physical parameter's log10 box of at most two decades — a plausible range, such as
     a cornering stiffness in [2e4, 4e5] N/rad or μ in [0.4, 1.6] — gets DIRECT's thirds (its
-    faces are implausible cars), while a variance's box of 10 decades keeps its faces; a
-    space of narrow log10 boxes only is recorded as "direct"."""
-    space = {
-        "q": (1e-10, 1.0, "log10"),
-        "C": (2e4, 4e5, "log10"),
-        "mu": (0.4, 1.6, "log10"),
-        "r": (1e-2, 1e2, "log10"),
-    }
+    faces are implausible cars), while a variance's box keeps its faces; a space of narrow
+    physical boxes only is recorded as "direct"; the tuning problem marks its model
+    parameters physical, and its Q and R not."""
+    from kftune.space import Param, Space
+    from kftune.tuning.problem import NoiseParameterization
+
+    space = Space(
+        (
+            Param("q", 1e-10, 1.0, "log10"),
+            Param("C", 2e4, 4e5, "log10", physical=True),
+            Param("mu", 0.4, 1.6, "log10", physical=True),
+            Param("r", 1e-2, 1e2, "log10"),
+        )
+    )
     opt = make_optimizer("trbo", space, seed=0)
     u = []
     for _ in range(9):
@@ -107,8 +113,32 @@ def test_the_default_design_probes_thirds_of_a_narrow_log10_box():
         want[1 + 2 * k, k], want[2 + 2 * k, k] = at
     np.testing.assert_allclose(u, want, atol=1e-15)
     assert opt.options()["init_design"] == "auto"
-    narrow = {"C": (2e4, 4e5, "log10"), "mu": (0.4, 1.6, "log10")}
+    narrow = Space(space.params[1:3])
     assert make_optimizer("trbo", narrow).options()["init_design"] == "direct"
+    joint = NoiseParameterization(model_bounds={"C_af": (2e4, 4e5), "mu": (0.4, 1.6)}).space
+    assert [p.physical for p in joint.params] == [False] * (joint.dim - 2) + [True, True]
+
+
+def test_a_narrow_q_box_keeps_the_face_centres():
+    """A user's Q box of two decades (q_bounds = [1e-6, 1e-4]) is a variance's: the design
+    is the centre and the face centres as before — 1e-5, then 1e-6 and 1e-4 along each
+    axis in turn (written out here, not taken from the optimiser) — recorded "axial", so
+    that a study started before the narrow-box rule resumes."""
+    from kftune.tuning.problem import NoiseParameterization
+
+    space = NoiseParameterization(q_bounds=(1e-6, 1e-4)).space
+    d = space.dim
+    opt = make_optimizer("trbo", space, seed=0)
+    x = []
+    for _ in range(2 * d + 1):
+        t = opt.ask()
+        x.append(space.from_unit(t.u))
+        opt.tell(t, 1.0)
+    want = np.full((2 * d + 1, d), 1e-5)
+    for k in range(d):
+        want[1 + 2 * k, k], want[2 + 2 * k, k] = 1e-6, 1e-4
+    np.testing.assert_allclose(x, want, rtol=1e-9)
+    assert opt.options()["init_design"] == "axial"
 
 
 @pytest.mark.parametrize("seed", range(3))

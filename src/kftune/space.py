@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -36,12 +36,17 @@ class Param:
         low: lower bound in natural units (finite; > 0 on a log10 scale).
         high: upper bound in natural units (finite, > low).
         scale: ``"linear"`` or ``"log10"``.
+        physical: a physical quantity's plausible range around a guess (a model's
+            parameter: a stiffness, a friction coefficient), not a variance; a hint to
+            optimisers (TR-BO's design), left out of comparisons and of :meth:`to_dict`
+            so that a space's record and fingerprint do not change with it.
     """
 
     name: str
     low: float
     high: float
     scale: str = "linear"
+    physical: bool = field(default=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:

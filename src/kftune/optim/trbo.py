@@ -6,10 +6,10 @@ it and nothing restarts. TR-BO keeps TSBO's ideas — a surrogate of the whole r
 stage, and a global one — but lets them alternate for the whole budget:
 
 * **Design** (``init_design="auto"``): the centre, then two points on each axis through
-  it — for a wide log10 parameter (a box of more than :data:`WIDE_DECADES` decades) the
-  centres of its two faces of the box (``"axial"``, the axial points of a face-centred
-  composite design), for any other DIRECT's first trisection, the centre ± 1/3
-  (``"direct"``). A wide log10 parameter here is a variance spanning decades whose two
+  it — for a log10 parameter that is a variance the centres of its two faces of the box
+  (``"axial"``, the axial points of a face-centred composite design), for any other
+  DIRECT's first trisection, the centre ± 1/3 (``"direct"``). A log10 variance spans
+  decades (Q's 10, R's factors 4, or whatever box a user gives) and its two
   ends are regimes — a noise too small to matter, a model ignored — where the cost
   flattens into plateaus, and optima lie on or next to its bounds (on five of six datasets
   measured J* has a coordinate on a bound); probing every face from the start is what
@@ -19,15 +19,17 @@ stage, and a global one — but lets them alternate for the whole budget:
   every seed into the second basin (regret 0.119 at 100 evaluations), DIRECT's points
   every seed into the global one (4.4e-5; Optuna's GP 1.6e-4), and over the whole
   synthetic suite the two designs are level (paired per seed, lower in 87 and higher in
-  73 of 160 runs). Nor does a narrow log10 box, the plausible range of a physical
-  quantity around its guess (a cornering stiffness in [2e4, 4e5] N/rad, 1.3 decades; a
-  friction coefficient in [0.4, 1.6]): its faces are cars nobody has, the first basin
-  they lead into is an artefact of the box, and the optimum lies inside. Tuning Q with
-  C_af, C_ar and μ of a wrongly guessed vehicle (bundled set, seeds 0–9) the thirds gave
-  the lower cost on 8 of 10 seeds at d = 6 (100 evaluations, median 6 % lower) and at
-  d = 9 (with R's diagonal, 150), on 3 of 10 at d = 5 (μ held wrong; median 1.8 % higher)
-  (BENCHMARKS.md, "Tuning model parameters"). Q's boxes (10 decades) and R's factors (4)
-  keep the faces, so a Q-only or Q-and-R search proposes exactly what it did before.
+  73 of 160 runs). Nor does a narrow log10 box (at most :data:`WIDE_DECADES` decades) of a
+  :class:`~kftune.space.Param` marked ``physical`` — a model parameter, the plausible
+  range of a physical quantity around its guess (a cornering stiffness in [2e4, 4e5]
+  N/rad, 1.3 decades; a friction coefficient in [0.4, 1.6]): its faces are cars nobody
+  has, the first basin they lead into is an artefact of the box, and the optimum lies
+  inside. Tuning Q with C_af, C_ar and μ of a wrongly guessed vehicle (bundled set, seeds
+  0–9) the thirds gave the lower cost on 8 of 10 seeds at d = 6 (100 evaluations, median
+  6 % lower) and at d = 9 (with R's diagonal, 150), on 3 of 10 at d = 5 (μ held wrong;
+  median 1.8 % higher) (BENCHMARKS.md, "Tuning model parameters"). Q's and R's boxes
+  keep the faces whatever their width (a user's narrow Q box too), so a Q-only or
+  Q-and-R search proposes exactly what it did before and its older studies resume.
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
   δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
@@ -135,10 +137,14 @@ IMPROVEMENT_RTOL = 1e-3
 
 def auto_design(param: Any) -> str:
     """The axis points ``init_design="auto"`` gives a :class:`~kftune.space.Param`:
-    ``"axial"`` (face centres) for a log10 box of more than :data:`WIDE_DECADES` decades,
-    ``"direct"`` (DIRECT's thirds) for any other."""
-    wide = param.scale == "log10" and math.log10(param.high / param.low) > WIDE_DECADES
-    return "axial" if wide else "direct"
+    ``"direct"`` (DIRECT's thirds) for a linear one and for a physical quantity's narrow
+    log10 box (``physical``, at most :data:`WIDE_DECADES` decades: a model parameter's
+    plausible range), ``"axial"`` (face centres) for any other log10 one — a variance,
+    whatever its box, so that a user's narrow Q box keeps the design it always had."""
+    if param.scale != "log10":
+        return "direct"
+    narrow = math.log10(param.high / param.low) <= WIDE_DECADES
+    return "direct" if narrow and getattr(param, "physical", False) else "axial"
 
 
 class TrustRegionBO(Optimizer):
@@ -152,8 +158,8 @@ class TrustRegionBO(Optimizer):
             :data:`LENGTH_SCALE_BOUNDS`.
         n_init: points of the initial design (default 2d + 1: the centre and the face
             centres).
-        init_design: ``"auto"`` (``"axial"`` along log10 parameters whose box spans more
-            than :data:`WIDE_DECADES` decades, ``"direct"`` along the others; recorded as
+        init_design: ``"auto"`` (:func:`auto_design`: ``"axial"`` along log10 variances,
+            ``"direct"`` along linear and narrow physical parameters; recorded as
             ``"axial"`` or ``"direct"`` when all are alike),
             ``"axial"`` (centre, face centres, then Sobol points), ``"direct"`` (centre,
             centre ± 1/3 along each axis, then Sobol points) or ``"sobol"`` (centre, then

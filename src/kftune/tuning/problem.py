@@ -249,7 +249,7 @@ class NoiseParameterization:
                 Param("ukf_kappa", *self.kappa_bounds),
             ]
         params += [
-            Param(name, *self.model_bounds[name], scale=self.model_scales[name])
+            Param(name, *self.model_bounds[name], scale=self.model_scales[name], physical=True)
             for name in self.model_names
         ]
         return Space(params)
