@@ -712,7 +712,8 @@ def _model_boxes(
 ) -> dict[str, tuple[float, float, str | None, str]]:
     """Tuned model parameters, name → (low, high, scale or None, where it was given): the
     configuration's ``tune_model``/``model_scale``, then ``--tune-model`` (which wins for
-    its names)."""
+    its names; without a scale it keeps the configuration's ``model_scale`` of the name;
+    a name given twice on the command line is refused, naming it)."""
     where = _where(config, "parameters")
     out: dict[str, tuple[float, float, str | None, str]] = {}
     scales = section.get("model_scale", {})
@@ -737,8 +738,12 @@ def _model_boxes(
                 f"e.g. {name} = [20000.0, 400000.0], got {box!r}"
             )
         out[name] = (float(box[0]), float(box[1]), scales.get(name), f"tune_model.{name}")
+    given: set[str] = set()
     for name, low, high, scale in getattr(args, "tune_model", None) or []:
-        out[name] = (low, high, scale, f"--tune-model {name}")
+        if name in given:
+            raise UsageError(f"--tune-model {name} is given twice; give each parameter once")
+        given.add(name)
+        out[name] = (low, high, scale or scales.get(name), f"--tune-model {name}")
     return out
 
 
