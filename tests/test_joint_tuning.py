@@ -676,6 +676,27 @@ def test_tune_model_names_are_checked_against_the_chosen_model():
         parameterization(args, {}, get_model("single-track"))
 
 
+def test_tune_model_twice_is_refused_and_a_box_alone_keeps_the_configured_scale():
+    """--tune-model C_af twice: refused naming it (the second silently won); a box without
+    a scale on the command line keeps the configuration's model_scale for that name
+    (linear here), one with a scale takes it."""
+    import argparse
+
+    from kftune.cli._common import parameterization
+    from kftune.errors import UsageError
+
+    model = get_model("single-track")
+    twice = argparse.Namespace(tune_model=[("C_af", 2e4, 4e5, None), ("C_af", 3e4, 4e5, None)])
+    with pytest.raises(UsageError, match="--tune-model C_af is given twice"):
+        parameterization(twice, {}, model)
+    config = {"parameters": {"tune_model": {"C_af": [2e4, 4e5]}, "model_scale": {"C_af": "linear"}}}
+    box = argparse.Namespace(tune_model=[("C_af", 3e4, 3e5, None)])
+    par = parameterization(box, config, model)
+    assert par.model_bounds["C_af"] == (3e4, 3e5) and par.model_scales["C_af"] == "linear"
+    scaled = argparse.Namespace(tune_model=[("C_af", 3e4, 3e5, "log10")])
+    assert parameterization(scaled, config, model).model_scales["C_af"] == "log10"
+
+
 @pytest.mark.parametrize(
     ("edit", "says"),
     [
