@@ -13,6 +13,7 @@ import sqlite3
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -459,6 +460,50 @@ def test_a_joint_tuning_seeds_its_search_with_the_noise_only_optimum(small, tmp_
     expected = np.mean([row["rmse"] for row in metrics.values()])
     assert held["noise_only_beta_rmse_deg"] == pytest.approx(expected, rel=1e-9)
     assert "noise-only filter (Q tuned alone, first stage): β RMSE" in res.stdout
+
+
+@pytest.mark.parametrize("stage", [1, 2])
+def test_ctrl_c_in_either_stage_keeps_the_best_so_far_in_the_joint_space(
+    small, tmp_path, monkeypatch, stage
+):
+    """Ctrl-C after 3 evaluations of stage 1 or 2: exit 130, the partial file holds a
+    point of the joint space (stage 1's best with the recorded C_af, or stage 2's best,
+    which is no worse than stage 1's), and the message names every study file kept."""
+    import kftune.experiment as experiment
+    from kftune.optim.study import read_study
+
+    real, calls = experiment.minimize, []
+
+    def interrupted_at(fun: Any, space: Any, method: str, **kw: Any) -> Any:
+        calls.append(method)
+        if len(calls) != stage:
+            return real(fun, space, method, **kw)
+        n = []
+
+        def f(x: Any) -> float:
+            n.append(1)
+            if len(n) > 3:
+                raise KeyboardInterrupt
+            return fun(x)
+
+        return real(f, space, method, **kw)
+
+    monkeypatch.setattr(experiment, "minimize", interrupted_at)
+    db, out = tmp_path / "s.db", tmp_path / "t.json"
+    res = run_cli("tune", str(small), "-n", "24", "--cost", "nrmse", "--storage", str(db),
+                  "-o", str(out), "--tune-model", "C_af=20000:400000")  # fmt: skip
+    assert res.returncode == 130, res.stderr
+    partial = json.loads((tmp_path / "t.partial.json").read_text())
+    assert list(partial["params"]) == ["q_vx", "q_vy", "q_r", "C_af"]
+    first = tmp_path / "s.noise-only.db"
+    assert f"is saved in {first}" in res.stderr and "--resume" in res.stderr
+    best1 = min(r.value for r in read_study(first).records if r.ok)
+    if stage == 1:
+        assert not db.exists() and partial["params"]["C_af"] == 55600.0
+        assert partial["cost"] == pytest.approx(best1, rel=1e-12)
+    else:
+        assert f"{first} and {db}" in res.stderr
+        assert partial["cost"] <= best1 * (1 + 1e-9)
 
 
 def test_a_noise_only_tuning_and_other_methods_run_in_one_stage(small, tmp_path):

@@ -765,14 +765,19 @@ def _interrupted(
             lines.append(f"best cost so far {result.fun:.5g}, its parameters written to {partial}")
         except RunFailedError as exc:
             lines.append(f"best cost so far {result.fun:.5g}; {exc}")
-    if args.storage is not None and not args.storage.exists():
+    from kftune.experiment import noise_stage_storage
+
+    # a two-stage joint tuning keeps its first stage beside --storage
+    first = noise_stage_storage(args.storage)
+    saved = [p for p in (first, args.storage) if p is not None and p.exists()]
+    if args.storage is not None and not saved:
         lines.append(f"no study was started in {args.storage}; run the same command again")
     elif args.storage is not None:
         again = ["kftune", *getattr(args, "argv", ["tune"]), *([] if args.resume else ["--resume"])]
         lines.append(
             "every finished evaluation"
-            + ("" if result is None else f" ({result.n_evals})")
-            + f" is saved in {args.storage}; continue with the same command"
+            + ("" if result is None or len(saved) > 1 else f" ({result.n_evals})")
+            + f" is saved in {' and '.join(map(str, saved))}; continue with the same command"
             + ("" if args.resume else " plus --resume")
             + f": {shlex.join(again)}"
         )
