@@ -157,3 +157,29 @@ def test_the_report_says_how_the_cost_is_normalised():
 
     assert "paper Eq. 14–15" in _describe_cost(CostSpec())
     assert "over all manoeuvres / the largest |X|" in _describe_cost(CostSpec(normalise="dataset"))
+
+
+@pytest.mark.parametrize(("kind", "weights", "refused"), [
+    ("pem", "{ r = 1.0 }", True),
+    ("nis", "{ r = 1.0 }", True),
+    ("crps", "{ beta = 1.0 }", False),
+    ("nlpd", "{ beta = 1.0 }", False),
+])  # fmt: skip
+def test_weights_in_a_configuration_are_refused_only_for_the_costs_that_weigh_none(
+    small, tmp_path, kind, weights, refused
+):
+    """[cost] weights with nis or pem: refused naming the file, the section and the costs
+    that do take weights (nrmse, nlpd, crps and msp); with a scoring rule: accepted."""
+    from conftest import run_cli
+
+    config = tmp_path / "c.toml"
+    config.write_text(f'[cost]\nkind = "{kind}"\nweights = {weights}\n')
+    res = run_cli("evaluate", str(small), "--manual", "--config", str(config), "--json")
+    if refused:
+        assert res.returncode == 3, res.stderr
+        assert "weights apply to the nrmse, nlpd, crps and msp costs, not to " + kind in (
+            res.stderr
+        )
+        assert str(config) in res.stderr and "Traceback" not in res.stderr
+    else:
+        assert res.returncode == 0, res.stderr

@@ -539,6 +539,10 @@ def cost_spec(
     return spec
 
 
+#: The costs that weigh channels (``--weights``, ``[cost] weights``): the NRMSE, the scoring
+#: rules and the multi-step prediction (its channels); nis and pem take none.
+WEIGHTED_COSTS = "nrmse, nlpd, crps and msp"
+
 def _cost_spec(
     args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None
 ) -> CostSpec:
@@ -565,12 +569,13 @@ def _cost_spec(
         if args.weights:
             raise UsageError(
                 f"--weights: the {kind.upper()} cost ({source}) weighs no channels; leave "
-                "--weights out or use the nrmse cost"
+                f"--weights out or use a cost that does ({WEIGHTED_COSTS})"
             )
         if "weights" in section:
             raise ConfigError(
-                f"{_where(config, 'cost')}: weights apply to the nrmse cost only, but the cost "
-                f"is {kind}{' (from --cost)' if args.cost else ''}; remove them or use nrmse"
+                f"{_where(config, 'cost')}: weights apply to the {WEIGHTED_COSTS} costs, "
+                f"not to {kind}{' (from --cost)' if args.cost else ''} (nis and pem weigh no "
+                "channels); remove them or use one of those"
             )
     if kind != "nrmse":  # only the NRMSE is normalised: say so instead of ignoring it
         if args.normalise:

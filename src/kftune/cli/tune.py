@@ -24,6 +24,15 @@ reason where the model knows one (μ on data far from the friction limit). At mo
 evaluations per parameter and one per pair; recorded as ``identifiability``
 (:mod:`kftune.tuning.identify`).
 
+With model parameters tuned by TR-BO (the default method) the budget ``-n`` runs in two
+stages: a quarter of it tunes the noise alone at the recorded model, the rest searches the
+joint box from that optimum (TR-BO's ``x0``), so the joint filter never ends at a higher
+training cost than the noise-only one; the held-out line then also shows the noise-only
+filter's β RMSE and warns where the joint one is worse (the joint filter is kept). The
+first stage's study lies beside ``--storage`` (``study.noise-only.db``); ``--resume``
+continues either stage. Other methods, ``--scheduler`` and an ``[options.trbo] x0`` of
+your own search the joint box in one stage.
+
 When the best point lies on a bound of the search box (within 1 % of a parameter's range),
 tune says which parameter and which bound, and the file records it (``on_bounds``): the
 optimum may lie beyond. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
