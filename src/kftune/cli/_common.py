@@ -543,6 +543,7 @@ def cost_spec(
 #: rules and the multi-step prediction (its channels); nis and pem take none.
 WEIGHTED_COSTS = "nrmse, nlpd, crps and msp"
 
+
 def _cost_spec(
     args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None
 ) -> CostSpec:
