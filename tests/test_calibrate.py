@@ -585,3 +585,16 @@ def test_compare_records_why_a_filter_was_not_calibrated_and_the_report_says_so(
     old = calibration_note(SimpleNamespace(methods=[run("TR-BO"), run("Manual")]))
     assert "shown as tuned: these results record no calibration" in old
     assert "calibrated as kftune tune deploys it" not in old
+
+
+def test_compare_and_export_say_in_their_help_what_they_do_with_the_calibration():
+    """compare --help: each filter shown calibrated, --no-calibration is another command's;
+    export --help: the export applies the tuned file's calibration."""
+    helps = {}
+    for command in ("compare", "export"):
+        res = run_cli(command, "--help")
+        assert res.returncode == 0, res.stderr
+        helps[command] = " ".join(res.stdout.split())
+    assert "Each filter, the manual one too, is shown calibrated" in helps["compare"]
+    assert "there is no --no-calibration here (tune, evaluate and estimate" in helps["compare"]
+    assert "The export applies the tuned file's calibration" in helps["export"]

@@ -15,8 +15,9 @@ dataset name and SHA-256 fingerprint, kftune versions) — as
           that differ only in case or punctuation are refused (they would be one macro)
   matlab  a MATLAB/Octave script that builds the struct kf (kf.Q, kf.R, kf.dt, ...)
 
-A calibrated filter (kftune tune fits a covariance scale c by default) runs with the tuned
-Q and R as written; c (covariance_scale, KFTUNE_COVARIANCE_SCALE) multiplies every
+The export applies the tuned file's calibration: a calibrated filter (kftune tune fits a
+covariance scale c by default; c = 1 after tune --no-calibration) runs with the tuned Q and
+R as written; c (covariance_scale, KFTUNE_COVARIANCE_SCALE) multiplies every
 covariance it reports: P (σ by √c) and S (for the NIS and gating). Do not run it with c·Q
 and c·R: that moves a UKF's estimate.
 
