@@ -111,6 +111,18 @@ DEV_ZERO = Path("/dev", "zero")
 HANG_GUARD = 600.0
 
 
+def completed_trials(db: Path) -> int:
+    """The finished evaluations in the study ``db`` (SQLite, read-only: a running tune may
+    hold it), 0 while it does not exist or cannot be read yet."""
+    import sqlite3
+
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1) as conn:
+            return conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
 def wait_until(
     ready, proc=None, what: str = "the condition", limit: float = HANG_GUARD, every: float = 0.05
 ) -> None:

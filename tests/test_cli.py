@@ -28,6 +28,7 @@ from conftest import (
     run_cli,
     wait_until,
 )
+from conftest import completed_trials as _completed
 from kftune.cli import SUBCOMMANDS, main
 from kftune.data import default_dataset, save_dataset
 
@@ -410,14 +411,6 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     assert (tmp_path / "again" / "report.md").read_text() == (out / "report.md").read_text()
     for csv in (out / "tables").glob("*.csv"):
         assert (tmp_path / "again" / "tables" / csv.name).read_text() == csv.read_text()
-
-
-def _completed(db: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1) as conn:
-            return conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
-    except sqlite3.Error:
-        return 0
 
 
 def test_tune_resume_after_sigkill_equals_uninterrupted_run(small, tmp_path):

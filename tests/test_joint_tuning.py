@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import kftune
+from conftest import completed_trials as _completed
 from conftest import run_cli, wait_until
 from kftune.data import default_dataset, open_dataset, save_dataset
 from kftune.errors import ConfigError
@@ -354,14 +355,6 @@ def test_bad_tune_model_tables_are_refused_naming_file_and_key(small, tmp_path, 
     assert res.returncode == 3, res.stderr
     assert re.search(says, res.stderr), res.stderr
     assert "Traceback" not in res.stderr
-
-
-def _completed(db: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1) as conn:
-            return conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
-    except sqlite3.Error:
-        return 0
 
 
 def _sigkill_when(db: Path, n: int, args: list[str], out: Path) -> None:
