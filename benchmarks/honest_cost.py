@@ -126,14 +126,24 @@ def r_at_bound(par: NoiseParameterization, params: dict[str, float]) -> list[int
     return [k, len(par.r_names)]
 
 
-def run_config(ds: Any, name: str, budget: int, seed: int) -> dict[str, Any]:
-    """Tune (or take the manual point) with one cost and measure the filter on the test
-    set, as tuned and after the calibration."""
+def run_config(
+    ds: Any,
+    name: str,
+    budget: int,
+    seed: int,
+    criterion: str | None = None,
+    point: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """Tune (or take the manual point, or ``point``: parameter name → value, an earlier
+    run's) with one cost and measure the filter on the test set, as tuned and after the
+    calibration by ``criterion`` (None: ``tune``'s default)."""
     cost, options = CONFIGS[name]
     par = NoiseParameterization(**options)
     problem = TuningProblem(ds.train, ds.vehicle, ds.r_default, cost=cost, parameterization=par)
     t0 = time.perf_counter()
-    if name == "manual":
+    if point is not None:
+        x, fun = np.array([point[n] for n in problem.space.names]), math.nan
+    elif name == "manual":
         x, fun = manual_point(problem.parameterization), math.nan
     else:
         res = tune(problem, "trbo", budget=budget, seed=seed, progress=False)
@@ -150,7 +160,8 @@ def run_config(ds: Any, name: str, budget: int, seed: int) -> dict[str, Any]:
         **measure(problem, x, ds.test),
     }
     try:
-        cal = calibrate(problem, x)
+        how = {} if criterion is None else {"criterion": criterion}
+        cal = calibrate(problem, x, **how)
         problem.cov_scale = cal.factor
         row["cal_factor"] = cal.factor
         row.update({f"cal_{k}": v for k, v in measure(problem, x, ds.test).items()})
@@ -218,7 +229,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--budget", type=int, default=100)
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0 … N−1 (default 3)")
     ap.add_argument("--configs", nargs="+", default=DEFAULT_CONFIGS, choices=list(CONFIGS))
+    ap.add_argument(
+        "--criterion", help="the calibration's criterion (default: tune's; kftune tune --help)"
+    )
+    ap.add_argument(
+        "--points",
+        metavar="OUT",
+        help="take the tuned points from an earlier run's output (its last line) instead of "
+        "tuning: the calibration and the figures again, e.g. with another --criterion",
+    )
     args = ap.parse_args(argv)
+    stored: dict[tuple[str, str, int], dict[str, float]] = {}
+    if args.points:
+        with open(args.points, encoding="utf-8") as f:
+            earlier = json.loads(f.read().strip().splitlines()[-1])
+        for ds_name, d in earlier["datasets"].items():
+            for r in d["runs"]:
+                stored[(ds_name, r["config"], r["seed"])] = r["params"]
 
     results: dict[str, Any] = {}
     for name in args.datasets:
@@ -226,7 +253,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         runs: list[dict[str, Any]] = []
         for config in args.configs:
             for seed in range(1 if config == "manual" else args.seeds):
-                r = run_config(ds, config, args.budget, seed)
+                point = stored.get((name, config, seed))
+                if args.points and point is None:
+                    continue
+                r = run_config(ds, config, args.budget, seed, args.criterion, point)
                 runs.append(r)
                 print(
                     f"{name} {config:<13} seed {seed}: β RMSE {r['rmse']:.4f}°  "
