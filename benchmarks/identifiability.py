@@ -48,6 +48,7 @@ from scipy.optimize import minimize as scipy_minimize
 from kftune import minimize
 from kftune.data import Manoeuvre, default_dataset, open_dataset
 from kftune.models import get_model
+from kftune.sim.single_track import SENSOR_STD, gentle_slalom
 from kftune.tuning.identify import (
     NOT_DETERMINED_SHARE,
     REL_RISE,
@@ -56,42 +57,15 @@ from kftune.tuning.identify import (
     identify_problem,
 )
 from kftune.tuning.problem import NoiseParameterization, TuningProblem, default_r0
-from kftune.vehicle.single_track import measure, simulate
+from kftune.vehicle.params import VehicleParams
 
 BOUNDS = {"C_af": (2e4, 4e5), "C_ar": (2e4, 4e5), "mu": (0.4, 1.6)}
 REVS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "revs-250lm"
-SENSOR_STD = (0.05, 0.1, 0.002)
 
 
-def gentle_runs(vehicle) -> list[Manoeuvre]:
+def gentle_runs(vehicle: VehicleParams) -> list[Manoeuvre]:
     """Two 20-s slalom-like runs on the single-track model, |ay| ≤ 3 m/s², noisy sensors."""
-    out = []
-    for seed in range(2):
-        dt, n = 0.01, 2000
-        t = np.arange(n) * dt
-        shape = np.sin(2 * np.pi * 0.3 * t) + 0.5 * np.sin(2 * np.pi * 0.8 * t + seed)
-        u = np.column_stack([shape, np.zeros(n)])
-        x0 = np.array([20.0, 0.0, 0.0])
-        peak = np.max(np.abs(measure(simulate(x0, u * 0.01, vehicle, dt), u * 0.01, vehicle)[:, 1]))
-        u[:, 0] *= 0.01 * 3.0 / peak
-        x = simulate(x0, u, vehicle, dt)
-        z = measure(x, u, vehicle)
-        z = z + np.random.default_rng(seed).standard_normal(z.shape) * np.array(SENSOR_STD)
-        out.append(
-            Manoeuvre(
-                f"gentle-{seed}",
-                "slalom",
-                "train",
-                t,
-                delta=u[:, 0],
-                ax=u[:, 1],
-                vx=z[:, 0],
-                ay=z[:, 1],
-                r=z[:, 2],
-                beta_ref=np.arctan2(x[:, 1], x[:, 0]),
-            )
-        )
-    return out
+    return [gentle_slalom(f"gentle-{seed}", vehicle, seed, ay_peak=3.0) for seed in range(2)]
 
 
 def problem_of(name: str) -> TuningProblem:

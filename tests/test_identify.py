@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from kftune.sim.single_track import SENSOR_STD, gentle_slalom
 from kftune.space import Param, Space
 from kftune.tuning.identify import (
     MAX_EVALS_PER_PARAMETER,
@@ -236,41 +237,6 @@ def test_an_isolated_rough_value_does_not_close_a_flat_range():
 
 # ------------------------------------------------------- a real tuning problem, joint tuning
 
-#: Sensor noise standard deviations of the simulated manoeuvres: Vx [m/s], ay [m/s²], r [rad/s].
-SENSOR_STD = (0.05, 0.1, 0.002)
-
-
-def _gentle_manoeuvre(name: str, vehicle, seed: int, ay_peak: float):
-    """A 20-s slalom-like run at 20 m/s simulated on the single-track model itself (known
-    parameters), steered by two sines scaled so that the largest |ay| is ``ay_peak``,
-    with Gaussian sensor noise of :data:`SENSOR_STD` and the true sideslip as reference."""
-    from kftune.data import Manoeuvre
-    from kftune.vehicle.single_track import measure, simulate
-
-    dt, n, vx = 0.01, 2000, 20.0
-    t = np.arange(n) * dt
-    shape = np.sin(2 * np.pi * 0.3 * t) + 0.5 * np.sin(2 * np.pi * 0.8 * t + seed)
-    u = np.column_stack([shape, np.zeros(n)])
-    x0 = np.array([vx, 0.0, 0.0])
-    ay_unit = np.max(np.abs(measure(simulate(x0, u * 0.01, vehicle, dt), u * 0.01, vehicle)[:, 1]))
-    u[:, 0] *= 0.01 * ay_peak / ay_unit  # linear regime: |ay| scales with the steer
-    x = simulate(x0, u, vehicle, dt)
-    z = measure(x, u, vehicle)
-    rng = np.random.default_rng(seed)
-    z = z + rng.standard_normal(z.shape) * np.array(SENSOR_STD)
-    return Manoeuvre(
-        name,
-        "slalom",
-        "train",
-        t,
-        delta=u[:, 0],
-        ax=u[:, 1],
-        vx=z[:, 0],
-        ay=z[:, 1],
-        r=z[:, 2],
-        beta_ref=np.arctan2(x[:, 1], x[:, 0]),
-    )
-
 
 def test_joint_tuning_far_from_the_friction_limit_determines_the_stiffnesses_not_mu():
     """Data simulated on the bundled vehicle with |ay| ≤ 3 m/s² (29 % of μ·g), a recorded
@@ -283,7 +249,7 @@ def test_joint_tuning_far_from_the_friction_limit_determines_the_stiffnesses_not
     from kftune.tuning.problem import NoiseParameterization, TuningProblem
 
     truth = default_dataset().vehicle
-    runs = [_gentle_manoeuvre(f"gentle-{k}", truth, k, ay_peak=3.0) for k in range(2)]
+    runs = [gentle_slalom(f"gentle-{k}", truth, k, ay_peak=3.0) for k in range(2)]
     recorded = truth.replace(C_af=0.8 * truth.C_af, C_ar=1.25 * truth.C_ar)
     par = NoiseParameterization(
         model_bounds={"C_af": (2e4, 4e5), "C_ar": (2e4, 4e5), "mu": (0.4, 1.6)}
