@@ -279,7 +279,8 @@ def test_timeout_with_worker_pool_is_refused(small, tmp_path):
 
 def test_tune_then_evaluate_json(small, tmp_path):
     out = tmp_path / "tuned.json"
-    res = kftune("tune", str(small), "-n", "6", "--json", "-o", str(out))
+    # the paper's cost and Q alone (tune's own default: test_tune_default.py)
+    res = kftune("tune", str(small), "-n", "6", "--cost", "nrmse", "--json", "-o", str(out))
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     assert doc["method"] == "trbo" and doc["n_evals"] == 6  # the default method
@@ -667,8 +668,9 @@ def test_a_filter_that_diverges_everywhere_fails_cleanly(tmp_path):
 def test_manual_points_in_a_config_are_accepted(small, tmp_path):
     cfg = tmp_path / "m.toml"
     cfg.write_text("[options.manual]\npoints = [[1e-6, 1e-5, 1e-3]]\n")
+    # the paper's cost, Q alone: the points are Q's
     res = kftune("tune", str(small), "-m", "manual", "--config", str(cfg), "--quiet", "--json",
-                 "-o", str(tmp_path / "t.json"))  # fmt: skip
+                 "--cost", "nrmse", "-o", str(tmp_path / "t.json"))  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["q"] == [1e-6, 1e-5, 1e-3]
 
@@ -706,7 +708,7 @@ def test_tune_widen_bounds_runs_on_a_wider_box_and_resumes(small, tmp_path, caps
     cfg.write_text("widen_bounds = true\n[parameters]\nq_bounds = [1e-10, 1e-9]\n")
     db = tmp_path / "study.db"
     args = ["tune", str(small), "--config", str(cfg), "-m", "tsbo-tsp", "-n", "8"]
-    args += ["--storage", str(db)]
+    args += ["--storage", str(db), "--cost", "nrmse"]  # the paper's cost, Q alone
     assert main([*args, "--json", "-o", str(tmp_path / "t.json")]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["n_evals"] > 8 and (tmp_path / "study.widen1.db").exists()

@@ -98,7 +98,19 @@ def test_tune_off_a_terminal_shows_progress_compile_note_and_why_evaluations_fai
         "[options.manual]\npoints = [[1e8, 1e8, 1e8], [1e-6, 1e-5, 1e-3], [1e8, 1e8, 1e8]]\n"
     )
     out = tmp_path / "t.json"
-    res = run_cli("tune", str(tmp_path / "d"), "-m", "manual", "--config", str(cfg), "-o", str(out))
+    # the paper's cost and Q alone: the points are Q's
+    res = run_cli(
+        "tune",
+        str(tmp_path / "d"),
+        "-m",
+        "manual",
+        "--cost",
+        "nrmse",
+        "--config",
+        str(cfg),
+        "-o",
+        str(out),
+    )
     assert res.returncode == 0, res.stderr
     assert "Traceback" not in res.stderr and "\r" not in res.stderr
     err = res.stderr.splitlines()

@@ -19,7 +19,9 @@ def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     model = tmp_path / "my_model.py"
     shutil.copyfile(EXAMPLE, model)
     out = tmp_path / "tuned.json"
-    res = kftune("tune", str(small), "--model", str(model), "-n", "6", "--json", "-o", str(out))
+    # the paper's cost, Q alone: the test is about the model file
+    args = ("--model", str(model), "--cost", "nrmse", "-n", "6", "--json")
+    res = kftune("tune", str(small), *args, "-o", str(out))
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     # recorded relative to the tuned file's folder, where it lies

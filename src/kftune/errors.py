@@ -79,6 +79,11 @@ class ConfigError(KftuneError, ValueError):
     """An option or configuration value is invalid; the message names it."""
 
 
+class ObjectiveMismatchError(ConfigError):
+    """A stored study was created for another objective (data, cost, model) than the run
+    that resumes it; a caller that chose the objective's defaults can say how to match."""
+
+
 class DataWarning(UserWarning):
     """Input data load but look implausible (e.g. samples held at a lower rate); the
     message names the dataset and manoeuvre and says how much of it is affected. The CLI

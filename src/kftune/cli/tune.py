@@ -69,6 +69,8 @@ from kftune.cli._common import (
     BUDGET,
     CALIBRATIONS,
     MAX_BUDGET,
+    RECOMMENDED_NORMALISE,
+    RECOMMENDED_TUNE_R,
     TIMEOUT_SECONDS,
     add_command,
     add_common,
@@ -82,11 +84,12 @@ from kftune.cli._common import (
     output_file,
     parameterization,
     pick,
+    recommended,
     split_model_file,
     write_output,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from kftune.errors import ConfigError, RunFailedError, UsageError
+from kftune.errors import ConfigError, ObjectiveMismatchError, RunFailedError, UsageError
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 from kftune.tuning.calibrate import DEFAULT_CRITERION
@@ -321,6 +324,15 @@ def run(args: argparse.Namespace) -> int:
             except EngineLostError as lost:  # the Dask scheduler went away
                 _interrupted(args, lost.result, problem, dataset, failure=str(lost))
                 return EXIT_FAILURE
+            except ObjectiveMismatchError as exc:
+                if not recommended(args, config):
+                    raise
+                raise ObjectiveMismatchError(
+                    f"{exc}. This run tunes kftune tune's default, the NRMSE "
+                    f"{RECOMMENDED_NORMALISE}-normalised with R's diagonal (tune_r = "
+                    f"{RECOMMENDED_TUNE_R!r}); a study started with the paper's cost and Q "
+                    "alone (tune's default before) resumes with --cost nrmse"
+                ) from None
     except KeyboardInterrupt:  # loading, starting or stopping workers: keep what there is
         _interrupted(args, result, problem, dataset)
         return EXIT_INTERRUPTED

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kftune.errors import ConfigError, KftuneError, RunFailedError
+from kftune.errors import ConfigError, KftuneError, ObjectiveMismatchError, RunFailedError
 from kftune.optim.result import COMPLETE, FAILED, RUNNING, EvalRecord, jsonable
 
 #: Bumped when the table layout changes.
@@ -624,7 +624,7 @@ def _check_settings(
             key, old, new = f"{key}.{sub}", old.get(sub, "(not set)"), new.get(sub, "(not set)")
         if all(isinstance(v, dict) and "summary" in v for v in (old, new)):
             # an objective's fingerprint: what it is, not its hash
-            raise ConfigError(
+            raise ObjectiveMismatchError(
                 f"study {p} was created for another {key}: {old['summary']}; this run's is "
                 f"{new['summary']}"
                 + ("" if old["summary"] != new["summary"] else " (the data differ)")
