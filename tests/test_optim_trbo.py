@@ -10,6 +10,8 @@ contract (tests/test_optim_contract.py covers bounds, budget, failures, timeouts
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -39,6 +41,16 @@ def branin_log(x: np.ndarray) -> float:
 
 
 BRANIN_SPACE = {"a": (-5.0, 10.0), "q": (1e-10, 1.0, "log10")}
+
+
+def first_proposals(opt: Any, n: int) -> np.ndarray:
+    """(n, d) the unit-cube points of ``opt``'s first ``n`` proposals, each told 1.0."""
+    u = []
+    for _ in range(n):
+        t = opt.ask()
+        u.append(t.u)
+        opt.tell(t, 1.0)
+    return np.array(u)
 
 
 @pytest.mark.parametrize(
@@ -71,11 +83,7 @@ def test_the_default_design_probes_the_faces_of_log10_parameters_only():
     DIRECT's thirds along a linear one; recorded as the concrete design when all
     parameters are alike, so studies of the tuning problems (all log10) keep "axial"."""
     opt = make_optimizer("trbo", BRANIN_SPACE, seed=0)
-    u = []
-    for _ in range(5):
-        t = opt.ask()
-        u.append(t.u)
-        opt.tell(t, 1.0)
+    u = first_proposals(opt, 5)
     np.testing.assert_allclose(
         u, [[0.5, 0.5], [1 / 6, 0.5], [5 / 6, 0.5], [0.5, 0.0], [0.5, 1.0]], atol=1e-15
     )
@@ -103,11 +111,7 @@ def test_the_default_design_probes_thirds_of_a_narrow_log10_box():
         )
     )
     opt = make_optimizer("trbo", space, seed=0)
-    u = []
-    for _ in range(9):
-        t = opt.ask()
-        u.append(t.u)
-        opt.tell(t, 1.0)
+    u = first_proposals(opt, 9)
     want = np.full((9, 4), 0.5)
     for k, at in enumerate([(0.0, 1.0), (1 / 6, 5 / 6), (1 / 6, 5 / 6), (0.0, 1.0)]):
         want[1 + 2 * k, k], want[2 + 2 * k, k] = at
@@ -129,11 +133,7 @@ def test_a_narrow_q_box_keeps_the_face_centres():
     space = NoiseParameterization(q_bounds=(1e-6, 1e-4)).space
     d = space.dim
     opt = make_optimizer("trbo", space, seed=0)
-    x = []
-    for _ in range(2 * d + 1):
-        t = opt.ask()
-        x.append(space.from_unit(t.u))
-        opt.tell(t, 1.0)
+    x = space.from_unit(first_proposals(opt, 2 * d + 1))
     want = np.full((2 * d + 1, d), 1e-5)
     for k in range(d):
         want[1 + 2 * k, k], want[2 + 2 * k, k] = 1e-6, 1e-4
