@@ -2,7 +2,11 @@
 
 The filter is the paper's single-track UKF unless ``--model`` (a built-in model or a Python
 file defining your own) and ``--filter ekf`` say otherwise; Q's diagonal is tuned, one
-``q_<state>`` per state of the model.
+``q_<state>`` per state of the model. Without any cost option (``--cost``, ``--weights``,
+``--normalise``, ``--estimate``) or ``[cost]`` key, tune tunes kftune's recommended
+setting: the NRMSE normalised over the dataset, with R's diagonal tuned too (one
+``r_<measurement>_scale`` each; README 'Which cost'); ``--cost nrmse`` is the paper's
+cost with Q alone.
 
 Writes the tuned parameters to a JSON file (``--out``, default ``tuned.json``) that
 ``kftune evaluate --params`` reads. With ``--storage study.db`` every evaluation is saved as
