@@ -486,6 +486,9 @@ def test_a_profile_point_below_the_tuned_one_leaves_the_parameter_not_assessed()
     assert not b.determined
     assert "not assessed: the search had not converged along b (the cost is lower at b =" in text
     assert "determined" not in text and " … " not in text
+    # the drop in the units of the rise (a share of J* means nothing for a log-likelihood)
+    assert f"by {b.cost - b.better[1]:.3g}: " in text and "× the rise that ends a range" in text
+    assert "%" not in text
 
 
 def test_a_model_files_hints_cannot_fail_tune_nor_flood_its_text():

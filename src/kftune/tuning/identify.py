@@ -288,7 +288,8 @@ class ParameterIdentifiability:
             v, j = self.better
             text += (
                 f": not assessed: the search had not converged along {self.name} (the cost "
-                f"is lower at {self.name} = {v:.4g}, {rise_pct(j, self.cost):+.2g} %)"
+                f"is lower at {self.name} = {v:.4g}, by {self.cost - j:.3g}: "
+                f"{(self.cost - j) / self.delta_j:.3g}× the rise that ends a range)"
             )
             return text + (f"\n      {self.reason}" if self.reason else "")
         lo, hi = self.range_low, self.range_high
