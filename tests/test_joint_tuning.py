@@ -757,8 +757,13 @@ def test_a_damaged_model_params_record_is_refused_naming_file_and_key(small, tmp
     out, doc = _tuned(small, tmp_path, "--tune-model", "C_af=20000:400000", budget="4")
     edit(doc)
     out.write_text(json.dumps(doc))
-    for command in (["evaluate", str(small), "--params"], ["export"]):
-        res = run_cli(*command, str(out), *(["-o", "-"] if command == ["export"] else []))
+    estimated = str(tmp_path / "estimates")
+    for command, after in (
+        (["evaluate", str(small), "--params"], []),
+        (["estimate", str(small), "--params"], ["-o", estimated]),
+        (["export"], ["-o", "-"]),
+    ):
+        res = run_cli(*command, str(out), *after)
         assert res.returncode == 3, res.stderr
         assert re.search(says, res.stderr) and str(out) in res.stderr, res.stderr
         assert "Traceback" not in res.stderr

@@ -152,8 +152,9 @@ def tuned_model_params(
     """The tuned model parameters of a tuned-parameters file, name → value (``model_params``;
     empty for a file without it: noise only, or an older kftune). The one check of the key:
     every reader of tuned files goes through it (:func:`kftune.cli.evaluate.read_tuned`).
-    ``param_names``: the model's parameters, where the model is known (each name must be
-    one of them).
+    ``param_names``: the model's parameters (each name must be one of them); by default
+    those of the file's ``model`` where it is a registered one (a model file's are known
+    only once it is loaded).
 
     Raises:
         DataError: naming ``source`` and the key, when ``model_params`` is not an object of
@@ -168,6 +169,9 @@ def tuned_model_params(
             f"'model_params' must be an object (name -> its record), got {record!r:.60}",
             file=source,
         )
+    model = doc.get("model", "single-track")
+    if param_names is None and isinstance(model, str) and model in model_names():
+        param_names = get_model(model).param_names
     out: dict[str, float] = {}
     for name, entry in record.items():
         where = f"'model_params.{name}'"
