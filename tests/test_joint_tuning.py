@@ -751,6 +751,14 @@ def test_tune_model_twice_is_refused_and_a_box_alone_keeps_the_configured_scale(
             lambda d: d["model_params"].update(C_zz=d["model_params"].pop("C_af")),
             "'model_params.C_zz': the model has no parameter 'C_zz'",
         ),
+        (  # a tuned value off the recording's: named before the vehicle mismatch it makes
+            lambda d: (
+                d["deployment"]["vehicle"].update(C_af=6e4),
+                d["model_params"]["C_af"].update(value=6e4),
+                d["model_params"].update(C_zz=d["model_params"].pop("C_af")),
+            ),
+            "'model_params.C_zz': the model has no parameter 'C_zz'",
+        ),
     ],
 )
 def test_a_damaged_model_params_record_is_refused_naming_file_and_key(small, tmp_path, edit, says):
