@@ -123,6 +123,44 @@ def completed_trials(db: Path) -> int:
         return 0
 
 
+#: Runs ``kftune ARGS`` with a hook that SIGKILLs the process itself right after the study
+#: DB has stored its n-th finished evaluation: a kill at a known point, whatever the load
+#: (a parent polling the DB could see the run, or a short stage, finish first).
+_KILL_AFTER = """
+import os, signal, sqlite3, sys
+from pathlib import Path
+from kftune.cli import main
+from kftune.optim.study import Study
+db, n = Path(sys.argv[1]).resolve(), int(sys.argv[2])
+write = Study.write_result
+def write_then_die(self, record):
+    write(self, record)
+    if Path(self.path).resolve() == db:
+        with sqlite3.connect(db) as conn:
+            done = conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
+        if done >= n:
+            os.kill(os.getpid(), signal.SIGKILL)
+Study.write_result = write_then_die
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+def run_killed_after(db: Path, n: int, *args: str) -> None:
+    """Run ``kftune ARGS`` in a process of its own, SIGKILLed by itself right after the
+    study ``db`` stores its n-th finished evaluation (:data:`_KILL_AFTER`); fails if it
+    ended any other way."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-c", _KILL_AFTER, str(db), str(n), *map(str, args)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        timeout=HANG_GUARD,
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode(errors="replace")[-2000:]
+
+
 def wait_until(
     ready, proc=None, what: str = "the condition", limit: float = HANG_GUARD, every: float = 0.05
 ) -> None:

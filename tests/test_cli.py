@@ -26,6 +26,7 @@ from conftest import (
     SMALL_TRAIN,
     default_sigint,
     run_cli,
+    run_killed_after,
     wait_until,
 )
 from conftest import completed_trials as _completed
@@ -419,28 +420,9 @@ def test_tune_resume_after_sigkill_equals_uninterrupted_run(small, tmp_path):
     full = kftune("tune", str(small), "-n", budget, "--quiet", "-o", str(tmp_path / "full.json"))
     assert full.returncode == 0, full.stderr
     db = tmp_path / "study.db"
-    args = [
-        sys.executable,
-        "-m",
-        "kftune",
-        "tune",
-        str(small),
-        "-n",
-        budget,
-        "--quiet",
-        "--storage",
-        str(db),
-        "-o",
-        str(tmp_path / "killed.json"),
-    ]
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        wait_until(lambda: _completed(db) >= 8, proc, "8 finished evaluations in the study")
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    n_before = _completed(db)
-    assert 8 <= n_before < 24, "the run was not killed mid-way"
+    killed = ("tune", small, "-n", budget, "--quiet", "--storage", db)
+    run_killed_after(db, 8, *killed, "-o", tmp_path / "killed.json")
+    assert _completed(db) == 8, "the run was not killed after its 8th evaluation"
     with sqlite3.connect(db) as conn:
         before = conn.execute("SELECT number, value FROM trials WHERE state='complete'").fetchall()
     # without --resume an existing study is refused

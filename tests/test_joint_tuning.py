@@ -8,10 +8,7 @@ import dataclasses
 import hashlib
 import json
 import re
-import signal
 import sqlite3
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +16,8 @@ import numpy as np
 import pytest
 
 import kftune
-from conftest import HANG_GUARD, run_cli
 from conftest import completed_trials as _completed
+from conftest import run_cli, run_killed_after
 from kftune.data import default_dataset, open_dataset, save_dataset
 from kftune.errors import ConfigError
 from kftune.experiment import MANUAL_Q, NOISE_STAGE_SHARE, manual_point
@@ -357,40 +354,6 @@ def test_bad_tune_model_tables_are_refused_naming_file_and_key(small, tmp_path, 
     assert "Traceback" not in res.stderr
 
 
-#: Runs ``kftune ARGS`` with a hook that SIGKILLs the process itself right after the study
-#: DB has stored its n-th finished evaluation: a kill at a known point, whatever the load
-#: (a parent polling the DB could see the stage finish first).
-_KILL_AFTER = """
-import os, signal, sqlite3, sys
-from pathlib import Path
-from kftune.cli import main
-from kftune.optim.study import Study
-db, n = Path(sys.argv[1]).resolve(), int(sys.argv[2])
-write = Study.write_result
-def write_then_die(self, record):
-    write(self, record)
-    if Path(self.path).resolve() == db:
-        with sqlite3.connect(db) as conn:
-            done = conn.execute("SELECT COUNT(*) FROM trials WHERE state='complete'").fetchone()[0]
-        if done >= n:
-            os.kill(os.getpid(), signal.SIGKILL)
-Study.write_result = write_then_die
-sys.exit(main(sys.argv[3:]))
-"""
-
-
-def _sigkill_when(db: Path, n: int, args: list[str], out: Path) -> None:
-    """Run ``kftune *args -o out``, SIGKILLed by itself once ``db`` holds n finished
-    evaluations (:data:`_KILL_AFTER`)."""
-    proc = subprocess.run(
-        [sys.executable, "-c", _KILL_AFTER, str(db), str(n), *args, "-o", str(out)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        timeout=HANG_GUARD,
-    )
-    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode(errors="replace")[-2000:]
-
-
 @pytest.mark.parametrize("stage", ["noise-only", "joint"])
 def test_a_joint_study_resumes_exactly_after_sigkill_in_either_stage(small, tmp_path, stage):
     """40 evaluations in two stages (10 + 30 with the share of 1/4, each stage's study file
@@ -407,7 +370,7 @@ def test_a_joint_study_resumes_exactly_after_sigkill_in_either_stage(small, tmp_
     first = tmp_path / "study.noise-only.db"
     killed_in = first if stage == "noise-only" else db
     args = ["tune", str(small), "-n", budget, "--quiet", "--storage", str(db), *joint]
-    _sigkill_when(killed_in, n_stage // 2, args, tmp_path / "killed.json")
+    run_killed_after(killed_in, n_stage // 2, *args, "-o", str(tmp_path / "killed.json"))
     assert _completed(killed_in) == n_stage // 2, "the run was not killed mid-way through the stage"
     if stage == "noise-only":
         assert not db.exists(), "the joint study started before the first stage ended"
