@@ -110,6 +110,34 @@ class Rerun(TuningProblem):
         )
 
 
+def calibrated(problem: Any, x: Any, test: Any, criterion: str) -> dict[str, Any]:
+    """The test scores of the filter at ``x`` calibrated by ``criterion`` on the problem's
+    training manoeuvres (:func:`scored` with its c), with c, the fit's cost in filter runs
+    and seconds, the training estimate's shift and coverage after, and the fit's warning;
+    the problem's covariance scale is 1 again afterwards."""
+    t0 = time.perf_counter()
+    cal = calibrate(problem, x, criterion=criterion)
+    t_cal = time.perf_counter() - t0
+    problem.cov_scale = cal.factor
+    try:
+        got = scored(problem, x, test)
+    finally:
+        problem.cov_scale = 1.0
+    rec = cal.as_dict()
+    got.update(
+        factor=cal.factor,
+        n_runs=cal.n_runs,
+        calibrate_s=t_cal,
+        train_shift_deg=rec["estimate_shift"]["rms"],
+        train_shift_rel=rec["estimate_shift"]["relative_to_rmse"],
+        train_cov68=rec["train"]["after"]["coverage68"],
+        train_cov95=rec["train"]["after"]["coverage95"],
+        warning=cal.warning,
+        per_manoeuvre=rec["per_manoeuvre"],
+    )
+    return got
+
+
 def scored(problem: TuningProblem, x: np.ndarray, test: list[Any]) -> dict[str, Any]:
     """The filter at ``x`` with ``problem.cov_scale`` on the test manoeuvres: mean β RMSE
     [deg], pooled coverage and NEES of β, and the NIS-in-band count."""
@@ -152,47 +180,11 @@ def run_dataset(
         row: dict[str, Any] = {"seed": seed, "tune_s": t_tune, "cost": result.fun}
         row["uncalibrated"] = scored(problem, result.x, test)
         for crit in criteria:
-            t0 = time.perf_counter()
-            cal = calibrate(problem, result.x, criterion=crit)
-            t_cal = time.perf_counter() - t0
-            problem.cov_scale = cal.factor
-            got = scored(problem, result.x, test)
-            problem.cov_scale = 1.0
-            rec = cal.as_dict()
-            got.update(
-                factor=cal.factor,
-                n_runs=cal.n_runs,
-                calibrate_s=t_cal,
-                train_shift_deg=rec["estimate_shift"]["rms"],
-                train_shift_rel=rec["estimate_shift"]["relative_to_rmse"],
-                train_cov68=rec["train"]["after"]["coverage68"],
-                train_cov95=rec["train"]["after"]["coverage95"],
-                warning=cal.warning,
-                per_manoeuvre=rec["per_manoeuvre"],
-            )
-            row[crit] = got
-            if not rerun:
-                continue
-            problem.rerun = True  # tried: the UKF rerun with c·Q, c·R and c·P0
-            t0 = time.perf_counter()
-            cal = calibrate(problem, result.x, criterion=crit)
-            t_cal = time.perf_counter() - t0
-            problem.cov_scale = cal.factor
-            got = scored(problem, result.x, test)
-            problem.cov_scale, problem.rerun = 1.0, False
-            rec = cal.as_dict()
-            got.update(
-                factor=cal.factor,
-                n_runs=cal.n_runs,
-                calibrate_s=t_cal,
-                train_shift_deg=rec["estimate_shift"]["rms"],
-                train_shift_rel=rec["estimate_shift"]["relative_to_rmse"],
-                train_cov68=rec["train"]["after"]["coverage68"],
-                train_cov95=rec["train"]["after"]["coverage95"],
-                warning=cal.warning,
-                per_manoeuvre=rec["per_manoeuvre"],
-            )
-            row[f"{crit}-rerun"] = got
+            row[crit] = calibrated(problem, result.x, test, crit)
+            if rerun:  # tried: the UKF rerun with c·Q, c·R and c·P0
+                problem.rerun = True
+                row[f"{crit}-rerun"] = calibrated(problem, result.x, test, crit)
+                problem.rerun = False
         rows.append(row)
         u = row["uncalibrated"]
         print(
