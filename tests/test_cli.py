@@ -9,6 +9,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import shlex
 import signal
 import sqlite3
@@ -194,7 +195,7 @@ def test_the_readme_configuration_serves_every_command(tmp_path):
     not refused."""
     readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
     toml_blocks = [b.split("```", 1)[0] for b in readme.split("```toml\n")[1:]]
-    (block,) = [b for b in toml_blocks if "\n[cost]\n" in b]
+    (block,) = [b for b in toml_blocks if re.search(r"^\[cost\]", b, re.M)]
     assert "budgets" in block and "[cost]" in block
     cfg = tmp_path / "run.toml"
     cfg.write_text(block)

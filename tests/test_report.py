@@ -302,7 +302,8 @@ def test_a_method_that_diverged_has_a_consistency_row_saying_so(results, tmp_pat
 @pytest.mark.parametrize(
     ("mean", "said"),
     [(13.9, "σ is about 3.7× too small"), (165.0, "σ is about 13× too small"),
-     (110150.0, "σ is about 332× too small"), (0.25, "σ is about 2× too large")],
+     (110150.0, "σ is about 332× too small"), (0.25, "σ is about 2× too large"),
+     (1.08, "σ is about 1.04× too small")],
 )  # fmt: skip
 def test_the_verdict_says_by_how_much_sigma_is_off(mean, said):
     """√(mean NEES): the factor that would bring the mean NEES to 1; no exponent."""

@@ -303,7 +303,8 @@ def sigma_verdict(nees: Mapping[str, Any] | None) -> str:
     factor = math.sqrt(mean)
     small = factor >= 1
     factor = factor if small else 1 / factor
-    text = f"{factor:.2g}" if factor < 10 else f"{factor:.0f}"  # 3.7, 13, 330: no exponent
+    # 1.04, 3.7, 13, 330: no exponent, and never "1×" for a σ that is off by a few per cent
+    text = f"{factor:.2f}" if factor < 1.95 else f"{factor:.2g}" if factor < 10 else f"{factor:.0f}"
     return f"σ is about {text}× too {'small' if small else 'large'}"
 
 
