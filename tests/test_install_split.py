@@ -87,20 +87,27 @@ def test_the_blocked_modules_include_the_extras():
 def test_the_main_job_runs_without_any_extra(small, tmp_path):
     """compare with its default methods (small budgets), report, demo, tune, evaluate,
     estimate and export, run where no extra can be imported; a peer optimiser there is
-    refused with exit 3, naming its package."""
+    refused with exit 3, naming its package, as is every option whose extra is missing."""
     out, tuned = tmp_path / "report", tmp_path / "tuned.json"
     budgets = ["--budget", "ga=4", "--budget", "tsbo-gp=4", "--budget", "tsbo-tsp=4"]
     commands = [
         ["compare", str(small), *budgets, "--budget", "trbo=4", "-q", "-o", str(out)],
         ["report", str(out)],
         ["demo"],
-        ["tune", str(small), "-n", "4", "-q", "-o", str(tuned)],
+        ["tune", str(small), "-n", "4", "-q", "-o", str(tuned), "--storage", "study.db"],
         ["evaluate", str(small), "--params", str(tuned), "--split", "test"],
         ["estimate", str(small), "--params", str(tuned), "-o", str(tmp_path / "est")],
     ]
     for fmt in ("json", "yaml", "c", "matlab"):
         commands.append(["export", str(tuned), "--format", fmt, "-o", str(tmp_path / f"kf.{fmt}")])
-    commands.append(["tune", str(small), "-m", "cma", "-n", "2", "-q", "-o", "never.json"])
+    # an option whose extra is missing: one exit code (3, as a configuration), the package named
+    missing = [
+        ["tune", str(small), "-m", "cma", "-n", "2", "-q", "-o", "never.json"],
+        ["estimate", str(small), "--params", str(tuned), "--format", "parquet", "-o", "never"],
+        ["study", "export", str(tmp_path / "study.db"), "--optuna", "never.db"],
+        ["dataset", "generate", "never", "--seed", "1"],
+    ]
+    commands += missing
     proc = subprocess.run(
         [sys.executable, "-c", _CHILD, json.dumps(_not_core_modules()), json.dumps(commands)],
         capture_output=True,
@@ -110,9 +117,14 @@ def test_the_main_job_runs_without_any_extra(small, tmp_path):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     codes = json.loads(proc.stdout.splitlines()[-1])
-    assert codes == [0] * (len(commands) - 1) + [3], (codes, proc.stderr[-3000:])
-    # a peer optimiser whose extra is missing is named, without a traceback
-    assert "'cma'" in proc.stderr and "Traceback" not in proc.stderr
+    assert codes == [0] * (len(commands) - len(missing)) + [3] * len(missing), (
+        codes,
+        proc.stderr[-3000:],
+    )
+    for package in ("'cma'", "pyarrow", "'optuna'", "commonroad-vehicle-models"):
+        assert package in proc.stderr, package
+    assert "Traceback" not in proc.stderr
+    assert not list(tmp_path.glob("never*"))
     assert (out / "report.md").is_file() and (tmp_path / "kf.c").is_file()
 
 

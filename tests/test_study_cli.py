@@ -154,10 +154,10 @@ def test_export_loads_in_optuna_with_the_same_trials(study, tmp_path):
     assert optuna.load_study(study_name="s", storage=f"sqlite:///{out}").trials  # intact
 
 
-def test_export_without_optuna_is_a_clear_usage_error(study, tmp_path, monkeypatch):
+def test_export_without_optuna_is_a_clear_configuration_error(study, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna → ImportError
     res = run_cli("study", "export", study, "--optuna", tmp_path / "o.db")
-    assert res.returncode == 2
+    assert res.returncode == 3
     assert "needs the package 'optuna'" in res.stderr and "Traceback" not in res.stderr
     assert not list(tmp_path.iterdir())  # no half export left
 

@@ -126,6 +126,8 @@ def run_generate(args: argparse.Namespace) -> int:
     except SimulationError as exc:
         print(f"kftune: simulation failed: {exc}", file=sys.stderr)
         return 1
+    except ConfigError:
+        raise  # a missing optional package: exit 3, as every command says it
     except ValueError as exc:
         print(f"kftune: error: {exc}", file=sys.stderr)
         return 2

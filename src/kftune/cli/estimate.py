@@ -154,7 +154,7 @@ def _parquet_writer() -> Any:
         import pyarrow
         import pyarrow.parquet
     except ImportError:
-        raise UsageError(
+        raise ConfigError(
             "--format parquet needs the package pyarrow, which is not installed "
             "(pip install 'kftune[parquet]'); or use --format csv"
         ) from None

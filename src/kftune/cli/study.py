@@ -23,7 +23,7 @@ import numpy as np
 
 from kftune.cli._common import emit_json, output_dir, output_file, same_file, write_output
 from kftune.cli.exit_codes import EXIT_OK
-from kftune.errors import ConfigError, UsageError
+from kftune.errors import ConfigError
 
 #: Figures ``study plot`` writes into its folder.
 PLOT_FILES = ("convergence.png", "parameters.png")
@@ -368,7 +368,7 @@ def export_optuna(stored: Any, path: Path, name: str) -> int:
     beside its target and renamed onto it when done, so a failure leaves no half export.
 
     Raises:
-        UsageError: Optuna is not installed.
+        ConfigError: Optuna is not installed (exit 3, as every missing optional package).
     """
     import contextlib
     import os
@@ -377,7 +377,7 @@ def export_optuna(stored: Any, path: Path, name: str) -> int:
     try:
         import optuna
     except ImportError:
-        raise UsageError(
+        raise ConfigError(
             "study export --optuna needs the package 'optuna', which is not installed "
             "(pip install 'kftune[peers]' or pip install optuna)"
         ) from None

@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from kftune.errors import KftuneError
+from kftune.errors import ConfigError, KftuneError
 from kftune.sim import _libm
 
 #: Smallest wheel ground speed [m/s] the wrapper lets the model see (its slip divides by it).
@@ -199,7 +199,7 @@ class MultiBodyPlant:
             from vehiclemodels.init_mb import init_mb
             from vehiclemodels.parameters_vehicle2 import parameters_vehicle2
         except ImportError as exc:  # pragma: no cover - depends on the install
-            raise SimulationError(
+            raise ConfigError(
                 "the reference-data generator needs the optional dependency "
                 "commonroad-vehicle-models: pip install 'kftune[simulate]'"
             ) from exc
