@@ -249,11 +249,20 @@ def test_a_sideslip_recording_without_a_reference_loads_and_tunes_on_nis(no_refe
     res = kftune("tune", str(no_reference), "--cost", "nrmse", "-n", "2")
     assert res.returncode == 3 and "Traceback" not in res.stderr
     assert "the nrmse cost (without a reference sensor" in res.stderr
-    assert "or use the nis or pem cost" in res.stderr  # the way out
+    assert "tune with --cost msp" in res.stderr and "--weights" in res.stderr  # the ways out
     assert (
         "needs a reference channel beta_ref, which manoeuvre "
         f"{ds.train[0].name!r} lacks" in res.stderr
     )
+    # the manual filter under the default cost, which needs beta_ref: its KPIs against the
+    # measurements, the cost J left out with the reason, not a refusal
+    man = kftune("evaluate", str(no_reference), "--manual", "--split", "all", "--json")
+    assert man.returncode == 0, man.stderr
+    doc = json.loads(man.stdout)
+    assert doc["cost"] is None and "beta_ref" in doc["cost_unscored"]
+    assert all(row["rmse_r_vs_measured_degps"] > 0 for row in doc["manoeuvres"].values())
+    text = kftune("evaluate", str(no_reference), "--manual", "--split", "all")
+    assert text.returncode == 0 and "cost J (nrmse): – (" in text.stdout
     # without beta_ref, compare reports the RMSE of every measurement (a reference-free cost)
     rep = tmp_path / "rep"
     res = kftune("compare", str(no_reference), "--cost", "nis", "--methods", "manual", "random",

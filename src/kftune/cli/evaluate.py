@@ -65,7 +65,14 @@ from kftune.cli._common import (
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.cli.tune import TUNED_FORMAT
-from kftune.errors import ConfigError, DataError, DataWarning, UsageError, excerpt
+from kftune.errors import (
+    ConfigError,
+    DataError,
+    DataWarning,
+    MissingChannelError,
+    UsageError,
+    excerpt,
+)
 from kftune.tuning.kpi import KPI_NAMES
 
 if TYPE_CHECKING:
@@ -382,6 +389,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data import open_dataset
     from kftune.experiment import channel_units, manual_point
     from kftune.filters import UKFSettings
+    from kftune.tuning.cost import CostSpec
     from kftune.tuning.deploy import (
         TunedFilter,
         calibration_factor,
@@ -468,17 +476,30 @@ def run(args: argparse.Namespace) -> int:
             )
         x = np.array(args.q) if args.q else manual_point(par)
         r0 = default_r0(model, dataset, config.get("r0"))
-    problem = TuningProblem(
-        manoeuvres,
-        vehicle,
-        r0,
-        cost=spec,
-        parameterization=par,
-        workers=pick(args, config, "workers", 1),
-        burn_in=scored_after,
-        model=fs.spec,
-        filter=fs.filter,
-    )
+
+    def problem_for(cost: CostSpec) -> TuningProblem:
+        return TuningProblem(
+            manoeuvres,
+            vehicle,
+            r0,
+            cost=cost,
+            parameterization=par,
+            workers=pick(args, config, "workers", 1),
+            burn_in=scored_after,
+            model=fs.spec,
+            filter=fs.filter,
+        )
+
+    unscored = None  # why the cost J cannot be given: its reference channel is missing
+    try:
+        problem = problem_for(spec)
+    except MissingChannelError as exc:
+        if not exc.channel.endswith("_ref"):
+            raise
+        # the filter still runs and its KPIs against the measurements are still worth
+        # having: the cost is left out ('–'), not the evaluation
+        unscored = str(exc)
+        problem = problem_for(CostSpec(kind="nis", estimate=spec.estimate))
     # the cost as tune minimised it (covariance scale 1): nis, pem, nlpd and crps move with
     # the scale, so the calibrated filter's value is reported apart, never as the cost
     scale = (
@@ -487,9 +508,9 @@ def run(args: argparse.Namespace) -> int:
         else 1.0
     )
     with problem:
-        cost = _cost_or_none(problem, x)
+        cost = None if unscored else _cost_or_none(problem, x)
         problem.cov_scale = scale  # the filter as deployed: its σ, for the consistency
-        cost_calibrated = cost if scale == 1.0 else _cost_or_none(problem, x)
+        cost_calibrated = cost if scale == 1.0 or unscored else _cost_or_none(problem, x)
         metrics, results = assess(problem, x, manoeuvres)
     missing = missing_references(problem, manoeuvres)
     consistency, pooled = consistency_docs(problem, manoeuvres, results)
@@ -513,6 +534,7 @@ def run(args: argparse.Namespace) -> int:
         "cov_scale": problem.cov_scale,
         "cost": cost,
         "cost_calibrated": cost_calibrated,
+        "cost_unscored": unscored,
         "cost_kind": spec.kind,
         "cost_estimate": spec.estimate,
         "cost_normalise": spec.normalise,
@@ -643,6 +665,8 @@ def _print_table(doc: dict[str, Any]) -> None:
             f"sideslip KPIs (–): they need a reference channel {ref}, which "
             f"{len(lacking)} of {len(rows)} manoeuvres lack (first: {lacking[0]!r})"
         )
+    if doc.get("cost_unscored"):
+        print(f"cost J ({doc['cost_kind']}): – ({doc['cost_unscored']})")
     if doc["cost"] is not None:
         split, cost = doc["split"], doc["cost"]
         print(f"cost J ({doc['cost_kind']}) on the {split} split, as tuned: {cost:.5g}")

@@ -1058,9 +1058,10 @@ class TuningProblem:
             refs = [f"{c}_ref" for c in self.cost_spec.channels if c not in mod.measurement_names]
             m.require(
                 refs,
-                "the nrmse cost (without a reference sensor, weigh only measured channels — "
-                f"{', '.join(mod.measurement_names)} — or use the nis or pem cost, which need "
-                "none)",
+                "the nrmse cost (without a reference sensor, tune with --cost msp, the "
+                "multi-step prediction of the measurements — README 'Tuning without a "
+                "reference sensor' —, or weigh only measured channels: "
+                f"--weights {','.join(f'{c}=1' for c in mod.measurement_names)})",
                 "a reference channel",
             )
         elif self.cost_spec.kind in SCORING_RULES:
