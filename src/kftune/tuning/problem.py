@@ -1130,7 +1130,7 @@ class TuningProblem:
             return None
         what = f"compiling the filter for model {self.model.name!r} ({self.filter})"
         if self._fs.fast:  # numba keeps the paper's kernel on disk
-            return f"{what} (first run only; cached afterwards)…"
+            return f"{what}, or loading it from an earlier run's cache…"
         return f"{what} (at the first evaluation of each run; it cannot be cached)…"
 
     def evaluate(self, x: Sequence[float] | np.ndarray) -> Evaluation:
