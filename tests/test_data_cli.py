@@ -109,3 +109,70 @@ def test_generate_refuses_a_folder_in_use_and_force_replaces_only_the_dataset(tm
     res = kftune("dataset", "generate", plain, "--quiet", "--only", "test-05-j-turn", "--force")
     assert res.returncode == 3 and "only a kftune dataset" in res.stderr
     assert (plain / "x.txt").exists()
+
+
+def _without(out, dropped: set[str]):
+    """Three short manoeuvres of the bundled set, written to ``out`` without ``dropped``."""
+    from kftune.data import Dataset, Manoeuvre, default_dataset
+    from kftune.data.io import save_dataset
+
+    ds = default_dataset()
+    picked = [ds.train[0].slice(0, 300), ds.train[3].slice(0, 300), ds.test[9].slice(0, 300)]
+    ms = [
+        Manoeuvre(
+            m.name,
+            m.kind,
+            m.split,
+            m.t,
+            channels={k: v for k, v in m.channels.items() if k not in dropped},
+        )
+        for m in picked
+    ]
+    save_dataset(Dataset("mine", ds.vehicle, ds.dt, ms), out)
+    return ds, picked
+
+
+def test_info_without_a_reference_keeps_the_statistics_and_marks_beta(tmp_path):
+    import numpy as np
+
+    _, picked = _without(tmp_path, {"beta_ref"})
+    res = kftune("dataset", "info", tmp_path, "--json")
+    assert res.returncode == 0, res.stderr
+    info = json.loads(res.stdout)
+    train = info["splits"]["train"]
+    ay = np.concatenate([m.ay for m in picked[:2]])
+    assert train["samples"] == ay.size == 600
+    assert train["ay_min"] == pytest.approx(ay.min()) and train["ay_max"] == pytest.approx(ay.max())
+    assert train["beta_min_deg"] is None and info["manoeuvres"][0]["beta_max_deg"] is None
+    assert len(info["r_default"]) == 3
+    res = kftune("dataset", "info", tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "|ay| ≥ 4" in res.stdout and "R (high-pass statistics" in res.stdout
+    assert (
+        "train:   2 manoeuvres,    600 samples" in res.stdout and "β – (no beta_ref)" in res.stdout
+    )
+    row = next(line for line in res.stdout.splitlines() if line.startswith(picked[0].name))
+    assert row.split()[-3:-1] == ["–", "–"]
+
+
+def test_show_labels_each_panel_with_its_unit(tmp_path):
+    from kftune.cli.dataset import plot_manoeuvre
+    from kftune.data import open_dataset
+
+    _without(tmp_path / "noref", {"beta_ref"})
+    fig = plot_manoeuvre(open_dataset(tmp_path / "noref").manoeuvres[0])
+    assert [ax.get_ylabel() for ax in fig.axes] == [
+        "δ road wheel [°]",
+        "acceleration [m/s²]",
+        "yaw rate [°/s]",
+        "speed [m/s]",
+    ]
+    _without(tmp_path / "other", {"ax", "beta_ref"})  # not the sideslip set: one panel a channel
+    ds = open_dataset(tmp_path / "other")
+    labels = [ax.get_ylabel() for ax in plot_manoeuvre(ds.manoeuvres[0], ds.units).axes]
+    assert labels[:4] == ["delta [rad]", "ay [m/s^2]", "r [rad/s]", "vx [m/s]"]
+    assert "ay_true [m/s^2]" in labels  # an extra channel: the unit its manifest declares
+    out = tmp_path / "shown.png"
+    res = kftune("dataset", "show", tmp_path / "other", "-o", out)
+    assert res.returncode == 0, res.stderr
+    assert out.read_bytes()[:4] == b"\x89PNG"

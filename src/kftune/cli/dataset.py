@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -256,10 +257,12 @@ def run_import(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------ info
 def dataset_info(dataset: Dataset) -> dict[str, Any]:
     """The summary ``kftune dataset info`` prints, as plain data: the sideslip statistics
-    for data with the sideslip channels, the channels and their units for any other."""
+    for data with the sideslip model's inputs and measurements (β's range None where no
+    manoeuvre of the split has a ``beta_ref``, as in a recording without a reference
+    sensor), the channels and their units for any other."""
     from kftune.data.validate import SIDESLIP_CHANNELS
 
-    if not set(SIDESLIP_CHANNELS) <= set(dataset.channel_names):
+    if not set(SIDESLIP_CHANNELS) - {"beta_ref"} <= set(dataset.channel_names):
         return _generic_info(dataset)
     rows = dataset.summary()
     splits = {}
@@ -268,15 +271,16 @@ def dataset_info(dataset: Dataset) -> dict[str, Any]:
         if not ms:
             continue
         ay = np.concatenate([m.ay for m in ms])
-        beta = np.degrees(np.concatenate([m.beta_ref for m in ms]))
+        refs = [m.channel("beta_ref") for m in ms if m.has("beta_ref")]
+        beta = np.degrees(np.concatenate(refs)) if refs else None
         splits[split] = {
             "manoeuvres": len(ms),
             "samples": int(ay.size),
             "duration_s": float(sum(m.duration for m in ms)),
             "ay_min": float(ay.min()),
             "ay_max": float(ay.max()),
-            "beta_min_deg": float(beta.min()),
-            "beta_max_deg": float(beta.max()),
+            "beta_min_deg": None if beta is None else float(beta.min()),
+            "beta_max_deg": None if beta is None else float(beta.max()),
             "share_ay_ge_4": float(np.mean(np.abs(ay) >= 4.0)),
         }
     r = dataset.r_default
@@ -303,7 +307,7 @@ def _generic_info(dataset: Dataset) -> dict[str, Any]:
         "vehicle": None if dataset.vehicle is None else dataset.vehicle.name,
         "dt": dataset.dt,
         "channels": names,
-        "units": {c: dataset.units.get(c, "") for c in names},
+        "units": {c: channel_unit(dataset.units, c) for c in names},
         "splits": {
             split: {"manoeuvres": len(ms), "samples": sum(m.n for m in ms)}
             for split, ms in (("train", dataset.train), ("test", dataset.test))
@@ -349,7 +353,7 @@ def run_info(args: argparse.Namespace) -> int:
         print(
             f"{row['name']:34s} {row['kind']:16s} {row['split']:5s} {row['duration']:7.1f} "
             f"{row['n']:6d} {row['ay_min']:7.2f} {row['ay_max']:7.2f} "
-            f"{row['beta_min_deg']:7.2f} {row['beta_max_deg']:7.2f} "
+            f"{_deg(row['beta_min_deg'], 7)} {_deg(row['beta_max_deg'], 7)} "
             f"{100 * row['share_ay_ge_4']:6.1f}%"
         )
     print("-" * len(header))
@@ -357,8 +361,12 @@ def run_info(args: argparse.Namespace) -> int:
         print(
             f"{split:5s}: {s['manoeuvres']:3d} manoeuvres, {s['samples']:6d} samples "
             f"({s['duration_s']:.0f} s), ay {s['ay_min']:.2f} … {s['ay_max']:.2f} m/s², "
-            f"β {s['beta_min_deg']:.2f} … {s['beta_max_deg']:.2f}°, "
-            f"|ay| ≥ 4 m/s² in {100 * s['share_ay_ge_4']:.1f} %"
+            + (
+                "β – (no beta_ref), "
+                if s["beta_min_deg"] is None
+                else f"β {s['beta_min_deg']:.2f} … {s['beta_max_deg']:.2f}°, "
+            )
+            + f"|ay| ≥ 4 m/s² in {100 * s['share_ay_ge_4']:.1f} %"
         )
     sd = info["r_default_std"]
     print(
@@ -368,9 +376,27 @@ def run_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _deg(value: float | None, width: int) -> str:
+    """An angle [deg] for ``dataset info``'s table, "–" where the manoeuvre has no β."""
+    return f"{'–':>{width}s}" if value is None else f"{value:{width}.2f}"
+
+
 # ------------------------------------------------------------------------------ show
-def plot_manoeuvre(m: Manoeuvre) -> Any:
-    """A figure of the manoeuvre's signals against time (see :func:`kftune.report.plots.render`)."""
+def channel_unit(units: Mapping[str, str], name: str) -> str:
+    """The SI unit of channel ``name``: the dataset's declared ``units`` for a channel kftune
+    does not know, the SI unit of its dimension for one it knows (``delta`` → rad), else ""."""
+    from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT
+
+    if name in units:
+        return str(units[name])
+    return SI_UNIT[CHANNEL_DIMENSION[name]] if name in CHANNEL_DIMENSION else ""
+
+
+def plot_manoeuvre(m: Manoeuvre, units: Mapping[str, str] | None = None) -> Any:
+    """A figure of the manoeuvre's signals against time (see :func:`kftune.report.plots.render`):
+    the sideslip channels in degrees and SI units (β's panel only where the manoeuvre has a
+    ``beta_ref``), any other data one panel per channel labelled with its unit from ``units``
+    (the dataset's, name → SI unit) or kftune's own for a channel it knows."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -379,18 +405,21 @@ def plot_manoeuvre(m: Manoeuvre) -> Any:
     from kftune.data.validate import SIDESLIP_CHANNELS
 
     t = m.t - m.t[0]
-    if not all(m.has(c) for c in SIDESLIP_CHANNELS):  # not the sideslip set: every channel
+    if not all(m.has(c) for c in SIDESLIP_CHANNELS if c != "beta_ref"):  # every channel
         names = [c for c in m.channel_names if c != "t"]
         fig, axs = plt.subplots(len(names), 1, figsize=(9, 2 * len(names)), sharex=True)
         for ax, c in zip(np.atleast_1d(axs), names):
             ax.plot(t, m.channel(c), lw=0.7)
-            ax.set_ylabel(c)
+            unit = channel_unit(units or {}, c)
+            ax.set_ylabel(f"{c} [{unit}]" if unit else c)
             ax.grid(True, lw=0.3)
         np.atleast_1d(axs)[-1].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
         fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
         fig.tight_layout()
         return fig
-    fig, axes = plt.subplots(5, 1, figsize=(9, 10), sharex=True)
+    has_beta = m.has("beta_ref")
+    fig, axes = plt.subplots(5 if has_beta else 4, 1, figsize=(9, 10 if has_beta else 8),
+                             sharex=True)  # fmt: skip
     axes[0].plot(t, np.degrees(m.delta), lw=0.8)
     axes[0].set_ylabel("δ road wheel [°]")
     axes[1].plot(t, m.ay, lw=0.6, label="ay")
@@ -405,11 +434,12 @@ def plot_manoeuvre(m: Manoeuvre) -> Any:
     if "vx_true" in m.extra:
         axes[3].plot(t, m.extra["vx_true"], lw=0.8, ls="--", label="vx true")
     axes[3].set_ylabel("speed [m/s]")
-    axes[4].plot(t, np.degrees(m.beta_ref), lw=0.6, label="β reference")
-    if "beta_true" in m.extra:
-        axes[4].plot(t, np.degrees(m.extra["beta_true"]), lw=0.8, ls="--", label="β true")
-    axes[4].set_ylabel("sideslip β [°]")
-    axes[4].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
+    if has_beta:
+        axes[4].plot(t, np.degrees(m.beta_ref), lw=0.6, label="β reference")
+        if "beta_true" in m.extra:
+            axes[4].plot(t, np.degrees(m.extra["beta_true"]), lw=0.8, ls="--", label="β true")
+        axes[4].set_ylabel("sideslip β [°]")
+    axes[-1].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
     for ax in axes:
         ax.grid(True, lw=0.3)
         if len(ax.get_legend_handles_labels()[0]) > 1 or ax is axes[1]:
@@ -443,6 +473,6 @@ def run_show(args: argparse.Namespace) -> int:
     output_file(out, "--out", command_inputs(args, {}))
     from kftune.report.plots import render
 
-    write_output(out, render(plot_manoeuvre(m), dpi=110, tight=False), "--out")
+    write_output(out, render(plot_manoeuvre(m, dataset.units), dpi=110, tight=False), "--out")
     print(f"wrote {out}")
     return 0
