@@ -194,6 +194,19 @@ def test_estimate_command_writes_tables_figures_and_kpis(tuned, tmp_path, capsys
     assert doc["warnings"] == []
 
 
+def test_estimate_says_how_many_tables_and_figures_it_wrote(tuned, tmp_path, capsys):
+    names = ["test-12-slalom", "test-09-j-turn"]
+    for plot, out in ((True, tmp_path / "with"), (False, tmp_path / "without")):
+        args = ["estimate", "--params", str(tuned), "-o", str(out)]
+        args += [a for name in names for a in ("-m", name)] + ([] if plot else ["--no-plot"])
+        assert main(args) == 0
+        last = capsys.readouterr().out.strip().splitlines()[-1]
+        tables, figures = len(list(out.glob("*.csv"))), len(list(out.glob("*.png")))
+        assert (tables, figures) == (2, 2 if plot else 0)
+        said = "2 csv files and 2 PNG figures" if plot else "2 csv files"
+        assert last == f"estimates written to {out} ({said})"
+
+
 def _runs(command: str, params: Path, tmp_path: Path, small: Path) -> list[str]:
     """The command line that runs ``params``'s filter: ``estimate`` on one manoeuvre of the
     bundled set, ``evaluate`` on the small dataset's test split."""

@@ -371,6 +371,9 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
             "(--no-calibration: the filter's own)"
         )
     files = f"{len(rows)} {doc['format']} file{'s' if len(rows) != 1 else ''}"
+    figures = sum("figure" in row for row in rows.values())
+    if figures:  # -o holds them too: say so, and how many
+        files += f" and {figures} PNG figure{'s' if figures != 1 else ''}"
     print(f"estimates written to {doc['out']} ({files})")
 
 
