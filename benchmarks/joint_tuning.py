@@ -43,6 +43,12 @@ seed. Then the targets of the "tune model parameters" issue:
    (TR-BO at 100), and how far below ``noise`` (the wrong vehicle, Q only) it is;
 5. with ``--wrong`` empty (a recording): ``d5`` at most 1 % above ``noise``.
 
+``--tune-splits N1 …`` measures ``kftune tune`` itself instead (:func:`run_tune_splits`):
+its default cost, TR-BO at ``--tune-n``, noise-only on the dataset's vehicle beside the
+joint tuning of the first ``--configs`` (d5 or d6) on the wrong vehicle with its first
+stage forced to N1 evaluations (0: one unseeded joint search); the held-out β RMSE is
+tune's own (``held_out`` of the tuned file, the test split).
+
 Usage::
 
     .venv/bin/python benchmarks/joint_tuning.py --json-out /tmp/joint.json
@@ -50,6 +56,7 @@ Usage::
         --methods trbo --seeds 3 --budgets 100
     .venv/bin/python benchmarks/joint_tuning.py --dataset ../shared/data/revs-250lm \\
         --wrong --configs noise d5 --methods trbo --seeds 3 --budgets 100
+    .venv/bin/python benchmarks/joint_tuning.py --configs d6 --tune-splits 25 50 --seeds 3
 
 Prints the tables and, as its last line, one JSON object with the figures.
 """
@@ -434,6 +441,140 @@ def read_units(path: Path) -> dict[str, Any]:
     return data
 
 
+def tune_cli_split(
+    data: str,
+    n: int,
+    noise_budget: int | None,
+    seed: int,
+    model_args: Sequence[str],
+    out: Path,
+) -> dict[str, Any]:
+    """One ``kftune tune DATA -n n --seed seed --no-calibration`` run in this process under
+    tune's default cost, its two-stage split forced to ``noise_budget`` evaluations of the
+    noise alone (None: the split ``experiment.staging`` chooses; 0: one unseeded joint
+    search; without ``model_args`` a noise-only tuning). Its held-out β RMSE [deg] (test
+    split), training J, the first stage's J and held-out β RMSE."""
+    import contextlib
+    import io
+
+    import kftune.experiment as ex
+    from kftune.cli import main as kftune_main
+
+    original = ex.staging
+
+    def forced(*a: Any, **kw: Any) -> Any:
+        st = original(*a, **kw)
+        if st is None or noise_budget is None:
+            return st
+        if noise_budget == 0:
+            return None
+        return ex.Staging(st.total, noise_budget, st.total - noise_budget, st.noise_storage)
+
+    ex.staging = forced
+    t0 = time.perf_counter()
+    try:
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+            rc = kftune_main(
+                ["tune", data, "-n", str(n), "--seed", str(seed), "--quiet",
+                 "--no-calibration", "-o", str(out), *model_args]
+            )  # fmt: skip
+    finally:
+        ex.staging = original
+    if rc != 0:
+        raise KftuneError(f"kftune tune {data} exited {rc}: {buf.getvalue()[-400:]}")
+    doc = json.loads(out.read_text())
+    st = doc.get("stages") or {}
+    return {
+        "seed": seed,
+        "beta_deg": doc["held_out"]["beta_rmse_deg"],
+        "J": doc["cost"],
+        "noise_budget": st.get("noise_budget"),
+        "stage1_J": (st.get("noise_only") or {}).get("cost"),
+        "stage1_beta_deg": doc["held_out"].get("noise_only_beta_rmse_deg"),
+        "model": {k: v["value"] for k, v in (doc.get("model_params") or {}).items()},
+        "cost_spec": doc["cost_spec"],
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
+
+
+def run_tune_splits(
+    dataset: str | None,
+    wrong: dict[str, float],
+    config: str,
+    splits: Sequence[int],
+    n: int,
+    seeds: Sequence[int],
+) -> dict[str, Any]:
+    """``kftune tune`` as a user runs it (tune's default cost, TR-BO at ``n``): noise-only
+    on the dataset's own vehicle, and the joint tuning of ``config``'s model parameters on
+    the ``wrong`` vehicle (a copy of the dataset saved with it) with the first stage forced
+    to each of ``splits`` (0: unseeded), every seed. Prints each run; returns the rows and
+    per split the median held-out β RMSE [deg] and its ratio to noise-only's."""
+    import dataclasses
+    import statistics
+    import tempfile
+
+    from kftune.data.io import bundled_dataset_path, save_dataset
+
+    bounds = CONFIGS[config][0]
+    if not bounds or CONFIGS[config][1] != "none":
+        raise ConfigError(
+            f"--tune-splits needs a joint configuration without R (d5, d6), got {config}"
+        )
+    model_args = [
+        a for name, (lo, hi) in bounds.items() for a in ("--tune-model", f"{name}={lo:g}:{hi:g}")
+    ]
+    true_path = dataset or str(bundled_dataset_path())
+    rows: dict[str, list[dict[str, Any]]] = {}
+    with tempfile.TemporaryDirectory(prefix="joint_splits_") as tmp:
+        joint_path = true_path
+        if wrong:
+            ds = open_dataset(true_path)
+            vehicle = ds.vehicle.replace(
+                **{k: f * getattr(ds.vehicle, k) for k, f in wrong.items()}
+            )
+            save_dataset(dataclasses.replace(ds, vehicle=vehicle), Path(tmp) / "wrong")
+            joint_path = str(Path(tmp) / "wrong")
+        labels = ["noise-only", *(f"{s} + {n - s}" if s else "unseeded" for s in splits)]
+        for seed in seeds:
+            for label, split in zip(labels, [None, *splits], strict=True):
+                out = Path(tmp) / f"{seed}-{label.replace(' ', '')}.json"
+                if label == "noise-only":
+                    row = tune_cli_split(true_path, n, None, seed, [], out)
+                else:
+                    row = tune_cli_split(joint_path, n, split, seed, model_args, out)
+                rows.setdefault(label, []).append(row)
+                first = ""
+                if row["stage1_J"] is not None:
+                    b1 = num(row["stage1_beta_deg"], math.nan)
+                    first = f" (first stage J {row['stage1_J']:.5f}, β {b1:.4f}°)"
+                print(
+                    f"  {label:10s} seed {seed}: β {row['beta_deg']:.4f}° J {row['J']:.5f}"
+                    + first
+                    + "".join(f" {k}={v:.4g}" for k, v in row["model"].items())
+                    + f" ({row['wall_s']:.0f} s)",
+                    flush=True,
+                )  # fmt: skip
+    ref = statistics.median(r["beta_deg"] for r in rows["noise-only"])
+    summary = {}
+    print(f"\nmedian held-out β RMSE [deg] over seeds {list(seeds)} (worst), median J:")
+    for label, rs in rows.items():
+        med = statistics.median(r["beta_deg"] for r in rs)
+        summary[label] = {
+            "beta_median_deg": med,
+            "beta_worst_deg": max(r["beta_deg"] for r in rs),
+            "ratio_to_noise_only": med / ref,
+            "J_median": statistics.median(r["J"] for r in rs),
+        }
+        s = summary[label]
+        print(
+            f"  {label:10s} {med:.4f} ({s['beta_worst_deg']:.4f}) "
+            f"{100 * (med / ref - 1):+.1f} %  J {s['J_median']:.5f}"
+        )
+    return {"rows": rows, "summary": summary, "cost_spec": rows["noise-only"][0]["cost_spec"]}
+
+
 def default_budgets(config: str) -> list[int]:
     """d = 9: 75 and 150; otherwise 50 and 100."""
     return [75, 150] if CONFIGS[config][1] == "diag" else [50, 100]
@@ -465,6 +606,17 @@ def main(argv: list[str] | None = None) -> int:
         help=f"evaluations of trbo-seeded's noise-only run (default {SEED_BUDGET}); with "
         "--budgets n - N it is tune's two-stage split of n",
     )
+    ap.add_argument(
+        "--tune-splits",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="N1",
+        help="instead of the optimisers: run kftune tune (its default cost, TR-BO at "
+        "--tune-n) noise-only on the dataset's vehicle and joint (--configs' first, d5 or d6) "
+        "on the wrong one with the first stage forced to N1 evaluations (0: unseeded)",
+    )
+    ap.add_argument("--tune-n", type=int, default=100, help="-n of --tune-splits (default 100)")
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
     ap.add_argument("--budgets", type=int, nargs="+", default=None, help="for every config")
@@ -499,6 +651,39 @@ def main(argv: list[str] | None = None) -> int:
     }
     seeds = list(range(args.seed_offset, args.seed_offset + args.seeds))
     t0 = time.perf_counter()
+    if args.tune_splits is not None:
+        if any(not 0 <= k < args.tune_n for k in args.tune_splits):
+            ap.error(f"--tune-splits must lie in [0, --tune-n), got {args.tune_splits}")
+        try:
+            result = run_tune_splits(
+                args.dataset, wrong, args.configs[0], args.tune_splits, args.tune_n, seeds
+            )
+        except KftuneError as exc:
+            print(f"joint_tuning: error: {exc}", file=sys.stderr)
+            return 3
+        print(
+            json.dumps(
+                json_safe(
+                    {
+                        "benchmark": "joint_tuning --tune-splits",
+                        "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
+                        "machine": f"{platform.machine()} {os.cpu_count()} cpu, "
+                        f"{platform.python_version()}",
+                        "kftune_version": kftune.__version__,
+                        "wall_s": round(time.perf_counter() - t0, 1),
+                        "dataset": args.dataset or "bundled",
+                        "wrong": wrong,
+                        "config": args.configs[0],
+                        "n": args.tune_n,
+                        "seeds": seeds,
+                        **result,
+                    }
+                ),
+                allow_nan=False,
+            )
+        )
+        return 0
     starts: dict[str, Any] = {}
     units: list[dict[str, Any]] = []
     try:

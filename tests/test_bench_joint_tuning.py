@@ -5,6 +5,7 @@ analysis near the optimum, on made-up runs with known answers."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from types import SimpleNamespace
@@ -85,3 +86,25 @@ def test_rank_near_optimum_takes_the_distinct_lowest_costs_and_spearmans_rho(mon
     assert reference_free.rank_near_optimum(None, records, None, top=6)["spearman"] is None
     pooled = reference_free.pooled_rank([out, {**out, "spearman": None}])
     assert pooled["rank_pooled_n"] == 12 and not math.isnan(pooled["rank_pooled_spearman"])
+
+
+def test_tune_splits_forces_the_first_stage_and_zero_runs_one_unseeded_search(small, tmp_path):
+    """``--tune-splits``' runs are ``kftune tune`` with the first stage forced: N1 = 5 of
+    -n 12 gives stages of 5 and 7 (staging's own split of 12 is 3 + 9), 0 one joint search
+    without stages, None staging's split; ``experiment.staging`` is restored after each."""
+    import kftune.experiment as ex
+
+    original = ex.staging
+    model = ["--tune-model", "C_af=20000:400000"]
+    runs = {
+        n1: joint_tuning.tune_cli_split(str(small), 12, n1, 0, model, tmp_path / f"{n1}.json")
+        for n1 in (5, 0, None)
+    }
+    assert ex.staging is original
+    stages = {n1: json.loads((tmp_path / f"{n1}.json").read_text()).get("stages") for n1 in runs}
+    assert (stages[5]["noise_budget"], stages[5]["joint_budget"]) == (5, 7)
+    assert stages[0] is None and runs[0]["stage1_J"] is None
+    assert stages[None]["noise_budget"] == runs[None]["noise_budget"] != 5
+    assert runs[5]["stage1_J"] == pytest.approx(stages[5]["noise_only"]["cost"])
+    for r in runs.values():
+        assert r["beta_deg"] > 0 and set(r["model"]) == {"C_af"}
