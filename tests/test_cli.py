@@ -279,6 +279,33 @@ def test_timeout_with_worker_pool_is_refused(small, tmp_path):
     assert res.returncode == 3 and "workers = 1" in res.stderr
 
 
+def test_evaluate_averages_every_column_and_explains_a_non_kpi_of_no_samples(tmp_path, capsys):
+    import numpy as np
+
+    from kftune.data import Dataset
+
+    ds = default_dataset()
+    calm = ds["test-14-lane-change"].slice(0, 300)
+    assert np.abs(calm.ay).max() < 4.0  # no sample where the _NON KPIs are taken
+    save_dataset(Dataset("calm", ds.vehicle, ds.dt, [ds["test-05-j-turn"], calm]), tmp_path)
+    assert main(["evaluate", str(tmp_path), "--manual", "--split", "test", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    rows = doc["manoeuvres"]
+    assert rows[calm.name]["rmse_non"] is None and rows[calm.name]["n_non"] == 0
+    for key in ("rmse_r_vs_measured_degps", "rmse_ay_vs_measured_mps2", "rmse", "rmse_non"):
+        values = [row[key] for row in rows.values() if row[key] is not None]
+        assert doc["average"][key] == pytest.approx(np.mean(values), rel=1e-12)
+    assert main(["evaluate", str(tmp_path), "--manual", "--split", "test"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    average = next(line for line in lines if line.startswith("average")).split()
+    assert len(average) == 1 + 6 and "–" not in average  # the r and ay columns too
+    assert float(average[5]) == pytest.approx(doc["average"]["rmse_r_vs_measured_degps"], abs=1e-4)
+    assert any(
+        line.startswith("_NON –: no sample with |ay| >= 4 m/s² in 1 of 2") and calm.name in line
+        for line in lines
+    )
+
+
 def test_tune_then_evaluate_json(small, tmp_path):
     out = tmp_path / "tuned.json"
     # the paper's cost and Q alone (tune's own default: test_tune_default.py)

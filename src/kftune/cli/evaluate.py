@@ -515,7 +515,11 @@ def run(args: argparse.Namespace) -> int:
     missing = missing_references(problem, manoeuvres)
     consistency, pooled = consistency_docs(problem, manoeuvres, results)
     sideslip = all("rmse" in row for row in metrics.values())
-    avg = average_kpis(metrics.values()) if sideslip else _averages(metrics.values())
+    avg = (
+        average_kpis(metrics.values(), (*KPI_NAMES, *MEASURED_KEYS))
+        if sideslip
+        else _averages(metrics.values())
+    )
     measured = MEASURED_KEYS if sideslip else measured_keys(problem.model.measurement_names)
     for row in (*metrics.values(), avg):
         row.update({new: row[old] for old, new in measured.items() if old in row})
@@ -632,7 +636,6 @@ def _print_table(doc: dict[str, Any]) -> None:
             "r vs meas °/s",  # RMSE, as the footnote says: the table fits 100 columns
             "ay vs meas m/s²",
         )
-        averaged: tuple[str, ...] = KPI_NAMES
     else:  # another model: the RMSE of each measurement and referenced output
         means = doc["average"]
         cols = tuple(
@@ -647,17 +650,23 @@ def _print_table(doc: dict[str, Any]) -> None:
             f"RMSE {k[5:-12]} vs meas {units.get(k[5:-12], '')}".rstrip()
             for k in cols[len(heads) :]
         )
-        averaged = cols
     widths = [max(10, len(h)) for h in heads]
     width = max(12, *(len(n) for n in rows))
     print(f"{'manoeuvre':{width}s} " + " ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
     for name, row in rows.items():
         cells = " ".join(_cell(row.get(c), w) for c, w in zip(cols, widths))
         print(f"{name:{width}s} {cells}")
-    average = (_cell(doc["average"].get(c), w) for c, w in zip(averaged, widths))
+    average = (_cell(doc["average"].get(c), w) for c, w in zip(cols, widths))
     print(f"{'average':{width}s} " + " ".join(average))
-    if averaged == KPI_NAMES:
+    if "rmse_non" in cols:
         print("MAE: maximum absolute error; _NON: samples with |ay| >= 4 m/s²")
+        calm = [n for n, row in rows.items() if row.get("n_non") == 0]
+        if calm:  # a NON KPI of no samples is undefined, not zero
+            print(
+                f"_NON –: no sample with |ay| >= 4 m/s² in {len(calm)} of {len(rows)} "
+                f"manoeuvres (first: {calm[0]!r}); "
+                + ("averaged over the rest" if len(calm) < len(rows) else "no average")
+            )
     if any(c in MEASURED_KEYS.values() or c.endswith("_vs_measured") for c in cols):
         print("vs meas: RMSE against the measured channel, sensor noise included (no reference)")
     for ref, lacking in doc["missing_references"].items():
