@@ -316,3 +316,63 @@ def test_the_verdict_says_by_how_much_sigma_is_off(mean, said):
     few = sigma_verdict({"mean": 2.24, "inside": True, "n_eff": 5.0})
     assert few == "too few independent errors to tell (about 5)"
     assert sigma_verdict({"mean": 1.1, "inside": True, "n_eff": 400.0}) == "consistent"
+
+
+def test_the_cost_table_and_report_say_how_many_evaluations_failed_and_why(results, tmp_path):
+    ga = results.method("ga")
+    ga.history_cost[5] = ga.history_cost[9] = math.nan  # three failed of 30, with index 2
+    runaway = "filter diverged: runaway: the estimated sideslip went beyond ±60°"
+    ga.extra["failures"] = [
+        {"number": 2, "reason": f"FilterDivergedError: {runaway} on manoeuvre 'a' at step 7 "
+                                "(t = 0.07 s)"},
+        {"number": 5, "reason": f"FilterDivergedError: {runaway} on manoeuvre 'b' at step 90 "
+                                "(t = 0.90 s)"},
+        {"number": 9, "reason": "non-finite value nan"},
+    ]  # fmt: skip
+    cost = all_tables(results)["cost"]
+    failed = cost.header.index("Failed")
+    assert [row[failed] for row in cost.rows] == [0, 3, 1]  # the fixture fails TSBO's third
+    assert cost.rows[1][1] == 1.0  # the best cost is the run's, unchanged
+    text = write_report(results, tmp_path).read_text()
+    assert f"- **GA**: 3 of 30 evaluations failed: {runaway} (2); non-finite value nan (1)" in text
+    assert "- **TSBO - tSP**: 1 of 12 evaluations failed: no reasons recorded" in text
+    assert "**Manual**" not in text
+    csv_rows = (tmp_path / "tables" / "cost.csv").read_text().splitlines()
+    assert csv_rows[0].split(",")[3] == "Failed" and csv_rows[2].split(",")[3] == "3"
+    del ga.extra["failures"]  # results from before the reasons were recorded
+    text = write_report(results, tmp_path / "old").read_text()
+    assert "- **GA**: 3 of 30 evaluations failed: no reasons recorded" in text
+
+
+def test_compare_records_its_failed_evaluations_grouped_by_kind(small, tmp_path):
+    """A method's run as compare records it (:func:`kftune.experiment.method_run`), with two
+    evaluations that diverged on different manoeuvres: results.json counts them and groups
+    their reasons into one kind, the report gives it under the cost table."""
+    from dataclasses import replace
+
+    from kftune.data import open_dataset
+    from kftune.experiment import method_run, tune
+    from kftune.tuning.problem import TuningProblem
+
+    ds = open_dataset(small)
+    problem = TuningProblem(ds.train, ds.vehicle, ds.r_default)
+    result = tune(problem, "manual", progress=False)
+    cause = "filter diverged: runaway: the estimated sideslip went beyond ±60°"
+    failed = tuple(
+        replace(
+            result.history[0],
+            number=n,
+            value=None,
+            state="failed",
+            reason=f"FilterDivergedError: {cause} on manoeuvre {name!r} at step {n} (t = 0.0{n} s)",
+        )
+        for n, name in ((1, ds.train[0].name), (2, ds.train[1].name))
+    )
+    result = replace(result, history=(*result.history, *failed), n_evals=3, n_failed=2)
+    run, _ = method_run("manual", result, problem, {"test": ds.test[:1]})
+    assert run.best_cost == result.fun and run.extra["n_failed"] == 2
+    ExperimentResults(meta={}, methods=[run]).save(tmp_path / "res")
+    doc = json.loads((tmp_path / "res" / "results.json").read_text())
+    assert doc["methods"][0]["extra"]["failure_kinds"] == [[cause, 2]]
+    text = write_report(ExperimentResults.load(tmp_path / "res"), tmp_path / "rep").read_text()
+    assert f"- **Manual**: 2 of 3 evaluations failed: {cause} (2)" in text

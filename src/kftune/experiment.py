@@ -556,6 +556,10 @@ def method_run(
             "failures": [
                 {"number": r.number, "reason": r.reason} for r in result.history if not r.ok
             ],
+            "failure_kinds": [  # the reasons grouped, as the report's note gives them
+                [kind, count]
+                for kind, count in failure_kinds(r.reason for r in result.history if not r.ok)
+            ],
             "on_bounds": on_bounds(result),
             "options": result.options,  # every option, defaults included (e.g. TSBO's mode)
             "calibration": calibration,

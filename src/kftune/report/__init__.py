@@ -23,6 +23,7 @@ from kftune.report.tables import (
     consistency_split,
     consistency_table,
     cost_table,
+    failure_lines,
     kpi_table,
     per_manoeuvre_table,
     relative_improvement,
@@ -147,6 +148,8 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
             md += [f"## {tables[stem].title}", "", tables[stem].to_markdown(), ""]
             if stem.startswith("kpi_"):
                 md += [MAE_NOTE if channels is None else RMSE_NOTE, ""]
+            if stem == "cost" and (failed := failure_lines(results)):
+                md += [FAILED_NOTE, "", *failed, ""]
             tuned = results.meta.get("model_parameters")
             tuned = tuned if isinstance(tuned, dict) else None
             if stem == "parameters" and (note := parameter_note(tables[stem].header[1:], tuned)):
@@ -171,6 +174,13 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
     path.write_text("\n".join(md))
     return path
 
+
+#: Under the cost table, before the methods whose evaluations failed.
+FAILED_NOTE = (
+    "Failed: evaluations whose cost could not be computed (the filter diverged, or the "
+    "evaluation raised); the best cost is over the others, and each failure is kept in "
+    "the method's study and in `results.json` (`failures`, `failure_kinds`)."
+)
 
 #: How to read the consistency table, under it.
 CONSISTENCY_NOTE = (

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kftune.report.results import ExperimentResults
+from kftune.report.results import ExperimentResults, MethodRun
 from kftune.tuning.kpi import KPI_NAMES
 
 KPI_LABELS = {
@@ -137,15 +137,58 @@ def _row_groups(rows: Sequence[Sequence[object]], first_col: int) -> tuple:
     return tuple(tuple((i, j) for j in range(first_col, len(row))) for i, row in enumerate(rows))
 
 
+def n_failed(m: MethodRun) -> int:
+    """How many of the method's cost evaluations failed (a NaN in its history: the filter
+    diverged or the evaluation raised), the best cost being over the others."""
+    return sum(1 for c in m.history_cost if _isnan(float(c)))
+
+
+def failure_lines(results: ExperimentResults) -> list[str]:
+    """One line per method with failed evaluations: how many of how many, and their reasons
+    grouped by kind (:func:`~kftune.tuning.problem.failure_kinds`) from the reasons the
+    results record (``extra["failures"]``); none when no evaluation failed."""
+    from kftune.tuning.problem import failure_kinds
+
+    lines = []
+    for m in results.methods:
+        if not (failed := n_failed(m)):
+            continue
+        recorded = [f.get("reason") for f in m.extra.get("failures") or []]
+        why = (
+            "; ".join(f"{kind} ({count})" for kind, count in failure_kinds(recorded))
+            if recorded
+            else "no reasons recorded"
+        )
+        lines.append(f"- **{m.label}**: {failed} of {m.n_evals} evaluations failed: {why}")
+    return lines
+
+
 def cost_table(results: ExperimentResults) -> Table:
-    """Paper Table V: best training cost, evaluations and tuning time per method."""
+    """Paper Table V: best training cost, evaluations (and how many of them failed) and
+    tuning time per method."""
     rows = []
     for m in results.methods:
         per_eval = m.wall_time_s / m.n_evals * 1e3 if m.n_evals else math.nan
-        rows.append((m.label, float(m.best_cost), int(m.n_evals), float(m.wall_time_s), per_eval))
+        rows.append(
+            (
+                m.label,
+                float(m.best_cost),
+                int(m.n_evals),
+                n_failed(m),
+                float(m.wall_time_s),
+                per_eval,
+            )
+        )
     return Table(
         title="Best cost and tuning effort (training set; cf. paper Table V)",
-        header=("Method", "Best cost J [-]", "Evaluations", "Tuning time [s]", "Time/eval [ms]"),
+        header=(
+            "Method",
+            "Best cost J [-]",
+            "Evaluations",
+            "Failed",
+            "Tuning time [s]",
+            "Time/eval [ms]",
+        ),
         rows=tuple(rows),
         groups=(tuple((i, 1) for i in range(len(rows))),),  # the best cost column
     )
