@@ -337,3 +337,43 @@ def test_a_two_stage_joint_tuning_refuses_another_budget_before_touching_a_study
     from kftune.optim.study import read_study
 
     assert read_study(noise).settings["budget"] == 2  # a quarter of 8, as planned
+
+
+@pytest.mark.filterwarnings("error::UserWarning")  # a parameter tried at one value only
+def test_show_names_a_joint_tunings_first_stage_and_plot_names_the_cost(small, tmp_path):
+    from kftune.cli.study import _figures, summarise
+    from kftune.optim.study import read_study
+
+    db = tmp_path / "j.db"
+    tuned = run_cli("tune", small, "--tune-model", "mu=0.8:1.6", "--storage", db, "-n", "8",
+                    "-o", tmp_path / "j.json", "--no-calibration")  # fmt: skip
+    assert tuned.returncode == 0, tuned.stderr
+    noise = tmp_path / "j.noise-only.db"
+    assert noise.is_file()
+    shown = run_cli("study", "show", db)
+    assert shown.returncode == 0, shown.stderr
+    assert f"first stage (noise only) of this joint tuning: {noise}" in shown.stdout
+    first = run_cli("study", "show", noise)
+    assert first.returncode == 0 and "first stage" not in first.stdout
+    record = json.loads((tmp_path / "j.json").read_text())["cost_spec"]
+    kind, normalise = record["kind"], record["normalise"]  # what tune minimised, as it says
+    for path in (db, noise):
+        ax = _figures(summarise(read_study(path)))["convergence.png"].axes[0]
+        assert ax.get_ylabel() == f"cost J: {kind}, {normalise}-normalised"
+    # the paper's cost, per manoeuvre, which the objective's summary leaves unsaid
+    paper = tmp_path / "p.db"
+    res = run_cli("tune", small, "--cost", "nrmse", "--storage", paper, "-n", "2", "-m", "random",
+                  "-o", tmp_path / "p.json", "--no-calibration")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    ax = _figures(summarise(read_study(paper)))["convergence.png"].axes[0]
+    assert ax.get_ylabel() == "cost J: nrmse, manoeuvre-normalised"
+    assert run_cli("study", "show", paper).stdout.count("first stage") == 0
+
+
+def test_plot_of_a_study_without_an_objective_says_only_cost(study):
+    from kftune.cli.study import _figures, summarise
+    from kftune.optim.study import read_study
+
+    s = summarise(read_study(study))
+    assert s["objective"] is None and s["first_stage"] is None
+    assert _figures(s)["convergence.png"].axes[0].get_ylabel() == "cost J"

@@ -82,8 +82,11 @@ def summarise(stored: Any) -> dict[str, Any]:
         ``parameters`` (name, low, high, scale), counts (``finished``, ``complete``,
         ``failed``, ``running``), ``best`` (number, cost, params; None if nothing
         succeeded), ``trials`` (number, state, cost, best_so_far, params, reason) in order
-        and ``failures`` (reason kind, count, trial numbers), most frequent first.
+        and ``failures`` (reason kind, count, trial numbers), most frequent first;
+        ``first_stage``: the study of a two-stage joint tuning's first, noise-only stage
+        where it lies beside this one (``<stem>.noise-only<suffix>``), else None.
     """
+    from kftune.experiment import noise_stage_storage
     from kftune.tuning.problem import failure_kinds
 
     settings = stored.settings
@@ -100,6 +103,8 @@ def summarise(stored: Any) -> dict[str, Any]:
         if not rec.ok:
             by_kind[failure_kinds([rec.reason])[0][0]].append(rec.number)
     objective = settings.get("objective")
+    first = noise_stage_storage(stored.path)
+    first_stage = str(first) if first is not None and first.is_file() else None
     return {
         "study": str(stored.path),
         "method": settings.get("method"),
@@ -126,7 +131,24 @@ def summarise(stored: Any) -> dict[str, Any]:
             for r, b in zip(records, best_so_far)
         ],
         "failures": [{"reason": k, "count": n, "trials": by_kind[k]} for k, n in kinds],
+        "first_stage": first_stage,
     }
+
+
+def cost_label(objective: str | None) -> str:
+    """The cost axis's label: which cost the study minimised, from its objective's summary
+    (``"…, cost nrmse (dataset-normalised), …"`` → ``"cost J: nrmse, dataset-normalised"``;
+    the paper's per-manoeuvre normalisation is the one the summary leaves unsaid); plain
+    ``"cost J"`` for a study that records no objective."""
+    import re
+
+    found = re.search(r"(?:^|, )cost (\w+)(?: \((\w+)-normalised\))?", objective or "")
+    if found is None:
+        return "cost J"
+    kind, normalise = found.groups()
+    if normalise is None and kind == "nrmse":
+        normalise = "manoeuvre"
+    return f"cost J: {kind}" + (f", {normalise}-normalised" if normalise else "")
 
 
 def not_a_study_hint(path: Path) -> str | None:
@@ -185,6 +207,11 @@ def render_text(s: dict[str, Any]) -> str:
         for p in s["parameters"]
     )
     lines.append(f"parameters: {box}")
+    if s.get("first_stage"):
+        lines.append(
+            f"first stage (noise only) of this joint tuning: {s['first_stage']} "
+            "(kftune study show it)"
+        )
     running = f", {len(s['running'])} running or cut off" if s["running"] else ""
     lines.append(
         f"{s['finished']} evaluations finished of {s['budget']}: {s['complete']} complete, "
@@ -300,7 +327,7 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
         )
         ax.set_ylim(top=top)
     ax.set_xlabel("evaluation")
-    ax.set_ylabel("cost")
+    ax.set_ylabel(cost_label(s.get("objective")))
     ax.set_title(f"{Path(s['study']).name}: {s['method']}, seed {s['seed']}", fontsize=10, pad=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
@@ -318,9 +345,9 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
             a.plot(n[~ok], v[~ok], "x", ms=4, color="C3", clip_on=False)
         if s["best"] is not None:
             a.axhline(s["best"]["params"][p["name"]], color="C3", lw=1, ls="--")
-        if p["scale"] == "log10":
+        a.set_ylim(p["low"], p["high"])  # first: a parameter tried at one value only would
+        if p["scale"] == "log10":  # give the log scale identical limits (a warning)
             a.set_yscale("log")
-        a.set_ylim(p["low"], p["high"])
         a.set_title(p["name"], fontsize=9, pad=7)  # clear of the points on the upper bound
         a.set_xlabel("evaluation", fontsize=8)
         a.tick_params(labelsize=7)
