@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import itertools
 import json
 import math
@@ -194,12 +195,7 @@ def run_unit(
         seeded_from = {"J": noise["values"][i], "x0": x0, "evaluations": SEED_BUDGET}
     build(dataset, wrong, normalise, config)
     problem = _CONTEXT["problem"]
-    cache: dict[tuple, float] = {}
-
-    def rmse(x: tuple) -> float:
-        if x not in cache:
-            cache[x] = test_beta_rmse(x)
-        return cache[x]
+    rmse = functools.cache(test_beta_rmse)  # each tuned point scored once
 
     try:
         independent = is_budget_independent("trbo" if label == "trbo-seeded" else label)

@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import json
 import math
 import os
@@ -195,12 +196,7 @@ def run_unit(dataset_spec: ProblemSpec, label: str, seed: int, budgets: list[int
     """Every budget of one (method, seed): one run read as prefixes when the method is
     budget-independent, else one run per budget."""
     _init(dataset_spec)
-    cache: dict[tuple, float] = {}
-
-    def rmse(x: tuple) -> float:
-        if x not in cache:
-            cache[x] = test_beta_rmse(x)
-        return cache[x]
+    rmse = functools.cache(test_beta_rmse)  # each tuned point scored once
 
     try:
         independent = is_budget_independent(label)

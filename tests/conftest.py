@@ -111,6 +111,28 @@ DEV_ZERO = Path("/dev", "zero")
 HANG_GUARD = 600.0
 
 
+def bundled_without(out: Path, dropped: set[str], n: int, name: str = "mine") -> tuple:
+    """Two training and one test manoeuvre of the bundled set, their first ``n`` samples,
+    written to ``out`` as a dataset without the channels ``dropped`` (e.g. ``beta_ref``: a
+    recording without a reference sensor). Returns (the bundled set, the picked slices)."""
+    from kftune.data import Dataset, Manoeuvre, default_dataset, save_dataset
+
+    ds = default_dataset()
+    picked = [ds.train[0].slice(0, n), ds.train[3].slice(0, n), ds.test[9].slice(0, n)]
+    ms = [
+        Manoeuvre(
+            m.name,
+            m.kind,
+            m.split,
+            m.t,
+            channels={k: v for k, v in m.channels.items() if k not in dropped},
+        )
+        for m in picked
+    ]
+    save_dataset(Dataset(name, ds.vehicle, ds.dt, ms), out)
+    return ds, picked
+
+
 def completed_trials(db: Path) -> int:
     """The finished evaluations in the study ``db`` (SQLite, read-only: a running tune may
     hold it), 0 while it does not exist or cannot be read yet."""

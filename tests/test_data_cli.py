@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from conftest import run_cli
+from conftest import bundled_without, run_cli
 
 kftune = run_cli
 
@@ -111,31 +111,10 @@ def test_generate_refuses_a_folder_in_use_and_force_replaces_only_the_dataset(tm
     assert (plain / "x.txt").exists()
 
 
-def _without(out, dropped: set[str]):
-    """Three short manoeuvres of the bundled set, written to ``out`` without ``dropped``."""
-    from kftune.data import Dataset, Manoeuvre, default_dataset
-    from kftune.data.io import save_dataset
-
-    ds = default_dataset()
-    picked = [ds.train[0].slice(0, 300), ds.train[3].slice(0, 300), ds.test[9].slice(0, 300)]
-    ms = [
-        Manoeuvre(
-            m.name,
-            m.kind,
-            m.split,
-            m.t,
-            channels={k: v for k, v in m.channels.items() if k not in dropped},
-        )
-        for m in picked
-    ]
-    save_dataset(Dataset("mine", ds.vehicle, ds.dt, ms), out)
-    return ds, picked
-
-
 def test_info_without_a_reference_keeps_the_statistics_and_marks_beta(tmp_path):
     import numpy as np
 
-    _, picked = _without(tmp_path, {"beta_ref"})
+    _, picked = bundled_without(tmp_path, {"beta_ref"}, 300)
     res = kftune("dataset", "info", tmp_path, "--json")
     assert res.returncode == 0, res.stderr
     info = json.loads(res.stdout)
@@ -159,7 +138,7 @@ def test_show_labels_each_panel_with_its_unit(tmp_path):
     from kftune.cli.dataset import plot_manoeuvre
     from kftune.data import open_dataset
 
-    _without(tmp_path / "noref", {"beta_ref"})
+    bundled_without(tmp_path / "noref", {"beta_ref"}, 300)
     fig = plot_manoeuvre(open_dataset(tmp_path / "noref").manoeuvres[0])
     assert [ax.get_ylabel() for ax in fig.axes] == [
         "δ road wheel [°]",
@@ -167,7 +146,9 @@ def test_show_labels_each_panel_with_its_unit(tmp_path):
         "yaw rate [°/s]",
         "speed [m/s]",
     ]
-    _without(tmp_path / "other", {"ax", "beta_ref"})  # not the sideslip set: one panel a channel
+    bundled_without(
+        tmp_path / "other", {"ax", "beta_ref"}, 300
+    )  # not the sideslip set: one panel a channel
     ds = open_dataset(tmp_path / "other")
     labels = [ax.get_ylabel() for ax in plot_manoeuvre(ds.manoeuvres[0], ds.units).axes]
     assert labels[:4] == ["delta [rad]", "ay [m/s^2]", "r [rad/s]", "vx [m/s]"]

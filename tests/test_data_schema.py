@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import tomllib
 
+from conftest import bundled_without
 from conftest import run_cli as kftune
 from kftune.data import Dataset, Manoeuvre, default_dataset, load_dataset, save_dataset
 from kftune.errors import ConfigError, DataError, MissingChannelError
@@ -210,20 +211,8 @@ def test_compare_and_report_a_tracking_model_by_its_channel_rmses(track, tmp_pat
 @pytest.fixture(scope="module")
 def no_reference(tmp_path_factory) -> Path:
     """Two training and one test manoeuvre of the bundled set without ``beta_ref``."""
-    ds = default_dataset()
-    picked = [ds.train[0].slice(0, 400), ds.train[3].slice(0, 400), ds.test[9].slice(0, 400)]
-    ms = [
-        Manoeuvre(
-            m.name,
-            m.kind,
-            m.split,
-            m.t,
-            channels={k: v for k, v in m.channels.items() if k != "beta_ref"},
-        )
-        for m in picked
-    ]
     out = tmp_path_factory.mktemp("no-beta-ref")
-    save_dataset(Dataset("no-ref", ds.vehicle, ds.dt, ms), out)
+    bundled_without(out, {"beta_ref"}, 400, "no-ref")
     return out
 
 
