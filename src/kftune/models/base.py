@@ -183,6 +183,10 @@ class StateSpaceModel:
             data leave unexcited (a friction coefficient on data far from the friction
             limit); None: no such knowledge. Said with a parameter the tuning's profile
             finds not determined (:mod:`kftune.tuning.identify`).
+        c_code: the model in C99 for ``kftune export --format c`` — the source text of
+            ``kf_f``, ``kf_h`` and the other hooks the model has, written against the
+            contract of :mod:`kftune.report.c_export` — or None: the model cannot be
+            exported as a running filter (the export says so and writes nothing).
     """
 
     name: str
@@ -213,6 +217,7 @@ class StateSpaceModel:
     needs_vehicle: bool = False
     param_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     param_hints: ParamHints | None = None
+    c_code: str | None = None
 
     def __post_init__(self) -> None:
         name = self.name
@@ -284,6 +289,8 @@ class StateSpaceModel:
                     f"model {name!r}: {hook} must take {len(args)} arguments "
                     f"{hook}({', '.join(args)}), it takes {_arity(fn)}"
                 )
+        if self.c_code is not None and not (isinstance(self.c_code, str) and self.c_code.strip()):
+            raise ValueError(f"model {name!r}: c_code must be C source text or None")
         if self.prepare is not None and not (
             isinstance(self.prepared_size, int) and self.prepared_size >= 0
         ):
