@@ -185,7 +185,7 @@ class StateSpaceModel:
             finds not determined (:mod:`kftune.tuning.identify`).
         c_code: the model in C99 for ``kftune export --format c`` — the source text of
             ``kf_f``, ``kf_h`` and the other hooks the model has, written against the
-            contract of :mod:`kftune.report.c_export` — or None: the model cannot be
+            contract of :mod:`kftune.models.c_contract` — or None: the model cannot be
             exported as a running filter (the export says so and writes nothing).
     """
 
