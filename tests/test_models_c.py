@@ -1,0 +1,202 @@
+"""The models in C (kftune.models.c_contract): each model's C, compiled with the header
+kftune writes for it, against its Python twin through ctypes.
+
+The C is compiled as the export compiles it (``cc -std=c99 -O2 -Wall -Wextra -Werror
+-pedantic``) into a shared library per model and precision; every hook is called on many
+rows and compared with the model's compiled Python hook. Skipped without a C compiler
+(``$CC`` or ``cc``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kftune.models import StateSpaceModel, linear_model
+from kftune.models.c_contract import (
+    builtin_c_code,
+    builtin_names,
+    c_identifier,
+    defined_functions,
+    export_refusal,
+    missing_hooks,
+    model_header,
+    required_hooks,
+)
+
+CC = os.environ.get("CC") or shutil.which("cc")
+needs_cc = pytest.mark.skipif(not CC, reason="no C compiler (cc or $CC)")
+CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-shared", "-fPIC")
+
+
+# ------------------------------------------------------------------ compiling and calling --
+
+
+def compile_model(
+    model: StateSpaceModel, folder: Path, real: str = "double", extra: tuple[str, ...] = ()
+) -> ctypes.CDLL:
+    """The model's C and its header, compiled into a shared library in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    assert model.c_code is not None
+    (folder / "kftune_model.h").write_text(model_header(model, real))
+    (folder / "kftune_model.c").write_text(model.c_code)
+    lib = folder / "libmodel.so"
+    cmd = [CC, *CFLAGS, *extra, "-I", str(folder), str(folder / "kftune_model.c"), "-o", str(lib)]
+    done = subprocess.run([*cmd, "-lm"], capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    return ctypes.CDLL(str(lib))
+
+
+class CModel:
+    """The hooks of a compiled model, called with numpy arrays like their Python twins."""
+
+    def __init__(self, lib: ctypes.CDLL, model: StateSpaceModel, real: str = "double") -> None:
+        self.lib = lib
+        self.model = model
+        self.dtype = np.float64 if real == "double" else np.float32
+        self.ct = ctypes.c_double if real == "double" else ctypes.c_float
+
+    def _arr(self, a: np.ndarray | float | list[float]) -> np.ndarray:
+        arr = np.ascontiguousarray(np.atleast_1d(np.asarray(a, dtype=self.dtype)))
+        return arr if arr.size else np.zeros(1, self.dtype)
+
+    def _ptr(self, a: np.ndarray) -> ctypes.c_void_p:
+        return a.ctypes.data_as(ctypes.c_void_p)
+
+    def _call(self, name: str, *args: np.ndarray | float, size: int) -> np.ndarray:
+        out = np.full(size + 4, np.nan, self.dtype)
+        cargs = [self.ct(a) if isinstance(a, float) else self._ptr(a) for a in args]
+        getattr(self.lib, name)(*cargs, self._ptr(out))
+        assert np.all(np.isnan(out[size:])), f"{name} wrote beyond its output"
+        return out[:size].astype(np.float64)
+
+    def prior(self, z0: np.ndarray, r: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = self.model.n_states
+        x0 = np.full(n + 4, np.nan, self.dtype)
+        P0 = np.full(n * n + 4, np.nan, self.dtype)
+        z0, r, p = self._arr(z0), self._arr(r), self._arr(p)
+        self.lib.kf_model_prior(*map(self._ptr, (z0, r, p, x0, P0)))
+        assert np.all(np.isnan(x0[n:])) and np.all(np.isnan(P0[n * n :]))
+        return x0[:n].astype(float), P0[: n * n].reshape(n, n).astype(float)
+
+    def f(self, x: np.ndarray, w: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
+        args = (self._arr(x), self._arr(w), self._arr(p), float(dt))
+        return self._call("kf_model_f", *args, size=self.model.n_states)
+
+    def h(self, x: np.ndarray, w: np.ndarray, p: np.ndarray) -> np.ndarray:
+        args = (self._arr(x), self._arr(w), self._arr(p))
+        return self._call("kf_model_h", *args, size=self.model.n_measurements)
+
+    def F(self, x: np.ndarray, w: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
+        n = self.model.n_states
+        args = (self._arr(x), self._arr(w), self._arr(p), float(dt))
+        return self._call("kf_model_F", *args, size=n * n).reshape(n, n)
+
+    def H(self, x: np.ndarray, w: np.ndarray, p: np.ndarray) -> np.ndarray:
+        n, m = self.model.n_states, self.model.n_measurements
+        args = (self._arr(x), self._arr(w), self._arr(p))
+        return self._call("kf_model_H", *args, size=m * n).reshape(m, n)
+
+    def prepare(self, u: np.ndarray, p: np.ndarray) -> np.ndarray:
+        args = (self._arr(u), self._arr(p))
+        return self._call("kf_model_prepare", *args, size=self.model.prepared_size)
+
+    def outputs(self, x: np.ndarray) -> np.ndarray:
+        return self._call("kf_model_outputs", self._arr(x), size=max(len(self.model.outputs), 1))[
+            : len(self.model.outputs)
+        ]
+
+    def check(
+        self, x: np.ndarray, z: np.ndarray, w: np.ndarray, p: np.ndarray
+    ) -> tuple[int, np.ndarray]:
+        k = max(len(self.model.held_causes), 1)
+        held = np.full(k, -7, dtype=np.intc)
+        args = [self._ptr(self._arr(a)) for a in (x, z, w, p)]
+        cause = self.lib.kf_model_check(*args, held.ctypes.data_as(ctypes.c_void_p))
+        return int(cause), held
+
+
+def python_outputs(model: StateSpaceModel, x: np.ndarray) -> np.ndarray:
+    """(len(outputs),) the model's outputs of one state x, in the model's order."""
+    return np.array([float(g(np.asarray(x, float)[None, :])[0]) for g in model.outputs.values()])
+
+
+def rel_err(c: np.ndarray, py: np.ndarray) -> float:
+    """Normwise relative difference ‖c − py‖ / max(‖py‖, tiny)."""
+    c, py = np.asarray(c, float), np.asarray(py, float)
+    return float(np.linalg.norm(c - py) / max(np.linalg.norm(py), 1e-300))
+
+
+# ------------------------------------------------------------------------- the contract --
+
+
+def test_c_identifier() -> None:
+    assert c_identifier("vx") == "VX"
+    assert c_identifier("F[0,1]") == "F_0_1"
+    assert c_identifier("b ay") == "B_AY"
+    assert c_identifier("β") == "U03B2"
+    with pytest.raises(ValueError, match="no C identifier"):
+        c_identifier("[]")
+
+
+def _models() -> list[StateSpaceModel]:
+    from kftune.models import CTRV, SINGLE_TRACK, SINGLE_TRACK_AY_BIAS, SINGLE_TRACK_BIASES
+
+    lin = linear_model(np.eye(2), [[1.0, 0.0]], G=[[0.1], [0.2]], D=[[0.5]], name="lin")
+    return [SINGLE_TRACK, SINGLE_TRACK_AY_BIAS, SINGLE_TRACK_BIASES, CTRV, lin]
+
+
+@pytest.mark.parametrize("model", _models(), ids=lambda m: m.name)
+def test_header_macros_unique(model: StateSpaceModel) -> None:
+    """Every #define of the header names one macro once, for either precision."""
+    for real in ("double", "float"):
+        text = model_header(model, real)
+        macros = [line.split()[1] for line in text.splitlines() if line.startswith("#define")]
+        assert len(macros) == len(set(macros))
+        assert f"typedef {real} kf_real;" in text
+        assert "#include <tgmath.h>" in text
+        assert f"#define KF_N {model.n_states} " in text
+
+
+def test_header_refuses_colliding_names_and_bad_real() -> None:
+    import dataclasses
+
+    from kftune.models import CTRV
+
+    twin = dataclasses.replace(CTRV, state_names=("px", "PX", "v", "psi", "omega"))
+    with pytest.raises(ValueError, match=r"'px' and 'PX' both give the C macro KF_X_PX"):
+        model_header(twin)
+    with pytest.raises(ValueError, match="real must be one of double, float"):
+        model_header(CTRV, "long double")
+
+
+def test_missing_hooks_finds_a_missing_function() -> None:
+    import dataclasses
+
+    from kftune.models import CTRV
+
+    full = dataclasses.replace(CTRV, c_code=builtin_c_code("ctrv"))
+    assert missing_hooks(full) == []
+    # a prototype, a call and a comment do not define a function
+    cut = full.c_code.replace("void kf_model_H(", "static void not_H(")  # type: ignore[union-attr]
+    cut += "\n/* void kf_model_H(const kf_real x[]) { } */\nvoid kf_model_H(const kf_real x[]);\n"
+    broken = dataclasses.replace(CTRV, c_code=cut)
+    assert missing_hooks(broken) == ["kf_model_H"]
+    assert "kf_model_H" in (export_refusal(broken) or "")
+    assert "c_code is None" in (export_refusal(dataclasses.replace(CTRV, c_code=None)) or "")
+    assert required_hooks(CTRV)[:4] == ["kf_model_prior", "kf_model_f", "kf_model_h",
+                                        "kf_model_outputs"]  # fmt: skip
+    assert defined_functions("int kf_model_check (\n const kf_real x[], int h[])\n{ return 0; }",
+                             ["kf_model_check"]) == {"kf_model_check"}  # fmt: skip
+
+
+def test_builtin_c_code_names_the_files() -> None:
+    assert "ctrv" in builtin_names()
+    with pytest.raises(ValueError, match="no built-in model C file 'nope'; there are: "):
+        builtin_c_code("nope")
