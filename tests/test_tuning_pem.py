@@ -120,5 +120,46 @@ def test_multistep_cost_prefers_the_filter_with_the_better_sideslip():
     beta = TuningProblem(train, ds.vehicle, ds.r_default, cost=CostSpec(weights={"beta": 1}))
     assert beta(tuned) < 0.7 * beta(manual)
     assert msp(tuned) < msp(manual)
-    with pytest.raises(Exception, match="single-track"):
-        TuningProblem(train, ds.vehicle, ds.r_default, cost=CostSpec(kind="msp"), filter="ekf")
+
+
+@pytest.mark.parametrize("filt", ["ukf", "ekf"])
+def test_multistep_cost_equals_an_independent_open_loop_prediction(filt):
+    """The msp cost of any filter predicts through the model's own f and h: for the
+    single-track model it equals h-step RK4 predictions of the vehicle's physics
+    (:func:`kftune.vehicle.step_rk4`, :func:`measure`), computed here from the filter's
+    posterior states, to rounding."""
+    from kftune.tuning.cost import MSP_HORIZON, MSP_STRIDE, multistep_cost
+
+    ds = default_dataset()
+    train = sorted(ds.train, key=lambda m: m.n)[:2]
+    spec = CostSpec(kind="msp", weights={"ay": 1.0, "r": 1.0})
+    problem = TuningProblem(train, ds.vehicle, ds.r_default, cost=spec, filter=filt)
+    x = Q
+    sq, counts = [], []
+    for m in train:
+        post = problem.run(x, m).x
+        h = max(1, round(MSP_HORIZON / m.dt))
+        ks = np.arange(0, m.n - h, MSP_STRIDE)
+        xs = post[ks]
+        for j in range(h):
+            xs = step_rk4(xs, m.u[ks + j], ds.vehicle, m.dt)
+        err = (measure(xs, m.u[ks + h], ds.vehicle) - m.z[ks + h])[:, [2, 1]]
+        sq.append(np.sum(err**2, axis=0))
+        counts.append(ks.size)
+    assert problem(x) == pytest.approx(multistep_cost(sq, counts), rel=1e-10)
+
+
+def test_open_loop_prediction_of_a_linear_model_is_its_closed_form():
+    """h steps of x ← F x + G u, then z = H x + D u: F^h x0 + Σ_j F^(h−1−j) G u_(k+j)."""
+    rng = np.random.default_rng(3)
+    F = np.eye(3) + 0.1 * rng.standard_normal((3, 3))
+    G, H, D = rng.standard_normal((3, 2)), rng.standard_normal((2, 3)), rng.standard_normal((2, 2))
+    model = linear_model(F, H, G, D)
+    u = rng.standard_normal((40, 2))
+    x0 = rng.standard_normal((4, 3))
+    starts, h = np.array([0, 5, 17, 30]), 7
+    got = model.predict_open_loop(x0, u, model.default_params(), 0.1, starts, h)
+    for i, k in enumerate(starts):
+        x = np.linalg.matrix_power(F, h) @ x0[i]
+        x += sum(np.linalg.matrix_power(F, h - 1 - j) @ G @ u[k + j] for j in range(h))
+        np.testing.assert_allclose(got[i], H @ x + D @ u[k + h], rtol=1e-12, atol=1e-12)

@@ -435,6 +435,38 @@ class StateSpaceModel:
             if finite and not np.isfinite(value[0]):
                 raise ValueError(f"output {key!r}(x) is not finite at the prior mean x0")
 
+    def predict_open_loop(
+        self,
+        x0: np.ndarray,
+        w: np.ndarray,
+        p: np.ndarray,
+        dt: float,
+        starts: np.ndarray,
+        horizon: int,
+    ) -> np.ndarray:
+        """Measurement predictions h steps ahead without measurements: from each start state
+        x0[i] at sample starts[i], ``horizon`` steps of f with the inputs held over each step,
+        then h with the input at the end (x_{k+j+1} = f(x_{k+j}, w_{k+j}), ẑ = h(x_{k+h},
+        w_{k+h}); the model's own equations, module docstring). A state that leaves the
+        model's domain gives non-finite predictions, not an error.
+
+        Args:
+            x0: (K, n) start states. w: (N, n_w) prepared input rows
+                (:meth:`prepared_inputs`; (N, 0) for a model without inputs). p: (n_p,)
+                parameters. dt: [s] the sample time. starts: (K,) start samples with
+                starts + horizon < N. horizon: h ≥ 1 steps.
+
+        Returns:
+            (K, m) predicted measurements ẑ_{starts+h}.
+        """
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        w = np.ascontiguousarray(w, dtype=np.float64)
+        starts = np.ascontiguousarray(starts, dtype=np.int64)
+        out = np.empty((starts.shape[0], self.n_measurements))
+        run = _bound_open_loop(self.f, self.h)
+        run(x0, w, np.asarray(p, np.float64), float(dt), starts, int(horizon), out)
+        return out
+
     def prepared_inputs(self, u: ArrayLike, p: np.ndarray) -> np.ndarray:
         """(N, n_w) prepared input rows of (N, n_u) raw inputs ``u`` (u itself without prepare)."""
         u_arr = np.ascontiguousarray(u, dtype=np.float64)
@@ -507,6 +539,35 @@ def _bound_prepare(prepare: Dispatcher) -> Dispatcher:
         prepare_inputs(prepare, u, p, out)
 
     return bound
+
+
+@functools.cache
+def _bound_open_loop(f: Dispatcher, h: Dispatcher) -> Dispatcher:
+    """:meth:`StateSpaceModel.predict_open_loop`'s loop with the model's f and h held as
+    constants (compiled once per model and process)."""
+
+    @njit(error_model="numpy")
+    def run(
+        x0: np.ndarray,
+        w: np.ndarray,
+        p: np.ndarray,
+        dt: float,
+        starts: np.ndarray,
+        horizon: int,
+        out: np.ndarray,
+    ) -> None:
+        n = x0.shape[1]
+        x = np.empty(n)
+        nxt = np.empty(n)
+        for i in range(starts.shape[0]):
+            x[:] = x0[i]
+            k = starts[i]
+            for j in range(horizon):
+                f(x, w[k + j], p, dt, nxt)
+                x[:] = nxt
+            h(x, w[k + horizon], p, out[i])
+
+    return run
 
 
 @njit(error_model="numpy")

@@ -52,7 +52,6 @@ from kftune.tuning.cost import (
 from kftune.tuning.hookcheck import check_model_file
 from kftune.tuning.kpi import sideslip_kpis
 from kftune.vehicle.params import VehicleParams
-from kftune.vehicle.single_track import measure, step_rk4
 
 #: Paper Sec. VI: every process-noise parameter searched in [1e-10, 1] (log10 scale here).
 Q_BOUNDS = (1e-10, 1.0)
@@ -795,7 +794,18 @@ def _score(
     """One manoeuvre's score of one point: ``vehicle`` and ``params`` are the point's model
     (:meth:`TuningProblem.vehicle_at`, :meth:`TuningProblem.params_at`)."""
     res = fs.run(m, vehicle, q, r, settings, params=params, cov_scale=cov_scale)
-    return _score_result(m, res, spec, burn_in, vehicle)
+    return _score_result(m, res, spec, burn_in, fs, _run_params(fs, vehicle, params))
+
+
+def _run_params(
+    fs: FilterSpec, vehicle: VehicleParams | None, params: np.ndarray | None
+) -> np.ndarray:
+    """(n_p,) the model's parameter vector a run of ``fs`` used (:meth:`FilterSpec.run`)."""
+    if params is not None:
+        return np.asarray(params, dtype=float)
+    if fs.fast and vehicle is not None:
+        return fs.model.params_vector(vehicle)
+    return fs.params
 
 
 def _score_result(
@@ -803,10 +813,11 @@ def _score_result(
     res: RunResult,
     spec: CostSpec,
     burn_in: float,
-    vehicle: VehicleParams | None,
+    fs: FilterSpec,
+    params: np.ndarray,
 ) -> ManoeuvreScore:
-    """One manoeuvre's contribution from the filter's run over it (``vehicle``: for the
-    multi-step predictions of the msp cost)."""
+    """One manoeuvre's contribution from the filter's run over it (``fs`` and ``params``
+    (n_p,): the run's model, for the multi-step predictions of the msp cost)."""
     if res.diverged:
         raise FilterDivergedError(f"filter diverged on {where_diverged(m, res)}")
     k0 = first_scored(m, burn_in)
@@ -834,7 +845,7 @@ def _score_result(
     msp_sq: tuple[float, ...] = ()
     msp_n = 0
     if spec.kind == "msp":
-        msp_sq, msp_n = _multistep_errors(m, res, vehicle, spec, k0)
+        msp_sq, msp_n = _multistep_errors(m, res, fs, params, spec, k0)
     return ManoeuvreScore(
         name=m.name,
         n=m.n - k0,
@@ -848,25 +859,28 @@ def _score_result(
     )
 
 
-def _msp_channels(spec: CostSpec) -> list[int]:
-    """Indices into the single-track measurements of the multi-step cost's channels."""
-    return [SIDESLIP_MEASUREMENTS.index(c) for c in spec.channels if c in SIDESLIP_MEASUREMENTS]
+def _msp_channels(spec: CostSpec, model: StateSpaceModel) -> list[int]:
+    """Indices into ``model``'s measurements of the multi-step cost's channels."""
+    names = model.measurement_names
+    return [names.index(c) for c in spec.channels if c in names]
 
 
 def _multistep_errors(
-    m: Manoeuvre, res: RunResult, vehicle: VehicleParams, spec: CostSpec, k0: int
+    m: Manoeuvre, res: RunResult, fs: FilterSpec, params: np.ndarray, spec: CostSpec, k0: int
 ) -> tuple[tuple[float, ...], int]:
-    """Sums of squared h-step open-loop prediction errors from x⁺_k (single-track model)."""
+    """Sums of squared h-step open-loop prediction errors from x⁺_k through the model's own
+    f and h (:meth:`~kftune.models.StateSpaceModel.predict_open_loop`), any model."""
+    model = fs.model
     h = max(1, round(MSP_HORIZON / m.dt))
     ks = np.arange(k0, m.n - h, MSP_STRIDE)
-    chans = _msp_channels(spec)
+    chans = _msp_channels(spec, model)
     if ks.size == 0:
         return tuple(0.0 for _ in chans), 0
-    x = res.x[ks]
+    u, z = fs.inputs(m)
+    w = model.prepared_inputs(np.zeros((m.n, 0)) if u is None else u, params)
+    zh = model.predict_open_loop(res.x[ks], w, params, m.dt, ks, h)
     with np.errstate(all="ignore"):
-        for j in range(h):
-            x = step_rk4(x, m.u[ks + j], vehicle, m.dt)
-        err = measure(x, m.u[ks + h], vehicle)[:, chans] - m.z[ks + h][:, chans]
+        err = zh[:, chans] - z[ks + h][:, chans]
         sq = np.sum(err * err, axis=0)
     return tuple(float(v) for v in sq), int(ks.size)
 
@@ -976,10 +990,10 @@ class TuningProblem:
         self.burn_in = float(burn_in)
         self.cost_spec = cost or CostSpec()
         check_cost_channels(self.cost_spec, mod)
-        if self.cost_spec.kind == "msp" and not (self._fs.fast and _msp_channels(self.cost_spec)):
+        if self.cost_spec.kind == "msp" and not _msp_channels(self.cost_spec, mod):
             raise ConfigError(
-                "the multi-step prediction cost (msp) runs the single-track UKF only, and "
-                "needs a positive weight on a measured channel (vx, ay, r)"
+                "the multi-step prediction cost (msp) needs a positive weight on a measured "
+                f"channel of model {mod.name!r} ({', '.join(mod.measurement_names)})"
             )
         for m in self.manoeuvres:
             self._check_channels(m)
@@ -1271,7 +1285,14 @@ class TuningProblem:
                 for b, i in enumerate(idx):
                     try:
                         results[i].append(
-                            _score_result(m, batch[b], self.cost_spec, self.burn_in, vehicle)
+                            _score_result(
+                                m,
+                                batch[b],
+                                self.cost_spec,
+                                self.burn_in,
+                                self._fs,
+                                _run_params(self._fs, vehicle, None),
+                            )
                         )
                     except FilterDivergedError as exc:
                         results[i].append(exc)
