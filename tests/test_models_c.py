@@ -13,6 +13,7 @@ import ctypes
 import os
 import shutil
 import subprocess
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -200,3 +201,140 @@ def test_builtin_c_code_names_the_files() -> None:
     assert "ctrv" in builtin_names()
     with pytest.raises(ValueError, match="no built-in model C file 'nope'; there are: "):
         builtin_c_code("nope")
+
+
+# ------------------------------------------------------------------- compiled libraries --
+
+_LIBS: dict[tuple[str, str, tuple[str, ...]], CModel] = {}
+
+
+@pytest.fixture(scope="module")
+def c_model(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[..., CModel]]:
+    """``c_model(model, real="double", extra=())``: the model's C compiled once per module."""
+
+    def get(model: StateSpaceModel, real: str = "double", extra: tuple[str, ...] = ()) -> CModel:
+        key = (model.name, real, extra)
+        if key not in _LIBS:
+            folder = tmp_path_factory.mktemp(f"c-{model.name}-{real}")
+            _LIBS[key] = CModel(compile_model(model, folder, real, extra), model, real)
+        return _LIBS[key]
+
+    yield get
+    _LIBS.clear()
+
+
+# -------------------------------------------------------------------------------- ctrv --
+
+TOL = 1e-12  # normwise relative, C against its compiled Python twin
+
+
+def _ctrv_cases() -> list[tuple[np.ndarray, float]]:
+    """CTRV states and steps: random over a wide box, and the sinc branches' edges (ω·dt/2
+    at 0, just below and above the series threshold 0.1, tiny)."""
+    rng = np.random.default_rng(3)
+    cases = []
+    for _ in range(300):
+        x = np.array([rng.uniform(-1e4, 1e4), rng.uniform(-1e4, 1e4), rng.uniform(-60, 60),
+                      rng.uniform(-10, 10), rng.uniform(-4, 4)])  # fmt: skip
+        cases.append((x, float(rng.choice([0.001, 0.01, 0.05, 0.1, 1.0]))))
+    for s in (0.0, 1e-300, 1e-9, -1e-5, 0.0999999, 0.1, 0.1000001, -0.2, 3.0):
+        cases.append((np.array([1.0, -2.0, 15.0, 0.3, 2 * s / 0.1]), 0.1))
+    return cases
+
+
+@needs_cc
+def test_ctrv_c_matches_python(c_model: Callable[..., CModel]) -> None:
+    from kftune.models import CTRV
+
+    assert CTRV.c_code == builtin_c_code("ctrv")
+    c = c_model(CTRV)
+    p = CTRV.default_params()
+    w = np.zeros(0)
+    for x, dt in _ctrv_cases():
+        out = np.empty(5)
+        CTRV.f(x, w, p, dt, out)
+        assert rel_err(c.f(x, w, p, dt), out) <= TOL, (x, dt)
+        J = np.empty((5, 5))
+        CTRV.F(x, w, p, dt, J)
+        assert rel_err(c.F(x, w, p, dt), J) <= TOL, (x, dt)
+        z = np.empty(2)
+        CTRV.h(x, w, p, z)
+        assert rel_err(c.h(x, w, p), z) <= TOL
+        Hm = np.empty((2, 5))
+        CTRV.H(x, w, p, Hm)
+        assert rel_err(c.H(x, w, p), Hm) <= TOL
+    z0, r = np.array([12.5, -3.25]), np.array([0.04, 0.09])
+    x0, P0 = CTRV.initial_state(z0, r, p)  # type: ignore[misc]
+    cx0, cP0 = c.prior(z0, r, p)
+    assert rel_err(cx0, x0) <= TOL and rel_err(cP0, P0) <= TOL
+    assert c.outputs(x0).shape == (0,)
+
+
+@needs_cc
+def test_ctrv_c_matches_python_on_drawn_states(c_model: Callable[..., CModel]) -> None:
+    """Hypothesis draws states and steps widely, also ω near 0 where sinc switches form."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from kftune.models import CTRV
+
+    c = c_model(CTRV)
+    p, w = CTRV.default_params(), np.zeros(0)
+    big = st.floats(-1e5, 1e5, allow_nan=False)
+    om = st.one_of(st.floats(-20, 20), st.floats(-1e-6, 1e-6), st.floats(0.19, 0.21))
+
+    @settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(big, big, st.floats(-100, 100), st.floats(-50, 50), om, st.floats(1e-4, 2.0))
+    def check(px: float, py: float, v: float, psi: float, omega: float, dt: float) -> None:
+        x = np.array([px, py, v, psi, omega])
+        out, J = np.empty(5), np.empty((5, 5))
+        CTRV.f(x, w, p, dt, out)
+        CTRV.F(x, w, p, dt, J)
+        assert rel_err(c.f(x, w, p, dt), out) <= TOL
+        assert rel_err(c.F(x, w, p, dt), J) <= TOL
+
+    check()
+
+
+# ------------------------------------------------------------------------------ linear --
+
+
+@needs_cc
+def test_linear_model_c_matches_python(c_model: Callable[..., CModel]) -> None:
+    rng = np.random.default_rng(5)
+    n, nu, m = 4, 2, 3
+    F, G = rng.normal(size=(n, n)), rng.normal(size=(n, nu))
+    H, D = rng.normal(size=(m, n)), rng.normal(size=(m, nu))
+    x0, P0 = rng.normal(size=n), np.diag(rng.uniform(0.1, 2.0, n)) + 0.01
+    model = linear_model(F, H, G, D, name="lin-c", x0=x0, P0=P0)
+    assert missing_hooks(model) == [] and export_refusal(model) is None
+    c = c_model(model)
+    p = model.default_params()
+    for _ in range(100):
+        x, u, dt = rng.normal(size=n) * 10, rng.normal(size=nu), 0.01
+        out, z, J, Hm = np.empty(n), np.empty(m), np.empty((n, n)), np.empty((m, n))
+        model.f(x, u, p, dt, out)
+        model.h(x, u, p, z)
+        model.F(x, u, p, dt, J)
+        model.H(x, u, p, Hm)
+        assert rel_err(c.f(x, u, p, dt), out) <= TOL
+        assert rel_err(c.h(x, u, p), z) <= TOL
+        assert rel_err(c.F(x, u, p, dt), J) <= TOL
+        assert rel_err(c.H(x, u, p), Hm) <= TOL
+    px0, pP0 = model.initial_state(np.zeros(m), np.ones(m), p)  # type: ignore[misc]
+    cx0, cP0 = c.prior(np.zeros(m), np.ones(m), p)
+    np.testing.assert_array_equal(cx0, px0)  # literals read back exactly
+    np.testing.assert_array_equal(cP0, pP0)
+    # without a prior a linear model is still a linear model, but the export refuses it
+    bare = linear_model(F, H, name="lin-bare")
+    assert bare.initial_state is None and "kf_model_prior" in missing_hooks(bare)
+    assert "no prior rule" in (export_refusal(bare) or "")
+    with pytest.raises(ValueError, match="both x0 and P0"):
+        linear_model(F, H, x0=x0)
+
+
+@needs_cc
+def test_linear_model_without_inputs_compiles(c_model: Callable[..., CModel]) -> None:
+    model = linear_model([[0.9]], [[2.0]], name="lin-scalar", x0=[1.0], P0=[0.5])
+    c = c_model(model, "float")
+    assert c.f(np.array([2.0]), np.zeros(0), model.default_params(), 1.0)[0] == pytest.approx(1.8)

@@ -21,7 +21,8 @@ sinc(s) = sin(s)/s, which has no 0/0 at ω = 0 (straight motion) and no cancella
 Process noise is additive on all five states (random-walk v, ψ and ω).
 
 The analytic Jacobians F = ∂f/∂x and H = ∂h/∂x are given (and checked against finite
-differences in the tests). The model has no parameters.
+differences in the tests). The model has no parameters. Its C twin, hook for hook, is the
+package file ``kftune/models/c/ctrv.c``.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import numpy as np
 from numba import njit
 
 from kftune.models.base import StateSpaceModel
+from kftune.models.c_contract import builtin_c_code
 
 __all__ = ["CTRV", "CTRV_PRIOR_STD"]
 
@@ -136,4 +138,5 @@ CTRV = StateSpaceModel(
     F=ctrv_process_jacobian,
     H=position_jacobian,
     description="target tracking: constant turn rate and velocity, position measurements",
+    c_code=builtin_c_code("ctrv"),
 )
