@@ -421,3 +421,31 @@ def test_a_new_package_must_be_added_to_the_table(tmp_path: Path) -> None:
 )
 def test_find_cycle_on_small_graphs(graph: dict[str, set[str]], expected: list[str] | None) -> None:
     assert find_cycle(graph) == expected
+
+
+def test_every_exception_kftune_defines_is_a_kftune_error() -> None:
+    """One root for kftune's own exceptions, so that a caller (and the CLI's exit codes)
+    can tell them from a bug: every exception class defined in a kftune module derives from
+    :class:`~kftune.errors.KftuneError` (warnings excepted: they are not raised to stop; and
+    interrupts, which derive from KeyboardInterrupt so that no ``except Exception`` swallows
+    Ctrl-C)."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import kftune
+    from kftune.errors import KftuneError
+
+    own: list[type] = []
+    for info in pkgutil.walk_packages(kftune.__path__, "kftune."):
+        if info.name.endswith("__main__"):
+            continue
+        module = importlib.import_module(info.name)
+        for _, obj in inspect.getmembers(module, inspect.isclass):
+            if obj.__module__ == info.name and issubclass(obj, Exception):
+                own.append(obj)
+    assert len(own) >= 10  # the walk found kftune's exceptions, not nothing
+    strays = [
+        f"{c.__module__}.{c.__qualname__}" for c in own if not issubclass(c, (KftuneError, Warning))
+    ]
+    assert strays == []

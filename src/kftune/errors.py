@@ -75,6 +75,12 @@ class RunFailedError(KftuneError):
     tuning run failed); the CLI exits with 1, not with the bad-input code."""
 
 
+class FilterDivergedError(RunFailedError, RuntimeError):
+    """A filter's covariance could not be repaired or its estimate left the model's domain
+    (a failed evaluation while tuning; a failed run elsewhere): the input was valid, the
+    filter was not, so the CLI exits with 1."""
+
+
 class ConfigError(KftuneError, ValueError):
     """An option or configuration value is invalid; the message names it."""
 

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kftune.errors import excerpt
+from kftune.errors import KftuneError, excerpt
 
 #: Most characters of one expression.
 MAX_CHARS = 1000
@@ -125,7 +125,7 @@ _REFUSED: dict[type, str] = {
 _ALLOWED = "numbers, names, + - * / **, parentheses and the functions " + ", ".join(FUNCTIONS)
 
 
-class ExprError(ValueError):
+class ExprError(KftuneError, ValueError):
     """An expression that is refused (parsing) or cannot be computed on these data.
 
     Attributes:

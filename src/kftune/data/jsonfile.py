@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from kftune.data.textfile import check_regular_file
-from kftune.errors import DataError
+from kftune.errors import DataError, KftuneError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -36,7 +36,7 @@ MAX_INT_DIGITS = 4300
 MAX_INPUT_BYTES = 256 * 2**20
 
 
-class _LongInteger(ValueError):
+class _LongInteger(KftuneError, ValueError):
     """An integer literal with more digits than :data:`MAX_INT_DIGITS`."""
 
 

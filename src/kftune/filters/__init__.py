@@ -17,7 +17,6 @@ from kftune.filters.sigma_points import (
     unscented_transform,
 )
 from kftune.filters.ukf import (
-    FilterDiverged,
     UKFBatchResult,
     UKFResult,
     UnscentedKalmanFilter,
@@ -33,7 +32,6 @@ __all__ = [
     "EKF",
     "UKF",
     "FilterBatchResult",
-    "FilterDiverged",
     "FilterResult",
     "ModelFilter",
     "UKFBatchResult",

@@ -43,6 +43,7 @@ from numpy.typing import ArrayLike
 
 import kftune.filters._kernel as _kernel
 import kftune.filters._soa_kernel as _soa
+from kftune.errors import FilterDivergedError
 from kftune.filters._checks import check_covariance, check_dt, check_state
 from kftune.filters._checks import check_noise as _check_noise
 from kftune.filters._checks import check_table as _check_table
@@ -64,7 +65,6 @@ from kftune.vehicle.single_track import MAX_SIDESLIP, measure, pack_params, step
 __all__ = [
     "DIVERGED_CAUSES",
     "P0_VY_SPEED_FRACTION",
-    "FilterDiverged",
     "UKFBatchResult",
     "UKFResult",
     "UnscentedKalmanFilter",
@@ -524,19 +524,15 @@ def run_ukf_linear(
 # --------------------------------------------------------------------------------------
 
 
-class FilterDiverged(RuntimeError):
-    """Raised by :class:`UnscentedKalmanFilter` when a covariance cannot be repaired."""
-
-
 def _cholesky_repaired(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """Symmetrise P and factorise it, adding escalating jitter when needed.
 
-    Returns (L, P_used, repaired); raises FilterDiverged when no jitter up to
+    Returns (L, P_used, repaired); raises FilterDivergedError when no jitter up to
     ``JITTER_MAX``·max(diag) helps. Same policy as the kernel's ``chol3_repair``.
     """
     P = 0.5 * (P + P.T)
     if not np.isfinite(P).all():
-        raise FilterDiverged("covariance is not finite")
+        raise FilterDivergedError("covariance is not finite")
     try:
         return np.linalg.cholesky(P), P, False
     except np.linalg.LinAlgError:
@@ -549,7 +545,7 @@ def _cholesky_repaired(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
             return np.linalg.cholesky(Pj), Pj, True
         except np.linalg.LinAlgError:
             jitter *= 10.0
-    raise FilterDiverged("covariance is not positive definite and jitter does not repair it")
+    raise FilterDivergedError("covariance is not positive definite and jitter does not repair it")
 
 
 class UnscentedKalmanFilter:
@@ -662,7 +658,7 @@ def run_ukf_reference(
                     ukf.predict(u_arr[k - 1])
                 ukf.update(z_arr[k], u_arr[k])
                 z_hat = measure(ukf.x, u_arr[k], p)
-        except (FilterDiverged, ValueError):  # ValueError: the model met a non-finite state
+        except (FilterDivergedError, ValueError):  # ValueError: the model met a non-finite state
             return stopped(k, _kernel.STOP_NUMERICAL)
         if not (np.isfinite(ukf.x).all() and math.isfinite(ukf.nis)):
             return stopped(k, _kernel.STOP_NUMERICAL)

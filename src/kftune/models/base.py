@@ -53,6 +53,8 @@ from numba import njit
 from numba.core.dispatcher import Dispatcher
 from numpy.typing import ArrayLike
 
+from kftune.errors import KftuneError
+
 __all__ = [
     "FIRST_MODEL_STOP",
     "GENERIC_STOP_REASONS",
@@ -84,7 +86,7 @@ GENERIC_STOP_REASONS: dict[int, str] = {
 }
 
 
-class DataRefused(ValueError):
+class DataRefused(KftuneError, ValueError):
     """What a model's ``validate_data`` raises for data it is not meant for, saying where:
     the array (``"u"`` or ``"z"``), the row (0-based sample) and the column (index into the
     model's input or measurement names), so that the caller can name the manoeuvre's

@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.spatial import cKDTree
 
+from kftune.errors import KftuneError
 from kftune.optim.result import COMPLETE, FAILED, EvalRecord, best_record, jsonable
 from kftune.space import Space
 
@@ -99,7 +100,7 @@ class Trial:
     t_propose: float
 
 
-class ExhaustedError(RuntimeError):
+class ExhaustedError(KftuneError, RuntimeError):
     """``ask`` was called on an optimiser that has nothing left to propose."""
 
 

@@ -65,6 +65,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from kftune.errors import KftuneError
 from kftune.tuning.consistency import ChannelConsistency, channel_consistency, pool, z_of
 
 if TYPE_CHECKING:
@@ -96,7 +97,7 @@ CHI2_1_MEDIAN = 0.454936423119572
 FACTOR_RANGE: tuple[float, float] = (1e-6, 1e6)
 
 
-class CalibrationError(ValueError):
+class CalibrationError(KftuneError, ValueError):
     """The calibration could not be fitted (a diverged run, nothing to fit on)."""
 
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT, UNITS
-from kftune.errors import ConfigError, DataError
+from kftune.errors import ConfigError, DataError, FilterDivergedError
 from kftune.filters import UKFResult, UKFSettings, run_ukf, run_ukf_simd
 from kftune.filters.generic import FilterResult, ModelFilter, get_filter
 from kftune.models import DataRefused, StateSpaceModel, model_names
@@ -63,10 +63,6 @@ Q_NAMES = tuple(f"q_{s}" for s in SIDESLIP_STATES)
 R_MODES = ("none", "scale", "diag")
 
 Bounds = tuple[float, float]
-
-
-class FilterDivergedError(RuntimeError):
-    """The filter diverged on a manoeuvre for the parameters tried (a failed evaluation)."""
 
 
 @dataclass(frozen=True)
