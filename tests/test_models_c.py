@@ -338,3 +338,140 @@ def test_linear_model_without_inputs_compiles(c_model: Callable[..., CModel]) ->
     model = linear_model([[0.9]], [[2.0]], name="lin-scalar", x0=[1.0], P0=[0.5])
     c = c_model(model, "float")
     assert c.f(np.array([2.0]), np.zeros(0), model.default_params(), 1.0)[0] == pytest.approx(1.8)
+
+
+# ------------------------------------------------------------------ the single-track family --
+
+
+def _single_track_models() -> list[StateSpaceModel]:
+    from kftune.models import SINGLE_TRACK, SINGLE_TRACK_AY_BIAS, SINGLE_TRACK_BIASES
+
+    return [SINGLE_TRACK, SINGLE_TRACK_AY_BIAS, SINGLE_TRACK_BIASES]
+
+
+def _bundled_rows(n_states: int, every: int = 4) -> Iterator[tuple[np.ndarray, ...]]:
+    """(x, u, z, dt) rows of every manoeuvre of the bundled dataset, every ``every``-th
+    sample: x from the measured Vx and r and the reference sideslip, once as it is and once
+    perturbed (as a sigma point is, and further, into the Dugoff saturation), random biases."""
+    from kftune.data import default_dataset
+
+    rng = np.random.default_rng(11)
+    for man in default_dataset().manoeuvres:
+        for k in range(0, man.n, every):
+            vx, r = float(man.z[k, 0]), float(man.z[k, 2])
+            x = np.array([vx, np.tan(man.beta_ref[k]) * vx, r])
+            spread = rng.normal(size=3) * np.array([0.5, 0.3 * vx, 0.3])
+            for state in (x, x + spread):
+                full = np.concatenate([state, rng.normal(size=n_states - 3) * 0.3])
+                yield full, man.u[k].astype(float), man.z[k].astype(float), man.dt
+
+
+def _edge_rows(n_states: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(x, u) where the tyre formulas switch branch: Vx = 0 (tan α_r infinite), a zero
+    denominator of tan α_f, 0/0, no front load (strong braking), huge slip, δ = 0."""
+    rows = [
+        ([0.0, 0.5, 0.1], [0.05, 0.0]),
+        ([0.0, 0.0, 0.0], [0.05, 0.0]),
+        ([0.0, 0.0, 0.0], [0.0, 0.0]),
+        ([10.0, 0.0, 0.0], [0.0, 0.0]),
+        ([10.0, 8.0, -1.0], [0.3, -2.0]),
+        ([20.0, -15.0, 2.0], [-0.4, 3.0]),
+        ([15.0, 1.0, 0.3], [0.1, -60.0]),  # Fz_f <= 0: a lifted front axle
+        ([-5.0, 1.0, 0.3], [0.1, 1.0]),
+    ]
+    # Vx + y_f·tan δ = 0 with y_f = Vy + a·r: δ = 0.5, r = 0, Vy = −Vx/tan δ
+    t = np.tan(0.5)
+    rows.append(([2.0, -2.0 / t, 0.0], [0.5, 0.0]))
+    out = []
+    for x, u in rows:
+        out.append((np.array(x + [0.1] * (n_states - 3)), np.array(u)))
+    return out
+
+
+def _compare_row(c: CModel, model: StateSpaceModel, x: np.ndarray, u: np.ndarray,
+                 z: np.ndarray, p: np.ndarray, dt: float, tol: float) -> None:  # fmt: skip
+    """Every hook of one row, C against Python, within ``tol`` normwise relative."""
+    n, m = model.n_states, model.n_measurements
+    w = np.empty(model.prepared_size)
+    model.prepare(u, p, w)  # type: ignore[misc]
+    assert rel_err(c.prepare(u, p), w) <= tol, ("prepare", u)
+    got = {
+        "f": (c.f(x, w, p, dt), np.empty(n), lambda o: model.f(x, w, p, dt, o)),
+        "h": (c.h(x, w, p), np.empty(m), lambda o: model.h(x, w, p, o)),
+        "F": (c.F(x, w, p, dt), np.empty((n, n)), lambda o: model.F(x, w, p, dt, o)),  # type: ignore[misc]
+        "H": (c.H(x, w, p), np.empty((m, n)), lambda o: model.H(x, w, p, o)),  # type: ignore[misc]
+    }
+    for name, (cval, out, call) in got.items():
+        call(out)
+        finite = np.isfinite(out)
+        assert np.array_equal(finite, np.isfinite(cval)), (name, x, u)
+        assert rel_err(cval[finite], out[finite]) <= tol, (name, x, u, cval, out)
+    py_held = np.zeros(2, dtype=np.bool_)
+    cause = model.check(x, z, w, p, py_held)  # type: ignore[misc]
+    c_cause, c_held = c.check(x, z, w, p)
+    assert c_cause == cause, (x, z)
+    if cause == 0:
+        assert c_held.tolist() == py_held.astype(int).tolist(), (x, z)
+    assert rel_err(c.outputs(x), python_outputs(model, x)) <= tol
+
+
+@needs_cc
+@pytest.mark.parametrize("model", _single_track_models(), ids=lambda m: m.name)
+def test_single_track_c_matches_python_on_the_bundled_data(
+    model: StateSpaceModel, c_model: Callable[..., CModel]
+) -> None:
+    """prepare, f, h, F, H, check and outputs on the bundled set's manoeuvres (every 4th
+    sample, each as measured and perturbed) and at the tyre formulas' edges, and the prior."""
+    from kftune.data import default_dataset
+
+    assert model.c_code == builtin_c_code("single_track") and missing_hooks(model) == []
+    c = c_model(model)
+    data = default_dataset()
+    p = model.params_vector(data.vehicle)
+    rows = 0
+    for x, u, z, dt in _bundled_rows(model.n_states):
+        _compare_row(c, model, x, u, z, p, dt, TOL)
+        rows += 1
+    assert rows > 10_000
+    for x, u in _edge_rows(model.n_states):
+        _compare_row(c, model, x, u, np.array([x[0] or 1.0, 0.0, 0.0]), p, 0.01, TOL)
+    for man in data.manoeuvres[:5]:
+        r = np.asarray(data.r_default, float)
+        x0, P0 = model.initial_state(man.z[0], r, p)  # type: ignore[misc]
+        cx0, cP0 = c.prior(man.z[0], r, p)
+        assert rel_err(cx0, x0) <= TOL and rel_err(cP0, P0) <= TOL
+
+
+@needs_cc
+@pytest.mark.parametrize("model", _single_track_models(), ids=lambda m: m.name)
+def test_single_track_c_check_at_and_beyond_the_runaway_bounds(
+    model: StateSpaceModel, c_model: Callable[..., CModel]
+) -> None:
+    """The stop causes and held flags of check, C against Python, exactly at each bound
+    and one rounding either side: |β| at 60° and at 0.8 rad, |Vx − z_Vx| at 50 % of z_Vx,
+    Vx at 0, NaN."""
+    from kftune.models.sideslip import _TAN_MAX_SIDESLIP, _TAN_RUNAWAY_BETA
+
+    c = c_model(model)
+    p = model.default_params()
+    w = np.empty(6)
+    model.prepare(np.array([0.02, 0.5]), p, w)  # type: ignore[misc]
+    vx = 20.0
+    causes = set()
+    for vy0 in (_TAN_RUNAWAY_BETA * vx, _TAN_MAX_SIDESLIP * vx, 0.0):
+        for vy in (np.nextafter(vy0, 0), vy0, np.nextafter(vy0, np.inf)):
+            for z_vx in (vx / 1.5, vx / 0.5, vx * 2.0, np.nextafter(vx * 2.0, 0), 40.0001):
+                for sign in (1.0, -1.0):
+                    for x_vx in (vx, 0.0, -0.0, -1.0, np.nan):
+                        x = np.array([x_vx, sign * vy, 0.1] + [0.0] * (model.n_states - 3))
+                        z = np.array([z_vx, 0.0, 0.1])
+                        py_held = np.zeros(2, dtype=np.bool_)
+                        cause = model.check(x, z, w, p, py_held)  # type: ignore[misc]
+                        c_cause, c_held = c.check(x, z, w, p)
+                        assert c_cause == cause, (x, z)
+                        if cause == 0:
+                            assert c_held.tolist() == py_held.astype(int).tolist(), (x, z)
+                            causes.add(("held", *py_held.tolist()))
+                        causes.add(cause)
+    assert {0, 2, 3} <= causes  # valid, reverse, sideslip at once
+    assert {("held", True, False), ("held", False, True), ("held", True, True)} <= causes

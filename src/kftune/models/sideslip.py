@@ -24,6 +24,11 @@ Validity (all three): Vx > 0 and the runaway rules of the 3×3 kernel
 (:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`) or |Vx⁺ − Vx_measured| > 50 % of the
 measured Vx held for 0.5 s stops it where it began. The measured Vx is z[0], which for
 ``single-track-biases`` includes the wheel-speed bias.
+
+C (all three, for ``kftune export --format c``): the package file
+``kftune/models/c/single_track.c``, the twin of every hook here and of the compiled
+functions they call; it tells the variants apart by the bias states' index macros in the
+model's header (:mod:`kftune.models.c_contract`).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from scipy.ndimage import uniform_filter1d
 
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
 from kftune.models.base import FIRST_MODEL_STOP, DataRefused, PriorRule, StateSpaceModel
+from kftune.models.c_contract import builtin_c_code
 from kftune.vehicle.params import PARAM_INDEX, PLAUSIBLE_RANGES, PRESETS, G
 from kftune.vehicle.single_track import (
     MAX_SIDESLIP,
@@ -375,6 +381,7 @@ def _model(
         needs_vehicle=True,
         param_ranges={k: PLAUSIBLE_RANGES[k][:2] for k in PARAM_INDEX},
         param_hints=param_hints,
+        c_code=builtin_c_code("single_track"),
     )
 
 
