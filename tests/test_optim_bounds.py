@@ -10,6 +10,7 @@ import pytest
 
 from kftune.optim import OptimizationInterrupted, Space, minimize, minimize_widening
 from kftune.optim.widen import round_storage
+from kftune.space import Param
 from kftune.tuning.problem import NoiseParameterization
 
 #: issue 11: the revs-250lm optimum, found by three CMA-ES runs of 2,000 evaluations.
@@ -71,6 +72,15 @@ def test_widened_moves_only_the_hit_sides_of_log_parameters():
     assert space.widened([h for h in hits if h.name == "c"], 2.0) is space
     with pytest.raises(ValueError, match="decades"):
         space.widened(hits, decades=0.0)
+
+
+def test_widened_keeps_a_parameter_physical():
+    # TR-BO's design reads ``physical`` in the next round, so widening must not drop it
+    space = Space([Param("q", 1e-6, 1e-2, "log10"), Param("c", 1e4, 1e5, "log10", physical=True)])
+    hits = space.on_bounds(space.to_unit([1e-6, 1e5]))
+    wider = space.widened(hits, decades=1.0)
+    assert wider is not space
+    assert [p.physical for p in wider.params] == [False, True]
 
 
 #: a minimum outside the initial box: b* = 0.3 lies 1.5 decades above its upper bound 1e-2

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -283,7 +283,11 @@ class Space:
                 bounds[h.name][0] /= factor
             else:
                 bounds[h.name][1] *= factor
-        params = tuple(Param(p.name, *bounds[p.name], scale=p.scale) for p in self.params)
+        # replace() keeps every other field: a physical parameter stays physical in the
+        # wider box (TR-BO's design reads it in the next round).
+        params = tuple(
+            replace(p, low=bounds[p.name][0], high=bounds[p.name][1]) for p in self.params
+        )
         return self if params == self.params else Space(params)
 
     def _check_shape(self, a: Any, what: str) -> np.ndarray:

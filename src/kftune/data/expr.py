@@ -152,9 +152,11 @@ def _number(node: ast.AST) -> float | None:
     while isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
         sign = -sign if isinstance(node.op, ast.USub) else sign
         node = node.operand
-    if isinstance(node, ast.Constant) and type(node.value) in (int, float):
+    constant = node.value if isinstance(node, ast.Constant) else None
+    # not bool: True is an int to Python, not a number to a user
+    if isinstance(constant, (int, float)) and not isinstance(constant, bool):
         try:
-            value = float(node.value)
+            value = float(constant)
         except OverflowError:
             return math.inf
         return sign * value
@@ -197,7 +199,10 @@ class Expression:
 
     def _eval(self, node: ast.expr, values: Mapping[str, np.ndarray], t: np.ndarray) -> np.ndarray:
         if isinstance(node, ast.Constant):
-            return np.float64(node.value)
+            value = _number(node)
+            if value is None:  # parse() refuses such a constant; an Expression made by hand
+                raise ExprError(f"{excerpt(node.value)} is not a number; expected {_ALLOWED}")
+            return np.float64(value)
         if isinstance(node, ast.Name):
             if node.id == "t":
                 return t

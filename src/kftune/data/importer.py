@@ -1100,7 +1100,7 @@ def import_recordings(
     ]
     units = {c: u for r in recordings for c, u in r.units.items()}
     dataset_name = name or m.name or (Path(out).name if out is not None else "imported")
-    meta = {
+    meta: dict[str, Any] = {
         "imported_from": [r.file.name for r in recordings],
         "mapping": Path(m.file).name,
         "kept_s": [round(r.kept_s, 3) for r in recordings],

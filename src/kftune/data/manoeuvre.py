@@ -104,6 +104,8 @@ class Manoeuvre:
     split: str
     t: np.ndarray
     description: str
+    # every channel but t, in channel_names' order; set once in __init__
+    _channels: Mapping[str, np.ndarray]
 
     def __init__(
         self,
@@ -162,7 +164,7 @@ class Manoeuvre:
     def channels(self) -> Mapping[str, np.ndarray]:
         """Every channel but ``t`` (read-only): the sideslip ones present in file order,
         then the others sorted."""
-        return self._channels  # type: ignore[no-any-return]
+        return self._channels
 
     @property
     def extra(self) -> Mapping[str, np.ndarray]:
@@ -189,7 +191,7 @@ class Manoeuvre:
         if name == "t":
             return self.t
         try:
-            return self._channels[name]  # type: ignore[no-any-return]
+            return self._channels[name]
         except KeyError:
             raise MissingChannelError(
                 f"manoeuvre {excerpt(self.name)} has no channel {excerpt(name)}; it has "

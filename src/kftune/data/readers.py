@@ -46,10 +46,10 @@ import importlib
 import math
 import os
 import zlib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -115,7 +115,7 @@ def require(module: str, extra: str, what: str) -> Any:
         ) from None
 
 
-def _not_found(what: str, name: str, known: Sequence[str], file: str) -> DataError:
+def _not_found(what: str, name: str, known: Collection[str], file: str) -> DataError:
     return DataError(
         f"{what} {excerpt(name)} not found; the file has {excerpt(list(known), 300)} (in "
         "file order)",
@@ -630,7 +630,7 @@ def _read_exactly(stream: Any, n: int, file: str) -> bytes:
 
 def _mat5_numeric(
     stream: Any,
-    order: str,
+    order: Literal["<", ">"],  # scipy's byte_order of the file
     mclass: int,
     shape: tuple[int, ...],
     end: int,

@@ -44,14 +44,14 @@ import array
 import codecs
 import contextlib
 import gzip
+import io
 import os
 import re
 import stat
 import zlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
 
 import numpy as np
 
@@ -164,7 +164,7 @@ def check_regular_file(path: str | Path) -> int:
     return info.st_size
 
 
-def _open(path: Path) -> BinaryIO:
+def _open(path: Path) -> io.BufferedIOBase:
     if path.name.endswith(".gz"):
         return gzip.open(path, "rb")  # decompresses at most what each read asks for
     return open(path, "rb")
@@ -204,7 +204,7 @@ def line_blocks(
     *,
     encoding: str = "utf-8",
     fix: str = RESAVE_AS_UTF8,
-) -> Iterator[tuple[int, list[str]]]:
+) -> Generator[tuple[int, list[str]], None, None]:
     """The lines of a text file, in blocks: ``(number of the block's first line, lines)``.
 
     Lines are numbered from 1 and come without their line end (LF or CRLF); a UTF-8
