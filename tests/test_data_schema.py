@@ -197,7 +197,7 @@ def test_compare_and_report_a_tracking_model_by_its_channel_rmses(track, tmp_pat
     figures = {p.name for p in (out / "figures").glob("*.png")}
     assert figures == {"convergence.png", "cost_slice.png", "channels_run-3.png", "reliability.png"}
     assert "(figures/channels_run-3.png)" in md
-    assert "filters tuned by Manual, Random, TR-BO (kftune) against" in md  # none left out
+    assert "filters tuned by Manual, Random, TR-BO against" in md  # none left out
     header = (out / "tables" / "per_manoeuvre.csv").read_text().splitlines()[0]
     assert header == "method,split,manoeuvre,rmse_omega,rmse_v,diverged"
     again = kftune("report", str(out), "--out", str(tmp_path / "again"))

@@ -406,7 +406,7 @@ def test_compare_reports_the_identifiability_of_each_tuned_method_with_its_figur
     damaged = run_cli("report", str(out), "-o", str(tmp_path / "damaged"))
     assert damaged.returncode == 0, damaged.stderr
     text = (tmp_path / "damaged" / "report.md").read_text()
-    assert "TR-BO (kftune): the record is damaged (parameter 'C_af': no 'profile')" in text
+    assert "TR-BO: the record is damaged (parameter 'C_af': no 'profile')" in text
     assert "figures/identifiability.png" not in text
 
 

@@ -39,7 +39,7 @@ def _legend_texts(fig) -> list[str]:
 
 
 #: The issue's case: a subset of methods without the paper's GA and TSBO-tSP.
-RAN = (("manual", "Manual", 1), ("trbo", "TR-BO (kftune)", 40), ("cma", "CMA-ES", 40),
+RAN = (("manual", "Manual", 1), ("trbo", "TR-BO", 40), ("cma", "CMA-ES", 40),
        ("random", "Random", 225))  # fmt: skip
 
 

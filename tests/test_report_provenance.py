@@ -164,7 +164,7 @@ def test_the_report_says_whether_each_methods_sigma_can_be_trusted(compared):
     doc = json.loads((compared / "results.json").read_text())
     with open(compared / "tables" / "consistency_test.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert [r["Method"] for r in rows] == ["Manual", "TSBO - tSP"]
+    assert [r["Method"] for r in rows] == ["Manual", "TSBO-tSP"]
     for run, row in zip(doc["methods"], rows):
         assert set(run["consistency"]) == {"train", "test"}
         test = run["consistency"]["test"]

@@ -62,18 +62,19 @@ from kftune.tuning.problem import (
     model_output,
 )
 
-#: Labels used in tables and legends (paper Table V naming).
+#: The one spelling of each method in tables, legends, progress lines and the README (paper
+#: Table V naming, written without spaces around the hyphen as the README's tables have it).
 LABELS: dict[str, str] = {
     "manual": "Manual",
     "ga": "GA",
-    "tsbo-gp": "TSBO - GP",
-    "tsbo-tsp": "TSBO - tSP",
-    "tsbo-robust": "TSBO - robust GP",
+    "tsbo-gp": "TSBO-GP",
+    "tsbo-tsp": "TSBO-tSP",
+    "tsbo-robust": "TSBO-robust GP",
     "random": "Random",
     "optuna-tpe": "Optuna TPE",
     "optuna-gp": "Optuna GP",
     "cma": "CMA-ES",
-    "trbo": "TR-BO (kftune)",
+    "trbo": "TR-BO",
 }
 
 

@@ -30,7 +30,7 @@ class MethodRun:
 
     Attributes:
         key: method identifier (``"tsbo-tsp"``, ``"ga"``, ...).
-        label: name for tables and legends (``"TSBO - tSP"``).
+        label: name for tables and legends (``"TSBO-tSP"``).
         params: tuned parameters in natural units (e.g. ``{"q_vx": 1e-3, ...}``).
         best_cost: best training cost J found [-].
         n_evals: number of cost evaluations (failed ones included).
