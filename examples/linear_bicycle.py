@@ -9,7 +9,13 @@ measurements z = [vx, ay, r] [m/s, m/s^2, rad/s]: the channel names of a kftune 
 the filter reads them from the data by name. Lateral tyre forces are linear in the slip
 angles (F = C * alpha), integrated with one explicit Euler step per sample. The output
 "beta" (the sideslip angle) lets the paper's cost score it against the data's beta_ref.
+
+The same model in C99 is linear_bicycle.c beside this file (c_code below), so that
+``kftune export --format c`` can write a running filter for it; check the two against
+each other on the data with ``kftune export TUNED --format c --check DATASET``.
 """
+
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -69,4 +75,5 @@ MODEL = StateSpaceModel(
     initial_state=prior,
     outputs={"beta": lambda x: np.arctan2(x[:, 1], x[:, 0])},
     description="single-track model with linear tyres, explicit Euler",
+    c_code=Path(__file__).with_name("linear_bicycle.c").read_text(),
 )

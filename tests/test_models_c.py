@@ -475,3 +475,231 @@ def test_single_track_c_check_at_and_beyond_the_runaway_bounds(
                         causes.add(cause)
     assert {0, 2, 3} <= causes  # valid, reverse, sideslip at once
     assert {("held", True, False), ("held", False, True), ("held", True, True)} <= causes
+
+
+# ------------------------------------------------------------------- a model of one's own --
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "linear_bicycle.py"
+
+
+@needs_cc
+def test_example_model_c_matches_its_python(c_model: Callable[..., CModel]) -> None:
+    """examples/linear_bicycle.c against linear_bicycle.py on the bundled data."""
+    from kftune.data import default_dataset
+    from kftune.models.user import load_model
+
+    model = load_model(str(EXAMPLE))
+    assert model.c_code == EXAMPLE.with_suffix(".c").read_text()
+    assert missing_hooks(model) == [] and export_refusal(model) is None
+    c = c_model(model)
+    data = default_dataset()
+    p = model.default_params()
+    rows = 0
+    for x, u, _, dt in _bundled_rows(3, every=8):
+        x = np.array([max(x[0], 1.0), x[1], x[2]])
+        out, zz = np.empty(3), np.empty(3)
+        model.f(x, u, p, dt, out)
+        model.h(x, u, p, zz)
+        assert rel_err(c.f(x, u, p, dt), out) <= TOL, (x, u)
+        assert rel_err(c.h(x, u, p), zz) <= TOL, (x, u)
+        assert rel_err(c.outputs(x), python_outputs(model, x)) <= TOL
+        rows += 1
+    assert rows > 5_000
+    r = np.asarray(data.r_default, float)
+    z0 = data.manoeuvres[0].z[0]
+    x0, P0 = model.initial_state(z0, r, p)  # type: ignore[misc]
+    cx0, cP0 = c.prior(z0, r, p)
+    assert rel_err(cx0, x0) <= TOL and rel_err(cP0, P0) <= TOL
+
+
+# --------------------------------------------------------------------- single precision --
+
+#: Normwise relative bound of a float model hook against the double Python one: float's
+#: unit roundoff is 6e-8, and an RK4 step or a Jacobian chains some hundred roundings;
+#: the bound leaves a wide margin over what the bundled rows show (a few 1e-7).
+FLOAT_TOL = 1e-5
+
+
+def _exportable_models() -> list[StateSpaceModel]:
+    from kftune.models import CTRV
+    from kftune.models.user import load_model
+
+    lin = linear_model(
+        np.eye(2), [[1.0, 0.0]], G=[[0.1], [0.2]], name="lin-f", x0=[0, 0], P0=[1, 1]
+    )
+    return [*_single_track_models(), CTRV, lin, load_model(str(EXAMPLE))]
+
+
+@needs_cc
+@pytest.mark.parametrize("model", _exportable_models(), ids=lambda m: m.name)
+def test_float_precision_compiles_and_stays_near(
+    model: StateSpaceModel, c_model: Callable[..., CModel]
+) -> None:
+    """Each model's C compiles with kf_real = float under -Werror, and its f and h (and
+    Jacobians) stay within FLOAT_TOL of the double Python on the bundled rows."""
+    c = c_model(model, "float")
+    if model.n_inputs != 2:  # ctrv, the linear model: a few states of moderate size
+        rng = np.random.default_rng(2)
+        p, w = model.default_params(), np.zeros(model.n_inputs)
+        for _ in range(200):
+            x = rng.normal(size=model.n_states) * 3
+            out = np.empty(model.n_states)
+            model.f(x, w, p, 0.01, out)
+            assert rel_err(c.f(x, w, p, 0.01), out) <= FLOAT_TOL
+        return
+    from kftune.data import default_dataset
+
+    p = (
+        model.params_vector(default_dataset().vehicle)
+        if model.needs_vehicle
+        else model.default_params()
+    )
+    worst = 0.0
+    for x, u, _, dt in _bundled_rows(model.n_states, every=16):
+        x[0] = max(x[0], 1.0)
+        w = u
+        if model.prepare is not None:
+            w = np.empty(model.prepared_size)
+            model.prepare(u, p, w)
+        out, z = np.empty(model.n_states), np.empty(model.n_measurements)
+        model.f(x, w, p, dt, out)
+        model.h(x, w, p, z)
+        worst = max(worst, rel_err(c.f(x, w, p, dt), out), rel_err(c.h(x, w, p), z))
+        if model.F is not None:
+            J = np.empty((model.n_states, model.n_states))
+            model.F(x, w, p, dt, J)
+            worst = max(worst, rel_err(c.F(x, w, p, dt), J))
+    assert 0 < worst <= FLOAT_TOL
+
+
+# --------------------------------------------------------------------- sanitizers --
+
+#: A driver that reads p, then rows of x, u (raw), z and dt, and prints every hook's
+#: result (the order of :func:`python_row`) in full precision.
+_DRIVER = r"""
+#include <stdio.h>
+#include "kftune_model.h"
+
+static int read_n(kf_real *v, int n) {
+    int i; double d;
+    for (i = 0; i < n; ++i) { if (scanf("%lf", &d) != 1) return 0; v[i] = (kf_real)d; }
+    return 1;
+}
+static void put(const kf_real *v, int n) {
+    int i;
+    for (i = 0; i < n; ++i) printf("%.17g ", (double)v[i]);
+}
+int main(void) {
+    kf_real p[KF_NP_ARR], x[KF_N], u[KF_NU_ARR], z[KF_M], dt, r[KF_M];
+    kf_real w[KF_NW_ARR], out[KF_N * KF_N], y[KF_NOUT_ARR];
+    int i, held[KF_NHELD_ARR];
+    if (!read_n(p, KF_NP)) return 2;
+    for (i = 0; i < KF_M; ++i) r[i] = 0.01 * (i + 1);
+    while (read_n(x, KF_N) && read_n(u, KF_NU) && read_n(z, KF_M) && read_n(&dt, 1)) {
+#if KF_HAS_PREPARE
+        kf_model_prepare(u, p, w); put(w, KF_NW);
+#else
+        for (i = 0; i < KF_NW; ++i) w[i] = u[i];
+#endif
+        kf_model_f(x, w, p, dt, out); put(out, KF_N);
+        kf_model_h(x, w, p, out); put(out, KF_M);
+#if KF_HAS_F_JACOBIAN
+        kf_model_F(x, w, p, dt, out); put(out, KF_N * KF_N);
+#endif
+#if KF_HAS_H_JACOBIAN
+        kf_model_H(x, w, p, out); put(out, KF_M * KF_N);
+#endif
+#if KF_HAS_CHECK
+        for (i = 0; i < KF_NHELD; ++i) held[i] = 0;
+        printf("%d ", kf_model_check(x, z, w, p, held));
+        for (i = 0; i < KF_NHELD; ++i) printf("%d ", held[i]);
+#else
+        (void)held;
+#endif
+        kf_model_outputs(x, y); put(y, KF_NOUT);
+        kf_model_prior(z, r, p, x, out); put(x, KF_N); put(out, KF_N * KF_N);
+        printf("\n");
+    }
+    return 0;
+}
+"""
+
+
+def python_row(model: StateSpaceModel, x: np.ndarray, u: np.ndarray, z: np.ndarray,
+               p: np.ndarray, dt: float) -> np.ndarray:  # fmt: skip
+    """Every Python hook of one row, flat, in the order the driver prints."""
+    n, m = model.n_states, model.n_measurements
+    parts = []
+    w = u
+    if model.prepare is not None:
+        w = np.empty(model.prepared_size)
+        model.prepare(u, p, w)
+        parts.append(w)
+    for hook, shape, args in (("f", (n,), (dt,)), ("h", (m,), ()), ("F", (n, n), (dt,)),
+                              ("H", (m, n), ())):  # fmt: skip
+        fn = getattr(model, hook)
+        if fn is not None:
+            out = np.empty(shape)
+            fn(x, w, p, *args, out)
+            parts.append(out.ravel())
+    if model.check is not None:
+        held = np.zeros(len(model.held_causes), dtype=np.bool_)
+        cause = model.check(x, z, w, p, held)
+        parts.append(np.array([cause, *held.astype(float)]))
+    parts.append(python_outputs(model, x))
+    x0, P0 = model.initial_state(z, 0.01 * np.arange(1, m + 1), p)  # type: ignore[misc]
+    parts += [x0, P0.ravel()]
+    return np.concatenate(parts)
+
+
+def _sanitizers_work(folder: Path) -> bool:
+    src = folder / "probe.c"
+    src.write_text("int main(void) { return 0; }\n")
+    exe = folder / "probe"
+    flags = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    made = subprocess.run([CC, *flags, str(src), "-o", str(exe)], capture_output=True, check=False)
+    return made.returncode == 0 and subprocess.run([str(exe)], check=False).returncode == 0
+
+
+@needs_cc
+@pytest.mark.parametrize("model", _exportable_models(), ids=lambda m: m.name)
+def test_model_c_under_sanitizers(model: StateSpaceModel, tmp_path: Path) -> None:
+    """Each model's C once with -fsanitize=address,undefined (any finding aborts), through
+    a driver on bundled rows, its output against the Python hooks."""
+    if not _sanitizers_work(tmp_path):
+        pytest.skip("the C toolchain has no working -fsanitize=address,undefined")
+    (tmp_path / "kftune_model.h").write_text(model_header(model))
+    (tmp_path / "kftune_model.c").write_text(model.c_code or "")
+    (tmp_path / "driver.c").write_text(_DRIVER)
+    exe = tmp_path / "driver"
+    flags = [*CFLAGS[:-2], "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    files = [str(tmp_path / "kftune_model.c"), str(tmp_path / "driver.c")]
+    made = subprocess.run([CC, *flags, "-I", str(tmp_path), *files, "-o", str(exe), "-lm"],
+                          capture_output=True, text=True, check=False)  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    p = model.default_params()
+    rows = []
+    if model.n_inputs == 2:
+        for x, u, z, dt in _bundled_rows(model.n_states, every=200):
+            x[0] = max(x[0], 1.0)
+            rows.append((x, u, z, dt))
+        for x, u in _edge_rows(model.n_states)[: 5 if model.prepare is not None else 0]:
+            rows.append((x, u, np.array([1.0, 0.0, 0.0]), 0.01))
+    else:
+        rng = np.random.default_rng(9)
+        for _ in range(50):
+            x, u = rng.normal(size=model.n_states) * 5, rng.normal(size=model.n_inputs)
+            rows.append((x, u, rng.normal(size=model.n_measurements), 0.05))
+    text = " ".join(map(repr, p.tolist())) + "\n"
+    text += "\n".join(" ".join(repr(float(v)) for v in np.concatenate([x, u, z, [dt]]))
+                      for x, u, z, dt in rows)  # fmt: skip
+    ran = subprocess.run([str(exe)], input=text, capture_output=True, text=True, check=False)
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    lines = ran.stdout.splitlines()
+    assert len(lines) == len(rows)
+    for line, (x, u, z, dt) in zip(lines, rows, strict=True):
+        got = np.array([float(v) for v in line.split()])
+        want = python_row(model, x, u, z, p, dt)
+        finite = np.isfinite(want)
+        assert got.shape == want.shape and np.array_equal(finite, np.isfinite(got))
+        assert rel_err(got[finite], want[finite]) <= TOL, (x, u)
