@@ -17,6 +17,7 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
+from kftune.bo._model import BoxSurrogate
 from kftune.bo.base import Predictive, Surrogate
 from kftune.bo.gp import GaussianProcess
 from kftune.bo.kernels import Kernel, Matern52, SquaredExponential, make_kernel
@@ -24,7 +25,7 @@ from kftune.bo.robust_gp import RobustGaussianProcess
 from kftune.bo.student_t import StudentTProcess
 
 #: Surrogate names accepted by :func:`make_surrogate`.
-SURROGATES: dict[str, type[Surrogate]] = {
+SURROGATES: dict[str, type[BoxSurrogate]] = {
     "tsp": StudentTProcess,
     "gp": GaussianProcess,
     "robust-gp": RobustGaussianProcess,
@@ -43,7 +44,7 @@ def _accepted_options(cls: type) -> set[str]:
     return names
 
 
-def make_surrogate(name: str, *, seed: int | None = None, **options: Any) -> Surrogate:
+def make_surrogate(name: str, *, seed: int | None = None, **options: Any) -> BoxSurrogate:
     """Build a surrogate by name.
 
     Args:

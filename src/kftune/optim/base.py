@@ -30,7 +30,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, overload
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -119,8 +119,9 @@ class Optimizer(ABC):
         seed: drives all randomness.
     """
 
-    #: Registry name (``kftune.minimize(method=...)``).
-    method: ClassVar[str] = "base"
+    #: Registry name (``kftune.minimize(method=...)``); an instance may name its variant
+    #: (TSBO: ``tsbo-<surrogate>``), so not a ClassVar.
+    method: str = "base"
     #: Budget used when ``budget=None``.
     default_budget: ClassVar[int] = 40
     #: True when the proposals never depend on ``budget`` (for every option): a run with
@@ -199,6 +200,12 @@ class Optimizer(ABC):
     def pending_trials(self) -> tuple[Trial, ...]:
         """Every trial asked and not told yet, by number."""
         return tuple(self._pending[k] for k in sorted(self._pending))
+
+    @overload
+    def ask(self, n: None = None) -> Trial: ...
+
+    @overload
+    def ask(self, n: int) -> list[Trial]: ...
 
     def ask(self, n: int | None = None) -> Trial | list[Trial]:
         """Propose the next point (``ask()``), or a batch of up to n points (``ask(n)``).
@@ -342,7 +349,7 @@ class Optimizer(ABC):
             u=tuple(float(v) for v in trial.u),
             params=dict(trial.params),
             value=val,
-            state=state,  # type: ignore[arg-type]
+            state=state,
             reason=reason,
             stage=trial.stage,
             acquisition=trial.acquisition,

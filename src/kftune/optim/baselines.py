@@ -16,7 +16,7 @@ class RandomSearch(Optimizer):
     repeat of a failed point has probability zero.
     """
 
-    method: ClassVar[str] = "random"
+    method: str = "random"
     default_budget: ClassVar[int] = 40
     budget_independent: ClassVar[bool] = True
 
@@ -37,7 +37,7 @@ class ManualPoints(Optimizer):
             (the optimiser is exhausted after the last point).
     """
 
-    method: ClassVar[str] = "manual"
+    method: str = "manual"
     default_budget: ClassVar[int] = 1
     budget_independent: ClassVar[bool] = True
 

@@ -487,7 +487,7 @@ class DaskEngine(Engine):
         if errors:
             first = min(errors, key=lambda p: (p[3] < 0, p[3]))  # a lost chunk last
             return None, first[1], t
-        by_index = {}
+        by_index: dict[int, Any] = {}
         for c, p in parts.items():
             by_index.update(zip(chunks[c], p[1]))
         scores = [by_index[j] for j in sorted(by_index)]

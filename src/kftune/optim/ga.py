@@ -67,7 +67,7 @@ class GeneticAlgorithm(Optimizer):
         min_sigma: floor of the mutation standard deviation in the unit cube.
     """
 
-    method: ClassVar[str] = "ga"
+    method: str = "ga"
     default_budget: ClassVar[int] = 225
 
     def __init__(

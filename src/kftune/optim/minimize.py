@@ -223,7 +223,7 @@ def minimize(
         raise ValueError("timeout= applies to the sequential loop; not with engine= or batch=")
     sp = Space.coerce(space)
     opt = make_optimizer(method, sp, budget=budget, seed=seed, **method_options)
-    settings = {
+    settings: dict[str, Any] = {
         "method": method,
         "seed": opt.seed,
         "budget": opt.budget,
@@ -434,9 +434,11 @@ class _Evaluator:
 
     def _start(self) -> None:
         methods = multiprocessing.get_all_start_methods()
-        ctx = multiprocessing.get_context(
-            "fork" if sys.platform.startswith("linux") and "fork" in methods else "spawn"
-        )
+        ctx: multiprocessing.context.ForkContext | multiprocessing.context.SpawnContext
+        if sys.platform.startswith("linux") and "fork" in methods:
+            ctx = multiprocessing.get_context("fork")
+        else:
+            ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
         # Not a daemon: the objective may start processes of its own (a tuning problem's
         # worker pool). close() kills the worker; if this process dies first (SIGKILL), the

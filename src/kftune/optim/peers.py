@@ -60,7 +60,7 @@ class _OptunaAdapter(Optimizer):
         self._study = optuna.create_study(
             direction="minimize", sampler=self._make_sampler(sampler_seed)
         )
-        self._dists = {
+        self._dists: dict[str, optuna.distributions.BaseDistribution] = {
             f"u{i}": optuna.distributions.FloatDistribution(0.0, 1.0) for i in range(self.space.dim)
         }
         self._otrials: dict[int, Any] = {}  # our trial number → Optuna's trial
@@ -86,7 +86,7 @@ class _OptunaAdapter(Optimizer):
 class OptunaTPE(_OptunaAdapter):
     """Optuna's Tree-structured Parzen Estimator with default settings."""
 
-    method: ClassVar[str] = "optuna-tpe"
+    method: str = "optuna-tpe"
 
     def _make_sampler(self, seed: int) -> Any:
         return self._optuna.samplers.TPESampler(seed=seed)
@@ -95,7 +95,7 @@ class OptunaTPE(_OptunaAdapter):
 class OptunaGP(_OptunaAdapter):
     """Optuna's Gaussian-process sampler (needs PyTorch)."""
 
-    method: ClassVar[str] = "optuna-gp"
+    method: str = "optuna-gp"
 
     def __init__(self, space: Any, *, budget: int | None = None, seed: int = 0) -> None:
         _require("torch", self.method, "Optuna's GPSampler needs PyTorch: pip install torch")
@@ -113,7 +113,7 @@ class CMAES(Optimizer):
         popsize: population size; ``None`` → cma's default 4 + ⌊3 ln d⌋.
     """
 
-    method: ClassVar[str] = "cma"
+    method: str = "cma"
     #: ``cma`` is never told the budget (no ``maxfevals``); its own termination criteria
     #: and the restarts do not depend on it.
     budget_independent: ClassVar[bool] = True

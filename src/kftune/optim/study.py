@@ -59,7 +59,7 @@ import sys
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 from kftune.errors import ConfigError, KftuneError, ObjectiveMismatchError, RunFailedError
 from kftune.optim.result import COMPLETE, FAILED, RUNNING, EvalRecord, jsonable
@@ -160,7 +160,7 @@ class _FileLock:
             return False
         fh = open(self.path, "a+b")  # noqa: SIM115 - kept open while the lock is held
         try:
-            if os.name == "nt":  # pragma: no cover - exercised on Windows only
+            if sys.platform == "win32":  # pragma: no cover - exercised on Windows only
                 import msvcrt
 
                 fh.seek(0)
@@ -193,7 +193,7 @@ class _FileLock:
             self._fh = None
         if self._fh is not None:
             try:
-                if os.name == "nt":  # pragma: no cover
+                if sys.platform == "win32":  # pragma: no cover
                     import msvcrt
 
                     self._fh.seek(0)
@@ -622,7 +622,12 @@ def _check_settings(
         if key == "options" and isinstance(old, dict) and isinstance(new, dict):
             sub = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
             key, old, new = f"{key}.{sub}", old.get(sub, "(not set)"), new.get(sub, "(not set)")
-        if all(isinstance(v, dict) and "summary" in v for v in (old, new)):
+        if (
+            isinstance(old, dict)
+            and isinstance(new, dict)
+            and "summary" in old
+            and "summary" in new
+        ):
             # an objective's fingerprint: what it is, not its hash
             raise ObjectiveMismatchError(
                 f"study {p} was created for another {key}: {old['summary']}; this run's is "
@@ -637,6 +642,6 @@ def _check_settings(
         )
 
 
-def _is_count(v: Any) -> bool:
+def _is_count(v: Any) -> TypeGuard[int]:
     """Whether ``v`` is an evaluation count (an int, not a bool)."""
     return isinstance(v, int) and not isinstance(v, bool)

@@ -191,7 +191,7 @@ class TrustRegionBO(Optimizer):
             docstring).
     """
 
-    method: ClassVar[str] = "trbo"
+    method: str = "trbo"
     #: 100, not the paper's 40: at 40 evaluations there is time to polish one basin, and
     #: the design picks which (module docstring, "Restarts"); by 100 the restarts have
     #: reached the second one on most seeds of every dataset measured (BENCHMARKS.md).
@@ -676,7 +676,11 @@ class TrustRegionBO(Optimizer):
         Local steps and axis probes are measured against the region's centre, global and
         escape steps against the incumbent; the two are the same point until the first
         collapse (and always with ``restart="incumbent"``)."""
-        global_ei = trial.stage == 2 and trial.acquisition.startswith("EI")
+        global_ei = (
+            trial.stage == 2
+            and trial.acquisition is not None
+            and trial.acquisition.startswith("EI")
+        )
         self._move_centre(len(self._y), value, global_ei)
         self._X = np.vstack([self._X, trial.u[None, :]])
         self._y.append(value)

@@ -310,7 +310,7 @@ class TSBO(Optimizer):
             (‖Δu*‖ < tr_fe·√d).
     """
 
-    method: ClassVar[str] = "tsbo"
+    method: str = "tsbo"
     default_budget: ClassVar[int] = 40
 
     def __init__(

@@ -28,7 +28,7 @@ from typing import Any
 
 from kftune.optim.engine import EngineLostError
 from kftune.optim.minimize import OptimizationInterrupted
-from kftune.optim.result import OptimizeResult
+from kftune.optim.result import EvalRecord, OptimizeResult
 from kftune.space import Space
 
 #: Decades a bound of a log10 parameter moves out per widening.
@@ -102,7 +102,7 @@ def minimize_widening(
 
 def merge(results: list[OptimizeResult], space: Space, status: str) -> OptimizeResult:
     """One result from consecutive rounds, expressed in ``space`` (the widest box)."""
-    history = []
+    history: list[EvalRecord] = []
     for k, res in enumerate(results):
         for r in res.history:
             history.append(
