@@ -109,6 +109,96 @@ def manual_point(parameterization: NoiseParameterization) -> np.ndarray:
     return np.clip(x, space.lows, space.highs)
 
 
+#: Method options that hold points of the tuned space (:func:`complete_points`).
+POINT_OPTIONS: Mapping[str, tuple[str, ...]] = {"manual": ("points",), "trbo": ("x0",)}
+
+
+def complete_points(
+    parameterization: NoiseParameterization, value: Any, method: str, key: str
+) -> tuple[np.ndarray, str | None]:
+    """A method's points (``[options.manual] points``, ``[options.trbo] x0``) as a (k, d)
+    array of the tuned space, and a note (None: nothing to say) on what was filled in.
+
+    A point is d numbers in the space's order, or a table ``{q_vx = …, r_ay_scale = …}``
+    by name. A point written for a smaller space — Q alone, as for the paper's cost (``kftune
+    tune``'s default before it tuned R's diagonal too), or a table without some names —
+    keeps what it gives and takes the rest from the untuned filter: R factors 1 (the
+    recorded R, which a Q-only cost used), the default sigma points, a model parameter its
+    recorded value (:func:`manual_point`'s values); the note names them. The Q entries are
+    never filled in: a point without them says nothing about what is tuned.
+
+    Raises:
+        ConfigError: not a list of points, a point of another length than d or the number
+            of Q entries, a table with an unknown name or without a Q entry, a value that
+            is not a number — naming the option, the expected names and the ways out.
+    """
+    par = parameterization
+    names, q_names = par.space.names, par.q_names
+    where = f"[options.{method}] {key}"
+    rest = names[len(q_names) :]
+    ways = (
+        f"give all {len(names)} values ({', '.join(names)})"
+        + (
+            f", the {len(q_names)} of Q alone (the others as the untuned filter has them: "
+            "R factors 1)"
+            if rest
+            else ""
+        )
+        + f" or a table by name ({{{names[0]} = …, …}})"
+        + ("; to tune Q alone, the paper's cost: --cost nrmse" if par.r_names else "")
+    )
+    if isinstance(value, Mapping) or (
+        isinstance(value, list) and value and all(_is_number(v) for v in value)
+    ):
+        value = [value]  # one point
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"{where}: expected a list of points, got {type(value).__name__}; {ways}")
+    defaults = dict(zip(names, manual_point(par).tolist()))
+    filled: set[str] = set()
+    points = []
+    for n, point in enumerate(value, 1):
+        if isinstance(point, Mapping):
+            unknown = sorted(set(point) - set(names))
+            if unknown:
+                raise ConfigError(
+                    f"{where}: point {n} names {unknown}, not tuned in this run; its "
+                    f"parameters are {', '.join(names)}"
+                )
+            given = dict(point)
+        elif isinstance(point, list) and len(point) in (len(names), len(q_names)):
+            given = dict(zip(names, point))
+        else:
+            size = len(point) if isinstance(point, list) else type(point).__name__
+            raise ConfigError(
+                f"{where}: point {n} has {size} values, but this run tunes {len(names)}; {ways}"
+            )
+        missing_q = [q for q in q_names if q not in given]
+        if missing_q:
+            raise ConfigError(f"{where}: point {n} gives no {', '.join(missing_q)}; {ways}")
+        bad = [k for k, v in given.items() if not _is_number(v)]
+        if bad:
+            raise ConfigError(f"{where}: point {n}: {', '.join(bad)} must be numbers")
+        filled.update(k for k in rest if k not in given)
+        points.append([float(given.get(k, defaults[k])) for k in names])
+    if not filled:
+        return np.array(points), None
+    what = [f"{k} = {defaults[k]:g}" for k in names if k in filled]
+    why = (
+        " (R factor 1: the recorded R, as a cost of Q alone used it)"
+        if filled & set(par.r_names)
+        else ""
+    )
+    note = (
+        f"{where}: the points leave out {', '.join(k for k in names if k in filled)}; taken "
+        f"as {', '.join(what)}{why}; give them in the points to set them"
+    )
+    return np.array(points), note
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 #: Share of a joint tuning's budget (model parameters tuned with the noise) spent on its
 #: first stage, the noise alone at the recorded model; the second, the joint search, starts
 #: from that stage's best (TR-BO's ``x0``) and so ends no worse than it. Measured on the
@@ -230,6 +320,10 @@ def tune(
     opts = dict(options or {})
     if method == "manual" and "points" not in opts:
         opts["points"] = manual_point(problem.parameterization)[None, :]
+    for key in POINT_OPTIONS.get(method, ()):
+        if key in opts and not isinstance(opts[key], np.ndarray):  # a user's, from a file
+            opts[key], note = complete_points(problem.parameterization, opts[key], method, key)
+            announce(note, progress)
     try:  # settle option errors before anything is stored or evaluated
         total = make_optimizer(method, problem.space, budget=budget, seed=seed, **opts).budget
     except ValueError as exc:
@@ -334,6 +428,128 @@ def on_bounds(result: OptimizeResult) -> list[dict[str, Any]]:
         return []
     space = Space.from_dict(result.space)
     return [h.to_dict() for h in space.on_bounds(space.to_unit(result.x))]
+
+
+#: How little the cost may gain over the last step up to a bound for the bound to be said
+#: not to matter (:func:`edge_probes`): a share of |J*| for the costs that scale with the
+#: error (nrmse, crps), and an absolute change for a cost that is a logarithm (msp: Σ log
+#: MSE; nis: |log(mean NIS/m)|), where 1e-3 is a 0.1 % change of what it takes the log of.
+FLAT_RISE = 1e-3
+#: Costs that are logarithms, whose changes are relative changes already.
+LOG_COSTS: tuple[str, ...] = ("msp", "nis")
+
+
+def edge_probes(
+    problem: TuningProblem,
+    x: Sequence[float] | np.ndarray,
+    hits: Sequence[Mapping[str, Any]],
+    space: Space | None = None,
+) -> list[dict[str, Any]]:
+    """Whether the cost still falls towards each bound the best point ``x`` lies on, by one
+    step inwards: for every hit of :func:`on_bounds` the cost at ``x`` with that parameter
+    one decade in from its bound (a log10 parameter; half its box if that is narrower) or a
+    tenth of its box in (a linear one: a model parameter, a sigma-point setting), the
+    others held — a 1-D probe, one evaluation per hit plus one at ``x``, in one batch.
+    ``space``: the box that was searched (a widened one; default ``problem.space``).
+
+    Widening a box only pays where the cost still falls towards the bound: a q walked to
+    the top of its box for a 0.02 % lower cost is on a plateau (the filter has stopped
+    listening to its model there), and a wider box buys nothing. The gain of that last
+    step is what the hint reports; the step is *flat* when it is below :data:`FLAT_RISE`
+    (:func:`flat_rise`; for a mean log-likelihood the 95 % likelihood-ratio rise of
+    :func:`kftune.tuning.identify.rise_of`: the data cannot tell the two points apart).
+
+    Returns:
+        each hit with ``"edge"``: ``{"value"`` (the probed value), ``"step"`` (``"one
+        decade"`` …), ``"cost"`` (None: the filter diverged there), ``"best_cost"`` (J at
+        ``x``, evaluated with the probes), ``"rise"`` (J − J*; None where diverged),
+        ``"threshold"`` (the rise below which it is flat) and ``"flat"``}. J is the cost as
+        tuned (covariance scale 1, whatever calibration ``problem.cov_scale`` holds).
+    """
+    if not hits:
+        return []
+    space = problem.space if space is None else space
+    names = space.names
+    x = np.asarray(x, dtype=float)
+    u = space.to_unit(x)
+    points, steps = [x], []
+    for hit in hits:
+        i = names.index(hit["parameter"])
+        p = space.params[i]
+        if not p.log:
+            du, step = 0.1, "a tenth of its box"
+        elif p.width >= 2.0:
+            du, step = 1.0 / p.width, "one decade"
+        else:
+            du, step = 0.5, "half its box"
+        ui = u.copy()
+        ui[i] = ui[i] - du if hit["side"] == "upper" else ui[i] + du
+        points.append(space.from_unit(ui))
+        steps.append(step)
+    scale, problem.cov_scale = problem.cov_scale, 1.0
+    try:
+        out = problem.evaluate_batch(np.array(points))
+    finally:
+        problem.cov_scale = scale
+    costs = [float(getattr(e, "cost", math.inf)) for e in out]
+    j_best = costs[0]
+    threshold = flat_rise(problem, j_best)
+    probed = []
+    for hit, point, step, j in zip(hits, points[1:], steps, costs[1:]):
+        value = float(point[names.index(hit["parameter"])])
+        rise = j - j_best if math.isfinite(j) else None
+        probed.append(
+            {
+                **hit,
+                "edge": {
+                    "value": value,
+                    "step": step,
+                    "cost": j if math.isfinite(j) else None,
+                    "best_cost": j_best,
+                    "rise": rise,
+                    "threshold": threshold,
+                    "flat": rise is not None and rise < threshold,
+                    "cost_kind": problem.cost_spec.kind,
+                },
+            }
+        )
+    return probed
+
+
+def rise_text(edge: Mapping[str, Any]) -> str:
+    """How much higher (or lower) the cost is one step in from a bound (``edge`` of
+    :func:`edge_probes`), in the cost's own terms: a share of |J*| for a cost that scales
+    with the error, for a logarithm (msp, nis) the share by which what it is the log of
+    changes (e^|ΔJ| − 1), a mean log-likelihood's change per sample beside the change the
+    data can tell apart."""
+    from kftune.tuning.identify import MEAN_NLL_KINDS
+
+    rise, kind = edge["rise"], edge.get("cost_kind", "nrmse")
+    way = "higher" if rise >= 0 else "lower"
+    if kind in MEAN_NLL_KINDS:
+        return f"{abs(rise):.2g} per sample {way} (the data tell {edge['threshold']:.2g} apart)"
+    if kind in LOG_COSTS:
+        share = math.expm1(abs(rise))
+    else:
+        share = abs(rise) / (abs(edge["best_cost"]) or 1.0)
+    return f"{100.0 * share:.2g} % {way}"
+
+
+def flat_rise(problem: TuningProblem, j_best: float) -> float:
+    """The rise of the cost below which a step is flat (:func:`edge_probes`):
+    :data:`FLAT_RISE`·|J*| for a cost that scales with the error, :data:`FLAT_RISE` for a
+    logarithm (:data:`LOG_COSTS`), the 95 % likelihood-ratio rise χ²₁(0.95)/(2N) for a mean
+    negative log-likelihood (nlpd, pem; N the scored samples)."""
+    from kftune.tuning.identify import MEAN_NLL_KINDS, rise_of
+    from kftune.tuning.problem import first_scored
+
+    kind = problem.cost_spec.kind
+    if kind in LOG_COSTS:
+        return FLAT_RISE
+    if kind in MEAN_NLL_KINDS:
+        n_scored = sum(m.n - first_scored(m, problem.burn_in) for m in problem.manoeuvres)
+        return float(rise_of(kind, max(n_scored, 1)))  # type: ignore[arg-type]
+    return FLAT_RISE * (abs(j_best) or 1.0)
 
 
 def compare_budget(method: str) -> int | None:
@@ -561,13 +777,22 @@ def method_run(
                 [kind, count]
                 for kind, count in failure_kinds(r.reason for r in result.history if not r.ok)
             ],
-            "on_bounds": on_bounds(result),
+            "on_bounds": _probed_bounds(problem, result),
             "options": result.options,  # every option, defaults included (e.g. TSBO's mode)
             "calibration": calibration,
             "calibration_failed": calibration_failed,
         },
     )
     return run, betas
+
+
+def _probed_bounds(problem: TuningProblem, result: OptimizeResult) -> list[dict[str, Any]]:
+    """:func:`on_bounds` of ``result``, each hit with the cost one step in from its bound
+    (:func:`edge_probes`), so that the report can say where a wider box could help."""
+    hits = on_bounds(result)
+    if not hits:
+        return hits
+    return edge_probes(problem, result.x, hits, Space.from_dict(result.space))
 
 
 def _calibration(

@@ -39,7 +39,11 @@ your own search the joint box in one stage.
 
 When the best point lies on a bound of the search box (within 1 % of a parameter's range),
 tune says which parameter and which bound, and the file records it (``on_bounds``): the
-optimum may lie beyond. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
+optimum may lie beyond. Unless the cost is flat there: tune runs the filter once with that
+parameter one step in (a decade, or a tenth of a linear box;
+:func:`kftune.experiment.edge_probes`), records it (``on_bounds[].edge``) and, where the cost
+gained less than 0.1 % over that step, says a wider box will not help instead of suggesting
+one. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
 bound out by two decades and runs the method again on the wider box with the same budget,
 at most three times; the follow-up studies lie beside ``--storage`` (``study.widen1.db`` …)
 and ``--resume`` continues them too. The best point of all runs is kept.
@@ -351,6 +355,9 @@ def run(args: argparse.Namespace) -> int:
     # an interrupted run's best-so-far (see _interrupted) is superseded now
     with contextlib.suppress(OSError):
         _partial(args.out).unlink(missing_ok=True)
+    if doc["on_bounds"]:  # before calibration: the probes measure the cost as tuned
+        doc["on_bounds"] = probe_edges(problem, result, doc["on_bounds"], args.quiet or args.json)
+        write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
     cal, no_calibration = (
         calibrate(problem, result.x, criterion) if criterion != "none" else (None, None)
     )
@@ -464,7 +471,9 @@ def failure_lines(result: OptimizeResult) -> list[str]:
 
 def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> list[str]:
     """What ``tune`` says about the search box: bounds it widened, and parameters whose
-    best value lies on a bound."""
+    best value lies on a bound — with what the cost gained over the last step up to that
+    bound where it was measured (``hit["edge"]``, :func:`probe_edges`): where the cost is
+    flat there a wider box will not help, and the line says so instead of suggesting one."""
     lines = []
     initial = {p.name: p for p in problem.space.params}
     for p in doc["search_space"]["params"]:
@@ -474,22 +483,85 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
                 f"search box widened: {p['name']} in [{was.low:g}, {was.high:g}] -> "
                 f"[{p['low']:g}, {p['high']:g}]"
             )
+    from kftune.experiment import rise_text
+
     for hit in doc["on_bounds"]:
-        log = initial[hit["parameter"]].log if hit["parameter"] in initial else False
-        log = log and hit["parameter"] not in problem.parameterization.model_names  # fixed
-        lines.append(
-            f"best point on a bound: {hit['parameter']} = {hit['value']:.4g} lies within 1 % "
-            f"of its {hit['side']} bound {hit['bound']:g}; the optimum may lie beyond it"
-            + (
-                ""
-                if widened
-                else " (widen the box with --widen-bounds)"
-                if log
-                else " (--widen-bounds widens log10 parameters only: give this one a wider "
-                "box in the configuration, where the physics allows)"
-            )
+        name = hit["parameter"]
+        log = initial[name].log if name in initial else False
+        model = name in problem.parameterization.model_names  # never widened
+        where = (
+            f"best point on a bound: {name} = {hit['value']:.4g} lies within 1 % of its "
+            f"{hit['side']} bound {hit['bound']:g}"
         )
+        edge = hit.get("edge")
+        if edge is not None and edge["flat"]:
+            searched = log and not model and doc.get("method") != "manual"
+            box = "widening the box (--widen-bounds)" if searched else "a wider box"
+            lines.append(
+                f"{where}, but "
+                + (
+                    "the cost is flat there"
+                    if edge["rise"] >= 0
+                    else "the cost does not fall towards it"
+                )
+                + f": {edge['step']} in ({name} = {edge['value']:.4g}) it is "
+                + ("only " if edge["rise"] >= 0 else "")
+                + f"{rise_text(edge)}, so {box} will not help"
+            )
+            continue
+        notes = []
+        if edge is not None:
+            notes.append(
+                f"{edge['step']} in, {name} = {edge['value']:.4g}, "
+                + (
+                    "the filter diverged"
+                    if edge["rise"] is None
+                    else f"the cost is {rise_text(edge)}"
+                )
+            )
+        if not widened and doc.get("method") == "manual":  # no search to widen
+            notes.append("a search (another -m) in a wider box could go there")
+        elif not widened:
+            notes.append(
+                "widen the box with --widen-bounds"
+                if log and not model
+                else "--widen-bounds widens log10 parameters only: give this one a wider "
+                "box in the configuration, where the physics allows"
+            )
+        said = f"{where}; the optimum may lie beyond it" + (
+            f" ({'; '.join(notes)})" if notes else ""
+        )
+        lines.append(said)
     return lines
+
+
+def probe_edges(
+    problem: TuningProblem, result: OptimizeResult, hits: list[dict[str, Any]], quiet: bool
+) -> list[dict[str, Any]]:
+    """``hits`` (the best point's bounds, ``on_bounds``) each with the cost one step in
+    from its bound (:func:`kftune.experiment.edge_probes`: one filter run over the training
+    manoeuvres per hit and one at the best point), so that the hint can say whether a wider
+    box could help; ``hits`` unchanged where the probe could not run (interrupted, or the
+    data refused): the hint then says only where the point lies. Unless ``quiet``, says on
+    standard error what it runs."""
+    from kftune.errors import KftuneError
+    from kftune.experiment import edge_probes
+    from kftune.space import Space
+
+    if not quiet:
+        names = ", ".join(h["parameter"] for h in hits)
+        print(
+            f"probing the cost one step in from the bound of {names} ({len(hits) + 1} "
+            "evaluations)…",
+            file=sys.stderr,
+            flush=True,
+        )
+    try:
+        return edge_probes(problem, result.x, hits, Space.from_dict(result.space))
+    except KeyboardInterrupt:
+        return hits
+    except (KftuneError, ValueError):
+        return hits
 
 
 def calibrate(

@@ -259,7 +259,12 @@ def _consistency_lines(
 
 def _bound_lines(results: ExperimentResults) -> list[str]:
     """Which methods' best points lie on a bound of the search box (``extra["on_bounds"]``,
-    written by ``kftune compare``); nothing for results that do not record it."""
+    written by ``kftune compare``), with what the cost gained over the last step up to the
+    bound where it was measured (``"edge"``, :func:`kftune.experiment.edge_probes`): where
+    it is flat a wider box will not help, and the list says so; nothing for results that
+    do not record bounds."""
+    from kftune.experiment import rise_text
+
     runs = [m for m in results.methods if "on_bounds" in m.extra]
     if not runs:
         return []
@@ -268,15 +273,25 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
     if not hits:
         return [*md, "No method's best point lies within 1 % of a bound of the search box.", ""]
     md += [
-        "These tuned parameters lie within 1 % of the range of a bound, so the optimum may "
-        "lie beyond it (widen the box: `kftune tune --widen-bounds`, or `[parameters] "
-        "q_bounds`):",
+        "These tuned parameters lie within 1 % of the range of a bound. Where the cost still "
+        "falls towards the bound the optimum may lie beyond it (widen the box: `kftune tune "
+        "--widen-bounds`, or `[parameters] q_bounds`); where it is flat there (one step in, "
+        "a decade on a log10 parameter, the cost is less than 0.1 % higher), a wider box "
+        "will not help:",
         "",
     ]
-    md += [
-        f"- {label}: {h['parameter']} = {h['value']:.4g}, on its {h['side']} bound {h['bound']:g}"
-        for label, h in hits
-    ]
+    for label, h in hits:
+        name = h["parameter"]
+        line = f"- {label}: {name} = {h['value']:.4g}, on its {h['side']} bound {h['bound']:g}"
+        edge = h.get("edge")
+        if edge is not None:
+            step = f"{edge['step']} in ({name} = {edge['value']:.4g})"
+            if edge["rise"] is None:
+                line += f"; {step} the filter diverged"
+            else:
+                line += f"; {step} the cost is {rise_text(edge)}"
+                line += ": flat, a wider box will not help" if edge["flat"] else ""
+        md.append(line)
     return [*md, ""]
 
 
