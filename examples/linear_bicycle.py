@@ -12,7 +12,9 @@ angles (F = C * alpha), integrated with one explicit Euler step per sample. The 
 
 The same model in C99 is linear_bicycle.c beside this file (c_code below), so that
 ``kftune export --format c`` can write a running filter for it; check the two against
-each other on the data with ``kftune export TUNED --format c --check DATASET``.
+each other on the data with
+
+    kftune export lin.json --format c -o lin_c --model examples/linear_bicycle.py --check default
 """
 
 from pathlib import Path
@@ -21,6 +23,10 @@ import numpy as np
 from numba import njit
 
 from kftune.models import StateSpaceModel
+
+#: The same model in C99, for `kftune export --format c`. A copy of this file without the
+#: .c beside it still runs and tunes; only the C export then refuses it (no C code).
+C_SOURCE = Path(__file__).with_name("linear_bicycle.c")
 
 # m [kg], Iz [kg m^2], a, b [m] (CoG to front/rear axle), C_f, C_r [N/rad]: a BMW 320i
 PARAMS = (1093.3, 1791.6, 1.156, 1.423, 55600.0, 68220.0)
@@ -75,5 +81,5 @@ MODEL = StateSpaceModel(
     initial_state=prior,
     outputs={"beta": lambda x: np.arctan2(x[:, 1], x[:, 0])},
     description="single-track model with linear tyres, explicit Euler",
-    c_code=Path(__file__).with_name("linear_bicycle.c").read_text(),
+    c_code=C_SOURCE.read_text() if C_SOURCE.is_file() else None,
 )
