@@ -479,10 +479,10 @@ def test_the_scale_round_trips_through_every_export_format(tuned, tmp_path):
     doc = json.loads(tuned.read_text())
     c = doc["calibration"]["factor"]
     texts = {}
-    for fmt, suffix in (("json", ".json"), ("yaml", ".yaml"), ("c", ".h"), ("matlab", ".m")):
+    for fmt, suffix in (("json", ".json"), ("yaml", ".yaml"), ("c", "_c"), ("matlab", ".m")):
         out = tmp_path / f"f{suffix}"
         assert run_cli("export", tuned, "-f", fmt, "-o", out).returncode == 0
-        texts[fmt] = out.read_text()
+        texts[fmt] = (out / "kftune_filter.h" if fmt == "c" else out).read_text()
     exported = json.loads(texts["json"])
     assert exported["covariance_scale"] == c and exported["q_diag"] == doc["q"]
     got = re.search(r"^covariance_scale: (\S+)$", texts["yaml"], re.M)

@@ -147,10 +147,10 @@ def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_
     table = np.genfromtxt(tmp_path / "est" / "run-3.csv", delimiter=",", names=True)
     assert row["rmse"]["v"] == pytest.approx(np.sqrt(np.mean((table["v"] - table["v_ref"]) ** 2)))
     assert row["units"]["v"] == "m/s"
-    c_file = tmp_path / "kf.h"
-    exp = kftune("export", str(out), "--format", "c", "-o", str(c_file))
+    c_dir = tmp_path / "kf_c"
+    exp = kftune("export", str(out), "--format", "c", "-o", str(c_dir))
     assert exp.returncode == 0, exp.stderr
-    assert "omega" in c_file.read_text()
+    assert "omega" in (c_dir / "kftune_filter.h").read_text()
     # a reference the data lack, and the paper's model on data that are not a car's
     res = kftune("tune", str(track), "--model", "ctrv", "--weights", "psi=1", "-n", "2")
     assert res.returncode == 3 and "Traceback" not in res.stderr

@@ -340,12 +340,14 @@ def test_yaml_export_reads_back_as_the_json_export(tuned, tmp_path):
 
 
 def test_c_header_compiles_and_its_values_round_trip(tuned, tmp_path):
+    """The numbers-only macros of the C export's kftune_filter.h (the filter that runs
+    beside them: test_export_c.py)."""
     cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
     if cc is None:
         pytest.skip("no C compiler (cc) on this machine")
     doc = json.loads(export(tuned, tmp_path, "json", ".json").read_text())
-    header = export(tuned, tmp_path, "c", ".h")
-    text = header.read_text()
+    folder = export(tuned, tmp_path, "c", "_c")
+    text = (folder / "kftune_filter.h").read_text()
     assert "#ifndef KFTUNE_FILTER_H" in text
     assert text.rstrip().endswith("#endif /* KFTUNE_FILTER_H */")
     assert "sha256 " + doc["dataset_sha256"] in text
@@ -359,12 +361,13 @@ def test_c_header_compiles_and_its_values_round_trip(tuned, tmp_path):
     prints.append('printf("n %d %d\\n", KFTUNE_N_STATES, KFTUNE_STATE_VY);')
     program = tmp_path / "main.c"
     program.write_text(
-        '#include <stdio.h>\n#include "filter.h"\n#include "filter.h" /* the guard */\n'
+        '#include <stdio.h>\n#include "kftune_filter.h"\n#include "kftune_filter.h" /* guard */\n'
         "int main(void) {\n" + "\n".join(prints) + "\nreturn 0;\n}\n"
     )
     exe = tmp_path / "main"
+    flags = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-Werror", "-I", str(folder)]
     subprocess.run(
-        [cc, "-std=c99", "-Wall", "-Wextra", "-pedantic", "-Werror", str(program), "-o", str(exe)],
+        [cc, *flags, str(program), "-o", str(exe), "-lm"],
         check=True,
         capture_output=True,
         cwd=tmp_path,
@@ -458,10 +461,10 @@ def test_matlab_export_parses_to_the_json_values(tuned, tmp_path):
 
 def test_export_of_a_file_before_the_record_says_to_tune_again(tuned, tmp_path, capsys):
     params = edited(tuned, tmp_path, lambda d: d.pop("deployment"))
-    assert main(["export", str(params), "-f", "c", "-o", str(tmp_path / "x.h")]) == 3
+    assert main(["export", str(params), "-f", "c", "-o", str(tmp_path / "x")]) == 3
     err = capsys.readouterr().err
     assert str(params) in err and "tune again" in err and "Traceback" not in err
-    assert not (tmp_path / "x.h").exists()
+    assert not (tmp_path / "x").exists()
 
 
 def test_export_names_a_damaged_record(tuned, tmp_path, capsys):
@@ -482,9 +485,9 @@ def test_export_to_stdout_and_default_name(tuned, tmp_path, capsys):
 
 def reader_argv(command: str, params: Path, tmp_path: Path) -> list[str]:
     """The arguments of ``command`` (export, estimate, evaluate) reading the tuned file
-    ``params``, with outputs under ``tmp_path`` (x.h, est)."""
+    ``params``, with outputs under ``tmp_path`` (the folder x, est)."""
     return {
-        "export": ["export", str(params), "-o", str(tmp_path / "x.h"), "-f", "c"],
+        "export": ["export", str(params), "-o", str(tmp_path / "x"), "-f", "c"],
         "estimate": ["estimate", "--params", str(params), "-o", str(tmp_path / "est")],
         "evaluate": ["evaluate", "--params", str(params)],
     }[command]
@@ -510,7 +513,7 @@ def test_q_and_r_edited_in_one_place_only_are_refused_by_every_reader(
     err = capsys.readouterr().err
     assert str(params) in err and "Traceback" not in err
     assert all(w in err for w in where), err
-    assert not (tmp_path / "x.h").exists() and not (tmp_path / "est").exists()
+    assert not (tmp_path / "x").exists() and not (tmp_path / "est").exists()
 
 
 def test_q_rewritten_with_rounding_only_is_accepted(tuned, tmp_path, capsys):
@@ -549,6 +552,6 @@ def test_a_bad_deployment_record_is_refused_the_same_way_by_every_reader(
     err = capsys.readouterr().err
     assert f"file {params}: {says}" in err, err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
-    assert not (tmp_path / "x.h").exists() and not (tmp_path / "est").exists()
+    assert not (tmp_path / "x").exists() and not (tmp_path / "est").exists()
     if says == "'deployment.vehicle'":
         assert "VehicleParams.m = -1000" in err

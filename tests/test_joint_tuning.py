@@ -291,9 +291,10 @@ def test_tuned_file_records_the_model_parameters_and_every_reader_runs_them(smal
     value = rec["C_af"]["value"]
     exported = {}
     for fmt in ("json", "yaml", "c", "matlab"):
-        res = run_cli("export", str(out), "-f", fmt, "-o", "-")
+        folder = tmp_path / "c"  # c: a folder of C files, its values in kftune_filter.h
+        res = run_cli("export", str(out), "-f", fmt, "-o", str(folder) if fmt == "c" else "-")
         assert res.returncode == 0, res.stderr
-        exported[fmt] = res.stdout
+        exported[fmt] = (folder / "kftune_filter.h").read_text() if fmt == "c" else res.stdout
     assert json.loads(exported["json"])["vehicle_C_af"] == value
     assert json.loads(exported["json"])["tuned_model_param_names"] == ["C_af", "C_ar"]
     assert all("C_af (recorded 55600)" in text for text in exported.values() if text[0] != "{")

@@ -65,10 +65,14 @@ def test_a_tuned_file_never_runs_the_model_file_it_names(tuned, tmp_path, where)
         assert "Python code" in res.stderr and "Traceback" not in res.stderr
         assert not (model.parent / "MARKER").exists(), f"{cmd[0]} ran {spec}"
         assert not out.exists()
-    # export deploys the tuned values: it never runs the model either
-    res = kftune("export", str(params), "-o", str(tmp_path / "kf.h"), "-f", "c")
+    # export writes the tuned values without running the model; its C filter needs the
+    # model's C, so it asks for --model as the others do
+    res = kftune("export", str(params), "-o", str(tmp_path / "kf.json"))
     assert res.returncode == EXIT_OK, res.stderr
-    assert not (model.parent / "MARKER").exists()
+    res = kftune("export", str(params), "-o", str(tmp_path / "kf_c"), "-f", "c")
+    assert res.returncode == EXIT_BAD_INPUT, res.stderr
+    assert "--model" in res.stderr and "Python code" in res.stderr
+    assert not (model.parent / "MARKER").exists() and not (tmp_path / "kf_c").exists()
 
 
 @pytest.mark.parametrize("kind", ["fifo", "device"])
@@ -87,9 +91,9 @@ def test_a_model_file_named_by_a_tuned_file_is_hashed_only_if_it_is_a_regular_fi
         model.symlink_to(DEV_ZERO)
     assert model_file_sha256(str(model)) is None
     params = naming(tuned, tmp_path, "evil.py", sha256="0" * 64)
-    export = [sys.executable, "-m", "kftune", "export", str(params), "-f", "c"]
+    export = [sys.executable, "-m", "kftune", "export", str(params), "-f", "yaml"]
     res = subprocess.run(
-        [*export, "-o", str(tmp_path / "kf.h")], capture_output=True, text=True,
+        [*export, "-o", str(tmp_path / "kf.yaml")], capture_output=True, text=True,
         timeout=HANG_GUARD, cwd=tmp_path,
     )  # fmt: skip
     assert res.returncode == EXIT_OK and "Traceback" not in res.stderr, res.stderr

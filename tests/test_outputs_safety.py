@@ -39,7 +39,7 @@ def _estimate(tmp: Path, text: str) -> list[str]:
 
 def _export(tmp: Path, text: str) -> list[str]:
     (tmp / "t.json").write_text(text)
-    return ["export", "t.json", "-o", "t.h", "-f", "c"]
+    return ["export", "t.json", "-o", "t_c", "-f", "c"]
 
 
 def _manifest(tmp: Path, text: str) -> list[str]:
@@ -638,6 +638,6 @@ def test_export_of_a_header_whose_names_collide_writes_nothing(work):
     next(q for q in dep["Q"] if q["name"] == "vy")["name"] = "VX"
     (work / "tc.json").write_text(json.dumps(doc))
     before = _snapshot(work)
-    res = run_cli("export", "tc.json", "-f", "c", "-o", "tc.h", cwd=work)
+    res = run_cli("export", "tc.json", "-f", "c", "-o", "tc", cwd=work)
     _refused(res, "tc.json", "KFTUNE_STATE_VX", "'vx'", "'VX'")
     assert _snapshot(work) == before

@@ -240,12 +240,26 @@ def provenance(doc: Mapping[str, Any], source: str) -> str:
 
 
 def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER_H") -> str:
-    """A C header of macros only: ``#define`` scalars, and each array as an initialiser
+    """A C header of macros only (:func:`c_macros`) with an include guard and the provenance
+    in the opening comment. ``kftune export --format c`` writes these macros into its
+    ``kftune_filter.h`` (:mod:`kftune.report.c_export`), beside the filter that runs.
+
+    Raises:
+        DataError: as :func:`c_macros`.
+    """
+    out = ["/*"]
+    out += [f" * {_c_comment(line)}".rstrip() for line in provenance(doc, source).splitlines()]
+    out += [" */", f"#ifndef {guard}", f"#define {guard}", ""]
+    out += [c_macros(doc, source), f"#endif /* {guard} */", ""]
+    return "\n".join(out)
+
+
+def c_macros(doc: Mapping[str, Any], source: str) -> str:
+    """The tuned values as C macros: ``#define`` scalars, and each array as an initialiser
     (``KFTUNE_Q_DIAG_INIT``, for ``static const double q[] = KFTUNE_Q_DIAG_INIT;``) and a
-    C99 compound literal of it (``KFTUNE_Q_DIAG[i]``); units in comments, an include
-    guard, the provenance in the opening comment. Macros, not ``static const`` arrays: a
-    translation unit that uses some of the arrays compiles without unused-variable
-    warnings (``-Wunused-const-variable=2 -Werror``).
+    C99 compound literal of it (``KFTUNE_Q_DIAG[i]``); units in comments. Macros, not
+    ``static const`` arrays: a translation unit that uses some of the arrays compiles
+    without unused-variable warnings (``-Wunused-const-variable=2 -Werror``).
 
     Raises:
         DataError: naming ``source``, when two names of one kind (states, inputs,
@@ -253,9 +267,7 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
             case, with ``_`` for other characters: ``vx`` and ``VX``, ``a-b`` and ``a_b``).
     """
     p = "KFTUNE_"
-    out = ["/*"]
-    out += [f" * {_c_comment(line)}".rstrip() for line in provenance(doc, source).splitlines()]
-    out += [" */", f"#ifndef {guard}", f"#define {guard}", ""]
+    out: list[str] = []
     n, m = len(doc["states"]), len(doc["measurements"])
     out += [
         f"#define {p}N_STATES {n}",
@@ -334,7 +346,7 @@ def to_c_header(doc: Mapping[str, Any], source: str, guard: str = "KFTUNE_FILTER
             unit = VEHICLE_UNITS.get(name, "")
             unit = _c_comment(unit)
             out.append(f"#define {p}VEHICLE_{_c_name(name)} {_float(value)} /* [{unit}] */")
-    out += ["", f"#endif /* {guard} */", ""]
+    out.append("")
     return "\n".join(out)
 
 

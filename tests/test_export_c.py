@@ -1,0 +1,310 @@
+"""``kftune export --format c``: the exported C filter, built with the system's compiler,
+reproduces ``kftune estimate`` column by column (1e-9 relative, normwise) for the UKF and
+the EKF of every built-in model and of the example model of one's own; it stops where
+kftune's filter stops, with the same cause; a float build stays within a measured bound; a
+model without C is refused. Skipped where there is no C compiler."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kftune.cli import main
+from kftune.data import Dataset, default_dataset, load_dataset, save_dataset
+from kftune.report.c_export import CFLAGS, build_demo, find_compiler, manoeuvre_csv, run_demo
+from kftune.tuning.deploy import TunedFilter, estimate
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "linear_bicycle.py"
+MODELS = ("single-track", "single-track-ay-bias", "single-track-biases", "ctrv", "example")
+#: Relative normwise deviation a double export may have from kftune (the issue's target).
+LIMIT = 1e-9
+#: Float against double: measured 2.3e-3 at most on the bundled test manoeuvres (the
+#: single-track UKF's innovation and NIS columns; its states 1e-5; BENCHMARKS.md).
+FLOAT_LIMIT = 1e-2
+
+
+@pytest.fixture(scope="module")
+def cc() -> list[str]:
+    found = find_compiler()
+    if found is None:
+        pytest.skip("no C compiler (CC, cc, gcc or clang) on this machine")
+    return found
+
+
+@pytest.fixture(scope="module")
+def track(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A CTRV target's dataset (no vehicle): two training manoeuvres and one test."""
+    from test_data_schema import DT, ctrv_manoeuvre
+
+    ms = [ctrv_manoeuvre(f"run-{i}", s, i) for i, s in ((1, "train"), (2, "train"), (3, "test"))]
+    out = tmp_path_factory.mktemp("track")
+    save_dataset(Dataset("track", None, DT, ms, units={"px": "m", "py": "m"}), out)
+    return out
+
+
+def _model_args(model: str, track: Path) -> list[str]:
+    if model == "ctrv":
+        return [str(track), "--model", "ctrv", "--weights", "v=1,omega=1"]
+    if model == "example":
+        return ["--model", str(EXAMPLE)]
+    return ["--model", model]
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory: pytest.TempPathFactory, track: Path) -> Callable[[str, str], Path]:
+    """model, filter → a tuned file (the manual rule of thumb, ``kftune tune``; the EKF's is
+    the UKF's file with its filter changed: one tuning per model keeps the module short)."""
+    folder = tmp_path_factory.mktemp("tuned")
+    files: dict[tuple[str, str], Path] = {}
+
+    def get(model: str, filt: str) -> Path:
+        if (model, filt) not in files:
+            ukf = folder / f"{model}-ukf.json"
+            if not ukf.exists():
+                assert main(["tune", "-m", "manual", "-q", "-o", str(ukf),
+                             *_model_args(model, track)]) == 0  # fmt: skip
+            files[model, "ukf"] = ukf
+            doc = json.loads(ukf.read_text())
+            doc["filter"] = doc["deployment"]["filter"] = "ekf"
+            doc["deployment"]["sigma_points"] = None
+            ekf = folder / f"{model}-ekf.json"
+            ekf.write_text(json.dumps(doc))
+            files[model, "ekf"] = ekf
+        return files[model, filt]
+
+    return get
+
+
+@pytest.fixture(scope="module")
+def demo(
+    tmp_path_factory: pytest.TempPathFactory, tuned: Callable[[str, str], Path], cc: list[str]
+) -> Callable[..., Path]:
+    """(model, filter, precision) → the demo of ``kftune export --format c``, compiled with
+    -std=c99 -O2 -Wall -Wextra -Werror -pedantic (once per module)."""
+    folder = tmp_path_factory.mktemp("exports")
+    built: dict[tuple[str, str, str], Path] = {}
+
+    def get(model: str, filt: str, precision: str = "double") -> Path:
+        key = (model, filt, precision)
+        if key not in built:
+            out = folder / "-".join(key)
+            extra = ["--model", str(EXAMPLE)] if model == "example" else []
+            args = ["export", str(tuned(model, filt)), "-f", "c", "-o", str(out)]
+            assert main([*args, "--precision", precision, *extra]) == 0
+            built[key] = build_demo(out, out, cc, CFLAGS)
+        return built[key]
+
+    return get
+
+
+def _dataset(model: str, track: Path) -> Dataset:
+    return load_dataset(track) if model == "ctrv" else default_dataset()
+
+
+def _assert_same(got: dict[str, np.ndarray], want: dict[str, np.ndarray], limit: float) -> None:
+    """Every column of ``want`` in ``got``, empty (NaN) in the same rows, and otherwise
+    within ``limit`` relative to the column's 2-norm."""
+    assert list(got) == list(want)
+    for name, w in want.items():
+        g = got[name]
+        np.testing.assert_array_equal(np.isnan(g), np.isnan(w), err_msg=name)
+        ok = ~np.isnan(w)
+        norm = float(np.linalg.norm(w[ok]))
+        assert float(np.linalg.norm(g[ok] - w[ok])) <= limit * norm, name
+
+
+def _tuned_filter(path: Path, model: str) -> TunedFilter:
+    doc = json.loads(path.read_text())
+    if model == "example":
+        doc["model"] = str(EXAMPLE)
+    return TunedFilter.from_document(doc, str(path))
+
+
+@pytest.mark.parametrize("filt", ["ukf", "ekf"])
+@pytest.mark.parametrize("model", MODELS)
+def test_c_filter_reproduces_kftune_estimate(model, filt, demo, tuned, track):
+    exe = demo(model, filt)
+    tf = _tuned_filter(tuned(model, filt), model)
+    ds = _dataset(model, track)
+    for m in ds.test:
+        est = estimate(tf, m, ds.vehicle)
+        run = run_demo(exe, manoeuvre_csv(m))
+        assert run.returncode == 0 and run.stop is None, run.stderr
+        _assert_same(run.columns, est.columns, LIMIT)
+
+
+def test_demo_writes_what_estimate_writes(demo, tuned, tmp_path):
+    """Same header and the same numbers as the CSV file of ``kftune estimate``, from the
+    dataset's own (uncompressed) file with its extra columns."""
+    import gzip
+
+    from kftune.data.io import bundled_dataset_path
+
+    name = "test-12-slalom"
+    params = tuned("single-track", "ukf")
+    args = ["estimate", "--params", str(params), "-m", name, "-o", str(tmp_path), "--no-plot"]
+    assert main(args) == 0
+    want = (tmp_path / f"{name}.csv").read_text()
+    raw = gzip.decompress((bundled_dataset_path() / f"{name}.csv.gz").read_bytes()).decode()
+    got = subprocess.run(
+        [str(demo("single-track", "ukf"))], input=raw, capture_output=True, text=True, check=True
+    ).stdout
+    want_rows, got_rows = list(csv.reader(want.splitlines())), list(csv.reader(got.splitlines()))
+    assert got_rows[0] == want_rows[0]  # t, vx, …, beta, beta_std, innovations, nis, beta_ref
+    a = np.array(got_rows[1:], dtype=float)
+    b = np.array(want_rows[1:], dtype=float)
+    assert a.shape == b.shape
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def _diverging(tuned: Path, tmp_path: Path, q: list[float]) -> Path:
+    doc = json.loads(tuned.read_text())
+    doc["q"] = q
+    for entry, v in zip(doc["deployment"]["Q"], q):
+        entry["variance"] = v
+    out = tmp_path / "diverging.json"
+    out.write_text(json.dumps(doc))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("q", "edit", "cause"),
+    [
+        ([1e9, 1e9, 1e9], None, 3),  # the sideslip beyond 60° at the first prediction
+        (None, "vx_drop", 5),  # Vx measured half as fast for a second: held, from its start
+    ],
+)
+def test_c_filter_stops_where_kftune_stops(tuned, cc, tmp_path, q, edit, cause):
+    params = tuned("single-track", "ukf")
+    if q is not None:
+        params = _diverging(params, tmp_path, q)
+    out = tmp_path / "c"
+    assert main(["export", str(params), "-f", "c", "-o", str(out)]) == 0
+    exe = build_demo(out, out, cc)
+    ds = default_dataset()
+    m = ds["test-12-slalom"]
+    if edit == "vx_drop":
+        vx = m.vx.copy()
+        vx[400:500] *= 0.4
+        m = m.replace(vx=vx)
+    est = estimate(TunedFilter.from_document(json.loads(params.read_text()), str(params)), m,
+                   ds.vehicle)  # fmt: skip
+    res = est.result
+    assert res.diverged and res.diverged_cause == cause
+    run = run_demo(exe, manoeuvre_csv(m))
+    assert run.returncode == 1
+    assert run.stop == (res.diverged_step, res.diverged_cause)
+    assert f"cause {cause}" in run.stderr and "stopped at step" in run.stderr
+    _assert_same(run.columns, est.columns, LIMIT)  # the rows from the stop step empty
+
+
+def test_float_build_stays_near_the_double_one(demo):
+    """--precision float: every column within FLOAT_LIMIT (relative, normwise) of the
+    double build on the bundled set's test manoeuvres."""
+    worst = 0.0
+    double, single = demo("single-track", "ukf"), demo("single-track", "ukf", "float")
+    for m in default_dataset().test:
+        text = manoeuvre_csv(m)
+        a, b = run_demo(single, text), run_demo(double, text)
+        assert a.stop is None and b.stop is None
+        for name, col in b.columns.items():
+            dev = float(np.linalg.norm(a.columns[name] - col) / np.linalg.norm(col))
+            worst = max(worst, dev)
+    assert 0.0 < worst < FLOAT_LIMIT
+
+
+def test_sanitizers_find_nothing(tuned, cc, tmp_path):
+    """The demo and filter under -fsanitize=address,undefined on a manoeuvre, and on a
+    stop (the EKF of the 6-state model: its finite differences are not used, its held
+    conditions are)."""
+    out = tmp_path / "c"
+    assert (
+        main(["export", str(tuned("single-track-biases", "ekf")), "-f", "c", "-o", str(out)]) == 0
+    )
+    flags = (*CFLAGS, "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all")
+    try:
+        exe = build_demo(out, out, cc, flags, name="kftune_demo_asan")
+    except RuntimeError as exc:
+        pytest.skip(f"the compiler cannot build with the sanitizers: {str(exc)[:200]}")
+    probe = subprocess.run([str(exe)], input="t,delta\n", capture_output=True, text=True)
+    if "AddressSanitizer" in probe.stderr and "ERROR" not in probe.stderr:
+        pytest.skip("the sanitizer runtime does not run here")
+    assert probe.returncode == 2 and "no column ax" in probe.stderr
+    run = run_demo(exe, manoeuvre_csv(default_dataset()["test-03-skidpad"]))
+    assert run.returncode == 0 and run.stderr == ""
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("", "no header row"),
+        ("t,delta,ax,vx,r\n0,0,0,1,0\n", "no column ay, a measurement"),
+        ("t,delta,ax,ay,r,vx\n0,0,0,0,0,20\n0.01,0,x,0,0,20\n", "line 3, column ax: 'x'"),
+        ("t,delta,ax,ay,r,vx\n0,0,0,0,0,20\n0.01,0,0,0,0\n", "line 3 has 5 cells"),
+        ("t,delta,ax,ay,r,vx\n0,0,0,0,0,20\n0.01,0,inf,0,0,20\n", "is not finite"),
+        ("t,delta,ax,ay,r,vx\n0,0,0,0,0,20\n0.02,0,0,0,0,20\n", "sampled every 0.02 s"),
+        ("t,delta,ax,ay,r,vx\n0,0,0,0,0,20\n", "at least 2 are needed"),
+    ],
+)
+def test_demo_refuses_bad_input_by_line_and_column(demo, text, says):
+    res = subprocess.run(
+        [str(demo("single-track", "ukf"))], input=text, capture_output=True, text=True
+    )
+    assert res.returncode == 2 and res.stdout == ""
+    assert says in res.stderr and res.stderr.startswith("kftune_demo: ")
+
+
+def test_a_model_without_c_is_refused_naming_it(tuned, tmp_path, capsys):
+    """The example model without its c_code: exit 3, the reason, nothing written."""
+    text = EXAMPLE.read_text()
+    start = text.index("    c_code=")
+    plain = tmp_path / "plain_bicycle.py"
+    plain.write_text(text[:start] + text[text.index("\n", start) + 1 :])
+    out = tmp_path / "c"
+    args = ["export", str(tuned("example", "ukf")), "-f", "c", "-o", str(out)]
+    assert main([*args, "--model", str(plain)]) == 3
+    err = capsys.readouterr().err
+    assert "model 'linear-bicycle' has no C code" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_check_compares_with_kftune_and_prints_the_deviation(tuned, tmp_path, capsys):
+    out = tmp_path / "c"
+    args = ["export", str(tuned("single-track", "ukf")), "-f", "c", "-o", str(out)]
+    assert main([*args, "--check", "default", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    check = doc["check"]
+    assert check["passed"] and check["worst"] <= LIMIT
+    assert len(check["manoeuvres"]) == len(default_dataset().test)
+    assert sorted(p.name for p in out.iterdir()) == sorted(doc["files"])
+
+
+def test_a_header_name_and_a_folder_of_other_files_are_refused(tuned, tmp_path, capsys):
+    params = tuned("single-track", "ukf")
+    assert main(["export", str(params), "-f", "c", "-o", str(tmp_path / "kf.h")]) == 2
+    assert "writes a folder of C files" in capsys.readouterr().err
+    other = tmp_path / "busy"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert main(["export", str(params), "-f", "c", "-o", str(other)]) == 3
+    assert "--force" in capsys.readouterr().err and sorted(other.iterdir()) == [other / "notes.txt"]
+    assert main(["export", str(params), "-f", "c", "-o", str(other), "--force"]) == 0
+    assert (other / "notes.txt").read_text() == "mine" and (other / "Makefile").is_file()
+
+
+def test_makefile_builds_the_demo(tuned, cc, tmp_path):
+    make = shutil.which("make")
+    if make is None:
+        pytest.skip("no make on this machine")
+    out = tmp_path / "c"
+    assert main(["export", str(tuned("ctrv", "ekf")), "-f", "c", "-o", str(out)]) == 0
+    res = subprocess.run([make, "-C", str(out), f"CC={cc[0]}"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert (out / "kftune_demo").is_file()
