@@ -44,10 +44,13 @@ __all__ = [
     "OPTIONAL_HOOKS",
     "REQUIRED_HOOKS",
     "builtin_c_code",
+    "builtin_names",
     "c_identifier",
+    "defined_functions",
     "export_refusal",
     "missing_hooks",
     "model_header",
+    "required_hooks",
 ]
 
 #: The scalar types the header can declare as ``kf_real``.

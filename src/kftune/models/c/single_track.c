@@ -239,39 +239,40 @@ void kf_model_h(const kf_real x[], const kf_real w[], const kf_real p[], kf_real
 }
 
 /* F = d x'/dx: the exact derivative of the RK4 step (_single_track_jacobians.rk4_jacobian),
- * identity on the bias states */
+ * identity on the bias states. Stage i+1 is at x + h_i k_i (h = dt/2, dt/2, dt) and has
+ * J_{i+1} = G(x_{i+1}) (I + h_i J_i); F = I + dt/6 (J1 + 2 J2 + 2 J3 + J4). */
 void kf_model_F(const kf_real x[], const kf_real w[], const kf_real p[], kf_real dt,
                 kf_real out[])
 {
-    kf_real vx = x[0], vy = x[1], r = x[2];
-    kf_real h2 = 0.5 * dt, s = dt / 6.0;
-    kf_real k1[3], k2[3], k3[3], G[9], J1[9], J2[9], J3[9], J4[9];
-    kf_real x2, y2, r2, x3, y3, r3;
+    const kf_real h[3] = {0.5 * dt, 0.5 * dt, dt}, weight[3] = {2.0, 2.0, 1.0};
+    kf_real s = dt / 6.0;
+    kf_real k[3], xs[3], G[9], J[9], Jn[9], sum[9];
     int i, j;
-    st_derivatives(vx, vy, r, w, p, k1);
-    st_continuous_jacobian(vx, vy, r, w, p, J1);
-    x2 = vx + h2 * k1[0];
-    y2 = vy + h2 * k1[1];
-    r2 = r + h2 * k1[2];
-    st_derivatives(x2, y2, r2, w, p, k2);
-    st_continuous_jacobian(x2, y2, r2, w, p, G);
-    st_chain(G, h2, J1, J2);
-    x3 = vx + h2 * k2[0];
-    y3 = vy + h2 * k2[1];
-    r3 = r + h2 * k2[2];
-    st_derivatives(x3, y3, r3, w, p, k3);
-    st_continuous_jacobian(x3, y3, r3, w, p, G);
-    st_chain(G, h2, J2, J3);
-    st_continuous_jacobian(vx + dt * k3[0], vy + dt * k3[1], r + dt * k3[2], w, p, G);
-    st_chain(G, dt, J3, J4);
+    st_derivatives(x[0], x[1], x[2], w, p, k);
+    st_continuous_jacobian(x[0], x[1], x[2], w, p, J);
+    for (j = 0; j < 9; ++j) {
+        sum[j] = J[j];
+    }
+    for (i = 0; i < 3; ++i) {
+        for (j = 0; j < 3; ++j) {
+            xs[j] = x[j] + h[i] * k[j];
+        }
+        if (i < 2) { /* the last stage's derivative is not needed */
+            st_derivatives(xs[0], xs[1], xs[2], w, p, k);
+        }
+        st_continuous_jacobian(xs[0], xs[1], xs[2], w, p, G);
+        st_chain(G, h[i], J, Jn);
+        for (j = 0; j < 9; ++j) {
+            J[j] = Jn[j];
+            sum[j] += weight[i] * Jn[j]; /* 1.0 * Jn is Jn exactly */
+        }
+    }
     for (i = 0; i < KF_N * KF_N; ++i) {
         out[i] = 0;
     }
     for (i = 0; i < 3; ++i) {
         for (j = 0; j < 3; ++j) {
-            int k = 3 * i + j;
-            out[i * KF_N + j] = (kf_real)(i == j ? 1 : 0) +
-                                s * (J1[k] + 2.0 * J2[k] + 2.0 * J3[k] + J4[k]);
+            out[i * KF_N + j] = (kf_real)(i == j ? 1 : 0) + s * sum[3 * i + j];
         }
     }
     for (j = 3; j < KF_N; ++j) {
