@@ -10,13 +10,25 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import shutil
 import signal
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The filter kernels the suite compiles are cached in a folder of its own
+    (:mod:`kftune.filters._compiled`), shared with the kftune processes the tests start and
+    removed at the end, not in the user's cache (a KFTUNE_CACHE_DIR given is kept)."""
+    if "KFTUNE_CACHE_DIR" not in os.environ:
+        folder = tempfile.mkdtemp(prefix="kftune-test-kernels-")
+        os.environ["KFTUNE_CACHE_DIR"] = folder
+        config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))
 
 
 def shared_data_dir() -> Path:

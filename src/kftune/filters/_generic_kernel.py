@@ -34,9 +34,11 @@ The kernels never raise.
 
 How it is compiled. The model's functions are first-class arguments of the kernels
 (:func:`ukf_run`, :func:`ekf_run` and their batches): numba compiles the kernels once per
-model, calling the model's f and h directly. Those specialisations cannot be cached on disk
-(numba cannot key a cache on a function argument), so the kernels are kept short (a few
-seconds to compile per model and filter): the linear algebra lives in a few helpers without
+model, calling the model's f and h directly. Every kernel that takes a function is inlined
+(``inline="always"``) into the wrappers of a module generated per model
+(:mod:`kftune.filters._compiled`), which name the model's functions as globals: numba can
+cache those wrappers on disk, as it cannot cache a function that receives a function
+value. The linear algebra lives in a few helpers without
 function arguments, which are cached, with their own small helpers inlined into them
 (``inline="always"``: a call costs about 30 ns, a tenth of a filter step's arithmetic at
 n = 3). The sizes are compile-time constants: kernels and helpers take the state and
@@ -559,7 +561,7 @@ def workspace(n_token: Token, m_token: Token, n_held: int) -> tuple[np.ndarray, 
 # --------------------------------------------------------------------------------------
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def conclude_step(
     k: int,
     h: Dispatcher,
@@ -621,7 +623,7 @@ def conclude_step(
     return -1, STOP_NONE, st_s + st
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def ukf_run(
     f: Dispatcher,
     h: Dispatcher,
@@ -711,7 +713,7 @@ def ukf_run(
     return -1, n_rep, STOP_NONE
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def ekf_run(
     f: Dispatcher,
     h: Dispatcher,
@@ -787,7 +789,7 @@ def ekf_run(
 # --------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, error_model="numpy")
+@njit(parallel=True, error_model="numpy", inline="always")
 def ukf_batch(
     f: Dispatcher,
     h: Dispatcher,
@@ -828,7 +830,7 @@ def ukf_batch(
         )  # fmt: skip
 
 
-@njit(parallel=True, error_model="numpy")
+@njit(parallel=True, error_model="numpy", inline="always")
 def ekf_batch(
     f: Dispatcher,
     h: Dispatcher,
@@ -873,7 +875,7 @@ def ekf_batch(
 # --------------------------------------------------------------------------------------
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def given_process_jacobian(
     F: Dispatcher,
     f: Dispatcher,
@@ -890,7 +892,7 @@ def given_process_jacobian(
     F(x, u, p, dt, out)
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def numerical_process_jacobian(
     F: Dispatcher,
     f: Dispatcher,
@@ -907,7 +909,7 @@ def numerical_process_jacobian(
     fd_process_jacobian(f, x, u, p, dt, out, xw, gp, gm)
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def given_measurement_jacobian(
     H: Dispatcher,
     h: Dispatcher,
@@ -923,7 +925,7 @@ def given_measurement_jacobian(
     H(x, u, p, out)
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def numerical_measurement_jacobian(
     H: Dispatcher,
     h: Dispatcher,

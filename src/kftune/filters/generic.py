@@ -24,7 +24,8 @@ and cause and NaN rows from that step on, never an exception
 (:mod:`kftune.filters._generic_kernel`).
 
 First use of a filter on a model compiles its kernel for that model (a few seconds per
-model and filter, once per process; numba cannot cache it on disk).
+model and filter); later processes load it from a cache on disk
+(:mod:`kftune.filters._compiled`).
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-import kftune.filters._generic_kernel as gk
 from kftune.filters._checks import check_covariance, check_dt, check_noise, check_state, check_table
+from kftune.filters._compiled import kernel_module
 from kftune.filters.sigma_points import UKFSettings, merwe_weights
 from kftune.models.base import STOP_NONE, StateSpaceModel
 from kftune.models.registry import resolve_model
@@ -447,77 +448,21 @@ class EKF(ModelFilter):
 # --------------------------------------------------------------------------------------
 
 # The kernels take the model's functions as arguments. Passing a compiled function from
-# Python costs numba some 10 µs of typing per argument and call; these small closures hold
-# the functions (and the size tokens) as constants instead, so that a run passes arrays and
-# numbers only. One pair per model and filter, compiled on first use.
+# Python costs numba some 10 µs of typing per argument and call, and a kernel that receives
+# one cannot be cached on disk; the generated module of each model (filters._compiled)
+# holds the functions (and the size tokens) as constants instead, so that a run passes
+# arrays and numbers only, and a second process loads its kernels from the cache.
 
 
-Arr = np.ndarray
-
-
-@functools.cache
 def _bound_ukf(model: StateSpaceModel) -> tuple[Any, Any]:
-    f, h, check = model.f, model.h, model.check
-    n_tok, m_tok = (0.0,) * model.n_states, (0.0,) * model.n_measurements
-
-    @numba.njit(error_model="numpy")
-    def single(
-        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
-        n_hold: int, held_causes: Arr, wm0: float, wc0: float, wi: float, c: float,
-        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr,
-    ) -> tuple[int, int, int]:  # fmt: skip
-        return gk.ukf_run(
-            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            wm0, wc0, wi, c, ox, op, oz, oi, on, ol,
-        )  # fmt: skip
-
-    @numba.njit(error_model="numpy")
-    def batch(
-        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
-        n_hold: int, held_causes: Arr, wm0: float, wc0: float, wi: float, c: float,
-        ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr, stop: Arr, rep: Arr, cause: Arr,
-    ) -> None:  # fmt: skip
-        gk.ukf_batch(
-            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            wm0, wc0, wi, c, ox, op, oz, oi, on, ol, stop, rep, cause,
-        )  # fmt: skip
-
-    return single, batch
+    module = kernel_module(model)
+    return module.ukf_single, module.ukf_batch
 
 
-@functools.cache
 def _bound_ekf(model: StateSpaceModel, numerical: bool) -> tuple[Any, Any]:
-    f, h, check = model.f, model.h, model.check
-    n_tok, m_tok = (0.0,) * model.n_states, (0.0,) * model.n_measurements
-    fd_F = model.F is None or numerical
-    fd_H = model.H is None or numerical
-    F_way = gk.numerical_process_jacobian if fd_F else gk.given_process_jacobian
-    F_jac = f if fd_F else model.F
-    H_way = gk.numerical_measurement_jacobian if fd_H else gk.given_measurement_jacobian
-    H_jac = h if fd_H else model.H
-
-    @numba.njit(error_model="numpy")
-    def single(
-        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
-        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr,
-    ) -> tuple[int, int, int]:  # fmt: skip
-        return gk.ekf_run(
-            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on, ol,
-        )  # fmt: skip
-
-    @numba.njit(error_model="numpy")
-    def batch(
-        u: Arr, z: Arr, p: Arr, dt: float, q: Arr, r: Arr, x_init: Arr, P_init: Arr,
-        n_hold: int, held_causes: Arr, ox: Arr, op: Arr, oz: Arr, oi: Arr, on: Arr, ol: Arr,
-        stop: Arr, rep: Arr, cause: Arr,
-    ) -> None:  # fmt: skip
-        gk.ekf_batch(
-            f, h, check, u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes, n_tok, m_tok,
-            F_way, F_jac, H_way, H_jac, ox, op, oz, oi, on, ol, stop, rep, cause,
-        )  # fmt: skip
-
-    return single, batch
+    module = kernel_module(model)
+    tag = "fd" if numerical else "given"
+    return getattr(module, f"ekf_single_{tag}"), getattr(module, f"ekf_batch_{tag}")
 
 
 _FILTERS: dict[str, type[ModelFilter]] = {"ukf": UKF, "ekf": EKF}

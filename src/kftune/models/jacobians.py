@@ -43,7 +43,7 @@ __all__ = [
 FD_REL_STEP = float(np.finfo(np.float64).eps ** (1.0 / 3.0))
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def fd_process_jacobian(
     f: Dispatcher,
     x: np.ndarray,
@@ -78,7 +78,7 @@ def fd_process_jacobian(
             out[i, j] = (gp[i] - gm[i]) * inv
 
 
-@njit(error_model="numpy")
+@njit(error_model="numpy", inline="always")
 def fd_measurement_jacobian(
     h: Dispatcher,
     x: np.ndarray,
