@@ -136,3 +136,22 @@ def test_the_key_covers_closure_constants_and_refuses_what_it_cannot_see():
     assert _compiled._key(one) == _compiled._key(model_with(1.0))
     assert _compiled._key(one) != _compiled._key(other)
     assert _compiled._key(model_with(njit(lambda v: v))) is None  # a function's behaviour
+
+
+def test_the_cache_keeps_the_newest_modules_and_their_code(tmp_path, monkeypatch):
+    monkeypatch.setattr(_compiled, "MAX_MODULES", 2)
+    (tmp_path / "__pycache__").mkdir()
+    for age, name in enumerate(["kftune_kernels_c", "kftune_kernels_b", "kftune_kernels_a"]):
+        module = tmp_path / f"{name}.py"
+        module.write_text("")
+        code = tmp_path / "__pycache__" / f"{name}.ukf_single-12.py311.nbi"
+        code.write_text("")
+        os.utime(module, (1e9 - age, 1e9 - age))  # c newest, a oldest
+    (tmp_path / "other.py").write_text("")
+    _compiled._prune(tmp_path)
+    assert sorted(p.name for p in tmp_path.glob("*.py")) == [
+        "kftune_kernels_b.py", "kftune_kernels_c.py", "other.py",
+    ]  # fmt: skip
+    assert sorted(p.name.split(".")[0] for p in (tmp_path / "__pycache__").iterdir()) == [
+        "kftune_kernels_b", "kftune_kernels_c",
+    ]  # fmt: skip

@@ -99,6 +99,14 @@ def ekf_batch_{tag}(u, z, p, dt, q, r, x_init, P_init, n_hold, held_causes,
 
 _HOOKS = ("f", "h", "check", "F", "H")
 
+#: The most generated modules a cache folder keeps; older ones (and their compiled code)
+#: are removed when a new one is written (each edit of a model file or of kftune makes one).
+MAX_MODULES = 64
+#: Source files beside a model file that its key covers: at most this many, of at most
+#: MAX_SIBLING_BYTES each (a folder of scripts, not a data folder).
+MAX_SIBLINGS = 200
+MAX_SIBLING_BYTES = 2_000_000
+
 #: key → model, for the generated modules to find their model's functions.
 _REGISTERED: dict[str, StateSpaceModel] = {}
 
@@ -132,6 +140,7 @@ def _kernel_module(model: StateSpaceModel) -> types.ModuleType:
     path = folder / f"{name}.py"
     if not path.exists():
         _write_once(path, text)
+        _prune(folder)
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None  # a .py file always has a loader
     module = importlib.util.module_from_spec(spec)
@@ -173,6 +182,23 @@ def _write_once(path: Path, text: str) -> None:
             os.link(tmp, path)
     finally:
         os.unlink(tmp)
+
+
+def _prune(folder: Path) -> None:
+    """Remove all but the :data:`MAX_MODULES` newest generated modules of ``folder`` and
+    their compiled code (a module in use elsewhere is only compiled again there)."""
+    modules = sorted(folder.glob("kftune_kernels_*.py"), key=_mtime, reverse=True)
+    for old in modules[MAX_MODULES:]:
+        for path in (old, *(folder / "__pycache__").glob(f"{old.stem}.*")):
+            with contextlib.suppress(OSError):
+                path.unlink()
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return 0.0
 
 
 def cache_dir() -> Path:
@@ -250,9 +276,17 @@ def _hook_digest(func: Any) -> bytes | None:
     if not inside:
         if not source.is_file():
             return None  # defined in an interactive session: nothing to key on
-        for sibling in sorted(source.resolve().parent.glob("*.py")):
-            digest.update(sibling.name.encode())
-            digest.update(sibling.read_bytes())
+        siblings = sorted(source.resolve().parent.glob("*.py"))
+        if len(siblings) > MAX_SIBLINGS:
+            return None
+        for sibling in siblings:
+            try:
+                if sibling.stat().st_size > MAX_SIBLING_BYTES:
+                    return None
+                digest.update(sibling.name.encode())
+                digest.update(sibling.read_bytes())
+            except OSError:
+                return None
     return digest.digest()
 
 
