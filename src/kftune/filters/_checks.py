@@ -18,8 +18,16 @@ def first_bad(mask: np.ndarray) -> tuple[int, ...]:
     return tuple(int(i) for i in np.argwhere(mask)[0])
 
 
-def check_table(name: str, value: ArrayLike, cols: tuple[str, ...], units: str) -> np.ndarray:
-    """A finite (N, len(cols)) float64 table with N ≥ 1 and no entry beyond MAX_ABS_INPUT."""
+def check_table(
+    name: str, value: ArrayLike | None, cols: tuple[str, ...], units: str
+) -> np.ndarray:
+    """A finite (N, len(cols)) float64 table with N ≥ 1 and no entry beyond MAX_ABS_INPUT
+    (None is refused: a model with inputs needs its table)."""
+    if value is None:
+        raise ValueError(
+            f"{name} must have shape (N, {len(cols)}) with N >= 1, columns "
+            f"[{', '.join(cols)}] {units}; got None"
+        )
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:

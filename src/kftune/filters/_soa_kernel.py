@@ -840,11 +840,12 @@ def ensure_compiled() -> None:
         P = np.eye(3)[None]
         u = np.zeros((2, 2))
         z = np.tile([20.0, 0.0, 0.0], (2, 1))
-        outs = [np.empty((1, 2, 3)) for _ in range(4)]
-        ints = [np.empty(1, dtype=np.int64) for _ in range(3)]
+        x_out, p_out, zh_out, inn_out = (np.empty((1, 2, 3)) for _ in range(4))
+        div, rep, why = (np.empty(1, dtype=np.int64) for _ in range(3))
         run_kernel_soa(
-            mp, u, z, 0.01, q, q, x, P, 0.5, 0.5, 0.1, 1.0, *outs, np.empty((1, 2)), *ints
-        )
+            mp, u, z, 0.01, q, q, x, P, 0.5, 0.5, 0.1, 1.0,
+            x_out, p_out, zh_out, inn_out, np.empty((1, 2)), div, rep, why,
+        )  # fmt: skip
     finally:
         for name, _, default in _LLVM_OPTIONS:
             llvm.set_option("", f"{name}={default}")

@@ -34,7 +34,7 @@ import functools
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numba
 import numpy as np
@@ -162,6 +162,21 @@ def _index(names: tuple[str, ...], name: str, what: str) -> int:
 # --------------------------------------------------------------------------------------
 
 
+class _Buffers(NamedTuple):
+    """A kernel's output buffers, in its argument order (B the settings, N the steps)."""
+
+    x: np.ndarray  # (B, N, n)
+    P_diag: np.ndarray  # (B, N, n)
+    z_hat: np.ndarray  # (B, N, m)
+    innovation: np.ndarray  # (B, N, m)
+    nis: np.ndarray  # (B, N)
+    log_det_s: np.ndarray  # (B, N)
+
+    def at(self, b: int) -> _Buffers:
+        """Setting b's buffers (views): (N, n), …, (N,)."""
+        return _Buffers(*(a[b] for a in self))
+
+
 @dataclass(frozen=True, eq=False)
 class _Run:
     """Everything a kernel needs, checked: prepared inputs, z, p, dt, q, r, priors."""
@@ -178,10 +193,10 @@ class _Run:
     n_hold: int
     held_causes: np.ndarray  # (n_held,) int64
 
-    def outputs(self) -> tuple[np.ndarray, ...]:
+    def outputs(self) -> _Buffers:
         b, n_steps = self.q.shape[0], self.z.shape[0]
         n, m = self.model.n_states, self.model.n_measurements
-        return (
+        return _Buffers(
             np.empty((b, n_steps, n)),
             np.empty((b, n_steps, n)),
             np.empty((b, n_steps, m)),
@@ -348,12 +363,13 @@ class ModelFilter(ABC):
             ValueError: bad input (naming the argument, row and what was expected).
         """
         run = _check_run(model, u, z, dt, q, r, params, x0, P0, batch=False)
-        outs = [a[0] for a in run.outputs()]
+        outs = run.outputs().at(0)
         single, _ = self._bound(run.model)
         stop, rep, cause = single(*run.head(0), *self._options(run.model), *outs)
         return FilterResult(
-            *outs[:5], stop >= 0, int(stop), int(rep), int(cause), run.model, self.name, outs[5]
-        )
+            outs.x, outs.P_diag, outs.z_hat, outs.innovation, outs.nis, stop >= 0, int(stop),
+            int(rep), int(cause), run.model, self.name, outs.log_det_s,
+        )  # fmt: skip
 
     def run_batch(
         self,
@@ -388,7 +404,7 @@ class ModelFilter(ABC):
         single, batch = self._bound(run.model)
         opts = self._options(run.model)
         if n_sets == 1:  # no thread start-up for a single set
-            stop[0], rep[0], cause[0] = single(*run.head(0), *opts, *(a[0] for a in outs))
+            stop[0], rep[0], cause[0] = single(*run.head(0), *opts, *outs.at(0))
         else:
             # one set per chunk, handed out dynamically (as run_ukf_batch)
             previous = numba.set_parallel_chunksize(1)
@@ -397,8 +413,9 @@ class ModelFilter(ABC):
             finally:
                 numba.set_parallel_chunksize(previous)
         return FilterBatchResult(
-            *outs[:5], stop >= 0, stop, rep, cause, run.model, self.name, outs[5]
-        )
+            outs.x, outs.P_diag, outs.z_hat, outs.innovation, outs.nis, stop >= 0, stop, rep,
+            cause, run.model, self.name, outs.log_det_s,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)

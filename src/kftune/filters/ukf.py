@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -260,8 +261,19 @@ def _weights(settings: UKFSettings) -> tuple[float, float, float, float]:
 # --------------------------------------------------------------------------------------
 
 
-def _alloc(shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
-    return (
+class _Outputs(NamedTuple):
+    """The kernel's per-step output buffers, in its argument order (and UKFResult's):
+    x, P_diag, z_hat, innovation (shape + (3,) each) and nis (shape)."""
+
+    x: np.ndarray
+    P_diag: np.ndarray
+    z_hat: np.ndarray
+    innovation: np.ndarray
+    nis: np.ndarray
+
+
+def _alloc(shape: tuple[int, ...]) -> _Outputs:
+    return _Outputs(
         np.empty((*shape, 3)),
         np.empty((*shape, 3)),
         np.empty((*shape, 3)),
@@ -393,19 +405,19 @@ def _run_batch(
     n_sets = q_arr.shape[0]
     wm0, wc0, wi, c = _weights(settings)
     xs, ps, zh, inn, nis = _alloc((n_sets, u_arr.shape[0]))
-    ldet: np.ndarray | None = np.empty((n_sets, u_arr.shape[0]))
+    ldet = np.empty((n_sets, u_arr.shape[0]))
+    ldet_out: np.ndarray | None = ldet
     div = np.empty(n_sets, dtype=np.int64)
     rep = np.zeros(n_sets, dtype=np.int64)
     why = np.empty(n_sets, dtype=np.int64)
     if n_sets == 1:  # no thread start-up, no padding to 8 lanes, for a single set
-        assert ldet is not None
         div[0], rep[0], why[0] = _kernel.run_kernel(
             _kernel.MODEL_SINGLE_TRACK, mp, u_arr, z_arr, dt_f, q_arr[0], r_arr[0],
             x_init[0], P_init[0], wm0, wc0, wi, c, xs[0], ps[0], zh[0], inn[0], nis[0],
             ldet[0],
         )  # fmt: skip
     elif simd:  # the vector kernel does not compute log det S (log_det_s is None)
-        ldet = None
+        ldet_out = None
         _soa.ensure_compiled()
         _soa.run_kernel_soa(
             mp, u_arr, z_arr, dt_f, q_arr, r_arr, x_init, P_init, wm0, wc0, wi, c,
@@ -422,7 +434,7 @@ def _run_batch(
             )  # fmt: skip
         finally:
             numba.set_parallel_chunksize(previous)
-    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why, ldet)
+    return UKFBatchResult(xs, ps, zh, inn, nis, div >= 0, div, rep, why, ldet_out)
 
 
 def run_ukf_batch(
@@ -640,16 +652,17 @@ def run_ukf_reference(
         settings=settings,
     )
     n = u_arr.shape[0]
-    out = [np.full((n, 3), np.nan) for _ in range(4)]
-    nis = np.full(n, np.nan)
+    out = _alloc((n,))
+    for a in out:
+        a.fill(np.nan)
     ldet = np.full(n, np.nan)
     n_hold = _kernel.hold_steps(dt_f)
     held_beta = held_vx = 0  # consecutive steps beyond the held-runaway bounds
 
     def stopped(k: int, cause: int) -> UKFResult:
-        for a in (*out, nis, ldet):
+        for a in (*out, ldet):
             a[k:] = np.nan
-        return UKFResult(*out, nis, True, k, ukf.n_repairs, cause, log_det_s=ldet)
+        return UKFResult(*out, True, k, ukf.n_repairs, cause, log_det_s=ldet)
 
     for k in range(n):
         try:
@@ -674,12 +687,12 @@ def run_ukf_reference(
             return stopped(k + 1 - n_hold, _kernel.STOP_SIDESLIP_HELD)
         if held_vx >= n_hold:
             return stopped(k + 1 - n_hold, _kernel.STOP_SPEED)
-        out[0][k] = ukf.x
-        out[1][k] = np.diag(ukf.P)
-        out[2][k] = z_hat
-        out[3][k] = ukf.y
-        nis[k] = ukf.nis
+        out.x[k] = ukf.x
+        out.P_diag[k] = np.diag(ukf.P)
+        out.z_hat[k] = z_hat
+        out.innovation[k] = ukf.y
+        out.nis[k] = ukf.nis
         ldet[k] = ukf.log_det_s
     return UKFResult(
-        *out, nis, diverged=False, diverged_step=-1, n_repairs=ukf.n_repairs, log_det_s=ldet
+        *out, diverged=False, diverged_step=-1, n_repairs=ukf.n_repairs, log_det_s=ldet
     )
