@@ -189,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
             f"{out['max_abs_ay_m_s2']:.1f} m/s², max |β| {out['max_abs_beta_deg']:.2f}°, "
             f"plant stiffness error {args.stiffness_error:.0%}, seed {args.seed}"
         )
-        print(f"  UKF q = {out['q']}, r = {[f'{v:.3g}' for v in man.r_var]}")
+        r_text = ", ".join(f"{v:.3g}" for v in man.r_var)  # numbers, not quoted strings
+        print(f"  UKF q = {out['q']}, r = [{r_text}]")
         if res.diverged:
             print(f"  the filter DIVERGED at step {res.diverged_step}: {res.diverged_reason}")
         else:

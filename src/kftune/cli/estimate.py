@@ -38,6 +38,9 @@ mean NIS of the m measurements (m), each mean with its 95 % χ² band (--json: "
 It refuses (exit 3) recordings whose sample time differs from the tuned one by more than
 1 % (Q is a variance per step) or whose vehicle parameters differ from the tuned ones, as
 ``kftune evaluate --params`` does; --force runs anyway, on the tuned vehicle, and warns.
+Without DATASET it runs on the bundled set, and so, as ``evaluate`` does, it refuses (exit 3)
+a file tuned on another dataset (the name the file records), naming it; a dataset named
+on purpose runs, with a warning that it is not the one tuned on.
 Files written before kftune recorded the sample time and vehicle are run with the
 recording's vehicle, with a warning. Its standard deviations, NIS and
 figure's band carry the file's calibration factor c (covariances c times larger, fitted by
@@ -69,6 +72,7 @@ from kftune.cli.evaluate import (
     add_force,
     add_no_calibration,
     check_recordings,
+    check_tuned_on,
     read_tuned,
     require_named_model,
 )
@@ -183,6 +187,8 @@ def run(args: argparse.Namespace) -> int:
     require_named_model(doc, args.params, args.model)
     tuned = TunedFilter.from_document(doc, str(args.params), calibrated=args.calibrated)
     dataset = open_dataset(args.dataset)
+    # without DATASET the bundled set: refused for a filter tuned on another, as evaluate does
+    check_tuned_on(tuned.document, dataset.name, args.params, args.dataset, "estimate")
     manoeuvres = pick_manoeuvres(dataset, args.split, args.manoeuvre)
     vehicle, notes = check_recordings(tuned.document, args.params, dataset, manoeuvres, args.force)
     # the model it was tuned with, loaded once before any output (a lost one is named)

@@ -278,20 +278,26 @@ def _finite(value: Any) -> bool:
     return finite_number(value)
 
 
-def _check_tuned_on(tuned: dict[str, Any], dataset: str, path: Path, named: str | None) -> None:
+def check_tuned_on(
+    tuned: dict[str, Any], dataset: str, path: Path, named: str | None, command: str = "evaluate"
+) -> None:
     """Parameters tuned on another dataset: refused when no dataset was named (the bundled
-    one would be scored by default), a warning when one was named on purpose."""
+    one would be used by default: a run on the wrong data that looks like a result), a
+    warning when one was named on purpose. ``command`` (``evaluate``, ``estimate``) is the
+    one the message suggests."""
     tuned_on = tuned.get("dataset")
     if not isinstance(tuned_on, str) or tuned_on == dataset:
         return
+    verb = "score them on" if command == "evaluate" else "run them on"
     if named is None:
         raise ConfigError(
             f"{path}: the parameters were tuned on dataset {tuned_on!r}, but no dataset was "
-            f"given and the bundled one is {dataset!r}; name the dataset to score them on "
-            f"(kftune evaluate DATASET --params {path}; 'default' for the bundled one)"
+            f"given and the bundled one is {dataset!r}; name the dataset to {verb} "
+            f"(kftune {command} DATASET --params {path}; 'default' for the bundled one)"
         )
+    done = "scored on" if command == "evaluate" else "run on"
     warnings.warn(
-        f"{path}: parameters tuned on dataset {tuned_on!r} are scored on dataset {dataset!r}",
+        f"{path}: parameters tuned on dataset {tuned_on!r} are {done} dataset {dataset!r}",
         DataWarning,
         stacklevel=2,
     )
@@ -419,7 +425,7 @@ def run(args: argparse.Namespace) -> int:
     named = pick(args, config, "dataset", None)
     dataset = open_dataset(named)
     if tuned is not None:
-        _check_tuned_on(tuned, dataset.name, args.params, named)
+        check_tuned_on(tuned, dataset.name, args.params, named)
     split, manoeuvres = pick_split(args.split, dataset)
     vehicle = dataset.vehicle
     if tuned is not None:  # the filter as tuned: for these recordings, on its vehicle

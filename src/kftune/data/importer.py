@@ -21,6 +21,7 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     delimiter = ";"                 # CSV: default sniffed from the header row
     units_row = true                # CSV: the row after the header holds units
     encoding = "cp1252"             # CSV: the text encoding (default utf-8)
+    decimal = ","                   # CSV: decimal comma (12340,5), with ";" or tab between
     struct = "data"                 # MATLAB: the signals are fields of this struct
     # raster = "YawRate"            # MDF: resample onto this signal's timestamps
 
@@ -51,8 +52,16 @@ after its own unit, scale, offset, sign and hand-wheel ratio, computed first (de
 order; a cycle is refused, naming it) — else a column of the file, as the file holds it
 (raw, in the file's units: its declared unit is not applied); in a channel's own expression
 its name is the file's column (``ax = { expr = "lowpass(ax, 10)" }``). ``t`` is the time
-[s], ``pi`` is π. The result is in the channel's ``unit`` (else its SI unit) and converted
-like a column's value; a division by zero or NaN gives bad samples, reported by row.
+[s], ``pi`` is π. The result is in the channel's ``unit`` and converted like a column's
+value. Without ``unit``: when every input has one and the same unit of the channel's
+quantity (four wheel speeds a header declares in kmph; a channel of the mapping counts as
+its SI unit), the result is in that unit; else, when no input is in a unit other than
+SI (or none declares one), in SI; else the channel is refused, naming each input's unit
+(wheel speeds in km/h and a yaw rate: convert in the expression, give ``unit``). A
+division by zero or NaN gives bad samples, reported by row. When channels disagree (ay
+against vx·r, the steering against the yaw rate), the message names the computed ones
+among them, with the unit each was taken in, and the mapping entry the ratio points at
+(``sign = -1``, a ``unit``, ``hand_wheel = true``).
 Expressions are computed over the whole recording before it is trimmed and resampled.
 
 Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``,
@@ -95,6 +104,7 @@ import dataclasses
 import fnmatch
 import graphlib
 import itertools
+import json
 import math
 import re
 import warnings
@@ -122,7 +132,10 @@ from kftune.data.validate import (
     GAP_STEPS,
     MIN_SAMPLES,
     SI_UNIT,
+    STANDARD_GRAVITY,
+    STEER_L_EFF,
     UNITS,
+    CrossCheckError,
     channel_problems,
     check_channel_name,
     check_increasing,
@@ -280,6 +293,16 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         raise bad("source.delimiter", f"expected one character, got {excerpt(delimiter)}")
     if "encoding" in options:
         _check_encoding(options["encoding"], bad)
+    decimal = options.get("decimal", ".")
+    if decimal not in (".", ","):
+        raise bad("source.decimal", f'expected "." or ",", got {excerpt(decimal)}')
+    if decimal == "," and delimiter == ",":
+        raise bad(
+            "source.decimal",
+            'decimal = "," with source.delimiter = ",": a comma cannot both separate the '
+            'fields and mark the decimals; a file with decimal commas separates them by ";" '
+            'or a tab (delimiter = ";")',
+        )
     fmt = None
     if "format" in options:
         if not isinstance(options["format"], str):
@@ -658,10 +681,13 @@ def _columns_of(m: Mapping_, spec: ChannelSpec) -> list[str]:
     return [s for s in spec.sources if s not in m.channels or s == spec.channel]
 
 
-def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+def _convert(
+    m: Mapping_, path: Path, table: Table
+) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, tuple[str, str]]]:
     """The table's columns as SI channels, with time (see the module docstring), then the
-    computed channels in dependency order; and the SI unit of each channel kftune does not
-    know."""
+    computed channels in dependency order; the SI unit of each channel kftune does not
+    know; and the unit each channel was read in with how it was chosen (``("kmph", "the
+    unit its inputs share")``), for the messages that suggest a fix."""
     file = str(path)
     lengths = {s: v.size for s, v in table.columns.items()}
     if len(set(lengths.values())) > 1:
@@ -679,6 +705,7 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
     n = next(iter(lengths.values())) if lengths else table.time.size  # type: ignore[union-attr]
     out: dict[str, np.ndarray] = {}
     si_units: dict[str, str] = {}
+    taken: dict[str, tuple[str, str]] = {}  # channel → (unit read in, how it was chosen)
     for channel, spec in m.channels.items():
         if channel == "t" and table.time is not None:
             raise DataError(
@@ -711,6 +738,8 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
                 ) from None
             values.append((table.columns[source] * spec.scale + spec.offset) * factor)
             si_units[channel] = SI_UNIT[UNITS[unit.strip()][0]]
+            how = "as given" if spec.unit else "the file's" if source in table.units else "SI"
+            taken[channel] = (unit.strip(), how)
         if len(values) == 2:
             value = np.arctan2(values[0], values[1])
             si_units[channel] = "rad"
@@ -736,13 +765,7 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
         spec = m.channels[channel]
         assert spec.expression is not None
         dim = CHANNEL_DIMENSION.get(channel)
-        unit = spec.unit or (SI_UNIT[dim] if dim else None)
-        if unit is None:
-            raise DataError(
-                f'{spec.label}: no unit in the mapping; add unit = "..." (the unit of the '
-                f"expression's result) to channels.{channel}",
-                file=m.file,
-            )
+        unit, how = _expression_unit(m, spec, table.units, si_units, path)
         names = {
             s: out[s] if s in m.channels and s != channel else table.columns[s]
             for s in spec.sources
@@ -758,8 +781,66 @@ def _convert(m: Mapping_, path: Path, table: Table) -> tuple[dict[str, np.ndarra
         factor = unit_factor(unit, dim, file=m.file, column=channel)
         out[channel] = _finish(m, spec, (value * spec.scale + spec.offset) * factor)
         si_units[channel] = SI_UNIT[UNITS[unit.strip()][0]]
+        taken[channel] = (unit.strip(), how)
     extra = {c: u for c, u in si_units.items() if c not in CHANNEL_DIMENSION}
-    return {"t": out.pop("t"), **out}, extra
+    return {"t": out.pop("t"), **out}, extra, taken
+
+
+def _expression_unit(
+    m: Mapping_,
+    spec: ChannelSpec,
+    file_units: Mapping[str, str],
+    si_units: Mapping[str, str],
+    path: Path,
+) -> tuple[str, str]:
+    """The unit of a computed channel's result, and how it was chosen (for messages).
+
+    The mapping's ``unit`` when given. Else the unit its inputs share when every input has
+    one and the same unit of the channel's quantity (four wheel speeds declared ``kmph``
+    give ``kmph``, converted like a column's value); a channel of the mapping counts as
+    its SI unit, a column as the unit its file declares. Else, when no input is in a unit
+    other than an SI one, the channel's SI unit (SI in, SI out: ``vx * omega`` in m/s²).
+    Anything else would be a guess that silently scales the channel (wheel speeds in km/h
+    and a yaw rate, a column in deg/s): refused.
+
+    Raises:
+        DataError: no unit can be chosen, naming the mapping's key and each input's unit.
+    """
+    channel = spec.channel
+    dim = CHANNEL_DIMENSION.get(channel)
+    if spec.unit is not None:
+        return spec.unit, "as given"
+    inputs: dict[str, str | None] = {}
+    for source in spec.sources:
+        if source in m.channels and source != channel:  # a channel: SI, converted already
+            known = CHANNEL_DIMENSION.get(source)
+            inputs[source] = SI_UNIT[known] if known else si_units.get(source)
+        else:
+            inputs[source] = file_units.get(source)
+    units = {u.strip() for u in inputs.values() if u is not None}
+    if len(units) == 1 and None not in inputs.values():
+        (shared,) = units
+        if shared in UNITS and (dim is None or UNITS[shared][0] == dim):
+            return shared, "the unit its inputs share"
+    non_si = [u for u in units if u not in UNITS or UNITS[u][1] != 1.0]
+    if not non_si and dim is not None:
+        why = "its inputs are in SI units" if units else "its inputs declare no unit"
+        return SI_UNIT[dim], f"SI: no unit given and {why}"
+    listed = ", ".join(f"{s} [{u or 'no unit'}]" for s, u in inputs.items()) or "none"
+    quantity = f"a {dim} (SI unit {SI_UNIT[dim]})" if dim else "a channel kftune does not know"
+    raise DataError(
+        f"{spec.label}: no unit in the mapping for the expression's result, and its inputs "
+        f"({listed}; in {path.name}) do not all share one unit of this channel, "
+        f"{quantity}: give the unit of the result in the mapping's [channels] table, "
+        f"{_entry(m, channel, unit='<unit>')}"
+        + (
+            f"; with inputs in different units, convert them to SI in the expression (km/h: "
+            f'/ 3.6, deg/s: * pi / 180) and give unit = "{SI_UNIT[dim]}"'
+            if dim
+            else ""
+        ),
+        file=m.file,
+    )
 
 
 def _finish(m: Mapping_, spec: ChannelSpec, value: np.ndarray) -> np.ndarray:
@@ -887,16 +968,25 @@ def _check_model_data(m: Mapping_, part: Mapping[str, np.ndarray], file: str, ro
 
 
 def _check_stretches(
-    m: Mapping_, file: str, starts: list[int], stretches: list[dict[str, np.ndarray]], offset: int
+    m: Mapping_,
+    file: str,
+    starts: list[int],
+    stretches: list[dict[str, np.ndarray]],
+    offset: int,
+    taken: Mapping[str, tuple[str, str]],
 ) -> None:
     """Validate every kept stretch (all bad channels at once, then each stretch and the
     model's own check), naming rows as ``start + offset + index``; warn about a stretch
     whose ay/(vx·r) is off but not certainly wrong (the whole recording is judged before
-    it is cut into segments, and each segment again when it becomes a manoeuvre)."""
+    it is cut into segments, and each segment again when it becomes a manoeuvre). Where a
+    message can name a fix in the mapping (a unit, ``sign = -1``, ``hand_wheel = true``)
+    or a computed channel to suspect, it does (``taken``: each channel's unit as read)."""
     problems: dict[str, str] = {}
     for a, part in zip(starts, stretches):
         found = channel_problems(part, row_offset=a + offset, speed_option=SPEED_OPTION)
         for channel, text in found.items():
+            if channel in m.channels and "implausible value" in text:
+                text += _channel_fixes(m, channel, taken)
             problems.setdefault(channel, text)
     if problems:
         label_of = {c: s.label for c, s in m.channels.items()}
@@ -908,19 +998,171 @@ def _check_stretches(
         )
     for a, part in zip(starts, stretches):
         row = a + offset
-        validate_channels(
-            part,
-            file=file,
-            row_offset=row,
-            resample_option=RASTER_OPTION,
-            gap_option=GAP_OPTION,
-            speed_option=SPEED_OPTION,
-        )
+        try:
+            validate_channels(
+                part,
+                file=file,
+                row_offset=row,
+                resample_option=RASTER_OPTION,
+                gap_option=GAP_OPTION,
+                speed_option=SPEED_OPTION,
+            )
+        except CrossCheckError as exc:
+            raise DataError(
+                exc.message + _cross_check_fixes(m, exc, taken),
+                file=exc.file,
+                column=exc.column,
+                row=exc.row,
+            ) from None
         _check_model_data(m, part, file, row)
         doubt = plausibility_findings(part, None).get("kinematic")
         if doubt:
             where = f"file {file}, rows {row}–{row + part['t'].size - 1}"
+            doubt += _suspects(m, ("ay", "vx", "r"), taken)
             warnings.warn(f"{where}: {doubt}", DataWarning, stacklevel=2)
+
+
+#: Fits of ay/(vx·r) that mean one channel in a wrong unit: (ratio, channel, the unit it
+#: is then in, what that is). ay in g read as m/s² gives 1/g; vx in km/h read as m/s 1/3.6;
+#: r in deg/s read as rad/s π/180; and the inverse of each for the inverse mistake.
+_RATIO_FIXES: tuple[tuple[float, str, str, str], ...] = (
+    (1 / STANDARD_GRAVITY, "ay", "g", "ay in g"),
+    (STANDARD_GRAVITY, "ay", "m/s^2", "ay in m/s² (not g)"),
+    (1 / 3.6, "vx", "km/h", "vx in km/h"),
+    (3.6, "vx", "m/s", "vx in m/s (not km/h)"),
+    (math.pi / 180, "r", "deg/s", "r in deg/s"),
+    (180 / math.pi, "r", "rad/s", "r in rad/s (not deg/s)"),
+)
+#: How far (a factor) a fitted ratio may lie from one of :data:`_RATIO_FIXES` to suggest it.
+_RATIO_NEAR = 1.25
+
+
+def _entry(m: Mapping_, channel: str, **changes: Any) -> str:
+    """A channel's entry of the mapping's ``[channels]`` table as it reads with ``changes``
+    (``ay = { column = "acc_y_right", sign = -1 }``), for messages that say what to write."""
+    spec = m.channels[channel]
+    fields: dict[str, Any] = {}
+    if spec.expression is not None:
+        fields["expr"] = spec.expression.text
+    elif len(spec.sources) == 2:
+        fields["atan2"] = list(spec.sources)
+    else:
+        fields["column"] = spec.sources[0]
+    defaults: dict[str, Any] = {
+        "unit": None,
+        "scale": 1.0,
+        "offset": 0.0,
+        "sign": 1.0,
+        "hand_wheel": False,
+    }
+    fields |= {k: getattr(spec, k) for k in defaults} | changes
+
+    def toml(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v, ensure_ascii=False)
+        if isinstance(v, list):
+            return "[" + ", ".join(toml(x) for x in v) + "]"
+        return f"{v:g}"
+
+    shown = [
+        f"{k} = {toml(v)}"
+        for k, v in fields.items()
+        if k in changes or k not in defaults or v != defaults[k]
+    ]
+    return f"{channel} = {{ {', '.join(shown)} }}"
+
+
+def _ratio_text(m: Mapping_) -> str:
+    """Which steering ratio ``hand_wheel = true`` divides by, or where to give one."""
+    if m.steering_ratio is not None:
+        return f"it divides by the mapping's steering_ratio = {m.steering_ratio:g}"
+    if m.vehicle is not None and m.vehicle.steering_ratio is not None:
+        return f"it divides by the vehicle's steering_ratio = {m.vehicle.steering_ratio:g}"
+    return (
+        "and give steering_ratio = <hand-wheel angle / road-wheel angle, e.g. 15.8> at the "
+        "top of the mapping"
+    )
+
+
+def _suspects(m: Mapping_, channels: Sequence[str], taken: Mapping[str, tuple[str, str]]) -> str:
+    """``"; suspect the computed channel vx (expression '…'), its result taken in kmph
+    (…)"`` for the computed channels among ``channels``, else ``""``: a computed channel
+    is the likeliest wrong one (its unit is the mapping's or a rule's, not the file's)."""
+    texts = [
+        f"{m.channels[c].label}, its result taken in {taken[c][0]} ({taken[c][1]})"
+        for c in channels
+        if c in m.channels and m.channels[c].expression is not None and c in taken
+    ]
+    if not texts:
+        return ""
+    return (
+        f"; suspect the computed channel{'s' if len(texts) > 1 else ''} "
+        + "; ".join(texts)
+        + " — give the result's unit in the mapping (channels.<name>.unit) if it is another"
+    )
+
+
+def _channel_fixes(m: Mapping_, channel: str, taken: Mapping[str, tuple[str, str]]) -> str:
+    """The mapping fixes for a channel with implausible values (a unit, a hand-wheel angle),
+    in the mapping's words, and the unit a computed one was taken in."""
+    spec = m.channels[channel]
+    unit = taken.get(channel, ("", ""))[0]
+    where = f"in the mapping's [channels] table ({m.file})"
+    fixes = []
+    if channel == "delta":
+        if not spec.hand_wheel:
+            fixes.append(
+                f"if it is the hand-wheel angle, set hand_wheel = true {where}: "
+                f"{_entry(m, channel, hand_wheel=True)} ({_ratio_text(m)})"
+            )
+        if unit == "rad":
+            fixes.append(f"if it is in degrees: {_entry(m, channel, unit='deg')}")
+    wrong = {"vx": ("m/s", "km/h"), "r": ("rad/s", "deg/s"), "beta_ref": ("rad", "deg")}
+    if channel in wrong and unit == wrong[channel][0]:
+        fixes.append(
+            f"if it is in {wrong[channel][1]}: {_entry(m, channel, unit=wrong[channel][1])} {where}"
+        )
+    text = "; " + "; ".join(fixes) if fixes else ""
+    return text + _suspects(m, (channel,), taken)
+
+
+def _cross_check_fixes(
+    m: Mapping_, exc: CrossCheckError, taken: Mapping[str, tuple[str, str]]
+) -> str:
+    """What to change in the mapping when channels disagree (:class:`CrossCheckError`):
+    the sign or unit that the fitted ratio points at, a hand-wheel angle, and the
+    computed channels among those compared."""
+    where = f"in the mapping's [channels] table ({m.file})"
+    fixes = []
+    value = exc.value
+    if exc.check == "kinematic" and "ay" in m.channels:
+        if value < 0:
+            fixes.append(
+                f"if ay is positive to the right, flip it {where}: "
+                f"{_entry(m, 'ay', sign=-m.channels['ay'].sign)} (or flip r the same way if "
+                "it is the yaw rate that is positive clockwise)"
+            )
+        for ratio, channel, unit, what in _RATIO_FIXES:
+            if channel in m.channels and abs(math.log(abs(value) / ratio)) < math.log(_RATIO_NEAR):
+                fixes.append(f"if {what}: {_entry(m, channel, unit=unit)} {where}")
+    if exc.check == "steering" and "delta" in m.channels:
+        spec = m.channels["delta"]
+        if value < 0:
+            fixes.append(
+                f"if δ is positive to the right, flip it {where}: "
+                f"{_entry(m, 'delta', sign=-spec.sign)}"
+            )
+        elif value > STEER_L_EFF[1] and not spec.hand_wheel:
+            fixes.append(
+                f"if delta is the hand-wheel angle, set hand_wheel = true {where}: "
+                f"{_entry(m, 'delta', hand_wheel=True)} ({_ratio_text(m)})"
+            )
+        elif 0 < value < STEER_L_EFF[0] and taken.get("delta", ("",))[0] in ("deg", "°"):
+            fixes.append(f"if δ is in rad: {_entry(m, 'delta', unit='rad')} {where}")
+    text = "; " + "; ".join(fixes) if fixes else ""
+    return text + _suspects(m, exc.channels, taken)
 
 
 def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
@@ -956,7 +1198,7 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             file=exc.file,
             column=exc.column,
         ) from None
-    channels, units = _convert(m, path, table)
+    channels, units, taken = _convert(m, path, table)
     try:  # every reader's time, once, over the whole recording (rows min_speed drops too)
         check_increasing(channels["t"], file=file, row_offset=table.row_offset)
     except DataError as exc:
@@ -997,7 +1239,7 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             column="vx",
         )
     try:
-        _check_stretches(m, file, starts, stretches, table.row_offset)
+        _check_stretches(m, file, starts, stretches, table.row_offset, taken)
     except DataError as exc:
         if raster_step is None or fmt.own_time:
             raise

@@ -15,8 +15,10 @@ CSV / TSV  .csv .tsv (.gz)          —           header row of names; separator
                                                 or ``name(unit)`` headers or a units row
                                                 (``units_row = true``); a ``#`` before the
                                                 first name (``numpy.savetxt``) is dropped;
-                                                UTF-8 or ``encoding`` (``"cp1252"``, …); rows
-                                                are the file's line numbers
+                                                UTF-8 or ``encoding`` (``"cp1252"``, …);
+                                                ``decimal = ","`` for a decimal comma (with
+                                                ``;`` or tab); rows are the file's line
+                                                numbers
 Parquet    .parquet .pq             parquet     numeric columns (nulls become NaN, reported by
                                                 validation); rows 1-based
 MATLAB     .mat                     (mat73)     v4 through ``scipy.io.loadmat``; v5–v7.2 walked
@@ -145,13 +147,36 @@ def _split_unit(name: str) -> tuple[str, str | None]:
     return name, None
 
 
+def _units_like(line: str, delimiter: str) -> bool:
+    """Whether a CSV row is a row of units, not data: no field is a number, and some field
+    (``ms``, ``[km/h]``, ``°/s``) is a unit of :data:`~kftune.data.validate.UNITS`."""
+    fields = [f.strip().strip('"').strip().strip("[]()").strip() for f in line.split(delimiter)]
+
+    def number(text: str) -> bool:
+        try:
+            float(text.replace(",", "."))
+        except ValueError:
+            return False
+        return True
+
+    return not any(number(f) for f in fields if f) and any(f in UNITS for f in fields)
+
+
 def read_text_table(
     path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
 ) -> Table:
     """A wide CSV or TSV: a header row of names, optionally a row of units, then one row of
-    numbers per sample. Only the columns named are parsed (others may hold text)."""
+    numbers per sample. Only the columns named are parsed (others may hold text).
+
+    ``options``: ``delimiter`` (default sniffed from the header row among :data:`SNIFFED`;
+    with a decimal comma, among the others), ``units_row``, ``encoding``, ``decimal``
+    (``"."``, the default, or ``","``: ``12340,5`` as a German export writes it; with ``;``
+    or a tab between the fields). A number that cannot be read in the second row, where
+    that row holds units and ``units_row`` is not set, is refused with a message that
+    suggests ``units_row = true``."""
     file = str(path)
     delimiter = options.get("delimiter")
+    decimal = options.get("decimal", ".")
     encoding = options.get("encoding", "utf-8")
     if codecs.lookup(encoding).name == "utf-8":
         fix = (
@@ -170,7 +195,15 @@ def read_text_table(
             if ".tsv" in path.name.lower():
                 delimiter = "\t"
             else:
-                delimiter = max(SNIFFED, key=lambda s: (lines[0].count(s), -SNIFFED.index(s)))
+                among = [s for s in SNIFFED if s != decimal]
+                delimiter = max(among, key=lambda s: (lines[0].count(s), -among.index(s)))
+                if decimal == "," and lines[0].count(delimiter) == 0 and "," in lines[0]:
+                    raise DataError(
+                        '[source] decimal = "," but the header row separates its names by '
+                        "commas: a decimal comma needs another delimiter (';' or a tab)",
+                        file=file,
+                        row=first_row,
+                    )
         # numpy.savetxt writes its header after "# ": the first name is "# time(s)"
         header = [_split_unit(h) for h in lines[0].removeprefix("#").split(delimiter)]
         heads = [h for h, _ in header]
@@ -195,8 +228,20 @@ def read_text_table(
             if heads.count(name) > 1:
                 raise DataError("column name appears twice in the header", file=file, column=name)
             usecols.append(heads.index(name))
-        rows = NumericRows(file, heads, delimiter, limits=limits, usecols=usecols)
-        rows.add(first_row + body, lines[body:])
+        rows = NumericRows(file, heads, delimiter, limits=limits, usecols=usecols, decimal=decimal)
+        try:
+            rows.add(first_row + body, lines[body:])
+        except DataError as exc:
+            if body != 1 or exc.row != first_row + 1 or not _units_like(lines[1], delimiter):
+                raise
+            raise DataError(
+                f"{exc.message}; this row looks like a row of units "
+                f"({excerpt(lines[1].strip(), 80)}): set units_row = true in the mapping's "
+                "[source] table",
+                file=exc.file,
+                column=exc.column,
+                row=exc.row,
+            ) from None
         for first, more in blocks:
             rows.add(first, more)
     if rows.n == 0:
@@ -958,7 +1003,7 @@ def read_mdf(
 #: Every format read, in the order listed to users. The one place suffixes are named.
 FORMATS: tuple[Format, ...] = (
     Format("CSV/TSV", (".csv", ".tsv", ".csv.gz", ".tsv.gz"), read_text_table, None,
-           ("delimiter", "units_row", "encoding")),
+           ("delimiter", "units_row", "encoding", "decimal")),
     Format("Parquet", (".parquet", ".pq"), read_parquet, "parquet", ()),
     Format("MATLAB", (".mat",), read_mat, "mat73", ("struct",)),
     Format("MDF4", (".mf4", ".mdf"), read_mdf, "mdf", ("raster",), own_time=True),

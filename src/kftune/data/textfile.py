@@ -332,6 +332,10 @@ class NumericRows:
         file: reported in errors. names: column names, for errors (their number fixes the
             number of fields of a row). separator: field separator (``None``: one value a
             line). comments: prefixes of lines to skip. limits: ``max_rows``.
+        decimal: the decimal mark, ``"."`` or ``","`` (a German export: ``12340,5``; the
+            separator must then be another character), set by an import mapping's
+            ``[source] decimal``; ``None``: ``"."``, where no option can change it (a
+            number with a comma is then refused without naming the option).
     """
 
     def __init__(
@@ -342,8 +346,12 @@ class NumericRows:
         comments: tuple[str, ...] = (),
         limits: ReadLimits | None = None,
         usecols: Sequence[int] | None = None,
+        decimal: str | None = None,
     ) -> None:
+        if decimal == "," and separator == ",":
+            raise ValueError("a decimal comma needs a separator other than the comma")
         self.file = file
+        self.decimal = decimal
         self.names = names
         self.separator = separator
         self.comments = comments
@@ -392,10 +400,12 @@ class NumericRows:
 
     def _parse(self, lines: list[str], rows: Sequence[int]) -> np.ndarray:
         every = self.usecols == list(range(len(self.names)))
+        # with a decimal comma, every comma is one (the separator is another character)
+        text = [x.replace(",", ".") for x in lines] if self.decimal == "," else lines
         try:
             with np.errstate(all="ignore"):
                 values = np.loadtxt(
-                    lines,
+                    text,
                     delimiter=self.separator,
                     dtype=np.float64,
                     ndmin=2,
@@ -428,13 +438,24 @@ class NumericRows:
             for k, j in enumerate(self.usecols):
                 text = fields[j]
                 try:
-                    if not _NUMBER.fullmatch(text.strip()):
+                    number = text.replace(",", ".") if self.decimal == "," else text
+                    if not _NUMBER.fullmatch(number.strip()):
                         raise ValueError(text)
-                    out[i, k] = float(text)
+                    out[i, k] = float(number)
                 except ValueError:
                     hint = ""
-                    if self.separator != "," and "," in text:
-                        hint = " (a decimal comma? numbers need a decimal point)"
+                    if self.decimal == "," and "." in text:
+                        hint = (
+                            ' (with [source] decimal = "," a point is no decimal mark: a '
+                            "thousands separator?)"
+                        )
+                    elif self.separator != "," and "," in text:
+                        hint = (
+                            " (a decimal comma? numbers need a decimal point)"
+                            if self.decimal is None
+                            else ' (a decimal comma? set decimal = "," in the mapping\'s '
+                            "[source] table)"
+                        )
                     what = "one number" if width == 1 else "a number"
                     raise DataError(
                         f"cannot read {excerpt(text.strip())} as {what}{hint}",

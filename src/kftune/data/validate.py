@@ -216,6 +216,35 @@ LATERAL_SHARE = 0.01
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
+class CrossCheckError(DataError):
+    """Two or more channels disagree (ay against vx·r, the steering against the yaw rate):
+    any of those compared may be the wrong one, so a caller that knows how each was made
+    (the importer: a computed channel, the mapping's keys) can say which to suspect and how
+    to fix it. The message and location are a :class:`DataError`'s.
+
+    Attributes:
+        check: ``"kinematic"`` (the fitted ay/(vx·r), :func:`kinematic_ratio`) or
+            ``"steering"`` (the effective wheelbase vx·δ/r). value: that ratio [-] or the
+            effective wheelbase [m]. channels: the channels compared.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        check: str,
+        value: float,
+        channels: tuple[str, ...],
+        file: str | None = None,
+        column: str | None = None,
+        row: int | None = None,
+    ) -> None:
+        super().__init__(message, file=file, column=column, row=row)
+        self.check = check
+        self.value = value
+        self.channels = channels
+
+
 def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: str) -> float:
     """Factor that converts ``unit`` to SI, checking it measures ``dimension``.
 
@@ -548,12 +577,15 @@ def _check_magnitudes(
     if fit is not None and fit.certainly_wrong:
         ay, vxr = arrays["ay"], arrays["vx"] * arrays["r"]
         k = fit.row
-        raise DataError(
+        raise CrossCheckError(
             f"lateral acceleration and vx·yaw rate disagree: ay/(vx·r) = {fit.ratio:.3g} in "
             f"cornering ({fit.describe()}), expected ≈ 1 (is ay in g, r in deg/s or rad/s, vx "
             f"in km/h? a negative ratio means ay and r use opposite sign conventions; "
             f"ISO 8855: both positive to the left; at this row ay = {ay[k]:.4g}, "
             f"vx·r = {vxr[k]:.4g})",
+            check="kinematic",
+            value=fit.ratio,
+            channels=("ay", "vx", "r"),
             file=_file_of("ay", file, files),
             column="ay",
             row=k + row_offset,
@@ -572,7 +604,7 @@ def _check_magnitudes(
         l_eff = float(np.sum(vd**2)) / cross if cross else math.inf
         if not STEER_L_EFF[0] <= l_eff <= STEER_L_EFF[1]:
             k = int(np.flatnonzero(steady)[np.argmax(np.abs(vxr[steady]))])
-            raise DataError(
+            raise CrossCheckError(
                 f"steering angle and yaw rate disagree: in cornering below "
                 f"{STEER_AY_LINEAR:g} m/s² the effective wheelbase vx·δ/r is {l_eff:.3g} m "
                 f"(least squares), expected {STEER_L_EFF[0]:g} to {STEER_L_EFF[1]:g} m (wheelbase "
@@ -580,6 +612,9 @@ def _check_magnitudes(
                 f"small), a hand-wheel angle without the steering ratio, or are δ and r of "
                 f"opposite sign conventions (ISO 8855: both positive to the left)? At this row "
                 f"δ = {delta[k]:.4g} rad, r = {r[k]:.4g} rad/s, vx = {vx[k]:.4g} m/s",
+                check="steering",
+                value=l_eff,
+                channels=("delta", "vx", "r"),
                 file=_file_of("delta", file, files),
                 column="delta",
                 row=k + row_offset,
