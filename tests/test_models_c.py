@@ -138,6 +138,7 @@ def rel_err(c: np.ndarray, py: np.ndarray) -> float:
 
 
 def test_c_identifier() -> None:
+    """Names become upper-case C identifiers; one with nothing to keep is refused."""
     assert c_identifier("vx") == "VX"
     assert c_identifier("F[0,1]") == "F_0_1"
     assert c_identifier("b ay") == "B_AY"
@@ -166,6 +167,7 @@ def test_header_macros_unique(model: StateSpaceModel) -> None:
 
 
 def test_header_refuses_colliding_names_and_bad_real() -> None:
+    """Two names that give one macro, and a type that is not a C real, are refused."""
     import dataclasses
 
     from kftune.models import CTRV
@@ -178,6 +180,8 @@ def test_header_refuses_colliding_names_and_bad_real() -> None:
 
 
 def test_missing_hooks_finds_a_missing_function() -> None:
+    """A function renamed away is found missing, though a comment, a prototype and a
+    call still name it; the export's refusal names it too."""
     import dataclasses
 
     from kftune.models import CTRV
@@ -198,6 +202,7 @@ def test_missing_hooks_finds_a_missing_function() -> None:
 
 
 def test_builtin_c_code_names_the_files() -> None:
+    """The built-in C files are package data; an unknown one is refused naming those there are."""
     assert "ctrv" in builtin_names()
     with pytest.raises(ValueError, match="no built-in model C file 'nope'; there are: "):
         builtin_c_code("nope")
@@ -244,6 +249,7 @@ def _ctrv_cases() -> list[tuple[np.ndarray, float]]:
 
 @needs_cc
 def test_ctrv_c_matches_python(c_model: Callable[..., CModel]) -> None:
+    """ctrv's f, F, h, H and prior against the Python on wide and branch-edge states."""
     from kftune.models import CTRV
 
     assert CTRV.c_code == builtin_c_code("ctrv")
@@ -301,6 +307,8 @@ def test_ctrv_c_matches_python_on_drawn_states(c_model: Callable[..., CModel]) -
 
 @needs_cc
 def test_linear_model_c_matches_python(c_model: Callable[..., CModel]) -> None:
+    """A linear model's generated C against its Python, its fixed prior read back exactly;
+    without a prior it is refused for that reason."""
     rng = np.random.default_rng(5)
     n, nu, m = 4, 2, 3
     F, G = rng.normal(size=(n, n)), rng.normal(size=(n, nu))
@@ -335,6 +343,7 @@ def test_linear_model_c_matches_python(c_model: Callable[..., CModel]) -> None:
 
 @needs_cc
 def test_linear_model_without_inputs_compiles(c_model: Callable[..., CModel]) -> None:
+    """No inputs (KF_NU = 0) and float: the loops over the inputs still compile warning-free."""
     model = linear_model([[0.9]], [[2.0]], name="lin-scalar", x0=[1.0], P0=[0.5])
     c = c_model(model, "float")
     assert c.f(np.array([2.0]), np.zeros(0), model.default_params(), 1.0)[0] == pytest.approx(1.8)
