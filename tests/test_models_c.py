@@ -31,7 +31,7 @@ from kftune.models.c_contract import (
     required_hooks,
 )
 
-CC = os.environ.get("CC") or shutil.which("cc")
+CC = shutil.which(os.environ.get("CC") or "cc")
 needs_cc = pytest.mark.skipif(not CC, reason="no C compiler (cc or $CC)")
 CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-shared", "-fPIC")
 
