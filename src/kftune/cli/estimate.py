@@ -96,8 +96,9 @@ def register(subparsers: Any) -> None:
         nargs="?",
         default=None,
         help="a kftune dataset: its folder or manifest, a directory in the revs-250lm "
-        "layout, or 'default' (the bundled set); raw recordings (CSV, ...) are imported "
-        "first with 'kftune dataset import'",
+        "layout, or 'default' (the bundled set, also when none is named: refused for a file "
+        "tuned on another dataset); raw recordings (CSV, ...) are imported first with "
+        "'kftune dataset import'",
     )
     p.add_argument(
         "--params", "-p", type=Path, required=True, help="tuned-parameters file ('kftune tune')"
