@@ -279,7 +279,11 @@ def _finite(value: Any) -> bool:
 
 
 def check_tuned_on(
-    tuned: dict[str, Any], dataset: str, path: Path, named: str | None, command: str = "evaluate"
+    tuned: Mapping[str, Any],
+    dataset: str,
+    path: Path,
+    named: str | None,
+    command: str = "evaluate",
 ) -> None:
     """Parameters tuned on another dataset: refused when no dataset was named (the bundled
     one would be used by default: a run on the wrong data that looks like a result), a
