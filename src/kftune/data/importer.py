@@ -1091,17 +1091,14 @@ def _suspects(m: Mapping_, channels: Sequence[str], taken: Mapping[str, tuple[st
     (…)"`` for the computed channels among ``channels``, else ``""``: a computed channel
     is the likeliest wrong one (its unit is the mapping's or a rule's, not the file's)."""
     texts = [
-        f"{m.channels[c].label}, its result taken in {taken[c][0]} ({taken[c][1]})"
+        f"{m.channels[c].label}, its result taken in {taken[c][0]} ({taken[c][1]}; if it is "
+        f"in another unit, give it as unit in channels.{c} of the mapping)"
         for c in channels
         if c in m.channels and m.channels[c].expression is not None and c in taken
     ]
     if not texts:
         return ""
-    return (
-        f"; suspect the computed channel{'s' if len(texts) > 1 else ''} "
-        + "; ".join(texts)
-        + " — give the result's unit in the mapping (channels.<name>.unit) if it is another"
-    )
+    return f"; suspect the computed channel{'s' if len(texts) > 1 else ''} " + "; ".join(texts)
 
 
 def _channel_fixes(m: Mapping_, channel: str, taken: Mapping[str, tuple[str, str]]) -> str:
