@@ -400,9 +400,10 @@ class StateSpaceModel:
         u0 = np.zeros((1, self.n_inputs)) if u is None else np.ascontiguousarray(u[:1], float)
         z0 = np.ascontiguousarray(z[0], dtype=np.float64)
         p = np.ascontiguousarray(p, dtype=np.float64)
-        finite = self.initial_state is not None
-        if finite:
-            prior = _call("initial_state(z0, r, p)", self.initial_state, z0, np.asarray(r), p)
+        rule = self.initial_state
+        finite = rule is not None
+        if rule is not None:
+            prior = _call("initial_state(z0, r, p)", rule, z0, np.asarray(r), p)
             if not (isinstance(prior, tuple) and len(prior) == 2):
                 raise ValueError("initial_state(z0, r, p) must return (x0, P0)")
             x0 = np.asarray(prior[0], dtype=np.float64)
@@ -501,7 +502,7 @@ def _call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
 
 def _filled(
     what: str,
-    fn: Dispatcher,
+    fn: Callable[..., Any],
     args: tuple[Any, ...],
     shape: int | tuple[int, int],
     names: tuple[str, ...] | None,

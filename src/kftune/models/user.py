@@ -172,7 +172,9 @@ def checked_model(model: StateSpaceModel, hooks: Iterable[str] = HOOK_ARGUMENTS)
         for name, value in list(vars(module).items()):
             if isinstance(value, Dispatcher) and value.py_func.__module__ == module.__name__:
                 setattr(module, name, checked(value))
-    changed = {h: checked(getattr(model, h)) for h in hooks if getattr(model, h) is not None}
+    changed: dict[str, Any] = {
+        h: checked(getattr(model, h)) for h in hooks if getattr(model, h) is not None
+    }
     return dataclasses.replace(model, **changed)
 
 
@@ -238,5 +240,5 @@ def _signals_seen() -> Iterator[list[int]]:
     try:
         yield seen
     finally:
-        for signum, before in previous.items():
-            signal.signal(signum, before)
+        for held, before in previous.items():
+            signal.signal(held, before)

@@ -298,7 +298,9 @@ def track_path() -> Path:
     return Path.from_curvature(layout(1.0 + float(main), 1.0 + float(back)))
 
 
-def _lap_speed_profile(path: Path, v_max: float, ay_max: float, a_acc: float, a_brake: float):
+def _lap_speed_profile(
+    path: Path, v_max: float, ay_max: float, a_acc: float, a_brake: float
+) -> Profile:
     """Speed along the path: curvature-limited, then accel/brake-limited passes, then
     smoothed."""
     s = path.s

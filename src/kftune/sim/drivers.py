@@ -17,7 +17,7 @@ import bisect
 import itertools
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,7 +60,7 @@ class Profile:
         knots: (k,) strictly increasing abscissae. values: (k,) ordinates.
     """
 
-    def __init__(self, knots: Sequence[float], values: Sequence[float]) -> None:
+    def __init__(self, knots: Iterable[float], values: Iterable[float]) -> None:
         k = [float(v) for v in knots]
         v = [float(x) for x in values]
         if len(k) != len(v) or len(k) < 1:

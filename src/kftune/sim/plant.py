@@ -294,7 +294,7 @@ class MultiBodyPlant:
         model defines it (positive when braking); requires ground speeds > 0."""
         R = self.p.R_w
         u = self.wheel_ground_speeds(x)
-        return tuple(1.0 - R * x[23 + i] / u[i] for i in range(4))  # type: ignore[return-value]
+        return tuple(1.0 - R * x[23 + i] / u[i] for i in range(4))
 
     def derivatives(self, x: list[float], steer_rate: float, accel: float) -> list[float]:
         """Time derivative of the 29 states.

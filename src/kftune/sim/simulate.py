@@ -236,7 +236,7 @@ def simulate(
         raise SimulationError(f"manoeuvre {spec.name!r}: non-finite plant state")
     loads = plant.tyre_loads(Y[:, :N_STATES])
     if loads.min() < 0.0:
-        k, w = np.unravel_index(int(np.argmin(loads)), loads.shape)
+        k, w = (int(i) for i in np.unravel_index(int(np.argmin(loads)), loads.shape))
         wheel = ("front-left", "front-right", "rear-left", "rear-right")[w]
         raise SimulationError(
             f"manoeuvre {spec.name!r}: the {wheel} wheel lifts off at t = {t[k]:.2f} s "

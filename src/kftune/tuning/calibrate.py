@@ -147,8 +147,7 @@ def required_factor(runs: Sequence[RunErrors], criterion: str) -> float:
         return float(sum(t.sum() for t in terms) / (n * m)) if n and m else math.nan
     if criterion == "crps":
         return _crps_factor(runs)
-    e = [v for r in runs for v in r.normalised().values()]
-    e = np.concatenate(e) if e else np.zeros(0)
+    e = _joined([v for r in runs for v in r.normalised().values()])
     if not e.size:
         return math.nan
     if criterion == "nees":
@@ -461,16 +460,22 @@ def _pooled(runs: Sequence[RunErrors], channel: str | None) -> ChannelConsistenc
     )
 
 
+def _joined(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """The (n_i,) parts end to end, (Σ n_i,); (0,) for none."""
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
 def _shift(a: Sequence[RunErrors], b: Sequence[RunErrors], channel: str | None) -> float:
     """RMS of the channel's estimate in runs ``b`` minus in runs ``a`` (same manoeuvres)."""
     if channel is None:
         return math.nan
-    d = [
-        rb.estimate[channel] - ra.estimate[channel]
-        for ra, rb in zip(a, b)
-        if channel in ra.estimate
-    ]
-    d = np.concatenate(d) if d else np.zeros(0)
+    d = _joined(
+        [
+            rb.estimate[channel] - ra.estimate[channel]
+            for ra, rb in zip(a, b)
+            if channel in ra.estimate
+        ]
+    )
     d = d[np.isfinite(d)]
     return float(np.sqrt(np.mean(d * d))) if d.size else math.nan
 
@@ -479,8 +484,7 @@ def _rmse(runs: Sequence[RunErrors], channel: str | None) -> float:
     """RMSE of the channel's estimate over the runs, in its unit."""
     if channel is None:
         return math.nan
-    e = [r.err[channel] for r in runs if channel in r.err]
-    e = np.concatenate(e) if e else np.zeros(0)
+    e = _joined([r.err[channel] for r in runs if channel in r.err])
     e = e[np.isfinite(e)]
     return float(np.sqrt(np.mean(e * e))) if e.size else math.nan
 

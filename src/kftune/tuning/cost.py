@@ -402,7 +402,7 @@ def innovation_nll(log_det_s: Sequence[np.ndarray], nis: Sequence[np.ndarray], n
     return value if math.isfinite(value) else math.inf
 
 
-def multistep_cost(sq_err: Sequence[np.ndarray], counts: Sequence[int]) -> float:
+def multistep_cost(sq_err: Sequence[Sequence[float] | np.ndarray], counts: Sequence[int]) -> float:
     """Multi-step prediction cost Σ_j log(mean squared h-step prediction error of channel j).
 
     From every start sample k (every :data:`MSP_STRIDE`-th), the filter's posterior x⁺_k is

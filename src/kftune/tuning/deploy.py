@@ -18,7 +18,7 @@ import hashlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from kftune.tuning.problem import (
     model_output,
 )
 from kftune.vehicle.params import VehicleParams
+
+if TYPE_CHECKING:  # imported where used: consistency imports this module's neighbours
+    from kftune.tuning.consistency import ChannelConsistency, ChiSquareMean
 
 #: Relative difference of sample times beyond which a recording is not the tuned one's.
 DT_TOLERANCE = 0.01
@@ -175,7 +178,7 @@ def tuned_model_params(
     out: dict[str, float] = {}
     for name, entry in record.items():
         where = f"'model_params.{name}'"
-        nums = (
+        nums: dict[str, Any] = (
             {k: entry.get(k) for k in ("value", "start", "low", "high")}
             if isinstance(entry, Mapping)
             else {}
@@ -491,7 +494,7 @@ def mismatches(
         out.append(
             f"the filter was tuned for vehicle {vehicle.name!r}; the recording names no vehicle"
         )
-    elif vehicle is not None:
+    elif vehicle is not None and dataset.vehicle is not None:
         differ = [
             d for d in vehicle_differences(vehicle, dataset.vehicle) if d.split()[0] not in tuned
         ]
@@ -518,7 +521,7 @@ def model_file_changed(doc: Mapping[str, Any]) -> str | None:
     )
 
 
-def finite_number(value: Any) -> bool:
+def finite_number(value: Any) -> TypeGuard[float]:
     """A JSON number (not a boolean) that is finite as a float (a huge integer is not)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return False
@@ -677,7 +680,8 @@ def consistency_of(
     ``evaluate``, ``compare``, ``tune`` and ``estimate`` report, counted in one place."""
     from kftune.tuning.consistency import as_doc, covered, of_columns, pool_runs, z_of
 
-    runs, curves = {}, {}
+    runs: dict[str, tuple[dict[str, ChannelConsistency], ChiSquareMean | None]] = {}
+    curves: dict[str, list[tuple[int, int]]] = {}  # channel → (covered, counted) per level
     zs = [z_of(p) for p in levels]
     for name, (m, est) in estimates.items():
         if est is None:

@@ -564,7 +564,7 @@ def _joint(
         points.append(xp)
     js = np.asarray(cost(np.array(points)), dtype=float).reshape(-1)
     j0 = curved[0].cost
-    hess = np.diag([float(r.curvature) for r in curved])  # type: ignore[arg-type]
+    hess: np.ndarray = np.diag([r.curvature for r in curved if r.curvature is not None])
     for (a, b), j in zip(pairs, js):
         (sa, ja), (sb, jb) = axis[curved[a].name], axis[curved[b].name]
         hess[a, b] = hess[b, a] = (j - ja - jb + j0) / (sa * sb) if math.isfinite(j) else math.nan

@@ -247,7 +247,7 @@ class NoiseParameterization:
             Param(name, *self.model_bounds[name], scale=self.model_scales[name], physical=True)
             for name in self.model_names
         ]
-        return Space(params)
+        return Space(tuple(params))
 
     def decode(
         self, x: Sequence[float] | np.ndarray, r0: np.ndarray
@@ -684,9 +684,11 @@ class FilterSpec:
         c = float(cov_scale)
         if not (math.isfinite(c) and c > 0):
             raise ValueError(f"cov_scale must be a positive finite number, got {cov_scale!r}")
+        res: RunResult
         if self.fast:
-            assert vehicle is not None or params is not None  # filter_spec refuses none
             p = vehicle if params is None else params
+            if p is None:  # filter_spec gives the paper's kernel a vehicle
+                raise ValueError("the single-track kernel needs a vehicle or its parameters")
             res = run_ukf(m.u, m.z, m.dt, p, q, r, settings=settings)
         else:
             u, z = self.inputs(m)
@@ -804,6 +806,13 @@ def _run_params(
     return fs.params
 
 
+def _log_det_s_sum(res: RunResult, k0: int) -> float:
+    """Σ log det S from step k0 on (the pem cost's); the vector kernel does not compute it."""
+    if res.log_det_s is None:
+        raise ValueError("the pem cost needs log det S, which this run did not compute")
+    return float(np.sum(res.log_det_s[k0:]))
+
+
 def _score_result(
     m: Manoeuvre,
     res: RunResult,
@@ -848,7 +857,7 @@ def _score_result(
         nrmse=scores,
         scale=scales,
         nis_sum=float(np.sum(res.nis[k0:])),
-        log_det_s_sum=float(np.sum(res.log_det_s[k0:])) if spec.kind == "pem" else 0.0,
+        log_det_s_sum=_log_det_s_sum(res, k0) if spec.kind == "pem" else 0.0,
         msp_sq=msp_sq,
         msp_n=msp_n,
         score_sum=score_sum,
@@ -1276,6 +1285,8 @@ class TuningProblem:
             q = np.array([decoded[i][0] for i in idx])
             r = np.array([decoded[i][1] for i in idx])
             vehicle = self.vehicle_at(points[idx[0]])
+            if vehicle is None:  # fast (the paper's kernel) comes with a vehicle
+                raise ValueError("the single-track kernel needs a vehicle")
             for m in self.manoeuvres:
                 batch = run_ukf_simd(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
                 for b, i in enumerate(idx):
