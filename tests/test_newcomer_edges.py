@@ -28,22 +28,36 @@ ROOT = Path(__file__).resolve().parents[1]
 
 class AnalyticProblem:
     """What :func:`edge_probes` and :func:`bound_lines` read of a TuningProblem, with a
-    cost known in closed form: J = 1 + slope·(log10 q_top − log10 q) + curve·(10 − m), so
-    that one decade below q's upper bound 1 the cost is ``slope`` higher and a tenth of m's
-    box [0, 10] below its upper bound ``curve``."""
+    cost known in closed form: J = 1 − slope·log10 q − drop·max(0, log10 q) + curve·(10 −
+    m), so that one decade below q's upper bound 1 the cost is ``slope`` higher, two
+    decades above it 2·(slope + drop) lower, and a tenth of m's box [0, 10] below its upper
+    bound ``curve`` higher; ``bowl`` adds bowl·(log10 q)², a minimum near the bound."""
 
-    def __init__(self, slope: float, curve: float = 0.0, kind: str = "nrmse") -> None:
+    def __init__(
+        self,
+        slope: float,
+        curve: float = 0.0,
+        kind: str = "nrmse",
+        drop: float = 0.0,
+        bowl: float = 0.0,
+    ) -> None:
         self.space = Space((Param("q_a", 1e-10, 1.0, scale="log10"), Param("m", 0.0, 10.0)))
         self.parameterization = SimpleNamespace(model_names=("m",))
         self.cost_spec = SimpleNamespace(kind=kind)
         self.cov_scale = 7.0  # a calibration: the probes must run at 1 and restore it
-        self.slope, self.curve = slope, curve
+        self.slope, self.curve, self.drop, self.bowl = slope, curve, drop, bowl
         self.seen_scales: list[float] = []
 
     def evaluate_batch(self, points: np.ndarray) -> list[SimpleNamespace]:
         self.seen_scales.append(self.cov_scale)
         return [
-            SimpleNamespace(cost=1.0 - self.slope * math.log10(q) + self.curve * (10.0 - m))
+            SimpleNamespace(
+                cost=1.0
+                - self.slope * math.log10(q)
+                - self.drop * max(0.0, math.log10(q))
+                + self.bowl * math.log10(q) ** 2
+                + self.curve * (10.0 - m)
+            )
             for q, m in points
         ]
 
@@ -68,12 +82,42 @@ def test_a_flat_edge_is_said_to_be_flat_with_the_measured_gain_and_no_widening()
     edge = hit["edge"]
     assert edge["value"] == pytest.approx(0.1, rel=1e-9)  # one decade in
     assert edge["rise"] == pytest.approx(2e-4, rel=1e-6) and edge["flat"]
+    beyond = edge["beyond"]  # where --widen-bounds would search: two decades out
+    assert beyond["value"] == pytest.approx(100.0) and beyond["rise"] == pytest.approx(-4e-4)
     assert edge["threshold"] == pytest.approx(FLAT_RISE * edge["best_cost"])
     assert problem.seen_scales == [1.0] and problem.cov_scale == 7.0
     (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
     assert "q_a = 1 lies within 1 % of its upper bound 1" in line
-    assert "the cost is flat there" in line and "0.02 % higher" in line
-    assert "will not help" in line and "widen the box with" not in line
+    assert "widening the box (--widen-bounds) will not help" in line
+    assert "one decade in, at q_a = 0.1, the cost is 0.02 % higher" in line
+    assert "2 decades out, at q_a = 100, 0.04 % lower" in line
+    assert "widen the box with" not in line
+
+
+def test_a_plateau_that_drops_beyond_the_bound_is_no_flat_edge():
+    """Flat over the last decade, 2 % lower two decades out (msp on revs-250lm had this
+    shape along q_vx): the step out sees it, and the hint suggests widening."""
+    problem = AnalyticProblem(slope=1e-5, drop=0.01)
+    (hit,) = edge_probes(problem, [1.0, 5.0], _hits(problem, [1.0, 5.0]))
+    assert hit["edge"]["rise"] < hit["edge"]["threshold"] and not hit["edge"]["flat"]
+    (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
+    assert "2 decades out, at q_a = 100, 2 % lower" in line
+    assert "widen the box with --widen-bounds" in line and "will not help" not in line
+
+
+def test_a_minimum_bracketed_beyond_the_bound_gains_what_its_parabola_says():
+    """0.96 % higher a decade in, 1.6 % higher two decades out (revs-250lm's r_vx_scale at
+    100 had this shape): the minimum lies between, and the parabola through the three
+    points, J = 1 + a·t² + b·t, gains b²/(4a) there — below 0.1 %: nothing to widen for."""
+    a, b = 0.0176 / 3.0, 0.008 - 2.0 * 0.0176 / 3.0
+    problem = AnalyticProblem(slope=-b, bowl=a)
+    (hit,) = edge_probes(problem, [1.0, 5.0], _hits(problem, [1.0, 5.0]))
+    edge = hit["edge"]
+    assert edge["rise"] == pytest.approx(0.0096) and edge["beyond"]["rise"] == pytest.approx(0.016)
+    assert edge["beyond"]["gain"] == pytest.approx(b * b / (4.0 * a), rel=1e-9)
+    assert edge["flat"]
+    (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
+    assert "will not help" in line and "(a parabola through them: 0.059 % lower between)" in line
 
 
 def test_an_edge_the_cost_still_falls_to_is_said_with_its_gain_and_the_widening():
@@ -93,10 +137,11 @@ def test_a_model_parameter_on_a_flat_edge_is_probed_a_tenth_of_its_box_in():
     hits = _hits(problem, [1e-5, 10.0])  # q_a inside, m on its upper bound 10
     (hit,) = edge_probes(problem, [1e-5, 10.0], hits)
     assert hit["parameter"] == "m" and hit["edge"]["step"] == "a tenth of its box"
+    assert hit["edge"]["beyond"] is None  # a model parameter's box is never widened
     assert hit["edge"]["value"] == pytest.approx(9.0)
     assert hit["edge"]["rise"] == pytest.approx(1e-5, rel=1e-6) and hit["edge"]["flat"]
     (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
-    assert "m = 10" in line and "a wider box will not help" in line
+    assert "m = 10" in line and "a wider box is unlikely to help" in line
 
 
 def test_a_cost_that_rises_towards_the_bound_is_not_flat_whatever_the_step():
@@ -104,13 +149,14 @@ def test_a_cost_that_rises_towards_the_bound_is_not_flat_whatever_the_step():
     (hit,) = edge_probes(problem, [1.0, 5.0], _hits(problem, [1.0, 5.0]))
     assert hit["edge"]["flat"]
     (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
-    assert "does not fall towards it" in line and "% lower" in line
+    assert "one decade in, at q_a = 0.1, the cost is 5 % lower" in line
+    assert "2 decades out, at q_a = 100, 10 % higher" in line and "will not help" in line
 
 
 def test_a_log_cost_is_flat_by_an_absolute_rise():
     """msp is Σ log MSE: its value shifts with the units, so its rise is judged absolutely
     (a rise of 1e-3 is a 0.1 % larger product of the MSEs), not as a share of |J*|."""
-    problem = AnalyticProblem(slope=5e-4, kind="msp")
+    problem = AnalyticProblem(slope=3e-4, kind="msp")
     problem_big = AnalyticProblem(slope=5e-3, kind="msp")
     for p, flat in ((problem, True), (problem_big, False)):
         (hit,) = edge_probes(p, [1.0, 5.0], _hits(p, [1.0, 5.0]))
@@ -121,9 +167,12 @@ def test_a_log_cost_is_flat_by_an_absolute_rise():
 
 def test_a_probe_whose_filter_diverges_is_no_flat_edge():
     problem = AnalyticProblem(slope=0.0)
-    problem.evaluate_batch = lambda pts: [SimpleNamespace(cost=1.0), RuntimeError("diverged")]
+    problem.evaluate_batch = lambda pts: (
+        [SimpleNamespace(cost=1.0)] + [RuntimeError("diverged") for _ in pts[1:]]
+    )
     (hit,) = edge_probes(problem, [1.0, 5.0], _hits(problem, [1.0, 5.0]))
     assert hit["edge"]["cost"] is None and not hit["edge"]["flat"]
+    assert hit["edge"]["beyond"]["cost"] is None
     (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
     assert "the filter diverged" in line
 
@@ -165,6 +214,17 @@ def test_tune_measures_the_edge_the_hint_reports(small, tmp_path):
     assert code == EXIT_OK, err
     assert again["cost"] == pytest.approx(edge["cost"], rel=1e-9)
     assert edge["rise"] == pytest.approx(again["cost"] - doc["cost"], rel=1e-6, abs=1e-12)
+    # two decades out, where --widen-bounds would search: the same point in a box with room
+    assert edge["beyond"]["value"] == pytest.approx(1e-7, rel=1e-9)
+    cfg.write_text(
+        "[parameters]\nq_bounds = { q_r = [1e-12, 1e-7] }\n"
+        "[options.manual]\npoints = [[1e-6, 1e-4, 1e-7, 1, 1, 1]]\n"
+    )
+    code, _, err, out_there = _tune(
+        str(small), "-m", "manual", "--config", str(cfg), "-o", str(tmp_path / "v.json")
+    )
+    assert code == EXIT_OK, err
+    assert out_there["cost"] == pytest.approx(edge["beyond"]["cost"], rel=1e-9)
 
 
 # ------------------------------------------------------------------ method labels
@@ -200,7 +260,8 @@ def test_compare_report_uses_the_labels_and_says_what_one_step_in_costs(small, t
     assert edge["value"] == pytest.approx(1e-10, rel=1e-9) and edge["cost"] is not None
     assert edge["best_cost"] == pytest.approx(manual["best_cost"], rel=1e-9)
     line = next(x for x in report.splitlines() if x.startswith("- Manual: q_r = 1e-09"))
-    assert "on its upper bound 1e-09; one decade in (q_r = 1e-10) the cost is" in line
+    assert "on its upper bound 1e-09; one decade in, at q_r = 1e-10, the cost is" in line
+    assert "2 decades out, at q_r = 1e-07," in line
     assert ("a wider box will not help" in line) is edge["flat"]
 
 

@@ -445,34 +445,51 @@ def edge_probes(
     hits: Sequence[Mapping[str, Any]],
     space: Space | None = None,
 ) -> list[dict[str, Any]]:
-    """Whether the cost still falls towards each bound the best point ``x`` lies on, by one
-    step inwards: for every hit of :func:`on_bounds` the cost at ``x`` with that parameter
-    one decade in from its bound (a log10 parameter; half its box if that is narrower) or a
-    tenth of its box in (a linear one: a model parameter, a sigma-point setting), the
-    others held — a 1-D probe, one evaluation per hit plus one at ``x``, in one batch.
-    ``space``: the box that was searched (a widened one; default ``problem.space``).
+    """Whether the cost still falls towards each bound the best point ``x`` lies on, and
+    beyond it: for every hit of :func:`on_bounds` the cost at ``x`` with that parameter one
+    step in from its bound — one decade on a log10 parameter (half its box if that is
+    narrower), a tenth of its box on a linear one (a model parameter, a sigma-point
+    setting) — and, on a log10 parameter that ``--widen-bounds`` would move (not a model
+    parameter), :data:`~kftune.optim.widen.WIDEN_DECADES` out, at the bound a widening
+    would give; the others held. A 1-D probe: one or two evaluations per hit and one at
+    ``x``, in one batch. ``space``: the box that was searched (a widened one; default
+    ``problem.space``).
 
-    Widening a box only pays where the cost still falls towards the bound: a q walked to
-    the top of its box for a 0.02 % lower cost is on a plateau (the filter has stopped
-    listening to its model there), and a wider box buys nothing. The gain of that last
-    step is what the hint reports; the step is *flat* when it is below :data:`FLAT_RISE`
+    Widening a box only pays where the cost still falls beyond the bound. A q walked to
+    the top of its box for a 0.02 % lower cost sits on a plateau, and the step in says so;
+    but a plateau can end in a drop further out (msp on revs-250lm: flat from q_vx = 0.1
+    to 10, 2 % lower at 100; BENCHMARKS.md, "Best points on a bound"), which only the
+    step out sees; and a cost that rose over the last decade may be near its minimum,
+    bracketed by a higher cost beyond (revs-250lm's r_vx_scale at 100: 0.96 % higher a
+    decade in, 1.6 % higher two decades out, and a widened run found nothing lower).
+    Where the step out is measured, the edge is *flat* when what a widening can gain —
+    the step out's drop, or a bracketed parabola's (:func:`beyond_gain`) — is below the
+    threshold; on a parameter no widening moves, when the step in rose by less than it:
+    :data:`FLAT_RISE`
     (:func:`flat_rise`; for a mean log-likelihood the 95 % likelihood-ratio rise of
-    :func:`kftune.tuning.identify.rise_of`: the data cannot tell the two points apart).
+    :func:`kftune.tuning.identify.rise_of`: the data cannot tell the points apart).
 
     Returns:
-        each hit with ``"edge"``: ``{"value"`` (the probed value), ``"step"`` (``"one
-        decade"`` …), ``"cost"`` (None: the filter diverged there), ``"best_cost"`` (J at
-        ``x``, evaluated with the probes), ``"rise"`` (J − J*; None where diverged),
-        ``"threshold"`` (the rise below which it is flat) and ``"flat"``}. J is the cost as
-        tuned (covariance scale 1, whatever calibration ``problem.cov_scale`` holds).
+        each hit with ``"edge"``: ``{"value"`` (the value one step in), ``"step"``
+        (``"one decade"`` …), ``"cost"`` (there; None: the filter diverged),
+        ``"rise"`` (J − J* there; None where diverged), ``"beyond"`` (None, or
+        ``{"value", "decades", "cost", "rise", "gain"}`` of the step out: ``rise`` < 0
+        where the cost is lower there, ``gain`` what a widening can gain by
+        :func:`beyond_gain`), ``"best_cost"`` (J* at ``x``, evaluated with the probes),
+        ``"threshold"``, ``"flat"`` (beyond measured: its gain is below the threshold;
+        else the step in rose by less), ``"cost_kind"``}. J is the cost as tuned
+        (covariance scale 1, whatever calibration ``problem.cov_scale`` holds).
     """
+    from kftune.optim.widen import WIDEN_DECADES
+
     if not hits:
         return []
     space = problem.space if space is None else space
     names = space.names
+    model_names = set(problem.parameterization.model_names)
     x = np.asarray(x, dtype=float)
     u = space.to_unit(x)
-    points, steps = [x], []
+    points, plans = [x], []
     for hit in hits:
         i = names.index(hit["parameter"])
         p = space.params[i]
@@ -482,33 +499,57 @@ def edge_probes(
             du, step = 1.0 / p.width, "one decade"
         else:
             du, step = 0.5, "half its box"
+        upper = hit["side"] == "upper"
         ui = u.copy()
-        ui[i] = ui[i] - du if hit["side"] == "upper" else ui[i] + du
+        ui[i] = ui[i] - du if upper else ui[i] + du
+        k_in, k_out = len(points), None
         points.append(space.from_unit(ui))
-        steps.append(step)
+        if p.log and p.name not in model_names:  # where --widen-bounds would search
+            out = x.copy()
+            out[i] = hit["bound"] * 10.0 ** (WIDEN_DECADES if upper else -WIDEN_DECADES)
+            k_out = len(points)
+            points.append(out)
+        plans.append((i, step, k_in, k_out, du * p.width))
     scale, problem.cov_scale = problem.cov_scale, 1.0
     try:
-        out = problem.evaluate_batch(np.array(points))
+        evaluated = problem.evaluate_batch(np.array(points))
     finally:
         problem.cov_scale = scale
-    costs = [float(getattr(e, "cost", math.inf)) for e in out]
+    costs = [float(getattr(e, "cost", math.inf)) for e in evaluated]
     j_best = costs[0]
     threshold = flat_rise(problem, j_best)
+
+    def rise(k: int) -> float | None:
+        return costs[k] - j_best if math.isfinite(costs[k]) else None
+
     probed = []
-    for hit, point, step, j in zip(hits, points[1:], steps, costs[1:]):
-        value = float(point[names.index(hit["parameter"])])
-        rise = j - j_best if math.isfinite(j) else None
+    for hit, (i, step, k_in, k_out, t_in) in zip(hits, plans):
+        beyond = None
+        r_in = rise(k_in)
+        if k_out is not None:
+            r_out = rise(k_out)
+            gain = beyond_gain(t_in, r_in, WIDEN_DECADES, r_out)
+            beyond = {
+                "value": float(points[k_out][i]),
+                "decades": WIDEN_DECADES,
+                "cost": costs[k_out] if math.isfinite(costs[k_out]) else None,
+                "rise": r_out,
+                "gain": gain,
+            }
         probed.append(
             {
                 **hit,
                 "edge": {
-                    "value": value,
+                    "value": float(points[k_in][i]),
                     "step": step,
-                    "cost": j if math.isfinite(j) else None,
+                    "cost": costs[k_in] if math.isfinite(costs[k_in]) else None,
+                    "rise": r_in,
+                    "beyond": beyond,
                     "best_cost": j_best,
-                    "rise": rise,
                     "threshold": threshold,
-                    "flat": rise is not None and rise < threshold,
+                    # where a widening would search, what it can gain; else the step in
+                    "flat": r_in is not None
+                    and (beyond["gain"] if beyond is not None else r_in) < threshold,
                     "cost_kind": problem.cost_spec.kind,
                 },
             }
@@ -516,15 +557,36 @@ def edge_probes(
     return probed
 
 
-def rise_text(edge: Mapping[str, Any]) -> str:
-    """How much higher (or lower) the cost is one step in from a bound (``edge`` of
-    :func:`edge_probes`), in the cost's own terms: a share of |J*| for a cost that scales
-    with the error, for a logarithm (msp, nis) the share by which what it is the log of
-    changes (e^|ΔJ| − 1), a mean log-likelihood's change per sample beside the change the
-    data can tell apart."""
+def beyond_gain(t_in: float, r_in: float | None, t_out: float, r_out: float | None) -> float:
+    """What a widening can gain beyond a bound, from the probes of :func:`edge_probes`:
+    the cost J* − J at the best of the point ``t_out`` decades out (rise ``r_out`` = J −
+    J* there) and the vertex of the parabola J* + a·t² + b·t through the step in (``t_in``
+    decades in, rise ``r_in``), the bound (t = 0) and the step out, where it opens upwards
+    and its vertex lies between the bound and the step out (a minimum bracketed there:
+    a = (r_in·t_out + r_out·t_in) / (t_in·t_out·(t_in + t_out)), b = r_out/t_out −
+    a·t_out, gain b²/(4a)); 0 where neither is lower than J*. A diverged probe (None)
+    gains nothing there and gives no parabola."""
+    if r_out is None:
+        return 0.0
+    gain = max(0.0, -r_out)
+    if r_in is not None:
+        a = (r_in * t_out + r_out * t_in) / (t_in * t_out * (t_in + t_out))
+        b = r_out / t_out - a * t_out
+        if a > 0 and 0.0 < -b / (2.0 * a) < t_out:
+            gain = max(gain, b * b / (4.0 * a))
+    return gain
+
+
+def rise_text(edge: Mapping[str, Any], rise: float | None = None) -> str:
+    """How much higher (or lower) the cost is at a probe of :func:`edge_probes` than at
+    the best point (``rise``: J − J*; default the step in, ``edge["rise"]``), in the
+    cost's own terms: a share of |J*| for a cost that scales with the error, for a
+    logarithm (msp, nis) the share by which what it is the log of changes (e^|ΔJ| − 1), a
+    mean log-likelihood's change per sample beside the change the data can tell apart."""
     from kftune.tuning.identify import MEAN_NLL_KINDS
 
-    rise, kind = edge["rise"], edge.get("cost_kind", "nrmse")
+    rise = edge["rise"] if rise is None else rise
+    kind = edge.get("cost_kind", "nrmse")
     way = "higher" if rise >= 0 else "lower"
     if kind in MEAN_NLL_KINDS:
         return f"{abs(rise):.2g} per sample {way} (the data tell {edge['threshold']:.2g} apart)"
@@ -533,6 +595,25 @@ def rise_text(edge: Mapping[str, Any]) -> str:
     else:
         share = abs(rise) / (abs(edge["best_cost"]) or 1.0)
     return f"{100.0 * share:.2g} % {way}"
+
+
+def edge_text(name: str, edge: Mapping[str, Any]) -> str:
+    """What the probes of :func:`edge_probes` found, for a hint: ``"one decade in, at q_vx
+    = 0.1, the cost is 0.96 % higher, and 2 decades out, at q_vx = 100, 1.6 % higher (a
+    parabola through them: 0.06 % lower between)"``."""
+    said = f"{edge['step']} in, at {name} = {edge['value']:.4g}, " + (
+        "the filter diverged" if edge["rise"] is None else f"the cost is {rise_text(edge)}"
+    )
+    beyond = edge.get("beyond")
+    if beyond is None:
+        return said
+    said += f", and {beyond['decades']:g} decades out, at {name} = {beyond['value']:.4g}, " + (
+        "the filter diverged" if beyond["rise"] is None else rise_text(edge, beyond["rise"])
+    )
+    gain = beyond.get("gain", 0.0)
+    if beyond["rise"] is not None and gain > max(0.0, -beyond["rise"]):
+        said += f" (a parabola through them: {rise_text(edge, -gain)} between)"
+    return said
 
 
 def flat_rise(problem: TuningProblem, j_best: float) -> float:

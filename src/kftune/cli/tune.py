@@ -39,11 +39,12 @@ your own search the joint box in one stage.
 
 When the best point lies on a bound of the search box (within 1 % of a parameter's range),
 tune says which parameter and which bound, and the file records it (``on_bounds``): the
-optimum may lie beyond. Unless the cost is flat there: tune runs the filter once with that
-parameter one step in (a decade, or a tenth of a linear box;
-:func:`kftune.experiment.edge_probes`), records it (``on_bounds[].edge``) and, where the cost
-gained less than 0.1 % over that step, says a wider box will not help instead of suggesting
-one. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
+optimum may lie beyond. Unless the cost is flat there: tune runs the filter with that
+parameter one step in (a decade, or a tenth of a linear box) and, where ``--widen-bounds``
+would move the bound, two decades beyond it (:func:`kftune.experiment.edge_probes`),
+records both (``on_bounds[].edge``) and, where the cost gained less than 0.1 % over the
+step in and would gain less than that beyond, says a wider box will not help instead of
+suggesting one. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
 bound out by two decades and runs the method again on the wider box with the same budget,
 at most three times; the follow-up studies lie beside ``--storage`` (``study.widen1.db`` …)
 and ``--resume`` continues them too. The best point of all runs is kept.
@@ -471,9 +472,12 @@ def failure_lines(result: OptimizeResult) -> list[str]:
 
 def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> list[str]:
     """What ``tune`` says about the search box: bounds it widened, and parameters whose
-    best value lies on a bound — with what the cost gained over the last step up to that
-    bound where it was measured (``hit["edge"]``, :func:`probe_edges`): where the cost is
-    flat there a wider box will not help, and the line says so instead of suggesting one."""
+    best value lies on a bound — with the cost one step in from that bound and, where a
+    widening would search, beyond it, where they were measured (``hit["edge"]``,
+    :func:`probe_edges`): where the cost is flat there a wider box will not help, and the
+    line says so instead of suggesting one."""
+    from kftune.experiment import edge_text
+
     lines = []
     initial = {p.name: p for p in problem.space.params}
     for p in doc["search_space"]["params"]:
@@ -483,8 +487,6 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
                 f"search box widened: {p['name']} in [{was.low:g}, {was.high:g}] -> "
                 f"[{p['low']:g}, {p['high']:g}]"
             )
-    from kftune.experiment import rise_text
-
     for hit in doc["on_bounds"]:
         name = hit["parameter"]
         log = initial[name].log if name in initial else False
@@ -494,31 +496,18 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
             f"{hit['side']} bound {hit['bound']:g}"
         )
         edge = hit.get("edge")
-        if edge is not None and edge["flat"]:
+        if edge is not None and edge["flat"] and edge.get("beyond") is not None:
             searched = log and not model and doc.get("method") != "manual"
             box = "widening the box (--widen-bounds)" if searched else "a wider box"
+            lines.append(f"{where}, but {box} will not help: {edge_text(name, edge)}")
+            continue
+        if edge is not None and edge["flat"]:  # only the step in: a parameter never widened
             lines.append(
-                f"{where}, but "
-                + (
-                    "the cost is flat there"
-                    if edge["rise"] >= 0
-                    else "the cost does not fall towards it"
-                )
-                + f": {edge['step']} in ({name} = {edge['value']:.4g}) it is "
-                + ("only " if edge["rise"] >= 0 else "")
-                + f"{rise_text(edge)}, so {box} will not help"
+                f"{where}, but the cost is flat there: {edge_text(name, edge)}, so a wider "
+                "box is unlikely to help"
             )
             continue
-        notes = []
-        if edge is not None:
-            notes.append(
-                f"{edge['step']} in, {name} = {edge['value']:.4g}, "
-                + (
-                    "the filter diverged"
-                    if edge["rise"] is None
-                    else f"the cost is {rise_text(edge)}"
-                )
-            )
+        notes = [] if edge is None else [edge_text(name, edge)]
         if not widened and doc.get("method") == "manual":  # no search to widen
             notes.append("a search (another -m) in a wider box could go there")
         elif not widened:
@@ -539,7 +528,8 @@ def probe_edges(
     problem: TuningProblem, result: OptimizeResult, hits: list[dict[str, Any]], quiet: bool
 ) -> list[dict[str, Any]]:
     """``hits`` (the best point's bounds, ``on_bounds``) each with the cost one step in
-    from its bound (:func:`kftune.experiment.edge_probes`: one filter run over the training
+    from its bound and, on a parameter a widening would move, two decades beyond it
+    (:func:`kftune.experiment.edge_probes`: one or two filter runs over the training
     manoeuvres per hit and one at the best point), so that the hint can say whether a wider
     box could help; ``hits`` unchanged where the probe could not run (interrupted, or the
     data refused): the hint then says only where the point lies. Unless ``quiet``, says on
@@ -551,8 +541,8 @@ def probe_edges(
     if not quiet:
         names = ", ".join(h["parameter"] for h in hits)
         print(
-            f"probing the cost one step in from the bound of {names} ({len(hits) + 1} "
-            "evaluations)…",
+            f"probing the cost in from and beyond the bound of {names} (at most "
+            f"{2 * len(hits) + 1} evaluations)…",
             file=sys.stderr,
             flush=True,
         )

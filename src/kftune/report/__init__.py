@@ -263,7 +263,7 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
     bound where it was measured (``"edge"``, :func:`kftune.experiment.edge_probes`): where
     it is flat a wider box will not help, and the list says so; nothing for results that
     do not record bounds."""
-    from kftune.experiment import rise_text
+    from kftune.experiment import edge_text
 
     runs = [m for m in results.methods if "on_bounds" in m.extra]
     if not runs:
@@ -274,10 +274,10 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
         return [*md, "No method's best point lies within 1 % of a bound of the search box.", ""]
     md += [
         "These tuned parameters lie within 1 % of the range of a bound. Where the cost still "
-        "falls towards the bound the optimum may lie beyond it (widen the box: `kftune tune "
-        "--widen-bounds`, or `[parameters] q_bounds`); where it is flat there (one step in, "
-        "a decade on a log10 parameter, the cost is less than 0.1 % higher), a wider box "
-        "will not help:",
+        "falls beyond the bound the optimum may lie there (widen the box: `kftune tune "
+        "--widen-bounds`, or `[parameters] q_bounds`); where a widening would gain less than "
+        "0.1 % (measured two decades out and a decade in), or the cost is flat over the "
+        "last step of a parameter no widening moves, a wider box will not help:",
         "",
     ]
     for label, h in hits:
@@ -285,12 +285,13 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
         line = f"- {label}: {name} = {h['value']:.4g}, on its {h['side']} bound {h['bound']:g}"
         edge = h.get("edge")
         if edge is not None:
-            step = f"{edge['step']} in ({name} = {edge['value']:.4g})"
-            if edge["rise"] is None:
-                line += f"; {step} the filter diverged"
-            else:
-                line += f"; {step} the cost is {rise_text(edge)}"
-                line += ": flat, a wider box will not help" if edge["flat"] else ""
+            line += f"; {edge_text(name, edge)}"
+            if edge["flat"]:
+                line += (
+                    ": a wider box will not help"
+                    if edge.get("beyond")
+                    else ": flat there, a wider box is unlikely to help"
+                )
         md.append(line)
     return [*md, ""]
 
