@@ -164,40 +164,43 @@ def test_demo_writes_what_estimate_writes(demo, tuned, tmp_path):
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
 
 
-def _diverging(tuned: Path, tmp_path: Path, q: list[float]) -> Path:
+def _edited(tuned: Path, tmp_path: Path, key: str, values: list[float]) -> Path:
+    """The tuned file with its ``q`` or ``r`` (and the deployment record's copy) replaced."""
     doc = json.loads(tuned.read_text())
-    doc["q"] = q
-    for entry, v in zip(doc["deployment"]["Q"], q):
+    doc[key] = values
+    for entry, v in zip(doc["deployment"][key.upper()], values):
         entry["variance"] = v
-    out = tmp_path / "diverging.json"
+    out = tmp_path / "edited.json"
     out.write_text(json.dumps(doc))
     return out
 
 
 @pytest.mark.parametrize(
-    ("q", "edit", "cause"),
+    ("key", "values", "vx_drop", "cause"),
     [
-        ([1e9, 1e9, 1e9], None, 3),  # the sideslip beyond 60° at the first prediction
-        (None, "vx_drop", 5),  # Vx measured half as fast for a second: held, from its start
+        # the sideslip beyond 60° at the first prediction
+        ("q", [1e9, 1e9, 1e9], False, 3),
+        # the Vx sensor barely trusted (R_vx = 100 (m/s)²) and reading 60 % low for a
+        # second: |Vx - measured| > 50 % held for 0.5 s, a stop from the drop's first step
+        ("r", [100.0, 0.0063, 1.2e-5], True, 5),
     ],
 )
-def test_c_filter_stops_where_kftune_stops(tuned, cc, tmp_path, q, edit, cause):
-    params = tuned("single-track", "ukf")
-    if q is not None:
-        params = _diverging(params, tmp_path, q)
+def test_c_filter_stops_where_kftune_stops(tuned, cc, tmp_path, key, values, vx_drop, cause):
+    params = _edited(tuned("single-track", "ukf"), tmp_path, key, values)
     out = tmp_path / "c"
     assert main(["export", str(params), "-f", "c", "-o", str(out)]) == 0
     exe = build_demo(out, out, cc)
     ds = default_dataset()
     m = ds["test-12-slalom"]
-    if edit == "vx_drop":
+    if vx_drop:
         vx = m.vx.copy()
         vx[400:500] *= 0.4
         m = m.replace(vx=vx)
-    est = estimate(TunedFilter.from_document(json.loads(params.read_text()), str(params)), m,
-                   ds.vehicle)  # fmt: skip
+    tf = TunedFilter.from_document(json.loads(params.read_text()), str(params))
+    est = estimate(tf, m, ds.vehicle)
     res = est.result
     assert res.diverged and res.diverged_cause == cause
+    assert not vx_drop or res.diverged_step == 400
     run = run_demo(exe, manoeuvre_csv(m))
     assert run.returncode == 1
     assert run.stop == (res.diverged_step, res.diverged_cause)

@@ -37,9 +37,8 @@ import re
 import shlex
 import shutil
 import subprocess
-import tempfile
 import textwrap
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,12 +53,15 @@ from kftune.report.export import _c_comment, c_macros, provenance
 from kftune.tuning.deploy import DT_TOLERANCE
 
 __all__ = [
+    "CFLAGS",
     "C_FILES",
     "PRECISIONS",
     "TOLERANCE",
+    "CheckRow",
     "DemoRun",
     "build_demo",
     "c_files",
+    "check_manoeuvre",
     "column_deviations",
     "find_compiler",
     "manoeuvre_csv",
@@ -148,6 +150,9 @@ def _filter_header(doc: Mapping[str, Any], model: StateSpaceModel, source: str) 
         if held
         else "(this model has no held conditions)"
     )
+    hold = textwrap.fill(
+        _c_comment(hold) + ".", 90, initial_indent=" *  - ", subsequent_indent=" *    "
+    )
     jac = (
         "the model's own Jacobians F and H"
         if model.F is not None and model.H is not None
@@ -205,7 +210,7 @@ def _filter_header(doc: Mapping[str, Any], model: StateSpaceModel, source: str) 
  *    NIS or estimated measurement;
  *  - the model's own causes (kf_stop_reason says them in words) from kf_model_check on
  *    each posterior estimate, at once;
- *  - {_c_comment(hold)}.
+{hold}
  *  kftune treats any stop as the filter diverging: the run ends; the outputs from
  *  kf->stop_step on are not estimates.
  *
@@ -1366,15 +1371,6 @@ def column_deviations(
         norm = float(np.linalg.norm(w[fw]))
         out[name] = 0.0 if diff == 0.0 else (diff / norm if norm > 0 else math.inf)
     return out
-
-
-def with_compiled_demo(
-    folder: Path, cc: Sequence[str], use: Callable[[Path], Any], flags: Sequence[str] = CFLAGS
-) -> Any:
-    """Build the demo of ``folder`` into a temporary folder, call ``use(exe)`` and remove
-    the folder again; the result of ``use``."""
-    with tempfile.TemporaryDirectory(prefix="kftune-c-") as tmp:
-        return use(build_demo(folder, Path(tmp), cc, flags))
 
 
 @dataclass(frozen=True)

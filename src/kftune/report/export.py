@@ -196,7 +196,9 @@ def _c_comment(text: str) -> str:
 
 
 #: Symbols of kftune's texts in plain ASCII (C comments).
-_ASCII = {"·": "*", "²": "^2", "β": "beta", "°": " deg", "≥": ">=", "≤": "<=", "−": "-"}
+_ASCII = {
+    "·": "*", "²": "^2", "β": "beta", "°": " deg", "≥": ">=", "≤": "<=", "−": "-", "±": "+-",
+}  # fmt: skip
 
 
 def provenance(doc: Mapping[str, Any], source: str) -> str:
