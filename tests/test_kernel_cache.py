@@ -1,5 +1,5 @@
 """The generic filters' kernels are compiled once per model and loaded from a cache on disk
-by later processes (:mod:`kftune.filters._compiled`): a second process hits the cache and
+by later processes (:mod:`kftune.models._generated`): a second process hits the cache and
 gives the same numbers, an edited model file is a new kernel (never a stale one), and a
 cache folder that cannot be used costs only the cache."""
 
@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 from numba import njit
 
-from kftune.filters import _compiled
-from kftune.models import StateSpaceModel
+from kftune.models import StateSpaceModel, _generated
 
 MODEL = """
 import numpy as np
@@ -132,14 +131,15 @@ def test_the_key_covers_closure_constants_and_refuses_what_it_cannot_see():
         )  # fmt: skip
 
     one, other = model_with(1.0), model_with(2.0)
-    assert _compiled._key(one) is not None
-    assert _compiled._key(one) == _compiled._key(model_with(1.0))
-    assert _compiled._key(one) != _compiled._key(other)
-    assert _compiled._key(model_with(njit(lambda v: v))) is None  # a function's behaviour
+    assert _generated._key(one, "code") is not None
+    assert _generated._key(one, "code") == _generated._key(model_with(1.0), "code")
+    assert _generated._key(one, "code") != _generated._key(other, "code")
+    assert _generated._key(model_with(njit(lambda v: v)), "code") is None  # a function's behaviour
+    assert _generated._key(one, "code") != _generated._key(one, "other code")
 
 
 def test_the_cache_keeps_the_newest_modules_and_their_code(tmp_path, monkeypatch):
-    monkeypatch.setattr(_compiled, "MAX_MODULES", 2)
+    monkeypatch.setattr(_generated, "MAX_MODULES", 2)
     (tmp_path / "__pycache__").mkdir()
     for age, name in enumerate(["kftune_kernels_c", "kftune_kernels_b", "kftune_kernels_a"]):
         module = tmp_path / f"{name}.py"
@@ -148,7 +148,7 @@ def test_the_cache_keeps_the_newest_modules_and_their_code(tmp_path, monkeypatch
         code.write_text("")
         os.utime(module, (1e9 - age, 1e9 - age))  # c newest, a oldest
     (tmp_path / "other.py").write_text("")
-    _compiled._prune(tmp_path)
+    _generated._prune(tmp_path)
     assert sorted(p.name for p in tmp_path.glob("*.py")) == [
         "kftune_kernels_b.py", "kftune_kernels_c.py", "other.py",
     ]  # fmt: skip

@@ -40,7 +40,6 @@ is not meant for, raising ``ValueError`` that names the argument, row and expect
 
 from __future__ import annotations
 
-import functools
 import inspect
 import math
 import types
@@ -466,7 +465,9 @@ class StateSpaceModel:
         w = np.ascontiguousarray(w, dtype=np.float64)
         starts = np.ascontiguousarray(starts, dtype=np.int64)
         out = np.empty((starts.shape[0], self.n_measurements))
-        run = _bound_open_loop(self.f, self.h)
+        from kftune.models._generated import generated_module  # it imports this module
+
+        run = generated_module(self, "Open-loop predictions", _OPEN_LOOP).open_loop
         run(x0, w, np.asarray(p, np.float64), float(dt), starts, int(horizon), out)
         return out
 
@@ -475,8 +476,10 @@ class StateSpaceModel:
         u_arr = np.ascontiguousarray(u, dtype=np.float64)
         if self.prepare is None:
             return u_arr
+        from kftune.models._generated import generated_module  # it imports this module
+
         out = np.empty((u_arr.shape[0], self.prepared_size))
-        _bound_prepare(self.prepare)(u_arr, p, out)
+        generated_module(self, "Prepared inputs", _PREPARE_ROWS).prepare_rows(u_arr, p, out)
         return out
 
 
@@ -532,48 +535,38 @@ def _filled(
     return out
 
 
-@functools.cache
-def _bound_prepare(prepare: Dispatcher) -> Dispatcher:
-    """:func:`prepare_inputs` with ``prepare`` held as a constant: passing a compiled function
-    from Python costs numba some 10 µs of typing per call."""
-
-    @njit(error_model="numpy")
-    def bound(u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
-        prepare_inputs(prepare, u, p, out)
-
-    return bound
+#: The loop of a model's ``prepare`` over input rows (:func:`prepare_inputs`), in the
+#: model's generated module (:mod:`kftune.models._generated`), cached across processes.
+_PREPARE_ROWS = """
+from kftune.models.base import prepare_inputs
 
 
-@functools.cache
-def _bound_open_loop(f: Dispatcher, h: Dispatcher) -> Dispatcher:
-    """:meth:`StateSpaceModel.predict_open_loop`'s loop with the model's f and h held as
-    constants (compiled once per model and process)."""
-
-    @njit(error_model="numpy")
-    def run(
-        x0: np.ndarray,
-        w: np.ndarray,
-        p: np.ndarray,
-        dt: float,
-        starts: np.ndarray,
-        horizon: int,
-        out: np.ndarray,
-    ) -> None:
-        n = x0.shape[1]
-        x = np.empty(n)
-        nxt = np.empty(n)
-        for i in range(starts.shape[0]):
-            x[:] = x0[i]
-            k = starts[i]
-            for j in range(horizon):
-                f(x, w[k + j], p, dt, nxt)
-                x[:] = nxt
-            h(x, w[k + horizon], p, out[i])
-
-    return run
+@numba.njit(error_model="numpy", cache=True)
+def prepare_rows(u, p, out):
+    prepare_inputs(prepare, u, p, out)
+"""
 
 
-@njit(error_model="numpy")
+#: :meth:`StateSpaceModel.predict_open_loop`'s loop, in the model's generated module.
+_OPEN_LOOP = """
+import numpy as np
+
+
+@numba.njit(error_model="numpy", cache=True)
+def open_loop(x0, w, p, dt, starts, horizon, out):
+    x = np.empty(x0.shape[1])
+    nxt = np.empty(x0.shape[1])
+    for i in range(starts.shape[0]):
+        x[:] = x0[i]
+        k = starts[i]
+        for j in range(horizon):
+            f(x, w[k + j], p, dt, nxt)
+            x[:] = nxt
+        h(x, w[k + horizon], p, out[i])
+"""
+
+
+@njit(error_model="numpy", inline="always")
 def prepare_inputs(prepare: Dispatcher, u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
     """out[k] = prepare(u[k], p) for every row: (N, n_u) → (N, n_w)."""
     for k in range(u.shape[0]):
