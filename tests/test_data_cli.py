@@ -157,3 +157,19 @@ def test_show_labels_each_panel_with_its_unit(tmp_path):
     res = kftune("dataset", "show", tmp_path / "other", "-o", out)
     assert res.returncode == 0, res.stderr
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_info_of_sideslip_data_without_a_vehicle(tmp_path):
+    # sideslip channels need no vehicle (a recording for a model of one's own): info
+    # reports the statistics and says there is none instead of failing on it
+    from kftune.data import Dataset, default_dataset, save_dataset
+
+    ds = default_dataset()
+    save_dataset(Dataset("novehicle", None, ds.dt, [ds.train[0].slice(0, 300)]), tmp_path)
+    res = kftune("dataset", "info", tmp_path, "--json")
+    assert res.returncode == 0, res.stderr
+    info = json.loads(res.stdout)
+    assert info["vehicle"] is None and info["splits"]["train"]["samples"] == 300
+    res = kftune("dataset", "info", tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "dataset 'novehicle': no vehicle," in res.stdout

@@ -61,7 +61,7 @@ import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Final
 
 from kftune.errors import ConfigError, DataError, RunFailedError, UsageError, excerpt
 from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
@@ -132,7 +132,7 @@ _LIMITS: dict[str, tuple[float, bool, float | None]] = {
     "timeout": (0, True, MAX_TIMEOUT),
     "burn_in": (0, False, None),
 }
-_SECTION_KEYS = {
+_SECTION_KEYS: dict[str, dict[str, Any]] = {
     "cost": {"kind": str, "weights": dict, "estimate": str, "normalise": str},
     "parameters": {
         "q_bounds": (list, dict),
@@ -525,7 +525,7 @@ def _weights_arg(text: str) -> dict[str, float]:
 #: most 0.9 % worse on the fifth) with calibrated coverage as good (BENCHMARKS.md,
 #: "kftune's recommended setting"). ``compare`` (the paper's reproduction) and
 #: ``evaluate --manual`` keep the paper's Eq. 15 with Q alone.
-RECOMMENDED_NORMALISE = "dataset"
+RECOMMENDED_NORMALISE: Final = "dataset"
 RECOMMENDED_TUNE_R = "diag"
 #: The cost's options (``--cost`` …) and their ``[cost]`` keys, any one of which makes
 #: tune's cost the user's, on the paper's defaults (Eq. 15, Q alone) as before.
@@ -829,7 +829,12 @@ def command_inputs(
         from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 
         rounds = [round_storage(given["storage"], k) for k in range(WIDEN_ROUNDS + 1)]
-        found += [(f, "a file of the study (--storage)") for r in rounds for f in study_files(r)]
+        found += [
+            (f, "a file of the study (--storage)")
+            for r in rounds
+            if r is not None
+            for f in study_files(r)
+        ]
     return found
 
 

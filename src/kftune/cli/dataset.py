@@ -286,7 +286,7 @@ def dataset_info(dataset: Dataset) -> dict[str, Any]:
     r = dataset.r_default
     return {
         "name": dataset.name,
-        "vehicle": dataset.vehicle.name,
+        "vehicle": None if dataset.vehicle is None else dataset.vehicle.name,
         "dt": dataset.dt,
         "splits": splits,
         "r_default": [float(v) for v in r],
@@ -339,10 +339,8 @@ def run_info(args: argparse.Namespace) -> int:
         for row in info["manoeuvres"]:
             print(f"{row['name']:34s} {row['kind']:16s} {row['split']:5s} {row['duration']:7.1f} s")
         return 0
-    print(
-        f"dataset {info['name']!r}: vehicle {info['vehicle']!r}, dt = {info['dt']:g} s, "
-        f"{len(dataset)} manoeuvres"
-    )
+    vehicle = "no vehicle" if info["vehicle"] is None else f"vehicle {info['vehicle']!r}"
+    print(f"dataset {info['name']!r}: {vehicle}, dt = {info['dt']:g} s, {len(dataset)} manoeuvres")
     header = (
         f"{'manoeuvre':34s} {'kind':16s} {'split':5s} {'dur[s]':>7s} {'n':>6s} "
         f"{'ay min':>7s} {'ay max':>7s} {'β min°':>7s} {'β max°':>7s} {'|ay|≥4':>7s}"

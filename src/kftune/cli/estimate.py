@@ -300,8 +300,8 @@ def run(args: argparse.Namespace) -> int:
         each, out["consistency_by_split"][split] = consistency_of(
             fs.model, tuned.burn_in, {m.name: ran[m.name] for m in ms}
         )
-        for name, doc in each.items():
-            out["manoeuvres"][name]["consistency"] = doc
+        for name, of_one in each.items():
+            out["manoeuvres"][name]["consistency"] = of_one
     one = next(iter(splits)) if len(splits) == 1 else None
     out["average"] = None if one is None else out["averages"][one]
     out["consistency"] = None if one is None else out["consistency_by_split"][one]
@@ -341,8 +341,8 @@ def _print(doc: dict[str, Any], burn_in: float) -> None:
     rows = doc["manoeuvres"]
     width = max(12, *(len(n) for n in rows))
     with_kpis = any("kpis" in r for r in rows.values())
-    heads = ("RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°") if with_kpis else ()
-    units = next((r["units"] for r in rows.values() if "units" in r), {})
+    units: dict[str, str] = next((r["units"] for r in rows.values() if "units" in r), {})
+    heads: tuple[str, ...] = ("RMSE°", "MAE°", "RMSE_NON°", "MAE_NON°") if with_kpis else ()
     heads += tuple(f"RMSE {c} {u}".rstrip() for c, u in units.items())
     widths = [max(10, len(h)) for h in heads]
     if heads:  # the accuracy (the NIS is in the consistency table below)

@@ -182,7 +182,9 @@ def _locate_model(doc: dict[str, Any], path: Path) -> None:
     looked for from the tuned file's folder (:func:`~kftune.cli._common.model_file_for`),
     and, for files written before that, from the working directory."""
     spec = doc.get("model")
-    recorded = split_model_file(spec) if isinstance(spec, str) else None
+    if not isinstance(spec, str):
+        return
+    recorded = split_model_file(spec)
     if recorded is None:  # a built-in model (the deployment record keeps what was written)
         return
     there = model_file_from(spec, path.parent)

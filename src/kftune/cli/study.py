@@ -413,7 +413,7 @@ def export_optuna(stored: Any, path: Path, name: str) -> int:
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     params = stored.settings.get("space", {}).get("params", [])
-    dists = {
+    dists: dict[str, FloatDistribution] = {
         p["name"]: FloatDistribution(p["low"], p["high"], log=p["scale"] == "log10") for p in params
     }
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -438,7 +438,7 @@ def export_optuna(stored: Any, path: Path, name: str) -> int:
                     state=TrialState.COMPLETE if rec.ok else TrialState.FAIL,
                     value=rec.value if rec.ok else None,
                     params=point,
-                    distributions=dists,
+                    distributions={**dists},  # as dict[str, BaseDistribution], optuna's hint
                     user_attrs=attrs,
                 )
             )

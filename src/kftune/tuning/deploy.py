@@ -580,10 +580,11 @@ def reference(m: Manoeuvre, channel: str = "beta_ref") -> np.ndarray | None:
 
 
 def estimate(
-    tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams, *, probe: bool = True
+    tuned: TunedFilter, m: Manoeuvre, vehicle: VehicleParams | None, *, probe: bool = True
 ) -> Estimates:
     """Run ``tuned`` (its Q and R, not re-estimated, with its calibration factor
-    ``cov_scale``) over ``m`` with ``vehicle``'s parameters, at the manoeuvre's own sample
+    ``cov_scale``) over ``m`` with ``vehicle``'s parameters (None: a model without one), at
+    the manoeuvre's own sample
     time; ``probe``: run the model's hooks
     first (:meth:`~kftune.tuning.problem.FilterSpec.probe`; False: the caller did, on
     every manoeuvre at once)."""
