@@ -1,8 +1,8 @@
 # kftune — two entry points: `make run` (the main job) and `make test` (the suite).
 # Both create .venv on first use. `make run` installs kftune with only what the main job
 # needs (numpy, scipy, numba, matplotlib, tqdm, threadpoolctl); `make test` adds the extras
-# the suite, the linter and the benchmarks use (the references, the peer optimisers, Dask,
-# the import readers, the simulator). Each set has its own marker in .venv, so `make test`
+# the suite, the linter, the type checker and the benchmarks use (the references, the peer
+# optimisers, Dask, the import readers, the simulator). Each set has its own marker in .venv, so `make test`
 # after `make run` installs only the rest, and an edit of pyproject.toml reinstalls both.
 # `make venv` prepares the main job's environment only.
 
@@ -15,7 +15,7 @@ EXTRAS := test,simulate,peers,dev,dask,import
 # Where `make run` writes its report.
 REPORT ?= report
 
-.PHONY: venv run test lint bench clean
+.PHONY: venv run test lint typecheck bench clean
 
 venv: $(RUN_STAMP)
 
@@ -40,6 +40,10 @@ test: $(TEST_STAMP)
 lint: $(TEST_STAMP)
 	$(BIN)/ruff check src tests benchmarks examples
 	$(BIN)/ruff format --check src tests benchmarks examples
+
+# mypy over src/kftune, configured in pyproject.toml ([tool.mypy]).
+typecheck: $(TEST_STAMP)
+	$(BIN)/mypy
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .ruff_cache
