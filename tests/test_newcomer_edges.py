@@ -184,19 +184,25 @@ def _tune(*args: str) -> tuple[int, str, str, dict | None]:
     return res.returncode, res.stdout, res.stderr, doc
 
 
+def _manual(small: Path, tmp_path: Path, q_r: float, box_top: float) -> tuple[str, dict]:
+    """``tune -m manual`` of the point (1e-6, 1e-4, q_r) with R factors 1 in a q_r box
+    [1e-12, box_top]: its standard output and tuned file."""
+    cfg = tmp_path / f"{q_r:g}.toml"
+    cfg.write_text(
+        f"[parameters]\nq_bounds = {{ q_r = [1e-12, {box_top!r}] }}\n"
+        f"[options.manual]\npoints = [[1e-6, 1e-4, {q_r!r}, 1, 1, 1]]\n"
+    )
+    code, out, err, doc = _tune(str(small), "-m", "manual", "--config", str(cfg), "-o",
+                                str(tmp_path / f"{q_r:g}.json"))  # fmt: skip
+    assert code == EXIT_OK, err
+    return out, doc
+
+
 def test_tune_measures_the_edge_the_hint_reports(small, tmp_path):
     """A manual point on the upper bound of q_r's box: tune evaluates the cost one decade
-    in and records and prints it; the recorded cost there is the cost a second run that
-    evaluates that very point finds (an independent evaluation of it)."""
-    cfg = tmp_path / "c.toml"
-    cfg.write_text(
-        "[parameters]\nq_bounds = { q_r = [1e-12, 1e-9] }\n"
-        "[options.manual]\npoints = [[1e-6, 1e-4, 1e-9, 1, 1, 1]]\n"
-    )
-    code, out, err, doc = _tune(
-        str(small), "-m", "manual", "--config", str(cfg), "-o", str(tmp_path / "t.json")
-    )
-    assert code == EXIT_OK, err
+    in and two decades out, records and prints them; the recorded costs there are what a
+    run that evaluates that very point finds (an independent evaluation of it)."""
+    out, doc = _manual(small, tmp_path, 1e-9, 1e-9)
     (hit,) = doc["on_bounds"]
     edge = hit["edge"]
     assert hit["parameter"] == "q_r" and edge["value"] == pytest.approx(1e-10, rel=1e-9)
@@ -204,26 +210,12 @@ def test_tune_measures_the_edge_the_hint_reports(small, tmp_path):
     (line,) = [x for x in out.splitlines() if x.startswith("best point on a bound")]
     assert "q_r = 1e-09" in line and "upper bound 1e-09" in line and "one decade in" in line
     assert ("will not help" in line) is edge["flat"]
-    cfg.write_text(
-        "[parameters]\nq_bounds = { q_r = [1e-12, 1e-9] }\n"
-        "[options.manual]\npoints = [[1e-6, 1e-4, 1e-10, 1, 1, 1]]\n"
-    )
-    code, _, err, again = _tune(
-        str(small), "-m", "manual", "--config", str(cfg), "-o", str(tmp_path / "u.json")
-    )
-    assert code == EXIT_OK, err
+    _, again = _manual(small, tmp_path, 1e-10, 1e-9)
     assert again["cost"] == pytest.approx(edge["cost"], rel=1e-9)
     assert edge["rise"] == pytest.approx(again["cost"] - doc["cost"], rel=1e-6, abs=1e-12)
     # two decades out, where --widen-bounds would search: the same point in a box with room
     assert edge["beyond"]["value"] == pytest.approx(1e-7, rel=1e-9)
-    cfg.write_text(
-        "[parameters]\nq_bounds = { q_r = [1e-12, 1e-7] }\n"
-        "[options.manual]\npoints = [[1e-6, 1e-4, 1e-7, 1, 1, 1]]\n"
-    )
-    code, _, err, out_there = _tune(
-        str(small), "-m", "manual", "--config", str(cfg), "-o", str(tmp_path / "v.json")
-    )
-    assert code == EXIT_OK, err
+    _, out_there = _manual(small, tmp_path, 1e-7, 1e-7)
     assert out_there["cost"] == pytest.approx(edge["beyond"]["cost"], rel=1e-9)
 
 
