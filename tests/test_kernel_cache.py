@@ -155,3 +155,17 @@ def test_the_cache_keeps_the_newest_modules_and_their_code(tmp_path, monkeypatch
     assert sorted(p.name.split(".")[0] for p in (tmp_path / "__pycache__").iterdir()) == [
         "kftune_kernels_b", "kftune_kernels_c",
     ]  # fmt: skip
+
+
+def test_a_bounds_checked_copy_of_a_model_is_other_code(tmp_path):
+    """The child process that checks a model file's hooks (tuning.hookcheck) runs them
+    recompiled with numba's bounds check: it must never load the unchecked kernels from
+    the cache (the check would be silently gone), nor leave checked ones for the tuning."""
+    from kftune.models.user import checked_model, load_model
+
+    model_file = tmp_path / "probe_model.py"
+    model_file.write_text(MODEL.format(gain=1.0))
+    model = load_model(str(model_file))
+    checked = checked_model(model)
+    assert checked.f.targetoptions.get("boundscheck") is True
+    assert _generated._key(model, "code") != _generated._key(checked, "code")

@@ -194,6 +194,9 @@ def _key(model: StateSpaceModel, code: str) -> str | None:
         if fn is None:
             digest.update(b"none")
             continue
+        # its compile options too: a bounds-checked copy (models.user.checked_model) is
+        # other code than the unchecked hook
+        digest.update(repr(sorted(fn.targetoptions.items())).encode())
         part = _hook_digest(fn.py_func)
         if part is None:
             return None
