@@ -25,7 +25,7 @@ from kftune import __version__
 from kftune.bo import make_surrogate
 from kftune.data.io import file_stem
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.errors import ConfigError, RunFailedError
+from kftune.errors import ConfigError, KftuneError, RunFailedError
 from kftune.models import StateSpaceModel
 from kftune.optim import (
     COMPARE_METHODS,
@@ -869,11 +869,16 @@ def method_run(
 
 def _probed_bounds(problem: TuningProblem, result: OptimizeResult) -> list[dict[str, Any]]:
     """:func:`on_bounds` of ``result``, each hit with the cost one step in from its bound
-    (:func:`edge_probes`), so that the report can say where a wider box could help."""
+    and beyond it (:func:`edge_probes`), so that the report can say where a wider box could
+    help; the hits alone where the probes could not run (the report then says only where
+    the point lies)."""
     hits = on_bounds(result)
     if not hits:
         return hits
-    return edge_probes(problem, result.x, hits, Space.from_dict(result.space))
+    try:
+        return edge_probes(problem, result.x, hits, Space.from_dict(result.space))
+    except (KftuneError, ValueError):
+        return hits
 
 
 def _calibration(
