@@ -288,7 +288,10 @@ def tune(
     ``engine`` / ``batch``: evaluate q points at a time, e.g. on a Dask cluster
     (:class:`kftune.optim.dask_engine.DaskEngine`); see :func:`kftune.minimize`.
 
-    ``method="manual"`` evaluates :func:`manual_point` unless ``options`` give ``points``.
+    ``method="manual"`` evaluates :func:`manual_point` unless ``options`` give ``points``;
+    a user's points (and TR-BO's ``x0``) are read by :func:`complete_points`, which fills in
+    what a point of Q alone leaves out and says so on standard error (unless ``progress``
+    is False).
     ``progress``: None shows a bar when stderr is a terminal and plain lines otherwise;
     True/False force the bar or nothing (:class:`~kftune.progress.ProgressBar`).
 
