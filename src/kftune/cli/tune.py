@@ -368,7 +368,9 @@ def run(args: argparse.Namespace) -> int:
         doc["calibration"] = cal.as_dict("train")
         doc["deployment"]["calibration"] = calibration_record(cal.factor)
         problem.cov_scale = cal.factor  # the held-out evidence is the calibrated filter's
-    doc["held_out"], no_evidence = held_out(problem, result.x, dataset, noise_only=noise_x)
+    doc["held_out"], no_evidence = held_out(
+        problem, result.x, dataset, noise_only=noise_x, first_box=first_box_best(result)
+    )
     if doc["held_out"] is not None or cal is not None:
         write_output(args.out, json.dumps(doc, indent=1, allow_nan=False) + "\n", "--out")
     ident, no_ident = identifiability(problem, result.x, quiet=args.quiet or args.json)
@@ -603,8 +605,26 @@ def stages_line(rec: dict[str, Any]) -> str:
     )
 
 
+def first_box_best(result: OptimizeResult) -> tuple[float, ...] | None:
+    """The best point of a ``--widen-bounds`` run's first round (the box as given), when a
+    later round's, in a widened box, is the tuned one; None otherwise."""
+    first = [
+        r
+        for r in result.history
+        if r.value is not None and r.info.get("widen_round", 0) == 0 and math.isfinite(r.value)
+    ]
+    if not first or not any(r.info.get("widen_round", 0) > 0 for r in result.history):
+        return None
+    best = min(first, key=lambda r: r.value if r.value is not None else math.inf)
+    return None if result.fun is None or best.value == result.fun else best.x
+
+
 def held_out(
-    problem: TuningProblem, x: Any, dataset: Dataset, noise_only: Any = None
+    problem: TuningProblem,
+    x: Any,
+    dataset: Dataset,
+    noise_only: Any = None,
+    first_box: Any = None,
 ) -> tuple[dict[str, Any] | None, str | None]:
     """The evidence that the lower training cost is the better filter: the tuned filter and
     the manual rule of thumb (:func:`kftune.experiment.manual_point`) on the dataset's test
@@ -621,7 +641,11 @@ def held_out(
     (``split: "train"``, ``cross_validation``: :func:`kftune.tuning.generalise.leave_one_out`).
     ``noise_only``: the first stage's best of a two-stage joint tuning (a point of the
     joint space, the model at its recorded values), scored alike
-    (``noise_only_beta_rmse_deg``, calibrated with the same c).
+    (``noise_only_beta_rmse_deg``, calibrated with the same c). ``first_box``: after
+    ``--widen-bounds``, the best point in the box as given (:func:`first_box_best`), scored
+    alike (``first_box_beta_rmse_deg``): a wider box fits the training manoeuvres better and
+    may predict the others worse (a yaw-rate noise beyond 1 (rad/s)² per step, a speed
+    sensor's R ten thousand times its estimate).
 
     Returns:
         (evidence, why not): evidence None without test manoeuvres or sideslip output (no
@@ -661,6 +685,8 @@ def held_out(
         points.append(("recorded_model", recorded_model_point(problem, x)))
     if noise_only is not None:  # the noise tuned alone at that model (calibrated alike)
         points.append(("noise_only", noise_only))
+    if first_box is not None:  # the best before the box was widened (calibrated alike)
+        points.append(("first_box", first_box))
     try:
         for key, point in points:
             problem.cov_scale = 1.0 if key == "manual" else scale
@@ -685,6 +711,7 @@ def held_out(
         "manual_beta_rmse_deg": rmse["manual"],
         **({"recorded_model_beta_rmse_deg": rmse["recorded_model"]} if joint else {}),
         **({"noise_only_beta_rmse_deg": rmse["noise_only"]} if noise_only is not None else {}),
+        **({"first_box_beta_rmse_deg": rmse["first_box"]} if first_box is not None else {}),
         "consistency": consistency,
         "calibration_factor": scale,
     }, None
@@ -703,6 +730,20 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
     if h.get("split") == "train":
         return cross_validation_line(h["cross_validation"])
     tuned, manual = h["beta_rmse_deg"], h["manual_beta_rmse_deg"]
+    first = h.get("first_box_beta_rmse_deg", "absent")
+    if first != "absent":  # --widen-bounds moved the best point out of the given box
+        line = held_out_line({k: v for k, v in h.items() if k != "first_box_beta_rmse_deg"}, cost)
+        line += f"\n  best in the box as given (before --widen-bounds): β RMSE {deg(first)}"
+        if first is not None and (tuned is None or tuned > first * SAME_RMSE):
+            worse = "diverged" if tuned is None else f"{100 * (tuned / first - 1):.1f} % worse"
+            line += (
+                f"\nwarning: the widened box's filter is {worse} on the held-out manoeuvres "
+                "than the best in the box as given: the wider box fitted the training "
+                "manoeuvres, not the car. To deploy the first box's filter, run the same "
+                "tune without --widen-bounds, with --storage STUDY --resume (its first study "
+                "is complete: it ends at once)"
+            )
+        return line
     recorded = h.get("recorded_model_beta_rmse_deg", "absent")
     if recorded != "absent":  # model parameters tuned with the noise
         joint_keys = ("recorded_model_beta_rmse_deg", "noise_only_beta_rmse_deg")
