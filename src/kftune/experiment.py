@@ -215,12 +215,17 @@ SEEDABLE_METHODS: tuple[str, ...] = ("trbo",)
 class Staging:
     """How a joint tuning splits its budget: ``noise_budget`` evaluations of the noise
     alone at the recorded model (stage 1, its study in ``noise_storage``), then
-    ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two."""
+    ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two.
+    ``noise_design``, ``joint_design``: the points of TR-BO's initial design in each stage
+    (2d + 1 unless ``n_init`` is given), which a stage's budget should exceed for its
+    search to begin."""
 
     total: int
     noise_budget: int
     joint_budget: int
     noise_storage: Path | None
+    noise_design: int = 0
+    joint_design: int = 0
 
     def line(self) -> str:
         """What ``tune`` says about the split."""
@@ -228,6 +233,25 @@ class Staging:
             f"{self.total} evaluations in two stages: {self.noise_budget} of the noise alone "
             f"at the recorded model, then {self.joint_budget} of the joint search starting "
             "from its best"
+        )
+
+    def warning(self) -> str | None:
+        """A sentence when a stage's budget ends within its initial design (stage 2 also
+        spends one evaluation on stage 1's best), with the smallest total that gives each
+        stage at least one search step; None when both search."""
+        if self.noise_budget > self.noise_design and self.joint_budget > self.joint_design + 1:
+            return None
+        need = self.total
+        while True:
+            need += 1
+            noise = _noise_share(need)
+            if noise > self.noise_design and need - noise > self.joint_design + 1:
+                break
+        return (
+            f"{self.noise_budget} evaluations of the noise alone and {self.joint_budget} of "
+            f"the joint search end within TR-BO's initial designs ({self.noise_design} and "
+            f"{self.joint_design} points, the centre and two per parameter): the search "
+            f"itself never starts and the result is a design point; give -n {need} or more"
         )
 
 
@@ -264,8 +288,23 @@ def staging(
     total = budget if budget is not None else make_optimizer(method, problem.space).budget
     if total < 2:
         return None
-    noise = min(total - 1, max(1, round(total * NOISE_STAGE_SHARE)))
-    return Staging(total, noise, total - noise, noise_stage_storage(storage))
+    noise = _noise_share(total)
+    d = problem.space.dim
+    d_noise = d - len(problem.parameterization.model_names)
+    n_init = (options or {}).get("n_init")
+
+    def design(dim: int) -> int:
+        return int(n_init) if isinstance(n_init, int) and n_init > 0 else 2 * dim + 1
+
+    return Staging(
+        total, noise, total - noise, noise_stage_storage(storage), design(d_noise), design(d)
+    )
+
+
+def _noise_share(total: int) -> int:
+    """Stage 1's evaluations of a two-stage tuning of ``total``: :data:`NOISE_STAGE_SHARE`,
+    at least one and at most ``total − 1``."""
+    return min(total - 1, max(1, round(total * NOISE_STAGE_SHARE)))
 
 
 def tune(
@@ -462,13 +501,8 @@ def edge_probes(
     the top of its box for a 0.02 % lower cost sits on a plateau, and the step in says so;
     but a plateau can end in a drop further out (msp on revs-250lm: flat from q_vx = 0.1
     to 10, 2 % lower at 100; BENCHMARKS.md, "Best points on a bound"), which only the
-    step out sees; and a cost that rose over the last decade may be near its minimum,
-    bracketed by a higher cost beyond (revs-250lm's r_vx_scale at 100: 0.96 % higher a
-    decade in, 1.6 % higher two decades out, and a widened run found nothing lower).
-    Where the step out is measured, the edge is *flat* when what a widening can gain —
-    the step out's drop, or a bracketed parabola's (:func:`beyond_gain`) — is below the
-    threshold; on a parameter no widening moves, when the step in rose by less than it:
-    :data:`FLAT_RISE`
+    step out sees. The edge is *flat* when the step in rose by less than the threshold
+    and the step out (where measured) is lower by less than it: :data:`FLAT_RISE`
     (:func:`flat_rise`; for a mean log-likelihood the 95 % likelihood-ratio rise of
     :func:`kftune.tuning.identify.rise_of`: the data cannot tell the points apart).
 
@@ -476,12 +510,10 @@ def edge_probes(
         each hit with ``"edge"``: ``{"value"`` (the value one step in), ``"step"``
         (``"one decade"`` …), ``"cost"`` (there; None: the filter diverged),
         ``"rise"`` (J − J* there; None where diverged), ``"beyond"`` (None, or
-        ``{"value", "decades", "cost", "rise", "gain"}`` of the step out: ``rise`` < 0
-        where the cost is lower there, ``gain`` what a widening can gain by
-        :func:`beyond_gain`), ``"best_cost"`` (J* at ``x``, evaluated with the probes),
-        ``"threshold"``, ``"flat"`` (beyond measured: its gain is below the threshold;
-        else the step in rose by less), ``"cost_kind"``}. J is the cost as tuned
-        (covariance scale 1, whatever calibration ``problem.cov_scale`` holds).
+        ``{"value", "decades", "cost", "rise"}`` of the step out: ``rise`` < 0 where the
+        cost is lower there), ``"best_cost"`` (J* at ``x``, evaluated with the probes),
+        ``"threshold"``, ``"flat"``, ``"cost_kind"``}. J is the cost as tuned (covariance
+        scale 1, whatever calibration ``problem.cov_scale`` holds).
     """
     from kftune.optim.widen import WIDEN_DECADES
 
@@ -512,7 +544,7 @@ def edge_probes(
             out[i] = hit["bound"] * 10.0 ** (WIDEN_DECADES if upper else -WIDEN_DECADES)
             k_out = len(points)
             points.append(out)
-        plans.append((i, step, k_in, k_out, du * p.width))
+        plans.append((i, step, k_in, k_out))
     scale, problem.cov_scale = problem.cov_scale, 1.0
     try:
         evaluated = problem.evaluate_batch(np.array(points))
@@ -526,18 +558,16 @@ def edge_probes(
         return costs[k] - j_best if math.isfinite(costs[k]) else None
 
     probed = []
-    for hit, (i, step, k_in, k_out, t_in) in zip(hits, plans):
+    for hit, (i, step, k_in, k_out) in zip(hits, plans):
         beyond = None
         r_in = rise(k_in)
         if k_out is not None:
             r_out = rise(k_out)
-            gain = beyond_gain(t_in, r_in, WIDEN_DECADES, r_out)
             beyond = {
                 "value": float(points[k_out][i]),
                 "decades": WIDEN_DECADES,
                 "cost": costs[k_out] if math.isfinite(costs[k_out]) else None,
                 "rise": r_out,
-                "gain": gain,
             }
         probed.append(
             {
@@ -550,34 +580,15 @@ def edge_probes(
                     "beyond": beyond,
                     "best_cost": j_best,
                     "threshold": threshold,
-                    # where a widening would search, what it can gain; else the step in
+                    # the last step gained little, and a widening's reach gains no more
                     "flat": r_in is not None
-                    and (beyond["gain"] if beyond is not None else r_in) < threshold,
+                    and r_in < threshold
+                    and (beyond is None or beyond["rise"] is None or beyond["rise"] > -threshold),
                     "cost_kind": problem.cost_spec.kind,
                 },
             }
         )
     return probed
-
-
-def beyond_gain(t_in: float, r_in: float | None, t_out: float, r_out: float | None) -> float:
-    """What a widening can gain beyond a bound, from the probes of :func:`edge_probes`:
-    the cost J* − J at the best of the point ``t_out`` decades out (rise ``r_out`` = J −
-    J* there) and the vertex of the parabola J* + a·t² + b·t through the step in (``t_in``
-    decades in, rise ``r_in``), the bound (t = 0) and the step out, where it opens upwards
-    and its vertex lies between the bound and the step out (a minimum bracketed there:
-    a = (r_in·t_out + r_out·t_in) / (t_in·t_out·(t_in + t_out)), b = r_out/t_out −
-    a·t_out, gain b²/(4a)); 0 where neither is lower than J*. A diverged probe (None)
-    gains nothing there and gives no parabola."""
-    if r_out is None:
-        return 0.0
-    gain = max(0.0, -r_out)
-    if r_in is not None:
-        a = (r_in * t_out + r_out * t_in) / (t_in * t_out * (t_in + t_out))
-        b = r_out / t_out - a * t_out
-        if a > 0 and 0.0 < -b / (2.0 * a) < t_out:
-            gain = max(gain, b * b / (4.0 * a))
-    return gain
 
 
 def rise_text(edge: Mapping[str, Any], rise: float | None = None) -> str:
@@ -597,13 +608,13 @@ def rise_text(edge: Mapping[str, Any], rise: float | None = None) -> str:
         share = math.expm1(abs(rise))
     else:
         share = abs(rise) / (abs(edge["best_cost"]) or 1.0)
-    return f"{100.0 * share:.2g} % {way}"
+    pct = 100.0 * share
+    return f"{pct:.2g} % {way}" if pct < 100.0 else f"{pct:,.0f} % {way}"
 
 
 def edge_text(name: str, edge: Mapping[str, Any]) -> str:
     """What the probes of :func:`edge_probes` found, for a hint: ``"one decade in, at q_vx
-    = 0.1, the cost is 0.96 % higher, and 2 decades out, at q_vx = 100, 1.6 % higher (a
-    parabola through them: 0.06 % lower between)"``."""
+    = 0.1, the cost is 0.96 % higher, and 2 decades out, at q_vx = 100, 1.6 % higher"``."""
     said = f"{edge['step']} in, at {name} = {edge['value']:.4g}, " + (
         "the filter diverged" if edge["rise"] is None else f"the cost is {rise_text(edge)}"
     )
@@ -613,9 +624,6 @@ def edge_text(name: str, edge: Mapping[str, Any]) -> str:
     said += f", and {beyond['decades']:g} decades out, at {name} = {beyond['value']:.4g}, " + (
         "the filter diverged" if beyond["rise"] is None else rise_text(edge, beyond["rise"])
     )
-    gain = beyond.get("gain", 0.0)
-    if beyond["rise"] is not None and gain > max(0.0, -beyond["rise"]):
-        said += f" (a parabola through them: {rise_text(edge, -gain)} between)"
     return said
 
 

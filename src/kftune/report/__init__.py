@@ -275,9 +275,9 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
     md += [
         "These tuned parameters lie within 1 % of the range of a bound. Where the cost still "
         "falls beyond the bound the optimum may lie there (widen the box: `kftune tune "
-        "--widen-bounds`, or `[parameters] q_bounds`); where a widening would gain less than "
-        "0.1 % (measured two decades out and a decade in), or the cost is flat over the "
-        "last step of a parameter no widening moves, a wider box will not help:",
+        "--widen-bounds`, or `[parameters] q_bounds`); where the cost rose by less than "
+        "0.1 % over the last step (a decade on a log10 parameter) and, where a widening "
+        "would search, is not 0.1 % lower two decades out, a wider box will not help:",
         "",
     ]
     for label, h in hits:
