@@ -73,7 +73,7 @@ class CommandParser(argparse.ArgumentParser):
     ``usage: kftune [-h] …`` and not the command that was mistyped).
     """
 
-    def parse_known_args(  # type: ignore[override]
+    def parse_known_args(  # type: ignore[override]  # typeshed's overloads; the plain form
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
         parsed, extra = super().parse_known_args(args, namespace)

@@ -351,13 +351,14 @@ def _check(node: ast.AST, text: str, names: dict[str, None], depth: int) -> None
             )
             raise ExprError(f"{name}(){where} takes {wanted} argument(s) ({what}), got {n}")
         if name in ("clip", "lowpass"):
-            numbers = [_number(a) for a in node.args[1:]]
-            if any(v is None or not math.isfinite(v) for v in numbers):
+            given = [_number(a) for a in node.args[1:]]
+            numbers = [v for v in given if v is not None and math.isfinite(v)]
+            if len(numbers) < len(given):
                 rest = "lo and hi" if name == "clip" else "the cut-off [Hz]"
                 raise ExprError(f"{name}(){where}: {rest} must be numbers ({what})")
-            if name == "clip" and not numbers[0] <= numbers[1]:  # type: ignore[operator]
+            if name == "clip" and not numbers[0] <= numbers[1]:
                 raise ExprError(f"clip(){where}: lo must not exceed hi ({what})")
-            if name == "lowpass" and not numbers[0] > 0:  # type: ignore[operator]
+            if name == "lowpass" and not numbers[0] > 0:
                 raise ExprError(f"lowpass(){where}: the cut-off must be > 0 Hz")
         for a in node.args:
             _check(a, text, names, depth + 1)

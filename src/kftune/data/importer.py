@@ -696,13 +696,16 @@ def _convert(
             "must be sampled together",
             file=file,
         )
-    if not lengths and table.time is None:
+    if lengths:
+        n = next(iter(lengths.values()))
+    elif table.time is not None:
+        n = table.time.size
+    else:
         raise DataError(
             "key 'channels': the mapping names no column of the file (an expression of "
             "numbers alone has no samples)",
             file=m.file,
         )
-    n = next(iter(lengths.values())) if lengths else table.time.size  # type: ignore[union-attr]
     out: dict[str, np.ndarray] = {}
     si_units: dict[str, str] = {}
     taken: dict[str, tuple[str, str]] = {}  # channel → (unit read in, how it was chosen)

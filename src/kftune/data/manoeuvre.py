@@ -445,6 +445,7 @@ class Dataset:
             MissingChannelError: a manoeuvre lacks one of the channels (named).
         """
         names = tuple(channels)
+        # set in __post_init__, not a field (no part of a dataset's equality or repr)
         cache: dict[tuple[str, ...], np.ndarray] = self._noise  # type: ignore[attr-defined]
         if names not in cache:
             cache[names] = _frozen(

@@ -221,9 +221,10 @@ class Optimizer(ABC):
             ValueError: n is not a positive integer.
         """
         if n is None:
-            if self._pending:
+            waiting = self.pending
+            if waiting is not None:
                 raise RuntimeError(
-                    f"trial {self.pending.number} is still pending: tell its result before "  # type: ignore[union-attr]
+                    f"trial {waiting.number} is still pending: tell its result before "
                     "asking for another point (or ask for a batch with ask(n))"
                 )
             self._check_not_done()

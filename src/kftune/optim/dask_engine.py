@@ -53,7 +53,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -275,6 +275,16 @@ def _check_address(scheduler: str) -> None:
         )
 
 
+@runtime_checkable
+class _ChunkedObjective(Protocol):
+    """What the engine reads of a :class:`~kftune.tuning.problem.TuningProblem` to split a
+    point's evaluation across workers by manoeuvre and pool the parts."""
+
+    def manoeuvre_chunks(self, k: int) -> list[Any]: ...
+
+    def _pool_scores(self, scores: Sequence[Any]) -> Any: ...
+
+
 class DaskEngine(Engine):
     """Evaluates batches on a Dask cluster.
 
@@ -308,6 +318,8 @@ class DaskEngine(Engine):
         if not (isinstance(workers, int) and workers >= 1):
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.fun = fun
+        # a tuning problem: its points may be split across workers by manoeuvre
+        self._chunked = fun if isinstance(fun, _ChunkedObjective) else None
         self.retries = int(retries)
         self._cluster: Any = None
         self.client: Any = None
@@ -425,8 +437,8 @@ class DaskEngine(Engine):
             return
         # Splitting never changes a result, so it may follow the cluster's current size.
         k = self._threads() // len(points)
-        split = k > 1 and hasattr(self.fun, "manoeuvre_chunks")  # a tuning problem
-        chunks: list[Any] = self.fun.manoeuvre_chunks(k) if split else [None]  # type: ignore[attr-defined]
+        chunked = self._chunked if k > 1 else None
+        chunks: list[Any] = chunked.manoeuvre_chunks(k) if chunked is not None else [None]
         split = len(chunks) > 1
         # task future -> (point, chunk, attempt)
         tasks: dict[Any, tuple[int, int, int]] = {}
@@ -491,7 +503,9 @@ class DaskEngine(Engine):
         for c, p in parts.items():
             by_index.update(zip(chunks[c], p[1]))
         scores = [by_index[j] for j in sorted(by_index)]
-        return float(self.fun._pool_scores(scores).cost), None, t  # type: ignore[attr-defined]
+        if self._chunked is None:  # only a chunked objective's points come in parts
+            raise RuntimeError("a point came back in parts from an objective without chunks")
+        return float(self._chunked._pool_scores(scores).cost), None, t
 
     def close(self) -> None:
         """Close the client, and the local cluster this engine started. Nothing of it is

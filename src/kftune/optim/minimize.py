@@ -232,8 +232,11 @@ def minimize(
         "objective": objective,
     }
     q = 1
+    if batch is not None:
+        q = batch
+    elif engine is not None:
+        q = max(1, int(engine.workers))
     if batched:
-        q = batch if batch is not None else max(1, int(engine.workers))  # type: ignore[union-attr]
         settings["batch"] = q  # the proposals depend on q: a resume must use the same
     study = (
         Study.open(storage, settings, resume=resume, extendable=opt.budget_independent)
@@ -242,6 +245,7 @@ def minimize(
     )
     if batched and engine is None:
         engine = SerialEngine(fun)
+    batch_engine = engine if batched else None
     evaluator = _Evaluator(fun, timeout)
     history: list[EvalRecord] = []
     status = "completed"
@@ -258,8 +262,8 @@ def minimize(
         )
 
     try:
-        if batched:
-            status = _run_batched(opt, engine, q, study, history, callback)  # type: ignore[arg-type]
+        if batch_engine is not None:
+            status = _run_batched(opt, batch_engine, q, study, history, callback)
             history.sort(key=lambda r: r.number)
             if status == "completed" and opt.n_evals < opt.budget:
                 status = "exhausted"

@@ -224,9 +224,10 @@ class OptimizeResult:
 def best_record(history: list[EvalRecord] | tuple[EvalRecord, ...]) -> EvalRecord | None:
     """The completed record with the smallest value (the earliest one on ties)."""
     best: EvalRecord | None = None
+    best_value = math.inf
     for r in history:
-        if r.ok and (best is None or r.value < best.value):  # type: ignore[operator]
-            best = r
+        if r.ok and r.value is not None and (best is None or r.value < best_value):
+            best, best_value = r, r.value
     return best
 
 

@@ -471,7 +471,7 @@ class Study:
         if self._conn is not None:
             with contextlib.suppress(sqlite3.Error):  # e.g. a checkpoint on a full disk
                 self._conn.close()
-            self._conn = None  # type: ignore[assignment]
+            self._conn = None  # type: ignore[assignment]  # closed: nothing reads it again
         self._lock.release()
 
     def __enter__(self) -> Study:

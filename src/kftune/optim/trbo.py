@@ -720,8 +720,10 @@ class TrustRegionBO(Optimizer):
             _, best = self._incumbent()
             if best is None or value < best:
                 self._centre_i = i
-        elif self._centre_i is None or value < self._y[self._centre_i]:  # type: ignore[operator]
-            self._centre_i = i
+        else:
+            centre = None if self._centre_i is None else self._y[self._centre_i]
+            if centre is None or value < centre:  # a centre is always a completed point
+                self._centre_i = i
 
     def _update_region(self, rnd: dict[str, Any]) -> None:
         """The trust-region update for a completed round (see :meth:`_observe`)."""

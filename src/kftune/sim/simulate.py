@@ -192,7 +192,7 @@ def simulate(
             def events(t: float, yy: np.ndarray) -> float:
                 return math.hypot(yy[3], yy[10]) * abs(yy[5]) - stop_ay
 
-            events.terminal = True  # type: ignore[attr-defined]
+            events.terminal = True  # type: ignore[attr-defined]  # read by solve_ivp
         try:
             sol = solve_ivp(
                 rhs,

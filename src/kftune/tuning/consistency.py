@@ -180,7 +180,8 @@ class ChannelConsistency:
     def coverage(self) -> tuple[float, float]:
         """Observed coverage of the 68.27 % and 95 % intervals [share 0–1]; NaN when
         nothing was counted."""
-        return tuple(c / self.n if self.n else math.nan for c in self.covered)  # type: ignore[return-value]
+        inner, outer = self.covered
+        return (inner / self.n, outer / self.n) if self.n else (math.nan, math.nan)
 
     def __add__(self, other: ChannelConsistency) -> ChannelConsistency:
         """Pooled over two independent runs: counts add."""
@@ -248,11 +249,11 @@ def channel_consistency(
     ok = np.isfinite(est) & np.isfinite(sd) & np.isfinite(ref) & (sd > 0)
     e = (est[ok] - ref[ok]) / sd[ok]  # normalised error, N(0, 1) when consistent
     n = int(e.size)
-    counts = tuple(covered(e, np.ones_like(e), z_of(p))[0] for p in COVERAGE_LEVELS)
+    inner, outer = (covered(e, np.ones_like(e), z_of(p))[0] for p in COVERAGE_LEVELS)
     nees = ChiSquareMean(
         float(np.dot(e, e)), n, 1, effective_count(n, lag1_autocorrelation(e)) if n else 0.0
     )
-    return ChannelConsistency(n, counts, nees)  # type: ignore[arg-type]
+    return ChannelConsistency(n, (inner, outer), nees)
 
 
 def nis_consistency(nis: ArrayLike, m: int) -> ChiSquareMean:
@@ -327,5 +328,9 @@ def pool_runs(
     pooled: each channel over the runs that have it, and the NIS."""
     runs = list(runs)
     names = dict.fromkeys(c for channels, _ in runs for c in channels)
-    channels = {c: pool(ch[c] for ch, _ in runs if c in ch) for c in names}
-    return channels, pool(nis for _, nis in runs if nis is not None)  # type: ignore[return-value]
+    channels: dict[str, ChannelConsistency] = {}
+    for c in names:
+        pooled = pool(ch[c] for ch, _ in runs if c in ch)
+        if pooled is not None:  # always: every name comes from a run
+            channels[c] = pooled
+    return channels, pool(nis for _, nis in runs if nis is not None)

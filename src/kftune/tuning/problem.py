@@ -229,7 +229,8 @@ class NoiseParameterization:
     def q_box(self, name: str) -> Bounds:
         """The (low, high) box of a Q parameter."""
         if isinstance(self.q_bounds, Mapping):
-            return tuple(self.q_bounds.get(name, Q_BOUNDS))  # type: ignore[return-value]
+            low, high = self.q_bounds.get(name, Q_BOUNDS)
+            return (low, high)
         return self.q_bounds
 
     @property
@@ -1306,7 +1307,8 @@ class TuningProblem:
         out = []
         for per_m in results:
             err = next((e for e in per_m if isinstance(e, FilterDivergedError)), None)
-            out.append(err if err is not None else self._pool_scores(per_m))  # type: ignore[arg-type]
+            scores = [s for s in per_m if isinstance(s, ManoeuvreScore)]  # all, without err
+            out.append(err if err is not None else self._pool_scores(scores))
         return out
 
     def fingerprint(self) -> dict[str, Any]:
