@@ -215,12 +215,17 @@ SEEDABLE_METHODS: tuple[str, ...] = ("trbo",)
 class Staging:
     """How a joint tuning splits its budget: ``noise_budget`` evaluations of the noise
     alone at the recorded model (stage 1, its study in ``noise_storage``), then
-    ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two."""
+    ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two.
+    ``noise_design``, ``joint_design``: the points of TR-BO's initial design in each stage
+    (2d + 1 unless ``n_init`` is given), which a stage's budget should exceed for its
+    search to begin."""
 
     total: int
     noise_budget: int
     joint_budget: int
     noise_storage: Path | None
+    noise_design: int = 0
+    joint_design: int = 0
 
     def line(self) -> str:
         """What ``tune`` says about the split."""
@@ -228,6 +233,25 @@ class Staging:
             f"{self.total} evaluations in two stages: {self.noise_budget} of the noise alone "
             f"at the recorded model, then {self.joint_budget} of the joint search starting "
             "from its best"
+        )
+
+    def warning(self) -> str | None:
+        """A sentence when a stage's budget ends within its initial design (stage 2 also
+        spends one evaluation on stage 1's best), with the smallest total that gives each
+        stage at least one search step; None when both search."""
+        if self.noise_budget > self.noise_design and self.joint_budget > self.joint_design + 1:
+            return None
+        need = self.total
+        while True:
+            need += 1
+            noise = _noise_share(need)
+            if noise > self.noise_design and need - noise > self.joint_design + 1:
+                break
+        return (
+            f"{self.noise_budget} evaluations of the noise alone and {self.joint_budget} of "
+            f"the joint search end within TR-BO's initial designs ({self.noise_design} and "
+            f"{self.joint_design} points, the centre and two per parameter): the search "
+            f"itself never starts and the result is a design point; give -n {need} or more"
         )
 
 
@@ -264,8 +288,23 @@ def staging(
     total = budget if budget is not None else make_optimizer(method, problem.space).budget
     if total < 2:
         return None
-    noise = min(total - 1, max(1, round(total * NOISE_STAGE_SHARE)))
-    return Staging(total, noise, total - noise, noise_stage_storage(storage))
+    noise = _noise_share(total)
+    d = problem.space.dim
+    d_noise = d - len(problem.parameterization.model_names)
+    n_init = (options or {}).get("n_init")
+
+    def design(dim: int) -> int:
+        return int(n_init) if isinstance(n_init, int) and n_init > 0 else 2 * dim + 1
+
+    return Staging(
+        total, noise, total - noise, noise_stage_storage(storage), design(d_noise), design(d)
+    )
+
+
+def _noise_share(total: int) -> int:
+    """Stage 1's evaluations of a two-stage tuning of ``total``: :data:`NOISE_STAGE_SHARE`,
+    at least one and at most ``total − 1``."""
+    return min(total - 1, max(1, round(total * NOISE_STAGE_SHARE)))
 
 
 def tune(

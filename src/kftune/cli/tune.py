@@ -69,6 +69,7 @@ import json
 import math
 import shlex
 import sys
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -98,7 +99,13 @@ from kftune.cli._common import (
     write_output,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from kftune.errors import ConfigError, ObjectiveMismatchError, RunFailedError, UsageError
+from kftune.errors import (
+    ConfigError,
+    ObjectiveMismatchError,
+    RunFailedError,
+    SettingWarning,
+    UsageError,
+)
 from kftune.optim import DEFAULT_METHOD, METHODS
 from kftune.optim.widen import WIDEN_ROUNDS, round_storage
 from kftune.tuning.calibrate import DEFAULT_CRITERION
@@ -312,6 +319,9 @@ def run(args: argparse.Namespace) -> int:
                 _check_staged_budget(stages)
             if stages is not None and not (args.quiet or args.json):
                 print(stages.line(), file=sys.stderr, flush=True)
+            short = None if stages is None else stages.warning()
+            if short is not None:
+                warnings.warn(short, SettingWarning, stacklevel=1)
             try:
                 result = tune(
                     problem,
