@@ -134,7 +134,7 @@ def test_c_filter_reproduces_kftune_estimate(model, filt, demo, tuned, track):
     tf = _tuned_filter(tuned(model, filt), model)
     ds = _dataset(model, track)
     for m in ds.test:
-        est = estimate(tf, m, ds.vehicle)
+        est = estimate(tf, m, ds.vehicle, probe=False)  # the hooks: probed by tune
         run = run_demo(exe, manoeuvre_csv(m))
         assert run.returncode == 0 and run.stop is None, run.stderr
         _assert_same(run.columns, est.columns, LIMIT)
@@ -311,3 +311,13 @@ def test_makefile_builds_the_demo(tuned, cc, tmp_path):
     res = subprocess.run([make, "-C", str(out), f"CC={cc[0]}"], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert (out / "kftune_demo").is_file()
+
+
+def test_float_check_measures_against_kftune_and_the_double_filter(tuned, tmp_path, capsys):
+    out = tmp_path / "c"
+    args = ["export", str(tuned("single-track", "ekf")), "-f", "c", "-o", str(out)]
+    assert main([*args, "--precision", "float", "--check", "default", "--json"]) == 0
+    check = json.loads(capsys.readouterr().out)["check"]
+    assert check["passed"] and check["tolerance"] is None
+    assert 0.0 < check["worst_vs_double"] < FLOAT_LIMIT
+    assert "typedef float kf_real;" in (out / "kftune_model.h").read_text()

@@ -360,11 +360,9 @@ def _check(
                 if row.stop != row.kftune_stop:
                     stop += f" (kftune: {row.kftune_stop or 'none'})"
                 extra = "" if row.vs_double is None else f"  {row.vs_double:9.2e}"
-                print(
-                    f"{row.manoeuvre:{width}s}  {row.deviation:9.2e}  {row.column:16s}  "
-                    f"{stop:18s}{extra}",
-                    flush=True,
-                )
+                column = row.column if row.deviation > 0 else "-"  # every column the same
+                line = f"{row.manoeuvre:{width}s}  {row.deviation:9.2e}  {column:16s}  "
+                print((line + f"{stop:18s}{extra}").rstrip(), flush=True)
     worst = max(r.deviation for r in rows)
     worst_double = max((r.vs_double for r in rows if r.vs_double is not None), default=None)
     passed = (

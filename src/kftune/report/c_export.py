@@ -337,6 +337,8 @@ _ENGINE = r"""/*
  * (kftune/filters/_generic_kernel.py), operation by operation. See kftune_filter.h.
  * Matrices are row-major: A[i * ncols + j].
  */
+#include <stddef.h>
+
 #include "kftune_filter.h"
 
 #define KF_NS (2 * KF_N + 1)
@@ -568,6 +570,32 @@ static void kf_central_differences(kf_filter *kf, int which, const kf_real w[])
 }
 #endif
 
+#if !KF_FILTER_UKF
+/* linearised_prediction / linearised_moments: out = A B (rows x cols, sums over inner),
+   A row-major with rows of length inner, B[i][b] at B[i * bi + b * bb] (B' is bi = 1,
+   bb = inner). With noise: only the upper triangle summed, noise added on the diagonal,
+   mirrored (a covariance); without: every entry. */
+static void kf_product(const kf_real *A, const kf_real *B, int bi, int bb, kf_real *out,
+                       int rows, int cols, int inner, const kf_real *noise)
+{
+    int a, b, i;
+    kf_real s;
+    for (a = 0; a < rows; a++) {
+        for (b = noise != NULL ? a : 0; b < cols; b++) {
+            s = 0;
+            for (i = 0; i < inner; i++)
+                s += A[a * inner + i] * B[i * bi + b * bb];
+            if (noise == NULL) {
+                out[a * cols + b] = s;
+            } else {
+                out[a * cols + b] = a == b ? s + noise[a] : s;
+                out[b * cols + a] = out[a * cols + b];
+            }
+        }
+    }
+}
+#endif
+
 void kf_init(kf_filter *kf, double dt)
 {
     int j;
@@ -680,8 +708,6 @@ int kf_step(kf_filter *kf, const kf_real u[], const kf_real z[], kf_estimate *es
 #else
     if (k > 0) {
         /* predict: F at x+; x_pred = f(x+, u[k-1]); P_pred = F P F' + Q */
-        int a, b;
-        kf_real s;
 #if KF_HAS_F_JACOBIAN
         kf_model_F(kf->x, kf->w_prev, kf_p, kf->dt, kf->F);
 #else
@@ -690,23 +716,8 @@ int kf_step(kf_filter *kf, const kf_real u[], const kf_real z[], kf_estimate *es
         kf_model_f(kf->x, kf->w_prev, kf_p, kf->dt, kf->xw);
         for (j = 0; j < n; j++)
             kf->x[j] = kf->xw[j];
-        for (a = 0; a < n; a++) {
-            for (b = 0; b < n; b++) {
-                s = 0;
-                for (i = 0; i < n; i++)
-                    s += kf->F[a * n + i] * kf->P[i * n + b];
-                kf->T[a * n + b] = s;
-            }
-        }
-        for (a = 0; a < n; a++) {
-            for (b = a; b < n; b++) {
-                s = 0;
-                for (i = 0; i < n; i++)
-                    s += kf->T[a * n + i] * kf->F[b * n + i];
-                kf->P[a * n + b] = a == b ? s + kf_q[a] : s;
-                kf->P[b * n + a] = kf->P[a * n + b];
-            }
-        }
+        kf_product(kf->F, kf->P, n, 1, kf->T, n, n, n, NULL); /* T = F P */
+        kf_product(kf->T, kf->F, 1, n, kf->P, n, n, n, kf_q); /* P = T F' + Q */
     }
     /* update: H at x_pred; zb = h(x_pred, u[k]); Pxz = P H'; S = H Pxz + R */
 #if KF_HAS_H_JACOBIAN
@@ -715,27 +726,8 @@ int kf_step(kf_filter *kf, const kf_real u[], const kf_real z[], kf_estimate *es
     kf_central_differences(kf, 1, kf->w);
 #endif
     kf_model_h(kf->x, kf->w, kf_p, kf->zb);
-    {
-        int a, b;
-        kf_real s;
-        for (a = 0; a < n; a++) {
-            for (b = 0; b < m; b++) {
-                s = 0;
-                for (i = 0; i < n; i++)
-                    s += kf->P[a * n + i] * kf->H[b * n + i];
-                kf->Pxz[a * m + b] = s;
-            }
-        }
-        for (a = 0; a < m; a++) {
-            for (b = a; b < m; b++) {
-                s = 0;
-                for (i = 0; i < n; i++)
-                    s += kf->H[a * n + i] * kf->Pxz[i * m + b];
-                kf->S[a * m + b] = a == b ? s + kf_r[a] : s;
-                kf->S[b * m + a] = kf->S[a * m + b];
-            }
-        }
-    }
+    kf_product(kf->P, kf->H, 1, n, kf->Pxz, n, m, n, NULL);   /* Pxz = P H' */
+    kf_product(kf->H, kf->Pxz, m, 1, kf->S, m, m, n, kf_r);  /* S = H Pxz + R */
 #endif
     st_s = kf_kalman_update(kf, z, &nis);
     /* conclude_step: the numerical checks, the model's check, the held conditions */
@@ -806,7 +798,7 @@ def _columns(model: StateSpaceModel) -> tuple[list[str], list[str]]:
     if "beta" in outputs:
         names.append("beta")
         exprs.append(f"e->outputs[{outputs.index('beta')}]")
-        if states[:2] == ("vx", "vy"):  # tuning.problem.beta_std: the delta method
+        if states[:2] == ("vx", "vy"):  # tuning.runs.beta_std: the delta method
             names.append("beta_std")
             exprs.append(
                 "sqrt(e->x[1] * e->x[1] * e->P_diag[0] + e->x[0] * e->x[0] * e->P_diag[1]) / "
@@ -873,6 +865,9 @@ _DEMO = r"""/*
  * from the tuned KF_DT by more than KF_DT_TOLERANCE is refused, as kftune estimate does.
  * Exit status: 0 done; 1 the filter stopped (diverged; the rows from its stop step are
  * empty, the reason on standard error); 2 unusable input (the reason on standard error).
+ * The model's own data checks are not repeated here (kftune refuses, for example, a
+ * single-track manoeuvre whose measured Vx is not > 0 before it filters): check with
+ * kftune dataset info or kftune estimate first.
  */
 #include <errno.h>
 #include <stdarg.h>
