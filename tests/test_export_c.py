@@ -321,3 +321,73 @@ def test_float_check_measures_against_kftune_and_the_double_filter(tuned, tmp_pa
     assert check["passed"] and check["tolerance"] is None
     assert 0.0 < check["worst_vs_double"] < FLOAT_LIMIT
     assert "typedef float kf_real;" in (out / "kftune_model.h").read_text()
+
+
+def _linear_document(filt: str, q: list[float], r: list[float], p: list[float]) -> dict:
+    """The export document (:func:`kftune.report.export.export_document`'s keys) of a
+    2-state linear model with one input and one measurement, as a tuned file would give."""
+    names = [f"{mat}[{i},{j}]" for mat, (a, b) in
+             (("F", (2, 2)), ("G", (2, 1)), ("H", (1, 2)), ("D", (1, 1)))
+             for i in range(a) for j in range(b)]  # fmt: skip
+    doc = {
+        "model": "linear", "filter": filt, "dt": 0.01,
+        "states": ["x0", "x1"], "state_units": ["", ""], "inputs": ["u0"], "input_units": [""],
+        "measurements": ["z0"], "measurement_units": [""],
+        "q_diag": q, "q_units": ["", ""], "r_diag": r, "r_units": [""],
+        "model_param_names": names, "model_param_units": [""] * len(names), "model_params": p,
+        "initial_state": "a fixed prior", "dataset": "hand-made", "dataset_sha256": "0" * 64,
+        "dataset_manoeuvres": 1, "dataset_samples": 200,
+        "tuned_with": "kftune test", "exported_with": "kftune test",
+    }  # fmt: skip
+    if filt == "ukf":
+        doc.update(ukf_alpha=1.0, ukf_beta=2.0, ukf_kappa=0.0, sigma_points="Merwe")
+    return doc
+
+
+@pytest.mark.parametrize("filt", ["ukf", "ekf"])
+def test_c_filter_of_a_linear_model_is_the_kalman_filter(filt, cc, tmp_path):
+    """Against an independent reference: on a linear-Gaussian model the UKF and the EKF are
+    the Kalman filter, written out here in numpy (Simon 2006, eqs. 5.17-5.19)."""
+    from kftune.models import linear_model
+    from kftune.report.c_export import c_files
+
+    F = np.array([[1.0, 0.01], [-0.02, 0.99]])
+    G = np.array([[0.0], [0.01]])
+    H = np.array([[1.0, 0.5]])
+    D = np.array([[0.1]])
+    x0, P0 = np.array([0.5, -0.2]), np.diag([0.3, 0.2])
+    model = linear_model(F, H, G, D, x0=x0, P0=P0)
+    q, r = np.array([1e-4, 4e-4]), np.array([0.05])
+    p = model.default_params()
+    doc = _linear_document(filt, q.tolist(), r.tolist(), p.tolist())
+    for name, text in c_files(doc, model).items():
+        (tmp_path / name).write_text(text)
+    exe = build_demo(tmp_path, tmp_path, cc)
+    rng = np.random.default_rng(3)
+    n = 200
+    t = np.arange(n) * 0.01
+    u = np.sin(3 * t)
+    z = np.cumsum(rng.normal(0.0, 0.1, n))
+    text = "t,z0,u0\n" + "".join(f"{a:.17g},{c:.17g},{b:.17g}\n" for a, b, c in zip(t, u, z))
+    run = run_demo(exe, text)
+    assert run.returncode == 0, run.stderr
+    x, P = x0.copy(), P0.copy()
+    want_x, want_p, want_nis = [], [], []
+    for k in range(n):
+        if k > 0:
+            x = F @ x + G[:, 0] * u[k - 1]
+            P = F @ P @ F.T + np.diag(q)
+        y = z[k] - (H @ x + D[:, 0] * u[k])
+        S = H @ P @ H.T + np.diag(r)
+        K = P @ H.T @ np.linalg.inv(S)
+        x = x + K @ y
+        P = P - K @ S @ K.T
+        want_x.append(x)
+        want_p.append(np.diag(P))
+        want_nis.append(float(y @ np.linalg.solve(S, y)))
+    got_x = np.column_stack([run.columns["x0"], run.columns["x1"]])
+    got_sd = np.column_stack([run.columns["x0_std"], run.columns["x1_std"]])
+    np.testing.assert_allclose(got_x, np.array(want_x), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got_sd, np.sqrt(np.array(want_p)), rtol=1e-9)
+    np.testing.assert_allclose(run.columns["nis"], want_nis, rtol=1e-8)
+    assert list(run.columns) == ["t", "x0", "x1", "x0_std", "x1_std", "innovation_z0", "nis"]
