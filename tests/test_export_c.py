@@ -391,3 +391,47 @@ def test_c_filter_of_a_linear_model_is_the_kalman_filter(filt, cc, tmp_path):
     np.testing.assert_allclose(got_sd, np.sqrt(np.array(want_p)), rtol=1e-9)
     np.testing.assert_allclose(run.columns["nis"], want_nis, rtol=1e-8)
     assert list(run.columns) == ["t", "x0", "x1", "x0_std", "x1_std", "innovation_z0", "nis"]
+
+
+#: A program around the demo's sample_time: reads "N t_1 … t_N" groups, prints each's.
+SAMPLE_TIME_C = r"""
+#define main demo_main
+#include "kftune_demo.c"
+#undef main
+int main(void)
+{
+    long n, i;
+    while (scanf("%ld", &n) == 1) {
+        double *t = malloc((size_t)n * sizeof *t);
+        for (i = 0; i < n; i++)
+            if (scanf("%lf", &t[i]) != 1)
+                return 1;
+        printf("%.17g\n", sample_time(t, n));
+        free(t);
+    }
+    return 0;
+}
+"""
+
+
+def test_demo_takes_the_sample_time_as_kftune_does(demo, cc):
+    """The median step with the timestamps' binary noise rounded off
+    (:func:`kftune.data.validate.sample_time`), to the bit, from time axes of several
+    steps, starts and noise."""
+    from kftune.data.validate import sample_time
+
+    folder = demo("single-track", "ukf").parent
+    (folder / "sample_time.c").write_text(SAMPLE_TIME_C)
+    exe = folder / "sample_time"
+    sources = [str(folder / f) for f in ("sample_time.c", "kftune_filter.c", "kftune_model.c")]
+    subprocess.run([*cc, "-std=c99", "-O2", "-o", str(exe), *sources, "-lm"], check=True)
+    rng = np.random.default_rng(1)
+    axes = []
+    for dt in (0.01, 0.02, 0.005, 1e-4, 1 / 3, 0.0125, 12.5, 25.0):
+        for start in (0.0, 100.0, 12345.678):
+            n = int(rng.integers(3, 50))
+            axes += [start + np.arange(n) * dt, start + np.cumsum(np.full(n, dt))]
+            axes.append(start + np.arange(n) * dt + rng.normal(0.0, dt * 1e-3, n))
+    text = "".join(f"{len(t)} " + " ".join(f"{v:.17g}" for v in t) + "\n" for t in axes)
+    out = subprocess.run([str(exe)], input=text, capture_output=True, text=True, check=True)
+    assert [float(v) for v in out.stdout.split()] == [sample_time(t) for t in axes]

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from kftune.data.validate import TIME_NOISE_SPACINGS
 from kftune.filters._kernel import JITTER_MAX, JITTER_START
 from kftune.filters.sigma_points import UKFSettings, merwe_weights
 from kftune.models.base import GENERIC_STOP_REASONS, STOP_NUMERICAL, StateSpaceModel
@@ -845,6 +846,7 @@ def _demo_source(model: StateSpaceModel) -> str:
         .replace("@INPUTS@", inputs)
         .replace("@MEASUREMENTS@", meas)
         .replace("@COLUMNS@", assign)
+        .replace("@SPACINGS@", repr(TIME_NOISE_SPACINGS))
     )
 
 
@@ -883,8 +885,8 @@ static const char *const col_header = @HEADER@;
 static const char *const ref_names[NREF] = { @REFS@ };
 static const char *const input_names[KF_NU_ARR] = { @INPUTS@ };
 static const char *const meas_names[KF_M] = { @MEASUREMENTS@ };
-/* as kftune's TIME_NOISE_SPACINGS (kftune/data/validate.py sample_time) */
-#define TIME_NOISE_SPACINGS 2
+/* kftune's TIME_NOISE_SPACINGS (kftune/data/validate.py sample_time) */
+#define TIME_NOISE_SPACINGS @SPACINGS@
 
 /* the columns of one estimate, in the order of col_header */
 static void columns(const kf_estimate *e, double col[])
@@ -1029,10 +1031,15 @@ static double sample_time(const double *t, long n)
     first = -(int)floor(log10(dt));
     last = -(int)floor(log10(quantum));
     for (dec = first; dec <= last; dec++) {
+        /* Python's round(dt, dec): the decimal rounding of the exact double, read back */
         double rounded;
-        if (dec < 0 || dec > 40)
+        int digits = (int)floor(log10(dt)) + 1 + dec; /* significant digits kept */
+        if (dec > 40 || digits < 1)
             continue;
-        sprintf(text, "%.*f", dec, dt);
+        if (dec >= 0)
+            sprintf(text, "%.*f", dec, dt);
+        else
+            sprintf(text, "%.*e", digits - 1, dt);
         rounded = strtod(text, NULL);
         if (fabs(rounded - dt) <= quantum)
             return rounded;
