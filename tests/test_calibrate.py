@@ -474,8 +474,8 @@ def test_a_damaged_calibration_is_refused_naming_the_file_and_key(
 
 
 def test_the_scale_round_trips_through_every_export_format(tuned, tmp_path):
-    """json, yaml, C header, MATLAB: Q and R as tuned (what runs) and the factor, each read
-    back as the same double (C: compiled and printed with %.17g where a compiler exists)."""
+    """json, yaml, C (kftune_filter.h), MATLAB: Q and R as tuned (what runs) and the factor,
+    each read back as the same double."""
     doc = json.loads(tuned.read_text())
     c = doc["calibration"]["factor"]
     texts = {}

@@ -1,7 +1,7 @@
 """A tuned filter deployed: the record in tuned.json, ``kftune estimate`` (states, standard
-deviations, innovations, NIS, KPIs, refusals) and ``kftune export`` (JSON, YAML, a C header
-compiled with the system compiler, a MATLAB script), each checked against independent
-computations."""
+deviations, innovations, NIS, KPIs, refusals) and ``kftune export`` (JSON, YAML, the C export's
+macros compiled with the system compiler, a MATLAB script), each checked against
+independent computations (the C filter that runs: test_export_c.py)."""
 
 from __future__ import annotations
 
