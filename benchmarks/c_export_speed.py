@@ -10,7 +10,7 @@ filter steps per second over the bundled set's 23 test manoeuvres:
   (a small timing program beside the export: the manoeuvres read once, then only the steps
   are timed; no CSV in the loop);
 * ``kftune_steps_per_s`` — kftune's own run of the tuned filter on the same manoeuvres
-  (:meth:`kftune.tuning.problem.FilterSpec.run`, what ``kftune estimate`` calls: the input
+  (:meth:`kftune.tuning.runs.FilterSpec.run`, what ``kftune estimate`` calls: the input
   checks and the prepared inputs included, after compilation);
 * ``c_vs_kftune`` — the ratio; ``max_rel_dev`` — the largest relative normwise deviation
   of the C filter's states from kftune's on these manoeuvres (a run that measured a wrong
@@ -41,7 +41,7 @@ from kftune.cli import main as kftune
 from kftune.data import default_dataset
 from kftune.report.c_export import CFLAGS, find_compiler
 from kftune.tuning.deploy import TunedFilter
-from kftune.tuning.problem import filter_spec
+from kftune.tuning.runs import filter_spec
 
 #: The timing program: reads N, then N rows of u (KF_NU) and z (KF_M) as raw doubles per
 #: manoeuvre from a file, runs every manoeuvre REPS times and prints each repetition's

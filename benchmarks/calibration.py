@@ -61,13 +61,9 @@ from kftune.tuning.calibrate import CRITERIA, calibrate
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.deploy import consistency_docs
 from kftune.tuning.kpi import average_kpis
-from kftune.tuning.problem import (
-    NoiseParameterization,
-    TuningProblem,
-    assess,
-    default_r0,
-    filter_spec,
-)
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem, assess
+from kftune.tuning.runs import default_r0, filter_spec
 
 REVS = Path(__file__).resolve().parents[2] / "shared" / "data" / "revs-250lm"
 #: What is tuned (``--setting``): cost and NoiseParameterization options.

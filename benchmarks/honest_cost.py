@@ -50,17 +50,14 @@ import numpy as np
 
 import kftune
 from kftune.data import open_dataset
+from kftune.errors import FilterDivergedError
 from kftune.experiment import manual_point, tune
 from kftune.tuning.calibrate import CalibrationError, calibrate
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.deploy import consistency_docs
 from kftune.tuning.kpi import average_kpis
-from kftune.tuning.problem import (
-    FilterDivergedError,
-    NoiseParameterization,
-    TuningProblem,
-    assess,
-)
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem, assess
 
 #: Tuned parameters beyond ``kftune tune``'s default (Q only): one scale of R
 #: (``--tune-r-scale``), in its default box [1e-2, 1e2] or a wider one, or R's diagonal.

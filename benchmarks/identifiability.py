@@ -56,7 +56,9 @@ from kftune.tuning.identify import (
     _side_end,
     identify_problem,
 )
-from kftune.tuning.problem import NoiseParameterization, TuningProblem, default_r0
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem
+from kftune.tuning.runs import default_r0
 from kftune.vehicle.params import VehicleParams
 
 BOUNDS = {"C_af": (2e4, 4e5), "C_ar": (2e4, 4e5), "mu": (0.4, 1.6)}

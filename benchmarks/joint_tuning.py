@@ -81,11 +81,12 @@ import numpy as np
 
 import kftune
 from kftune.data import open_dataset
-from kftune.errors import ConfigError, KftuneError
+from kftune.errors import ConfigError, FilterDivergedError, KftuneError
 from kftune.experiment import manual_point
 from kftune.optim import METHODS, PeerUnavailableError
 from kftune.tuning.cost import NORMALISATIONS, CostSpec
-from kftune.tuning.problem import FilterDivergedError, NoiseParameterization, TuningProblem
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem
 from ukf_tuning import (  # benchmarks/ is the script's path
     _CONTEXT,
     LABELS,

@@ -70,11 +70,13 @@ from scipy.stats import spearmanr
 
 import kftune
 from kftune.data import open_dataset
+from kftune.errors import FilterDivergedError
 from kftune.experiment import manual_point
 from kftune.optim import minimize
 from kftune.tuning.cost import CostSpec
 from kftune.tuning.kpi import average_kpis
-from kftune.tuning.problem import FilterDivergedError, NoiseParameterization, TuningProblem, assess
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem, assess
 
 #: configuration → (cost, R tuning).
 CONFIGS: dict[str, tuple[CostSpec, str]] = {

@@ -30,7 +30,8 @@ import time
 import numpy as np
 
 from kftune.data import default_dataset
-from kftune.tuning.problem import FilterDivergedError, TuningProblem
+from kftune.errors import FilterDivergedError
+from kftune.tuning.problem import TuningProblem
 
 J_STAR = 0.352017
 

@@ -27,8 +27,9 @@ import time
 import numpy as np
 
 from kftune.data import open_dataset
+from kftune.errors import FilterDivergedError
 from kftune.optim import TrustRegionBO
-from kftune.tuning.problem import FilterDivergedError, TuningProblem
+from kftune.tuning.problem import TuningProblem
 
 BUNDLED_JSTAR = 0.352017
 

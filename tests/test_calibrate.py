@@ -229,7 +229,7 @@ def test_scaling_after_the_run_is_the_run_with_scaled_q_r_and_p0_of_a_linear_fil
     for a Kalman filter, the run with c·Q, c·R and c·P0: kftune's EKF and UKF of the linear
     model and FilterPy's KalmanFilter run so give the same states, c·P and NIS/c."""
     from kftune.filters import UKF
-    from kftune.tuning.problem import scaled_covariances
+    from kftune.tuning.runs import scaled_covariances
 
     c = 0.37
     z = RUNS[1][1][:500]

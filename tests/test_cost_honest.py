@@ -18,7 +18,8 @@ from conftest import run_cli
 from kftune.data import default_dataset
 from kftune.errors import ConfigError
 from kftune.tuning.cost import CostSpec, gaussian_crps, gaussian_nlpd, scoring_rule_cost
-from kftune.tuning.problem import TuningProblem, first_scored
+from kftune.tuning.problem import TuningProblem
+from kftune.tuning.runs import first_scored
 
 #: Two short training manoeuvres of the bundled set and a few points around the manual
 #: rule of thumb (Q diag [Vx, Vy, r] in SI²): σ far too small, about right, too large.

@@ -19,7 +19,8 @@ from conftest import run_cli as kftune
 from kftune.data import Dataset, Manoeuvre, default_dataset, load_dataset, save_dataset
 from kftune.errors import ConfigError, DataError, MissingChannelError
 from kftune.tuning.cost import CostSpec
-from kftune.tuning.problem import TuningProblem, default_r0
+from kftune.tuning.problem import TuningProblem
+from kftune.tuning.runs import default_r0
 
 if sys.version_info < (3, 11):  # pragma: no cover
     pytest.skip("tomllib", allow_module_level=True)

@@ -246,7 +246,8 @@ def test_joint_tuning_far_from_the_friction_limit_determines_the_stiffnesses_not
     from kftune import minimize
     from kftune.data import default_dataset
     from kftune.tuning.identify import identify_problem
-    from kftune.tuning.problem import NoiseParameterization, TuningProblem
+    from kftune.tuning.parameterization import NoiseParameterization
+    from kftune.tuning.problem import TuningProblem
 
     truth = default_dataset().vehicle
     runs = [gentle_slalom(f"gentle-{k}", truth, k, ay_peak=3.0) for k in range(2)]

@@ -22,7 +22,9 @@ from kftune.data import default_dataset, open_dataset, save_dataset
 from kftune.errors import ConfigError
 from kftune.experiment import MANUAL_Q, NOISE_STAGE_SHARE, manual_point
 from kftune.models import get_model
-from kftune.tuning.problem import NoiseParameterization, TuningProblem, assess, filter_spec
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem, assess
+from kftune.tuning.runs import filter_spec
 
 #: Short manoeuvres of the bundled set near 8–10 m/s² lateral acceleration.
 NAMES = ("train-03-j-turn", "train-07-lane-change", "train-08-lane-change")

@@ -158,7 +158,7 @@ def test_measurement_units_must_be_the_datas():
     numbers 1000 times off its own description."""
     from types import SimpleNamespace
 
-    from kftune.tuning.problem import check_units
+    from kftune.tuning.runs import check_units
 
     data = SimpleNamespace(name="track", units={"pos": "m"})
     check_units(cv(), data)  # the same unit

@@ -304,7 +304,7 @@ def test_a_long_hook_check_says_why_the_command_waits(small, tmp_path, monkeypat
     from kftune.data import open_dataset
     from kftune.errors import DataWarning
     from kftune.tuning import hookcheck
-    from kftune.tuning.problem import filter_spec
+    from kftune.tuning.runs import filter_spec
 
     monkeypatch.setattr(hookcheck, "SLOW_CHECK", 0.0)  # every check is a long one
     model = tmp_path / "mine.py"

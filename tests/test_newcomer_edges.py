@@ -19,7 +19,7 @@ from kftune.cli.tune import bound_lines
 from kftune.experiment import FLAT_RISE, LABELS, complete_points, edge_probes
 from kftune.optim import COMPARE_METHODS
 from kftune.space import Param, Space
-from kftune.tuning.problem import NoiseParameterization
+from kftune.tuning.parameterization import NoiseParameterization
 
 ROOT = Path(__file__).resolve().parents[1]
 

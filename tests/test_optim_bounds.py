@@ -11,7 +11,7 @@ import pytest
 from kftune.optim import OptimizationInterrupted, Space, minimize, minimize_widening
 from kftune.optim.widen import round_storage
 from kftune.space import Param
-from kftune.tuning.problem import NoiseParameterization
+from kftune.tuning.parameterization import NoiseParameterization
 
 #: issue 11: the revs-250lm optimum, found by three CMA-ES runs of 2,000 evaluations.
 REVS_Q = (3.77e-6, 6.27e-4, 1.0)

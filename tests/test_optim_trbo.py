@@ -100,7 +100,7 @@ def test_the_default_design_probes_thirds_of_a_narrow_log10_box():
     physical boxes only is recorded as "direct"; the tuning problem marks its model
     parameters physical, and its Q and R not."""
     from kftune.space import Param, Space
-    from kftune.tuning.problem import NoiseParameterization
+    from kftune.tuning.parameterization import NoiseParameterization
 
     space = Space(
         (
@@ -128,7 +128,7 @@ def test_a_narrow_q_box_keeps_the_face_centres():
     is the centre and the face centres as before — 1e-5, then 1e-6 and 1e-4 along each
     axis in turn (written out here, not taken from the optimiser) — recorded "axial", so
     that a study started before the narrow-box rule resumes."""
-    from kftune.tuning.problem import NoiseParameterization
+    from kftune.tuning.parameterization import NoiseParameterization
 
     space = NoiseParameterization(q_bounds=(1e-6, 1e-4)).space
     d = space.dim

@@ -12,7 +12,7 @@ from conftest import run_cli
 from kftune.data import default_dataset, save_dataset
 from kftune.optim.result import EvalRecord
 from kftune.progress import ProgressBar
-from kftune.tuning.problem import failure_kinds
+from kftune.tuning.runs import failure_kinds
 
 DIVERGED = (
     "FilterDivergedError: filter diverged on manoeuvre {name!r} at step {k} (t = {t:.2f} s): "

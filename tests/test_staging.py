@@ -9,7 +9,8 @@ import pytest
 
 from kftune.data import default_dataset
 from kftune.experiment import staging
-from kftune.tuning.problem import NoiseParameterization, TuningProblem
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from kftune.data import default_dataset
-from kftune.tuning.problem import FilterDivergedError, NoiseParameterization, TuningProblem
+from kftune.errors import FilterDivergedError
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,8 @@ from kftune.data import default_dataset
 from kftune.filters import default_initial_state, get_filter, run_ukf_linear
 from kftune.models.linear import linear_model
 from kftune.tuning.cost import CostSpec, innovation_nll
-from kftune.tuning.problem import NoiseParameterization, TuningProblem
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem
 from kftune.vehicle import measure, step_rk4
 
 Q = np.array([1e-5, 1e-4, 1e-5])
@@ -61,7 +62,7 @@ def test_pem_cost_equals_filterpy_innovation_likelihood():
 
 
 def test_pem_diverged_filter_is_a_failed_evaluation():
-    from kftune.tuning.problem import FilterDivergedError
+    from kftune.errors import FilterDivergedError
 
     ds = default_dataset()
     problem = TuningProblem(ds.train[:1], ds.vehicle, ds.r_default, cost=CostSpec(kind="pem"))

@@ -9,20 +9,15 @@ import pytest
 
 import kftune
 from kftune.data import default_dataset
-from kftune.errors import ConfigError, DataError
+from kftune.errors import ConfigError, DataError, FilterDivergedError
 from kftune.experiment import MANUAL_Q, manual_point
 from kftune.filters import UKFSettings, run_ukf
 from kftune.models import get_model
 from kftune.tuning.cost import CostSpec
-from kftune.tuning.problem import (
-    FilterDivergedError,
-    NoiseParameterization,
-    TuningProblem,
-    _balanced_chunks,
-    assess,
-    channel_estimate,
-    default_r0,
-)
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.pool import balanced_chunks
+from kftune.tuning.problem import TuningProblem, assess
+from kftune.tuning.runs import channel_estimate, default_r0
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +132,7 @@ def test_parallel_workers_give_the_serial_cost(ds):
 
 
 def test_balanced_chunks_cover_everything_once():
-    chunks = _balanced_chunks([5, 1, 1, 1, 1, 1], 2)
+    chunks = balanced_chunks([5, 1, 1, 1, 1, 1], 2)
     assert sorted(i for c in chunks for i in c) == list(range(6))
     assert {0} in [set(c) for c in chunks]  # the long one alone, the short ones together
 
@@ -249,7 +244,7 @@ def test_a_problem_over_another_model_names_its_parameters_and_checks_its_channe
     """The tuned parameters follow the model; cost channels and R₀ are checked against it
     before anything runs (no filter is compiled here)."""
     from kftune.models import get_model
-    from kftune.tuning.problem import default_r0
+    from kftune.tuning.runs import default_r0
 
     bias = get_model("single-track-ay-bias")
     r0 = default_r0(bias, ds.r_default)

@@ -184,7 +184,8 @@ def test_a_model_files_parameters_are_tuned_and_evaluated(small, tmp_path):
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
     # estimate runs the tuned C_f too: its states are the filter's at the tuned point
     from kftune.data import open_dataset
-    from kftune.tuning.problem import NoiseParameterization, TuningProblem
+    from kftune.tuning.parameterization import NoiseParameterization
+    from kftune.tuning.problem import TuningProblem
 
     est = kftune("estimate", str(small), "--params", str(out), "--model", str(model),
                  "--no-plot", "-o", str(tmp_path / "est"), "--json")  # fmt: skip

@@ -25,7 +25,7 @@ from kftune import __version__
 from kftune.bo import make_surrogate
 from kftune.data.io import file_stem
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.errors import ConfigError, KftuneError, RunFailedError
+from kftune.errors import ConfigError, FilterDivergedError, KftuneError, RunFailedError
 from kftune.models import StateSpaceModel
 from kftune.optim import (
     COMPARE_METHODS,
@@ -45,15 +45,12 @@ from kftune.progress import ProgressBar, announce
 from kftune.report.provenance import machine, package_versions
 from kftune.report.results import ExperimentResults, MethodRun
 from kftune.space import Space
-from kftune.tuning.cost import CostSpec
+from kftune.tuning.cost import LOG_COSTS, CostSpec
 from kftune.tuning.deploy import RELIABILITY_LEVELS, consistency_docs, dataset_fingerprint
 from kftune.tuning.kpi import average_kpis
-from kftune.tuning.problem import (
-    Q_NAMES,
-    FilterDivergedError,
-    NoiseParameterization,
-    TuningProblem,
-    assess,
+from kftune.tuning.parameterization import Q_NAMES, NoiseParameterization
+from kftune.tuning.problem import TuningProblem, assess
+from kftune.tuning.runs import (
     channel_estimate,
     check_units,
     default_r0,
@@ -477,8 +474,6 @@ def on_bounds(result: OptimizeResult) -> list[dict[str, Any]]:
 #: error (nrmse, crps), and an absolute change for a cost that is a logarithm (msp: Σ log
 #: MSE; nis: |log(mean NIS/m)|), where 1e-3 is a 0.1 % change of what it takes the log of.
 FLAT_RISE = 1e-3
-#: Costs that are logarithms, whose changes are relative changes already.
-LOG_COSTS: tuple[str, ...] = ("msp", "nis")
 
 
 def edge_probes(
@@ -591,49 +586,13 @@ def edge_probes(
     return probed
 
 
-def rise_text(edge: Mapping[str, Any], rise: float | None = None) -> str:
-    """How much higher (or lower) the cost is at a probe of :func:`edge_probes` than at
-    the best point (``rise``: J − J*; default the step in, ``edge["rise"]``), in the
-    cost's own terms: a share of |J*| for a cost that scales with the error, for a
-    logarithm (msp, nis) the share by which what it is the log of changes (e^|ΔJ| − 1), a
-    mean log-likelihood's change per sample beside the change the data can tell apart."""
-    from kftune.tuning.identify import MEAN_NLL_KINDS
-
-    rise = edge["rise"] if rise is None else rise
-    kind = edge.get("cost_kind", "nrmse")
-    way = "higher" if rise >= 0 else "lower"
-    if kind in MEAN_NLL_KINDS:
-        return f"{abs(rise):.2g} per sample {way} (the data tell {edge['threshold']:.2g} apart)"
-    if kind in LOG_COSTS:
-        share = math.expm1(abs(rise))
-    else:
-        share = abs(rise) / (abs(edge["best_cost"]) or 1.0)
-    pct = 100.0 * share
-    return f"{pct:.2g} % {way}" if pct < 100.0 else f"{pct:,.0f} % {way}"
-
-
-def edge_text(name: str, edge: Mapping[str, Any]) -> str:
-    """What the probes of :func:`edge_probes` found, for a hint: ``"one decade in, at q_vx
-    = 0.1, the cost is 0.96 % higher, and 2 decades out, at q_vx = 100, 1.6 % higher"``."""
-    said = f"{edge['step']} in, at {name} = {edge['value']:.4g}, " + (
-        "the filter diverged" if edge["rise"] is None else f"the cost is {rise_text(edge)}"
-    )
-    beyond = edge.get("beyond")
-    if beyond is None:
-        return said
-    said += f", and {beyond['decades']:g} decades out, at {name} = {beyond['value']:.4g}, " + (
-        "the filter diverged" if beyond["rise"] is None else rise_text(edge, beyond["rise"])
-    )
-    return said
-
-
 def flat_rise(problem: TuningProblem, j_best: float) -> float:
     """The rise of the cost below which a step is flat (:func:`edge_probes`):
     :data:`FLAT_RISE`·|J*| for a cost that scales with the error, :data:`FLAT_RISE` for a
-    logarithm (:data:`LOG_COSTS`), the 95 % likelihood-ratio rise χ²₁(0.95)/(2N) for a mean
-    negative log-likelihood (nlpd, pem; N the scored samples)."""
+    logarithm (:data:`~kftune.tuning.cost.LOG_COSTS`), the 95 % likelihood-ratio rise
+    χ²₁(0.95)/(2N) for a mean negative log-likelihood (nlpd, pem; N the scored samples)."""
     from kftune.tuning.identify import MEAN_NLL_KINDS, rise_of
-    from kftune.tuning.problem import first_scored
+    from kftune.tuning.runs import first_scored
 
     kind = problem.cost_spec.kind
     if kind in LOG_COSTS:
@@ -727,7 +686,7 @@ def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str], sideslip: bool = T
 def require_success(result: OptimizeResult, method: str) -> None:
     """Raise :class:`~kftune.errors.RunFailedError` if every evaluation of ``result`` (a run
     of ``method``) failed, with the count and the reasons grouped by kind
-    (:func:`~kftune.tuning.problem.failure_kinds`)."""
+    (:func:`~kftune.tuning.runs.failure_kinds`)."""
     if result.x is None:
         kinds = failure_kinds(r.reason for r in result.history)
         raise RunFailedError(

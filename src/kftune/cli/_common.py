@@ -71,7 +71,7 @@ from kftune.tuning.cost import CHANNELS, COST_KINDS, NORMALISATIONS
 if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
     from kftune.filters import UKFSettings
     from kftune.tuning.cost import CostSpec
-    from kftune.tuning.problem import NoiseParameterization
+    from kftune.tuning.parameterization import NoiseParameterization
 
 #: Most cost evaluations a run may be given (``-n``, ``budget``, ``budgets``): far beyond
 #: any tuning that ends — the Bayesian methods' step grows as n³ — while a typing slip
@@ -560,7 +560,7 @@ def cost_spec(
     if recommended(args, config):
         spec = dataclasses.replace(spec, normalise=RECOMMENDED_NORMALISE)
     if model is not None:
-        from kftune.tuning.problem import check_cost_channels
+        from kftune.tuning.runs import check_cost_channels
 
         try:
             check_cost_channels(spec, model)
@@ -659,11 +659,11 @@ def filter_spec_of(
     vehicle: Any,
     tuned: tuple[Path, Mapping[str, Any]] | None = None,
 ) -> Any:
-    """The :class:`~kftune.tuning.problem.FilterSpec` of :func:`model_choice` (loads a model
+    """The :class:`~kftune.tuning.runs.FilterSpec` of :func:`model_choice` (loads a model
     file). An unusable model says where it was named: an unknown ``--model`` name is a
     usage error (exit 2); a model file, the configuration or the tuned file ``tuned``
     (path, document) bad input (exit 3)."""
-    from kftune.tuning.problem import filter_spec
+    from kftune.tuning.runs import filter_spec
 
     model, filt = model_choice(args, config, None if tuned is None else tuned[1])
     try:
@@ -687,7 +687,7 @@ def parameterization(
 ) -> NoiseParameterization:
     """What is tuned, from the command line and configuration, for ``model`` (a
     StateSpaceModel; None: the single-track model)."""
-    from kftune.tuning.problem import NoiseParameterization
+    from kftune.tuning.parameterization import NoiseParameterization
 
     section = config.get("parameters", {})
     kwargs: dict[str, Any] = {
@@ -736,7 +736,7 @@ def parameterization(
         raise ConfigError(f"{_where(config, 'parameters')}: {exc}") from None
     if p.model_names:
         from kftune.models import SINGLE_TRACK
-        from kftune.tuning.problem import check_model_params
+        from kftune.tuning.parameterization import check_model_params
 
         for name, (lo, hi, _, origin) in given.items():
             one = NoiseParameterization(model_bounds={name: (lo, hi)})

@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     from kftune.data.io import file_stem
     from kftune.tuning.deploy import TunedFilter, consistency_of, estimate, referenced
     from kftune.tuning.kpi import average_kpis, sideslip_kpis
-    from kftune.tuning.problem import check_units, first_scored, where_diverged
+    from kftune.tuning.runs import check_units, first_scored, where_diverged
 
     parquet = _parquet_writer() if args.format == "parquet" else None
     output_dir(args.out, "--out")

@@ -410,15 +410,9 @@ def run(args: argparse.Namespace) -> int:
         tuned_model_params,
     )
     from kftune.tuning.kpi import average_kpis
-    from kftune.tuning.problem import (
-        NoiseParameterization,
-        TuningProblem,
-        assess,
-        check_units,
-        default_r0,
-        missing_references,
-        where_diverged,
-    )
+    from kftune.tuning.parameterization import NoiseParameterization
+    from kftune.tuning.problem import TuningProblem, assess, missing_references
+    from kftune.tuning.runs import check_units, default_r0, where_diverged
 
     if args.force and args.params is None:
         raise UsageError("--force applies to a tuned file's filter (--params) only")
@@ -607,7 +601,7 @@ def measured_keys(measurements: Sequence[str]) -> dict[str, str]:
 def _cost_or_none(problem: TuningProblem, x: np.ndarray) -> float | None:
     """The problem's cost at ``x`` with its current covariance scale; None where the filter
     diverges (the cost is then undefined)."""
-    from kftune.tuning.problem import FilterDivergedError
+    from kftune.errors import FilterDivergedError
 
     try:
         return problem.evaluate(x).cost

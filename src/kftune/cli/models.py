@@ -31,7 +31,7 @@ def register(subparsers: Any) -> None:
 
 def describe(model: Any) -> dict[str, Any]:
     """A model's names and units as JSON-ready data, and the data channels it needs."""
-    from kftune.tuning.problem import output_names
+    from kftune.tuning.runs import output_names
 
     def pairs(names: tuple[str, ...], units: tuple[str, ...]) -> list[dict[str, str]]:
         return [{"name": n, "unit": u} for n, u in zip(names, units)]

@@ -87,7 +87,7 @@ def summarise(stored: Any) -> dict[str, Any]:
         where it lies beside this one (``<stem>.noise-only<suffix>``), else None.
     """
     from kftune.experiment import noise_stage_storage
-    from kftune.tuning.problem import failure_kinds
+    from kftune.tuning.runs import failure_kinds
 
     settings = stored.settings
     records = stored.records
@@ -193,7 +193,7 @@ def _num(v: float | None) -> str:
 def render_text(s: dict[str, Any]) -> str:
     """``study show``'s text: settings, the trial table (a failure's reason by its kind; the
     full reason is in ``--json``), the best point, the failures grouped by kind."""
-    from kftune.tuning.problem import failure_kinds
+    from kftune.tuning.runs import failure_kinds
 
     names = [p["name"] for p in s["parameters"]]
     lines = [

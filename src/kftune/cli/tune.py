@@ -285,7 +285,8 @@ def run(args: argparse.Namespace) -> int:
         from kftune.experiment import require_success, staging, tune
         from kftune.optim import OptimizationInterrupted
         from kftune.optim.engine import EngineLostError
-        from kftune.tuning.problem import TuningProblem, check_units, default_r0
+        from kftune.tuning.problem import TuningProblem
+        from kftune.tuning.runs import check_units, default_r0
 
         dataset = open_dataset(pick(args, config, "dataset", None))
         if not dataset.train:
@@ -472,7 +473,7 @@ def failure_lines(result: OptimizeResult) -> list[str]:
     """Why evaluations failed, grouped by kind with counts (the reasons are otherwise in
     the study file only): ``"3 of 40 evaluations failed:"`` and one line per kind, most
     frequent first; nothing when none failed."""
-    from kftune.tuning.problem import failure_kinds
+    from kftune.tuning.runs import failure_kinds
 
     reasons = [r.reason for r in result.history if not r.ok]
     if not reasons:
@@ -488,7 +489,7 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
     widening would search, beyond it, where they were measured (``hit["edge"]``,
     :func:`probe_edges`): where the cost is flat there a wider box will not help, and the
     line says so instead of suggesting one."""
-    from kftune.experiment import edge_text
+    from kftune.report.tables import edge_text
 
     lines = []
     initial = {p.name: p for p in problem.space.params}
@@ -667,7 +668,8 @@ def held_out(
     from kftune.tuning.deploy import consistency_docs
     from kftune.tuning.generalise import leave_one_out, recorded_model_point
     from kftune.tuning.kpi import average_kpis
-    from kftune.tuning.problem import assess, first_scored, output_names
+    from kftune.tuning.problem import assess
+    from kftune.tuning.runs import first_scored, output_names
 
     joint = bool(problem.parameterization.model_names)
     if "beta" not in output_names(problem.model):

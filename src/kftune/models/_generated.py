@@ -39,13 +39,15 @@ import sys
 import tempfile
 import types
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numba
 import numpy as np
 
 import kftune
-from kftune.models.base import StateSpaceModel
+
+if TYPE_CHECKING:  # the model type imports this module, when it generates code
+    from kftune.models.base import StateSpaceModel
 
 __all__ = ["cache_dir", "generated_module"]
 

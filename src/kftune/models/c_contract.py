@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Sequence
-from importlib import resources
+from pathlib import Path
 
 from kftune.models.base import StateSpaceModel
 
@@ -282,9 +282,13 @@ def export_refusal(model: StateSpaceModel) -> str | None:
     return None
 
 
+#: The built-in models' C files, package data beside this module.
+_C_FOLDER = Path(__file__).resolve().parent / "c"
+
+
 def builtin_names() -> list[str]:
     """The names of the built-in models' C files (``kftune/models/c/<name>.c``)."""
-    folder = resources.files("kftune.models") / "c"
+    folder = _C_FOLDER
     if not folder.is_dir():
         return []
     return sorted(p.name[:-2] for p in folder.iterdir() if p.name.endswith(".c"))
@@ -296,7 +300,7 @@ def builtin_c_code(name: str) -> str:
     Raises:
         ValueError: no such file (the message lists those there are).
     """
-    path = resources.files("kftune.models") / "c" / f"{name}.c"
+    path = _C_FOLDER / f"{name}.c"
     if not re.fullmatch(r"[A-Za-z0-9_\-]+", name) or not path.is_file():
         raise ValueError(
             f"no built-in model C file {name!r}; there are: {', '.join(builtin_names())}"

@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from kftune.report.results import ExperimentResults, MethodRun
+from kftune.tuning.cost import LOG_COSTS
+from kftune.tuning.identify import MEAN_NLL_KINDS
 from kftune.tuning.kpi import KPI_NAMES
 
 KPI_LABELS = {
@@ -145,9 +147,9 @@ def n_failed(m: MethodRun) -> int:
 
 def failure_lines(results: ExperimentResults) -> list[str]:
     """One line per method with failed evaluations: how many of how many, and their reasons
-    grouped by kind (:func:`~kftune.tuning.problem.failure_kinds`) from the reasons the
+    grouped by kind (:func:`~kftune.tuning.runs.failure_kinds`) from the reasons the
     results record (``extra["failures"]``); none when no evaluation failed."""
-    from kftune.tuning.problem import failure_kinds
+    from kftune.tuning.runs import failure_kinds
 
     lines = []
     for m in results.methods:
@@ -438,3 +440,39 @@ def _band(band: Sequence[float | None] | None) -> str:
     if not band or any(v is None for v in band):
         return ""
     return f"[{band[0]:.3g}, {band[1]:.3g}]"
+
+
+def rise_text(edge: Mapping[str, Any], rise: float | None = None) -> str:
+    """How much higher (or lower) the cost is at a probe of
+    :func:`kftune.experiment.edge_probes` than at the best point (``rise``: J − J*; default
+    the step in, ``edge["rise"]``), in the
+    cost's own terms: a share of |J*| for a cost that scales with the error, for a
+    logarithm (msp, nis) the share by which what it is the log of changes (e^|ΔJ| − 1), a
+    mean log-likelihood's change per sample beside the change the data can tell apart."""
+    rise = edge["rise"] if rise is None else rise
+    kind = edge.get("cost_kind", "nrmse")
+    way = "higher" if rise >= 0 else "lower"
+    if kind in MEAN_NLL_KINDS:
+        return f"{abs(rise):.2g} per sample {way} (the data tell {edge['threshold']:.2g} apart)"
+    if kind in LOG_COSTS:
+        share = math.expm1(abs(rise))
+    else:
+        share = abs(rise) / (abs(edge["best_cost"]) or 1.0)
+    pct = 100.0 * share
+    return f"{pct:.2g} % {way}" if pct < 100.0 else f"{pct:,.0f} % {way}"
+
+
+def edge_text(name: str, edge: Mapping[str, Any]) -> str:
+    """What the probes of :func:`kftune.experiment.edge_probes` found, for a hint: ``"one
+    decade in, at q_vx = 0.1, the cost is 0.96 % higher, and 2 decades out, at q_vx = 100,
+    1.6 % higher"``."""
+    said = f"{edge['step']} in, at {name} = {edge['value']:.4g}, " + (
+        "the filter diverged" if edge["rise"] is None else f"the cost is {rise_text(edge)}"
+    )
+    beyond = edge.get("beyond")
+    if beyond is None:
+        return said
+    said += f", and {beyond['decades']:g} decades out, at {name} = {beyond['value']:.4g}, " + (
+        "the filter diverged" if beyond["rise"] is None else rise_text(edge, beyond["rise"])
+    )
+    return said

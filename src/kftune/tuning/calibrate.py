@@ -10,7 +10,7 @@ nonlinear model and move its estimate, by a large share of its β RMSE and with 
 test β RMSE on the tuned single-track UKF (measured in BENCHMARKS.md, "Calibrated
 uncertainty"). So the calibrated filter is defined as the tuned filter whose reported
 covariances are multiplied by c (P_k·c, S_k·c:
-:meth:`kftune.tuning.problem.FilterSpec.run`'s ``cov_scale``) — for a Kalman filter and an
+:meth:`kftune.tuning.runs.FilterSpec.run`'s ``cov_scale``) — for a Kalman filter and an
 EKF exactly the run with c·Q, c·R and c·P0, for a UKF the same without moving its estimate.
 
 :func:`fit_scale` fits c on runs of the filter (the training manoeuvres after tuning) so that
@@ -504,7 +504,7 @@ def problem_runs(
         CalibrationError: naming the manoeuvre, when the filter diverges on it.
     """
     from kftune.tuning.deploy import estimates_of, referenced
-    from kftune.tuning.problem import first_scored
+    from kftune.tuning.runs import first_scored
 
     def run(c: float) -> list[RunErrors]:
         scaled = copy.copy(problem)

@@ -29,6 +29,8 @@ CHANNELS: tuple[str, ...] = ("beta", "r", "ay", "vx")
 #: ones: NIS consistency, the innovation likelihood (``"pem"``) and the multi-step
 #: prediction error (``"msp"``).
 COST_KINDS: tuple[str, ...] = ("nrmse", "nis", "pem", "msp", "nlpd", "crps")
+#: Costs that are logarithms, whose changes are relative changes already.
+LOG_COSTS: tuple[str, ...] = ("msp", "nis")
 
 #: The costs that score the reference channels under the filter's Gaussian N(est, σ²)
 #: (proper scoring rules: minimised in expectation only by the true predictive

@@ -27,15 +27,9 @@ from kftune.errors import DataError, excerpt
 from kftune.filters import UKFSettings
 from kftune.models import StateSpaceModel, get_model, model_names
 from kftune.models.user import model_file_sha256
-from kftune.tuning.problem import (
-    NoiseParameterization,
-    RunResult,
-    TuningProblem,
-    beta_std,
-    filter_spec,
-    first_scored,
-    model_output,
-)
+from kftune.tuning.parameterization import NoiseParameterization
+from kftune.tuning.problem import TuningProblem
+from kftune.tuning.runs import RunResult, beta_std, filter_spec, first_scored, model_output
 from kftune.vehicle.params import VehicleParams
 
 if TYPE_CHECKING:  # imported where used: consistency imports this module's neighbours
@@ -586,7 +580,7 @@ def estimate(
     ``cov_scale``) over ``m`` with ``vehicle``'s parameters (None: a model without one), at
     the manoeuvre's own sample
     time; ``probe``: run the model's hooks
-    first (:meth:`~kftune.tuning.problem.FilterSpec.probe`; False: the caller did, on
+    first (:meth:`~kftune.tuning.runs.FilterSpec.probe`; False: the caller did, on
     every manoeuvre at once)."""
     fs = filter_spec(tuned.model, tuned.filter, vehicle)
     model = fs.model

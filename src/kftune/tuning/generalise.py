@@ -27,13 +27,10 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
+from kftune.errors import FilterDivergedError
 from kftune.tuning.kpi import sideslip_kpis
-from kftune.tuning.problem import (
-    FilterDivergedError,
-    TuningProblem,
-    first_scored,
-    model_output,
-)
+from kftune.tuning.problem import TuningProblem
+from kftune.tuning.runs import first_scored, model_output
 
 #: Evaluations of a leave-one-out refit per tuned model parameter (plus a base of 10).
 REFIT_EVALS_PER_PARAM = 10

@@ -613,7 +613,7 @@ def identify_problem(
     1, whatever calibration ``problem.cov_scale`` holds (restored afterwards). The rise
     that ends a range follows the cost's kind (:func:`rise_of`, N the samples scored after
     the burn-in over all manoeuvres)."""
-    from kftune.tuning.problem import first_scored
+    from kftune.tuning.runs import first_scored
 
     par = problem.parameterization
     names = par.model_names if names is None else tuple(names)

@@ -7,6 +7,12 @@
 The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter (also one
 that ran away to an impossible sideslip or speed, see :mod:`kftune.filters._kernel`) raises
 :class:`FilterDivergedError`, which :func:`kftune.minimize` records as a failed evaluation.
+
+The parts it composes, one module each: what is searched and how a point maps onto the
+filter (:mod:`kftune.tuning.parameterization`), one filter run and what it gives
+(:mod:`kftune.tuning.runs`), what a run contributes to the cost
+(:mod:`kftune.tuning.scoring`) and the worker processes that score manoeuvres in parallel
+(:mod:`kftune.tuning.pool`).
 """
 
 from __future__ import annotations
@@ -17,918 +23,54 @@ import json
 import math
 import multiprocessing
 import os
-import re
-from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT, UNITS
+from kftune.data.manoeuvre import Manoeuvre
 from kftune.errors import ConfigError, DataError, FilterDivergedError
-from kftune.filters import UKFResult, UKFSettings, run_ukf, run_ukf_simd
-from kftune.filters.generic import FilterResult, ModelFilter, get_filter
-from kftune.models import DataRefused, StateSpaceModel, model_names
-from kftune.models.user import is_model_file, load_model, model_file_sha256
-from kftune.processes import sigint_blocked, watch_parent
-from kftune.space import Param, Space
+from kftune.filters import UKFSettings, run_ukf_simd
+from kftune.models import DataRefused, StateSpaceModel
+from kftune.models.user import model_file_sha256
+from kftune.processes import sigint_blocked
+from kftune.space import Space
 from kftune.tuning.cost import (
-    MSP_HORIZON,
-    MSP_STRIDE,
     SCORING_RULES,
     CostSpec,
-    gaussian_crps,
-    gaussian_nlpd,
     innovation_nll,
     multistep_cost,
     nis_cost,
-    nrmse,
     scoring_rule_cost,
     weighted_cost,
 )
-from kftune.tuning.hookcheck import check_model_file
 from kftune.tuning.kpi import sideslip_kpis
+from kftune.tuning.parameterization import (
+    SIDESLIP_MEASUREMENTS,
+    NoiseParameterization,
+    check_model_params,
+)
+from kftune.tuning.pool import balanced_chunks, init_worker, score_chunk
+from kftune.tuning.runs import (
+    RunResult,
+    channel_estimate,
+    check_cost_channels,
+    filter_spec,
+    first_scored,
+    model_output,
+    output_names,
+)
+from kftune.tuning.scoring import (
+    Evaluation,
+    ManoeuvreScore,
+    msp_channels,
+    run_params,
+    score_manoeuvre,
+    score_result,
+)
 from kftune.vehicle.params import VehicleParams
-
-#: Paper Sec. VI: every process-noise parameter searched in [1e-10, 1] (log10 scale here).
-Q_BOUNDS = (1e-10, 1.0)
-#: The single-track model's states and measurements (the paper's filter).
-SIDESLIP_STATES = ("vx", "vy", "r")
-SIDESLIP_MEASUREMENTS = ("vx", "ay", "r")
-Q_NAMES = tuple(f"q_{s}" for s in SIDESLIP_STATES)
-#: How R is tuned: not at all (paper), one factor on R₀, or one factor per measurement.
-R_MODES = ("none", "scale", "diag")
-
-Bounds = tuple[float, float]
-
-
-@dataclass(frozen=True)
-class NoiseParameterization:
-    """What the optimiser tunes, and how its vector maps onto the filter.
-
-    Always the diagonal of Q, one parameter ``q_<state>`` per state of the model (default:
-    the single-track model's ``q_vx, q_vy, q_r`` [(m/s)², (m/s)², (rad/s)²]), on a log10
-    scale over ``q_bounds`` (paper: [1e-10, 1]) — one box for all, or a box per name
-    (``{"q_vy": (1e-8, 1e-2)}``; names not given keep :data:`Q_BOUNDS`). Optionally (the
-    paper's future work), R as factors on the measurement-noise variances R₀ from sensor
-    statistics, log10 over ``r_scale_bounds``:
-
-    * ``tune_r="scale"`` (or ``tune_r_scale=True``): one ``r_scale`` [-], R = r_scale·R₀.
-      Only the ratio of Q to R shapes the gain, so this matters mostly for the NIS cost
-      and for filters whose R₀ is poorly known;
-    * ``tune_r="diag"``: one factor ``r_<measurement>_scale`` [-] per measurement,
-      R = diag(f)·R₀.
-
-    And ``tune_sigma_points``: ``ukf_alpha`` (log10), ``ukf_beta`` and ``ukf_kappa``
-    (linear), the sigma-point parameters (FilterPy's ``MerweScaledSigmaPoints`` convention;
-    κ > −2 keeps n + κ ≥ 1).
-
-    And the model's own parameters (``param_names`` of the model; for the single-track
-    models the vehicle's fields, e.g. ``C_af`` [N/rad]): ``model_bounds`` name → (low, high)
-    in the parameter's unit adds one parameter of that name per entry, after the others,
-    on the scale ``model_scales[name]`` — default log10 where low > 0 (stiffness, mass and
-    friction are scale quantities whose uncertainty is relative: ×0.7 and ×1.4 are equally
-    likely guesses), else linear. ``model_start`` name → the recorded value, the start and
-    manual point (:func:`kftune.experiment.manual_point`); :class:`TuningProblem` fills
-    the names it lacks from the model's recorded parameters. Whether a name is a parameter
-    of the model and its box plausible is checked against the model
-    (:func:`check_model_params`).
-    """
-
-    q_bounds: Bounds | Mapping[str, Bounds] = Q_BOUNDS
-    tune_r_scale: bool = False
-    r_scale_bounds: tuple[float, float] = (1e-2, 1e2)
-    tune_sigma_points: bool = False
-    alpha_bounds: tuple[float, float] = (1e-2, 2.0)
-    beta_bounds: tuple[float, float] = (0.0, 4.0)
-    kappa_bounds: tuple[float, float] = (-2.0, 3.0)
-    default_settings: UKFSettings = field(default_factory=UKFSettings)
-    states: tuple[str, ...] = SIDESLIP_STATES
-    measurements: tuple[str, ...] = SIDESLIP_MEASUREMENTS
-    tune_r: str = "none"
-    model_bounds: Mapping[str, Bounds] = field(default_factory=dict)
-    model_scales: Mapping[str, str] = field(default_factory=dict)
-    model_start: Mapping[str, float] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "states", tuple(self.states))
-        object.__setattr__(self, "measurements", tuple(self.measurements))
-        self._check_model_fields()
-        if self.tune_r not in R_MODES:
-            raise ValueError(f"tune_r must be one of {list(R_MODES)}, got {self.tune_r!r}")
-        if self.tune_r_scale and self.tune_r == "diag":
-            raise ValueError('tune_r_scale and tune_r="diag" exclude each other')
-        if self.tune_r_scale:
-            object.__setattr__(self, "tune_r", "scale")
-        if isinstance(self.q_bounds, Mapping):
-            unknown = sorted(set(self.q_bounds) - set(self.q_names))
-            if unknown:
-                raise ValueError(
-                    f"q_bounds names {unknown} are not parameters of this model; "
-                    f"expected some of {list(self.q_names)}"
-                )
-
-    def _check_model_fields(self) -> None:
-        """Normalise ``model_bounds``/``model_scales``/``model_start`` to plain dicts of
-        floats and refuse what no model could take (each message names the parameter)."""
-        bounds: dict[str, Bounds] = {}
-        for name, box in dict(self.model_bounds).items():
-            try:
-                low, high = (float(v) for v in box)
-            except (TypeError, ValueError):
-                raise ValueError(
-                    f"model parameter {name!r}: bounds must be (low, high), got {box!r}"
-                ) from None
-            if not (math.isfinite(low) and math.isfinite(high) and low < high):
-                raise ValueError(
-                    f"model parameter {name!r}: bounds must be finite with low < high, "
-                    f"got ({low:g}, {high:g})"
-                )
-            bounds[str(name)] = (low, high)
-        scales: dict[str, str] = {}
-        for name, scale in dict(self.model_scales).items():
-            if name not in bounds:
-                raise ValueError(
-                    f"a scale is given for model parameter {name!r}, which is not tuned; "
-                    f"tuned: {list(bounds)}"
-                )
-            if scale not in ("log10", "linear"):
-                raise ValueError(
-                    f"model parameter {name!r}: scale must be 'log10' or 'linear', got {scale!r}"
-                )
-            scales[name] = scale
-        for name, (low, _) in bounds.items():
-            scales.setdefault(name, "log10" if low > 0 else "linear")
-            if scales[name] == "log10" and low <= 0:
-                raise ValueError(
-                    f"model parameter {name!r}: a log10 scale needs a positive lower bound, "
-                    f"got {low:g} (give the scale 'linear')"
-                )
-        start: dict[str, float] = {}
-        for name, value in dict(self.model_start).items():
-            if name not in bounds:
-                raise ValueError(
-                    f"a start value is given for model parameter {name!r}, which is not "
-                    f"tuned; tuned: {list(bounds)}"
-                )
-            v = float(value)
-            low, high = bounds[name]
-            if not low <= v <= high:
-                # refused, not clipped: the start is the recorded model, the manual point
-                # and the baseline of the held-out comparison; a clipped one is a model
-                # nobody recorded
-                raise ValueError(
-                    f"model parameter {name!r}: its recorded value {v:g} lies outside its "
-                    f"box [{low:g}, {high:g}]; widen the box to include it"
-                )
-            start[name] = v
-        object.__setattr__(self, "model_bounds", bounds)
-        object.__setattr__(self, "model_scales", {n: scales[n] for n in bounds})
-        object.__setattr__(self, "model_start", start)
-
-    @property
-    def model_names(self) -> tuple[str, ...]:
-        """The tuned model parameters, in the order of ``model_bounds`` (as in the space)."""
-        return tuple(self.model_bounds)
-
-    def model_values(self, x: Sequence[float] | np.ndarray) -> dict[str, float]:
-        """The model parameters of a point of :attr:`space` (natural units), name → value."""
-        if not self.model_bounds:
-            return {}
-        names = self.space.names
-        x = np.asarray(x, dtype=float)
-        if x.shape != (len(names),):
-            raise ValueError(f"expected a point with {len(names)} values {names}, got {x.shape}")
-        return {n: float(x[names.index(n)]) for n in self.model_names}
-
-    def with_start(self, recorded: Mapping[str, float]) -> NoiseParameterization:
-        """This parameterisation with ``model_start`` completed from ``recorded`` (name →
-        the model's recorded value) for the tuned names it lacks (itself when none)."""
-        missing = {n: float(recorded[n]) for n in self.model_names if n not in self.model_start}
-        if not missing:
-            return self
-        return replace(self, model_start={**self.model_start, **missing})
-
-    @property
-    def q_names(self) -> tuple[str, ...]:
-        """``q_<state>`` for every state, in state order."""
-        return tuple(f"q_{s}" for s in self.states)
-
-    @property
-    def r_names(self) -> tuple[str, ...]:
-        """The R parameters: none, ``("r_scale",)`` or ``r_<measurement>_scale`` each."""
-        if self.tune_r == "scale":
-            return ("r_scale",)
-        if self.tune_r == "diag":
-            return tuple(f"r_{m}_scale" for m in self.measurements)
-        return ()
-
-    def q_box(self, name: str) -> Bounds:
-        """The (low, high) box of a Q parameter."""
-        if isinstance(self.q_bounds, Mapping):
-            low, high = self.q_bounds.get(name, Q_BOUNDS)
-            return (low, high)
-        return self.q_bounds
-
-    @property
-    def space(self) -> Space:
-        """The search space (validates the bounds)."""
-        params = [Param(name, *self.q_box(name), scale="log10") for name in self.q_names]
-        params += [Param(name, *self.r_scale_bounds, scale="log10") for name in self.r_names]
-        if self.tune_sigma_points:
-            params += [
-                Param("ukf_alpha", *self.alpha_bounds, scale="log10"),
-                Param("ukf_beta", *self.beta_bounds),
-                Param("ukf_kappa", *self.kappa_bounds),
-            ]
-        params += [
-            Param(name, *self.model_bounds[name], scale=self.model_scales[name], physical=True)
-            for name in self.model_names
-        ]
-        return Space(tuple(params))
-
-    def decode(
-        self, x: Sequence[float] | np.ndarray, r0: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, UKFSettings]:
-        """Map a point of :attr:`space` (natural units) to (q (n,), r (m,), settings)."""
-        names = self.space.names
-        x = np.asarray(x, dtype=float)
-        if x.shape != (len(names),):
-            raise ValueError(f"expected a point with {len(names)} values {names}, got {x.shape}")
-        values = dict(zip(names, x.tolist()))
-        q = np.array([values[n] for n in self.q_names])
-        r = np.asarray(r0, dtype=float) * values.get("r_scale", 1.0)
-        if self.tune_r == "diag":
-            r = r * np.array([values[n] for n in self.r_names])
-        settings = self.default_settings
-        if self.tune_sigma_points:
-            settings = UKFSettings(values["ukf_alpha"], values["ukf_beta"], values["ukf_kappa"])
-        return q, r, settings
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-serialisable description (for reports and study metadata)."""
-        out: dict[str, Any] = {
-            "names": list(self.space.names),
-            "space": self.space.to_dict(),
-            "sigma_points": None
-            if self.tune_sigma_points
-            else {
-                "alpha": self.default_settings.alpha,
-                "beta": self.default_settings.beta,
-                "kappa": self.default_settings.kappa,
-            },
-        }
-        if self.states != SIDESLIP_STATES or self.measurements != SIDESLIP_MEASUREMENTS:
-            out["states"], out["measurements"] = list(self.states), list(self.measurements)
-        if self.model_bounds:  # absent without: a noise-only study keeps its fingerprint
-            out["model"] = {
-                n: {
-                    "low": self.model_bounds[n][0],
-                    "high": self.model_bounds[n][1],
-                    "scale": self.model_scales[n],
-                    "start": self.model_start.get(n),
-                }
-                for n in self.model_names
-            }
-        return out
-
-
-@dataclass(frozen=True)
-class ManoeuvreScore:
-    """What one manoeuvre contributes to the cost.
-
-    Attributes:
-        name: manoeuvre name. n: its number of samples.
-        nrmse: channel → NRMSE (paper Eq. 15) for the weighted channels.
-        scale: channel → the max|X| that NRMSE was normalised by (the channel's unit; for
-            the cost normalised over the whole set, ``CostSpec.normalise="dataset"``).
-        nis_sum: Σ_k NIS_k over the manoeuvre (for the NIS cost).
-        log_det_s_sum: Σ_k log det S_k (with ``nis_sum``, the innovation likelihood).
-        msp_sq, msp_n: per cost channel the sum of squared multi-step prediction errors,
-            and the number of start samples (the ``msp`` cost).
-        score_sum: channel → Σ_k of the per-sample scoring rule (the ``nlpd`` cost: NLPD
-            [nats]; ``crps``: CRPS [channel unit]) of the reference under the filter's
-            Gaussian, for the weighted channels (with ``scale`` their max|X|).
-    """
-
-    name: str
-    n: int
-    nrmse: dict[str, float]
-    nis_sum: float
-    scale: dict[str, float] = field(default_factory=dict)
-    log_det_s_sum: float = 0.0
-    msp_sq: tuple[float, ...] = ()
-    msp_n: int = 0
-    score_sum: dict[str, float] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Evaluation:
-    """One cost evaluation in detail.
-
-    Attributes:
-        cost: J.
-        pooled: channel → pooled error E_j (paper Eq. 14); empty for the NIS cost.
-        mean_nis: mean NIS over all samples [-] (3 for a consistent filter).
-        scores: per-manoeuvre contributions.
-    """
-
-    cost: float
-    pooled: dict[str, float]
-    mean_nis: float
-    scores: tuple[ManoeuvreScore, ...]
-
-
-#: A filter run's output: the paper's 3×3 kernel or the generic filters.
-RunResult = UKFResult | FilterResult
-
-
-def output_names(model: StateSpaceModel) -> tuple[str, ...]:
-    """What a cost or KPI can score against a reference channel ``<name>_ref``: the model's
-    derived outputs (the single-track models' ``beta``), then its states that are not also
-    measurements (the single-track ``vy``, the CTRV model's ``v``, ``psi``, ``omega``)."""
-    states = [s for s in model.state_names if s not in model.measurement_names]
-    return (*model.outputs, *(s for s in states if s not in model.outputs))
-
-
-def check_units(model: StateSpaceModel, dataset: Dataset) -> None:
-    """Refuse a model whose inputs or measurements are in other units than the dataset's
-    channels of the same names (SI, as kftune holds every channel; a model that says km
-    would read metres as kilometres).
-
-    Raises:
-        ConfigError: naming the model, the channel and both units.
-    """
-    for kind, names, units in (
-        ("input", model.input_names, model.input_units),
-        ("measurement", model.measurement_names, model.measurement_units),
-    ):
-        for name, unit in zip(names, units):
-            dim = CHANNEL_DIMENSION.get(name)
-            data = SI_UNIT[dim] if dim is not None else dataset.units.get(name)
-            if data is None or unit.strip() == data:
-                continue
-            ours, theirs = UNITS.get(unit.strip()), UNITS.get(data)
-            if ours is not None and theirs is not None and ours == theirs:
-                continue  # two spellings of one unit
-            raise ConfigError(
-                f"model {model.name!r}: {kind} {name!r} is in {unit!r}, but the dataset "
-                f"{dataset.name!r} holds it in {data!r} (SI): give the model's units as the "
-                "data's"
-            )
-
-
-def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
-    """Refuse an NRMSE cost that weighs a channel ``model`` cannot score, and a scoring-rule
-    cost (nlpd, crps) that weighs a channel other than an output with a standard deviation
-    (:func:`std_outputs`).
-
-    Raises:
-        ConfigError: naming the channel, the model's measurements and its outputs.
-    """
-    if spec.kind in SCORING_RULES:
-        scored = std_outputs(model)
-        for c in spec.channels:
-            if c not in scored:
-                what = "a measurement" if c in model.measurement_names else "not an output"
-                raise ConfigError(
-                    f"cost channel {c!r} ({what} of model {model.name!r}): the {spec.kind} "
-                    "cost scores a reference channel <output>_ref under the filter's "
-                    f"Gaussian, for an output with a standard deviation: {list(scored)} (a "
-                    "measured channel's predictive density is the pem cost's)"
-                )
-        return
-    if spec.kind != "nrmse":
-        return
-    outputs = output_names(model)
-    for c in spec.channels:
-        if c not in model.measurement_names and c not in outputs:
-            raise ConfigError(
-                f"unknown cost channel {c!r}: neither a measurement of model {model.name!r} "
-                f"{list(model.measurement_names)} nor one of its outputs {list(outputs)} "
-                "(scored against a reference channel <output>_ref)"
-            )
-
-
-#: Vehicle fields that are no parameters of the single-track models, and why.
-_NOT_IN_MODEL = {
-    "track_f": "the single-track model lumps each axle",
-    "track_r": "the single-track model lumps each axle",
-    "steering_ratio": "it only converts recorded hand-wheel angles when data are imported",
-}
-
-
-def check_model_params(par: NoiseParameterization, model: StateSpaceModel) -> None:
-    """Refuse tuned model parameters ``model`` cannot take: a name that is not one of its
-    ``param_names``, or a box beyond the model's plausible range of the parameter
-    (``param_ranges``; the single-track models: the vehicle's ``PLAUSIBLE_RANGES``).
-
-    Raises:
-        ConfigError: naming the parameter and the model's parameters or the range.
-    """
-    for name, (low, high) in par.model_bounds.items():
-        if name not in model.param_names:
-            why = f" ({_NOT_IN_MODEL[name]})" if name in _NOT_IN_MODEL else ""
-            raise ConfigError(
-                f"tune_model: {name!r} is not a parameter of model {model.name!r}{why}; it "
-                f"has {list(model.param_names)}"
-            )
-        if name in model.param_ranges:
-            lo, hi = model.param_ranges[name]
-            unit = model.param_units[model.param_names.index(name)]
-            if low < lo or high > hi:
-                raise ConfigError(
-                    f"tune_model: the box of {name!r}, [{low:g}, {high:g}] {unit}, reaches "
-                    f"beyond its plausible range [{lo:g}, {hi:g}] {unit} (model "
-                    f"{model.name!r}); give a box within it"
-                )
-
-
-def model_output(res: RunResult, name: str) -> np.ndarray:
-    """(N,) an output of the run's model (:func:`output_names`) from the posterior states,
-    e.g. ``"beta"`` [rad] (the sideslip atan2(Vy, Vx) of the single-track models) or a
-    state by name (in its unit)."""
-    from kftune.models import SINGLE_TRACK
-
-    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
-    if isinstance(res, UKFResult) and name == "beta":
-        return res.beta
-    if name in model.outputs:
-        return np.asarray(model.outputs[name](res.x), dtype=float)
-    if name in output_names(model):
-        return np.asarray(res.x[:, model.state_names.index(name)], dtype=float)
-    raise KeyError(
-        f"model {model.name!r} has no output {name!r}; it has {list(output_names(model))}"
-    )
-
-
-def beta_std(x: np.ndarray, p_diag: np.ndarray) -> np.ndarray:
-    """(N,) standard deviation [rad] of β = atan2(Vy, Vx) by the delta method.
-
-    Linearises β about the estimate: ∂β/∂Vx = −Vy/(Vx² + Vy²), ∂β/∂Vy = Vx/(Vx² + Vy²), so
-    var β ≈ (Vy²·var Vx + Vx²·var Vy)/(Vx² + Vy²)². Only the diagonal of P is kept by the
-    filter's output, so the Vx–Vy covariance is left out (it is small when Vx is measured).
-
-    Args:
-        x: (N, ≥2) states with Vx in column 0 and Vy in column 1 [m/s]; p_diag: (N, ≥2) their
-            variances [(m/s)²].
-    """
-    vx, vy = x[:, 0], x[:, 1]
-    s = vx**2 + vy**2
-    return np.sqrt(vy**2 * p_diag[:, 0] + vx**2 * p_diag[:, 1]) / s
-
-
-def std_outputs(model: StateSpaceModel) -> tuple[str, ...]:
-    """The outputs of ``model`` (:func:`output_names`) whose standard deviation the filter
-    gives (:func:`output_std`): β of a model whose first states are Vx, Vy, and every
-    state that is not measured."""
-    beta = "beta" in model.outputs and model.state_names[:2] == ("vx", "vy")
-    return tuple(c for c in output_names(model) if (c == "beta" and beta) or c in model.state_names)
-
-
-def output_std(res: RunResult, name: str) -> np.ndarray:
-    """(N,) the standard deviation of :func:`model_output` ``name`` from the posterior
-    covariance's diagonal: β [rad] by the delta method (:func:`beta_std`), a state's
-    √P_ii in its unit.
-
-    Raises:
-        KeyError: an output whose σ the filter does not give (:func:`std_outputs`).
-    """
-    from kftune.models import SINGLE_TRACK
-
-    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
-    if name not in std_outputs(model):
-        raise KeyError(
-            f"model {model.name!r} gives no standard deviation of {name!r}; it gives one of "
-            f"{list(std_outputs(model))}"
-        )
-    if name == "beta" and "beta" in model.outputs:
-        return beta_std(res.x, res.P_diag)
-    return np.sqrt(np.asarray(res.P_diag[:, model.state_names.index(name)], dtype=float))
-
-
-def channel_estimate(
-    m: Manoeuvre, res: RunResult, channel: str, estimate: str = "posterior"
-) -> tuple[np.ndarray, np.ndarray]:
-    """(estimate, reference) of a cost channel over the whole manoeuvre.
-
-    A measurement of the model (yaw rate [rad/s], ay [m/s²], Vx [m/s] for the single-track
-    model) against its measured channel, estimated by h(x⁺_k) (``"posterior"``) or by the
-    one-step prediction z_k − innovation_k (``"prior"``); any other channel is a derived
-    output of the model (β [rad] from the posterior state, or a state that is not
-    measured, :func:`output_names`) against the reference channel ``<channel>_ref`` of the
-    data (``beta_ref``); see :class:`~kftune.tuning.cost.CostSpec`.
-    """
-    names = SIDESLIP_MEASUREMENTS if isinstance(res, UKFResult) else res.model.measurement_names
-    if channel not in names:
-        return model_output(res, channel), m.channel(f"{channel}_ref")
-    column = names.index(channel)
-    measured = m.channel(channel)
-    if estimate == "prior":
-        return measured - res.innovation[:, column], measured
-    return res.z_hat[:, column], measured
-
-
-#: Where a filter diverged, as :func:`where_diverged` says it: not part of a failure's kind.
-_WHERE_DIVERGED = re.compile(r" on manoeuvre (?:'[^']*'|\"[^\"]*\") at step \d+ \(t = [^)]*\)")
-#: The exception's class name in front of a failed evaluation's reason.
-_EXCEPTION_NAME = re.compile(r"^[A-Za-z_]\w*(?:Error|Exception): ")
-
-
-def failure_kinds(reasons: Iterable[str | None]) -> list[tuple[str, int]]:
-    """Failed evaluations' reasons grouped by kind, most frequent first, as
-    ``[(kind, count), …]``: a reason without the exception's class name and without where
-    the filter diverged (manoeuvre, step, time), so that the divergences of one cause are
-    one kind (``"filter diverged: runaway: the estimated sideslip went beyond ±60°"``).
-    A missing reason counts as ``"no reason recorded"``."""
-    kinds = Counter(
-        _WHERE_DIVERGED.sub("", _EXCEPTION_NAME.sub("", r)) if r else "no reason recorded"
-        for r in reasons
-    )
-    return kinds.most_common()
-
-
-def where_diverged(m: Manoeuvre, res: RunResult) -> str:
-    """``"manoeuvre 'x' at step k (t = … s): <cause>"`` for a run that diverged on ``m``."""
-    return (
-        f"manoeuvre {m.name!r} at step {res.diverged_step} "
-        f"(t = {m.t[res.diverged_step]:.2f} s): {res.diverged_reason}"
-    )
-
-
-def first_scored(m: Manoeuvre, burn_in: float) -> int:
-    """Index of the first sample scored after a burn-in of ``burn_in`` seconds."""
-    return int(np.searchsorted(m.t - m.t[0], burn_in - 1e-9 * m.dt))
-
-
-def scaled_covariances(res: RunResult, c: float) -> RunResult:
-    """A run's result with its covariances c times larger and its estimate as it is: P_diag·c,
-    NIS/c (S·c), log det S + m·ln c — the run with c·Q, c·R and c·P0 of a Kalman filter or
-    EKF (:meth:`FilterSpec.run`'s ``cov_scale``)."""
-    log_det = res.log_det_s
-    m = res.innovation.shape[1]
-    return replace(
-        res,
-        P_diag=res.P_diag * c,
-        nis=res.nis / c,
-        log_det_s=None if log_det is None else log_det + m * math.log(c),
-    )
-
-
-@dataclass(frozen=True)
-class FilterSpec:
-    """Which filter runs which model: the paper's pair (single-track UKF) runs on the
-    hand-written 3×3 kernel, every other pair on the generic kernels.
-
-    Attributes:
-        model: the state-space model. spec: how to load it again (a registered name or a
-            model file, for worker processes and tuned files).
-        filter: ``"ukf"`` or ``"ekf"``. params: (n_p,) the model's parameters.
-    """
-
-    model: StateSpaceModel
-    spec: str
-    filter: str
-    params: np.ndarray
-
-    @property
-    def fast(self) -> bool:
-        """Whether the 3×3 kernel runs it (the paper's model and filter)."""
-        from kftune.models import SINGLE_TRACK
-
-        return self.model is SINGLE_TRACK and self.filter == "ukf"
-
-    def inputs(self, m: Manoeuvre) -> tuple[np.ndarray | None, np.ndarray]:
-        """(u (N, n_u) or None, z (N, m)) of a manoeuvre, by the model's channel names."""
-        if self.fast:
-            return m.u, m.z
-        names = self.model.input_names
-        u = np.column_stack([m.channel(c) for c in names]) if names else None
-        return u, np.column_stack([m.channel(c) for c in self.model.measurement_names])
-
-    def probe(
-        self,
-        manoeuvres: Sequence[Manoeuvre],
-        r: np.ndarray,
-        q: np.ndarray | None = None,
-        settings: UKFSettings | None = None,
-    ) -> None:
-        """Run the model's hooks before a filter relies on them, with measurement variances
-        ``r``: once on the first sample of each manoeuvre
-        (:meth:`~kftune.models.StateSpaceModel.probe`). A model file's hooks run in a
-        child process instead, where a hook that never returns can be stopped (Ctrl-C,
-        SIGTERM), and then through the filter with bounds checked (process-noise
-        variances ``q``, default 1e-4 each; the UKF's sigma-point ``settings``, default
-        :class:`~kftune.filters.UKFSettings`, so that the check visits the states the
-        filter it protects visits):
-        :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models are not
-        probed in a child (nor the paper's kernel at all).
-
-        Raises:
-            ConfigError: naming the model (its file), the manoeuvre and the hook.
-        """
-        if self.fast or not manoeuvres:
-            return
-        if is_model_file(self.spec):
-            runs = [(m.name, *self.inputs(m), m.dt) for m in manoeuvres]
-            qs = np.full(self.model.n_states, 1e-4) if q is None else np.asarray(q, float)
-            try:
-                check_model_file(
-                    self.spec,
-                    self.filter,
-                    runs,
-                    self.params,
-                    qs,
-                    np.asarray(r),
-                    settings or UKFSettings(),
-                )
-            except ValueError as exc:
-                raise ConfigError(f"model {self.spec}, {exc}") from None
-            return
-        for m in manoeuvres:
-            u, z = self.inputs(m)
-            try:
-                self.model.probe(u, z, r, self.params, m.dt)
-            except ValueError as exc:
-                raise ConfigError(f"model {self.spec}, on manoeuvre {m.name!r}: {exc}") from None
-
-    def run(
-        self,
-        m: Manoeuvre,
-        vehicle: VehicleParams | None,
-        q: np.ndarray,
-        r: np.ndarray,
-        settings: UKFSettings,
-        *,
-        params: np.ndarray | None = None,
-        cov_scale: float = 1.0,
-    ) -> RunResult:
-        """The filter's run over one manoeuvre.
-
-        Args:
-            m: the manoeuvre. vehicle: the vehicle of the paper's kernel (single-track UKF).
-            q: (n,) and r: (m,) the noise variances. settings: the UKF's sigma points.
-            params: (n_p,) the model's parameter vector for this run (None: :attr:`params`,
-                or for the paper's kernel ``vehicle``).
-            cov_scale: c > 0: the calibration (:mod:`kftune.tuning.calibrate`): the filter
-                runs with Q, R and its default prior as given, and reports every covariance
-                c times larger (P_diag·c, NIS/c, log det S + m·ln c). For a Kalman filter and
-                an EKF this is exactly the run with c·Q, c·R and c·P0 (the gain is
-                homogeneous of degree 0 in (P, Q, R), so the estimate, and with it the
-                EKF's Jacobians, stay); a UKF run so would spread its sigma points √c times
-                wider and move its estimate (by how much: BENCHMARKS.md, "Calibrated
-                uncertainty"), so the UKF keeps the tuned filter's.
-        """
-        c = float(cov_scale)
-        if not (math.isfinite(c) and c > 0):
-            raise ValueError(f"cov_scale must be a positive finite number, got {cov_scale!r}")
-        res: RunResult
-        if self.fast:
-            p = vehicle if params is None else params
-            if p is None:  # filter_spec gives the paper's kernel a vehicle
-                raise ValueError("the single-track kernel needs a vehicle or its parameters")
-            res = run_ukf(m.u, m.z, m.dt, p, q, r, settings=settings)
-        else:
-            u, z = self.inputs(m)
-            p = self.params if params is None else np.asarray(params, dtype=float)
-            res = self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=p)
-        return res if c == 1.0 else scaled_covariances(res, c)
-
-    def filter_object(self, settings: UKFSettings) -> ModelFilter:
-        """The generic filter (the UKF with these sigma-point settings)."""
-        return get_filter("ukf", settings=settings) if self.filter == "ukf" else get_filter("ekf")
-
-
-def filter_spec(
-    model: str | StateSpaceModel, filter: str, vehicle: VehicleParams | None
-) -> FilterSpec:
-    """A :class:`FilterSpec` from a model name, model file or model, and a filter name; a
-    vehicle model's parameters come from ``vehicle``, another model's are its defaults.
-
-    Raises:
-        ConfigError: unknown model or filter, a model file that cannot be loaded, or a
-            model that needs a vehicle (the single-track models) without one.
-    """
-    mod = load_model(model)
-    if filter not in ("ukf", "ekf"):
-        raise ConfigError(f"filter must be 'ukf' or 'ekf', got {filter!r}")
-    if mod.needs_vehicle and vehicle is None:
-        raise ConfigError(
-            f"model {mod.name!r} needs the vehicle's parameters, but the dataset has no vehicle "
-            "(a manifest's 'vehicle' table or preset name); for data of something else choose "
-            f"a model that fits them (--model; built-in: {', '.join(model_names())})"
-        )
-    spec = model if isinstance(model, str) else mod.name
-    if vehicle is not None and mod.pack_params is not None:
-        try:
-            params = mod.pack_params(vehicle)
-        except (TypeError, ValueError, AttributeError):
-            params = np.asarray(mod.param_defaults, dtype=float)
-    else:
-        params = np.asarray(mod.param_defaults, dtype=float)
-    return FilterSpec(mod, spec, filter, np.asarray(params, dtype=float))
-
-
-def default_r0(
-    model: StateSpaceModel,
-    r_default: Dataset | Mapping[str, float] | Sequence[float] | np.ndarray,
-    overrides: Mapping[str, float] | None = None,
-) -> np.ndarray:
-    """(m,) the measurement-noise variances R₀ of a model's measurements: ``overrides``
-    (name → variance, e.g. from a configuration's ``r0``) first, then the estimate from
-    the data: a dataset's :meth:`~kftune.data.Dataset.noise_variances` of the model's
-    measurement channels (of those not overridden), a mapping name → variance, or an
-    array of the single-track channels [Vx, ay, r] (``Dataset.r_default``).
-
-    Raises:
-        ConfigError: a measurement with neither, or an override that is not a measurement
-            or not a positive finite number.
-        MissingChannelError: a dataset whose manoeuvres lack a measurement channel.
-    """
-    given = dict(overrides or {})
-    extra = sorted(set(given) - set(model.measurement_names))
-    if extra:
-        raise ConfigError(
-            f"r0 names {extra} are not measurements of model {model.name!r} "
-            f"{list(model.measurement_names)}"
-        )
-    if isinstance(r_default, Dataset):
-        wanted = [c for c in model.measurement_names if c not in given]
-        for m in r_default.train or r_default.manoeuvres:
-            m.require(wanted, f"model {model.name!r}", "measurement channel")
-        known = dict(zip(wanted, r_default.noise_variances(wanted).tolist()))
-    elif isinstance(r_default, Mapping):
-        known = {str(k): float(v) for k, v in r_default.items()}
-    else:
-        known = dict(zip(SIDESLIP_MEASUREMENTS, np.asarray(r_default, dtype=float).tolist()))
-    out = []
-    for name in model.measurement_names:
-        v = given.get(name, known.get(name))
-        if v is None:
-            raise ConfigError(
-                f"no measurement-noise variance for {name!r} of model {model.name!r}: give it "
-                f"in the configuration, e.g. r0 = {{ {name} = 0.01 }} (in its unit squared)"
-            )
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
-            raise ConfigError(f"r0 for {name!r} must be a positive finite number, got {v!r}")
-        out.append(float(v))
-    return np.array(out)
-
-
-def _score(
-    m: Manoeuvre,
-    vehicle: VehicleParams | None,
-    fs: FilterSpec,
-    q: np.ndarray,
-    r: np.ndarray,
-    settings: UKFSettings,
-    spec: CostSpec,
-    burn_in: float,
-    params: np.ndarray | None = None,
-    cov_scale: float = 1.0,
-) -> ManoeuvreScore:
-    """One manoeuvre's score of one point: ``vehicle`` and ``params`` are the point's model
-    (:meth:`TuningProblem.vehicle_at`, :meth:`TuningProblem.params_at`)."""
-    res = fs.run(m, vehicle, q, r, settings, params=params, cov_scale=cov_scale)
-    return _score_result(m, res, spec, burn_in, fs, _run_params(fs, vehicle, params))
-
-
-def _run_params(
-    fs: FilterSpec, vehicle: VehicleParams | None, params: np.ndarray | None
-) -> np.ndarray:
-    """(n_p,) the model's parameter vector a run of ``fs`` used (:meth:`FilterSpec.run`)."""
-    if params is not None:
-        return np.asarray(params, dtype=float)
-    if fs.fast and vehicle is not None:
-        return fs.model.params_vector(vehicle)
-    return fs.params
-
-
-def _log_det_s_sum(res: RunResult, k0: int) -> float:
-    """Σ log det S from step k0 on (the pem cost's); the vector kernel does not compute it."""
-    if res.log_det_s is None:
-        raise ValueError("the pem cost needs log det S, which this run did not compute")
-    return float(np.sum(res.log_det_s[k0:]))
-
-
-def _score_result(
-    m: Manoeuvre,
-    res: RunResult,
-    spec: CostSpec,
-    burn_in: float,
-    fs: FilterSpec,
-    params: np.ndarray,
-) -> ManoeuvreScore:
-    """One manoeuvre's contribution from the filter's run over it (``fs`` and ``params``
-    (n_p,): the run's model, for the multi-step predictions of the msp cost)."""
-    if res.diverged:
-        raise FilterDivergedError(f"filter diverged on {where_diverged(m, res)}")
-    k0 = first_scored(m, burn_in)
-    channels = spec.channels if spec.kind == "nrmse" else ()
-    scores, scales = {}, {}
-    for c in channels:
-        est, ref = channel_estimate(m, res, c, spec.estimate)
-        try:
-            scores[c] = nrmse(est[k0:], ref[k0:])
-        except ValueError as exc:  # e.g. a reference that is zero throughout
-            raise DataError(f"manoeuvre {m.name!r}: cannot score channel {c!r}: {exc}") from None
-        scales[c] = float(np.max(np.abs(ref[k0:])))
-    score_sum: dict[str, float] = {}
-    if spec.kind in SCORING_RULES:
-        rule = gaussian_nlpd if spec.kind == "nlpd" else gaussian_crps
-        for c in spec.channels:
-            est, ref = channel_estimate(m, res, c)
-            scales[c] = float(np.max(np.abs(ref[k0:])))
-            if spec.kind == "crps" and not scales[c] > 0:
-                raise DataError(
-                    f"manoeuvre {m.name!r}: cannot score channel {c!r} by the crps cost: the "
-                    "reference is identically zero (the cost is divided by its largest |X|)"
-                )
-            score_sum[c] = float(np.sum(rule(ref[k0:] - est[k0:], output_std(res, c)[k0:])))
-    msp_sq: tuple[float, ...] = ()
-    msp_n = 0
-    if spec.kind == "msp":
-        msp_sq, msp_n = _multistep_errors(m, res, fs, params, spec, k0)
-    return ManoeuvreScore(
-        name=m.name,
-        n=m.n - k0,
-        nrmse=scores,
-        scale=scales,
-        nis_sum=float(np.sum(res.nis[k0:])),
-        log_det_s_sum=_log_det_s_sum(res, k0) if spec.kind == "pem" else 0.0,
-        msp_sq=msp_sq,
-        msp_n=msp_n,
-        score_sum=score_sum,
-    )
-
-
-def _msp_channels(spec: CostSpec, model: StateSpaceModel) -> list[int]:
-    """Indices into ``model``'s measurements of the multi-step cost's channels."""
-    names = model.measurement_names
-    return [names.index(c) for c in spec.channels if c in names]
-
-
-def _multistep_errors(
-    m: Manoeuvre, res: RunResult, fs: FilterSpec, params: np.ndarray, spec: CostSpec, k0: int
-) -> tuple[tuple[float, ...], int]:
-    """Sums of squared h-step open-loop prediction errors from x⁺_k through the model's own
-    f and h (:meth:`~kftune.models.StateSpaceModel.predict_open_loop`), any model."""
-    model = fs.model
-    h = max(1, round(MSP_HORIZON / m.dt))
-    ks = np.arange(k0, m.n - h, MSP_STRIDE)
-    chans = _msp_channels(spec, model)
-    if ks.size == 0:
-        return tuple(0.0 for _ in chans), 0
-    u, z = fs.inputs(m)
-    w = model.prepared_inputs(np.zeros((m.n, 0)) if u is None else u, params)
-    zh = model.predict_open_loop(res.x[ks], w, params, m.dt, ks, h)
-    with np.errstate(all="ignore"):
-        err = zh[:, chans] - z[ks + h][:, chans]
-        sq = np.sum(err * err, axis=0)
-    return tuple(float(v) for v in sq), int(ks.size)
-
-
-# Worker-process state: the manoeuvres are sent once, when the pool starts.
-_WORKER: dict[str, Any] = {}
-
-
-def _init_worker(
-    manoeuvres: tuple[Manoeuvre, ...],
-    vehicle: VehicleParams | None,
-    model: str,
-    filter: str,
-    parent_pid: int,
-) -> None:  # pragma: no cover - runs in the pool's workers
-    watch_parent(parent_pid)  # exit with a killed parent; Ctrl-C stops the parent only
-    _WORKER["manoeuvres"] = manoeuvres
-    _WORKER["vehicle"] = vehicle
-    fs = filter_spec(model, filter, vehicle)  # a model file is loaded again here
-    _WORKER["filter"] = fs
-    # compile / load the kernel now, so no evaluation's timing includes it
-    m = manoeuvres[0]
-    n, k = fs.model.n_states, fs.model.n_measurements
-    fs.run(m, vehicle, np.full(n, 1e-4), np.full(k, 1e-2), UKFSettings())
-
-
-def _score_chunk(
-    indices: list[int],
-    q: np.ndarray,
-    r: np.ndarray,
-    settings: UKFSettings,
-    spec: CostSpec,
-    burn_in: float,
-    vehicle: VehicleParams | None,
-    params: np.ndarray | None,
-    cov_scale: float,
-) -> list[ManoeuvreScore]:
-    ms, fs = _WORKER["manoeuvres"], _WORKER["filter"]
-    return [
-        _score(ms[i], vehicle, fs, q, r, settings, spec, burn_in, params, cov_scale)
-        for i in indices
-    ]
 
 
 class TuningProblem:
@@ -996,7 +138,7 @@ class TuningProblem:
         self.burn_in = float(burn_in)
         self.cost_spec = cost or CostSpec()
         check_cost_channels(self.cost_spec, mod)
-        if self.cost_spec.kind == "msp" and not _msp_channels(self.cost_spec, mod):
+        if self.cost_spec.kind == "msp" and not msp_channels(self.cost_spec, mod):
             raise ConfigError(
                 "the multi-step prediction cost (msp) needs a positive weight on a measured "
                 f"channel of model {mod.name!r} ({', '.join(mod.measurement_names)})"
@@ -1041,7 +183,7 @@ class TuningProblem:
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.workers = min(workers, len(self.manoeuvres))
         self._pool: ProcessPoolExecutor | None = None
-        self._chunks = _balanced_chunks([m.n for m in self.manoeuvres], self.workers)
+        self._chunks = balanced_chunks([m.n for m in self.manoeuvres], self.workers)
         self._evaluated = False  # see compile_note
 
     @property
@@ -1164,7 +306,7 @@ class TuningProblem:
         self._evaluated = True  # the filter compiles now, also for a point that diverges
         if self.workers == 1:
             scores = [
-                _score(m, vehicle, self._fs, q, r, settings, spec, self.burn_in, params, c)
+                score_manoeuvre(m, vehicle, self._fs, q, r, settings, spec, self.burn_in, params, c)
                 for m in self.manoeuvres
             ]
         else:
@@ -1172,7 +314,7 @@ class TuningProblem:
             with sigint_blocked():  # workers started by a submit inherit it (see there)
                 futures = [
                     pool.submit(
-                        _score_chunk, chunk, q, r, settings, spec, self.burn_in, vehicle, params, c
+                        score_chunk, chunk, q, r, settings, spec, self.burn_in, vehicle, params, c
                     )
                     for chunk in self._chunks
                 ]
@@ -1191,13 +333,15 @@ class TuningProblem:
         q, r, settings, vehicle, params = self._point(x)
         fs, spec, c = self._fs, self.cost_spec, self.cov_scale
         return [
-            _score(self.manoeuvres[i], vehicle, fs, q, r, settings, spec, self.burn_in, params, c)
+            score_manoeuvre(
+                self.manoeuvres[i], vehicle, fs, q, r, settings, spec, self.burn_in, params, c
+            )
             for i in indices
         ]
 
     def manoeuvre_chunks(self, k: int) -> list[list[int]]:
         """The manoeuvre indices in at most k groups of similar total length."""
-        return _balanced_chunks([m.n for m in self.manoeuvres], max(1, k))
+        return balanced_chunks([m.n for m in self.manoeuvres], max(1, k))
 
     def _pool_scores(self, scores: Sequence[ManoeuvreScore]) -> Evaluation:
         """The cost J (paper Eq. 14–15, a scoring rule's, or a reference-free one) from
@@ -1293,13 +437,13 @@ class TuningProblem:
                 for b, i in enumerate(idx):
                     try:
                         results[i].append(
-                            _score_result(
+                            score_result(
                                 m,
                                 batch[b],
                                 self.cost_spec,
                                 self.burn_in,
                                 self._fs,
-                                _run_params(self._fs, vehicle, None),
+                                run_params(self._fs, vehicle, None),
                             )
                         )
                     except FilterDivergedError as exc:
@@ -1402,7 +546,7 @@ class TuningProblem:
             self._pool = ProcessPoolExecutor(
                 max_workers=self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_worker,
+                initializer=init_worker,
                 initargs=(
                     self.manoeuvres,
                     self.vehicle,
@@ -1513,14 +657,3 @@ def missing_references(
         if lacking:
             out["beta_ref"] = lacking
     return out
-
-
-def _balanced_chunks(sizes: Sequence[int], k: int) -> list[list[int]]:
-    """Split indices into k groups of similar total size (longest-first greedy)."""
-    groups: list[list[int]] = [[] for _ in range(k)]
-    loads = [0] * k
-    for i in sorted(range(len(sizes)), key=lambda i: -sizes[i]):
-        j = loads.index(min(loads))
-        groups[j].append(i)
-        loads[j] += sizes[i]
-    return [sorted(g) for g in groups if g]
