@@ -655,9 +655,10 @@ int kf_step(kf_filter *kf, const kf_real u[], const kf_real z[], kf_estimate *es
         return kf->cause;
     kf_prepare(u, kf->w);
     if (k == 0) {
-        /* prior: x = x0; P = P0 symmetrised, factorised and repaired */
-        kf_real P0[KF_N * KF_N];
-        kf_model_prior(z, kf_r, kf_p, kf->x, P0);
+        /* prior: x = x0; P = P0 symmetrised, factorised and repaired (P0 is written into
+           L, the factor's place, which the factorisation then fills: no stack array) */
+        const kf_real *P0 = kf->L;
+        kf_model_prior(z, kf_r, kf_p, kf->x, kf->L);
         for (i = 0; i < n; i++) {
             kf->P[i * n + i] = P0[i * n + i];
             for (j = i + 1; j < n; j++) {
@@ -665,6 +666,8 @@ int kf_step(kf_filter *kf, const kf_real u[], const kf_real z[], kf_estimate *es
                 kf->P[j * n + i] = kf->P[i * n + j];
             }
         }
+        for (i = 0; i < n * n; i++)
+            kf->L[i] = 0;
         st = kf_chol_repair(kf->P, kf->L, n, &jit);
         if (st == 2)
             return kf_stop(kf, 0, KF_STOP_NUMERICAL);
