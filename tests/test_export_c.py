@@ -435,3 +435,26 @@ def test_demo_takes_the_sample_time_as_kftune_does(demo, cc):
     text = "".join(f"{len(t)} " + " ".join(f"{v:.17g}" for v in t) + "\n" for t in axes)
     out = subprocess.run([str(exe)], input=text, capture_output=True, text=True, check=True)
     assert [float(v) for v in out.stdout.split()] == [sample_time(t) for t in axes]
+
+
+def test_check_without_a_compiler_says_so_and_writes_nothing(tuned, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("CC", "no-such-compiler-here")
+    out = tmp_path / "c"
+    args = ["export", str(tuned("single-track", "ukf")), "-f", "c", "-o", str(out)]
+    assert main([*args, "--check", "default"]) == 3
+    err = capsys.readouterr().err
+    assert "--check needs a C compiler" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "says"),
+    [
+        (["--precision", "float"], "--precision is an option of --format c"),
+        (["--check", "default"], "--check is an option of --format c"),
+        (["--force"], "--force is an option of --format c"),
+    ],
+)
+def test_c_options_with_another_format_are_usage_errors(tuned, capsys, extra, says):
+    assert main(["export", str(tuned("single-track", "ukf")), "-o", "-", *extra]) == 2
+    assert says in capsys.readouterr().err
