@@ -113,7 +113,7 @@ def test_plot_draws_the_running_best_and_each_parameter_in_its_box(study, tmp_pa
     best = next(ln for ln in ax.get_lines() if ln.get_label() == "best so far")
     assert best.get_ydata() == pytest.approx([t["best_so_far"] for t in s["trials"]])
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert any(lbl.startswith("failed (") for lbl in labels)
+    assert any(lbl.endswith(" failed, drawn at the top") for lbl in labels)
     # every complete evaluation is drawn: inside the axis, or marked on top of it
     lines = {ln.get_label(): ln for ln in ax.get_lines()}
     inside = lines["cost of each evaluation"].get_ydata()
@@ -303,7 +303,7 @@ def test_a_far_off_cost_is_marked_on_top_not_squeezing_the_best_so_far():
     ax = _figures(s)["convergence.png"].axes[0]
     assert ax.get_ylim()[1] < 2.0  # the axis ends near the first best, not at 9
     lines = {ln.get_label(): ln for ln in ax.get_lines()}
-    top = lines["cost above the axis (1), drawn at the top"]
+    top = next(ln for label, ln in lines.items() if label.startswith("1 evaluation above the axis"))
     assert list(top.get_xdata()) == [2]
 
 

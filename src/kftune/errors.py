@@ -87,7 +87,15 @@ class ConfigError(KftuneError, ValueError):
 
 class ObjectiveMismatchError(ConfigError):
     """A stored study was created for another objective (data, cost, model) than the run
-    that resumes it; a caller that chose the objective's defaults can say how to match."""
+    that resumes it; a caller that chose the objective's defaults can say how to match.
+    ``stored`` and ``current``: the two objectives' readable summaries (a tuning problem's
+    ``fingerprint()["summary"]``), for a caller to tell which part differs; None when
+    not known."""
+
+    def __init__(self, message: str, stored: str | None = None, current: str | None = None):
+        super().__init__(message)
+        self.stored = stored
+        self.current = current
 
 
 class DataWarning(UserWarning):

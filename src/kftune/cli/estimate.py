@@ -19,9 +19,10 @@ one figure (``--no-plot`` leaves them out):
              (normalised innovation squared); and beta_ref [rad] where the recording has a
              reference sideslip — for another model, <name>_ref for each state or output
              the recording has a reference of. SI units throughout.
-  NAME.png   β with its ±2σ band, and the reference and the error where there is one (for
-             another model: its first state or output with a reference); the title says
-             what share of the reference the band covers, and when it is too narrow to see.
+  NAME.png   β with its ±1.96σ band (95 %), and the reference and the error where there is
+             one (for another model: its first state or output with a reference); the
+             title says what share of the reference the band covers, and when it is too
+             narrow to see.
 
 With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error, and both
 for |ay| ≥ 4 m/s², in degrees) after the file's burn-in; for another model, the RMSE of

@@ -267,7 +267,7 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
     """The two figures of ``study plot`` (matplotlib Figures by file name)."""
     import matplotlib.pyplot as plt
 
-    from kftune.report.plots import render  # noqa: F401 - sets the Agg backend
+    from kftune.report.plots import label_log_axis  # (it sets the Agg backend)
 
     trials = s["trials"]
     n = np.array([t["number"] for t in trials], dtype=float)
@@ -312,7 +312,8 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
             color="0.55",
             ms=6,
             clip_on=False,
-            label=f"cost above the axis ({above.sum()}), drawn at the top",
+            label=f"{_evaluations(int(above.sum()))} above the axis (cost > {top:.4g}), "
+            "drawn at the top",
         )
     if (~ok).any():
         top = ax.get_ylim()[1]
@@ -323,9 +324,12 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
             color="C3",
             ms=6,
             clip_on=False,
-            label=f"failed ({(~ok).sum()}), drawn at the top",
+            label=f"{_evaluations(int((~ok).sum()))} failed, drawn at the top",
         )
         ax.set_ylim(top=top)
+    if log_y:  # its limits final: enough labels to read the best and the first costs
+        y_low, y_high = ax.get_ylim()
+        label_log_axis(ax.yaxis, y_low, y_high, vertical=True)
     ax.set_xlabel("evaluation")
     ax.set_ylabel(cost_label(s.get("objective")))
     ax.set_title(f"{Path(s['study']).name}: {s['method']}, seed {s['seed']}", fontsize=10, pad=10)
@@ -360,6 +364,12 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
     )
     fig.tight_layout()
     return {"convergence.png": conv, "parameters.png": fig}
+
+
+def _evaluations(n: int) -> str:
+    """A count of evaluations in words: "1 evaluation", "3 evaluations" (a legend's
+    "cost above the axis (3)" read as a threshold of 3)."""
+    return f"{n} evaluation" + ("" if n == 1 else "s")
 
 
 def run_plot(args: argparse.Namespace) -> int:

@@ -345,14 +345,10 @@ def run(args: argparse.Namespace) -> int:
                 _interrupted(args, lost.result, problem, dataset, failure=str(lost))
                 return EXIT_FAILURE
             except ObjectiveMismatchError as exc:
-                if not recommended(args, config):
+                hint = mismatch_hint(exc, dataset.name, args.storage, recommended(args, config))
+                if not hint:
                     raise
-                raise ObjectiveMismatchError(
-                    f"{exc}. This run tunes kftune tune's default, the NRMSE "
-                    f"{RECOMMENDED_NORMALISE}-normalised with R's diagonal (tune_r = "
-                    f"{RECOMMENDED_TUNE_R!r}); a study started with the paper's cost and Q "
-                    "alone (tune's default before) resumes with --cost nrmse"
-                ) from None
+                raise ObjectiveMismatchError(f"{exc}{hint}", exc.stored, exc.current) from None
     except KeyboardInterrupt:  # loading, starting or stopping workers: keep what there is
         _interrupted(args, result, problem, dataset)
         return EXIT_INTERRUPTED
@@ -467,6 +463,45 @@ def _engine(problem: TuningProblem, scheduler: str | None, workers: int) -> Iter
         yield engine
     finally:
         engine.close()
+
+
+def mismatch_hint(
+    exc: ObjectiveMismatchError, dataset: str, storage: Any, default_cost: bool
+) -> str:
+    """What to do about a study made for another objective, to append to its message: where
+    the data differ, that the study was made on other data (its manoeuvres, from the
+    study's objective) and to name that dataset; where the cost differs and this run tunes
+    tune's default cost (``default_cost``) while the study has the paper's, the option that
+    resumes it. "" when neither applies (or the summaries are not known).
+
+    A summary reads "8 manoeuvres (a … b), VEHICLE, cost KIND …" (the data before
+    ", cost ", the cost and model after it, :meth:`TuningProblem.fingerprint`); equal
+    summaries of two objectives mean data of the same names with other samples."""
+    if exc.stored is None or exc.current is None:
+        return ""
+    old_data, _, old_cost = exc.stored.partition(", cost ")
+    new_data, _, new_cost = exc.current.partition(", cost ")
+    hint = ""
+    if old_data != new_data or exc.stored == exc.current:
+        changed = (
+            " (the same manoeuvre names, other samples: the dataset changed since)"
+            if exc.stored == exc.current
+            else ""
+        )
+        hint += (
+            f". The study was made on other data than this run's dataset {dataset!r}: "
+            f"{old_data}{changed}; to resume it, name the dataset it was made on: "
+            f"kftune tune DATASET --storage {storage} --resume"
+        )
+    paper_cost = old_cost.startswith("nrmse") and "dataset-normalised" not in old_cost
+    if default_cost and old_cost != new_cost and paper_cost:
+        hint += (
+            f". This run tunes kftune tune's default, the NRMSE {RECOMMENDED_NORMALISE}-"
+            f"normalised with R's diagonal (tune_r = {RECOMMENDED_TUNE_R!r}); a study "
+            "started with the paper's cost and Q alone (tune's default before) resumes with "
+            "--cost nrmse"
+        )
+    return hint
 
 
 def failure_lines(result: OptimizeResult) -> list[str]:

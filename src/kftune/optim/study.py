@@ -633,7 +633,9 @@ def _check_settings(
                 f"study {p} was created for another {key}: {old['summary']}; this run's is "
                 f"{new['summary']}"
                 + ("" if old["summary"] != new["summary"] else " (the data differ)")
-                + "; resume it on the same data, cost and model, or use another storage file"
+                + "; resume it on the same data, cost and model, or use another storage file",
+                stored=old["summary"],
+                current=new["summary"],
             )
         raise ConfigError(
             f"study {p} was created with {key} = {json.dumps(old, ensure_ascii=False)}, but "

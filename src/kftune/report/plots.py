@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter
+from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter
 
 from kftune.report.results import ExperimentResults
 from kftune.report.tables import channel_metrics, relative_improvement, scored_channels
@@ -77,13 +77,15 @@ def convergence(results: ExperimentResults) -> Figure:
     Bayesian optimiser's 40) each get their share of the width. Every method in its
     colour and with its own marker (:data:`MARKERS`, report order), so that two curves
     that run together, or two similar colours, stay apart; a fixed point (the manual
-    filter) is a dotted line."""
+    filter) is a dotted line with its cost in the legend. The log cost axis labels enough
+    values (:func:`label_log_axis`) that every line, the reference too, can be read."""
     fig, (ax_n, ax_t) = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for i, m in enumerate(results.methods):
         best = m.best_so_far()
-        if m.n_evals <= 1:  # a fixed point (manual tuning): a reference line
-            for ax in (ax_n, ax_t):
-                ax.axhline(m.best_cost, color=_colour(m.key), ls=":", label=m.label)
+        if m.n_evals <= 1:  # a fixed point (manual tuning): a reference line, its value
+            for ax in (ax_n, ax_t):  # in the legend (it may lie between two labels)
+                label = f"{m.label} (J = {m.best_cost:.4g})"
+                ax.axhline(m.best_cost, color=_colour(m.key), ls=":", label=label)
             continue
         n = np.arange(1, best.size + 1)
         style = {
@@ -101,23 +103,38 @@ def convergence(results: ExperimentResults) -> Figure:
     ax_t.set_xlabel("tuning wall time [s]")
     for ax in (ax_n, ax_t):
         ax.set_xscale("log")
-        _label_log_axis(ax.xaxis, *ax.get_xlim())
+        label_log_axis(ax.xaxis, *ax.get_xlim())
     ax_n.set_ylabel("best cost J [-]")
     for ax in (ax_n, ax_t):
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
-    _label_log_axis(ax_n.yaxis, *ax_n.get_ylim(), vertical=True)  # 0.4, not 4×10⁻¹
+    low, high = ax_n.get_ylim()
+    label_log_axis(ax_n.yaxis, low, high, vertical=True)  # 0.4, not 4×10⁻¹
     ax_n.legend(fontsize=8)
     fig.suptitle("Convergence of the tuning methods (training set)")
     return fig
 
 
-def _label_log_axis(axis: Any, low: float, high: float, vertical: bool = False) -> None:
-    """Label a log axis with plain numbers (0.002, not 2×10⁻³), as many as fit: the
-    decades over two decades and more, also the 2s and 5s over one, also the 3s under one,
-    every tick under 0.3 of a decade (matplotlib labelled every minor tick of a span under
-    a decade in scientific notation, and the labels ran together). ``vertical``: a y axis,
-    whose labels stack rather than run together: every tick under a decade."""
+def label_log_axis(axis: Any, low: float, high: float, vertical: bool = False) -> None:
+    """Label a log axis with plain numbers (0.002, not 2×10⁻³), as many as fit.
+
+    An x axis: the decades over two decades and more, also the 2s and 5s over one, also the
+    3s under one, every tick under 0.3 of a decade (matplotlib labelled every minor tick of
+    a span under a decade in scientific notation, and the labels ran together).
+
+    A y axis (``vertical``), whose labels stack: the roundest values first (1, then 2 and 5,
+    then the other digits, then 1.5 and 2.5, then 1.2, 1.4, …), each where it is at least
+    :data:`LOG_LABEL_GAP` points from every label already placed (:func:`_log_ticks`). A span
+    of under a decade between 0.33 and 1.6 got labels up to 1 only, as matplotlib has no
+    tick between 1 and 2, and a line at 1.52 could not be read; it now gets 1.2 and 1.5.
+    Call it once the axis's limits and the figure's size are final."""
+    if vertical:
+        ticks = _log_ticks(axis, low, high)
+        if len(ticks) >= 2:
+            axis.set_major_locator(FixedLocator(ticks))
+            axis.set_major_formatter(FuncFormatter(lambda value, _pos: f"{value:g}"))
+            axis.set_minor_formatter(NullFormatter())
+            return
     decades = math.log10(high / low) if 0 < low < high else 2.0
     shown = (
         set(range(1, 10)) if decades < (1.0 if vertical else 0.3)
@@ -134,26 +151,78 @@ def _label_log_axis(axis: Any, low: float, high: float, vertical: bool = False) 
     axis.set_minor_formatter(FuncFormatter(label))
 
 
+#: The least distance between two labels of a log y axis [points, 1/72 in]: a 10-point
+#: label and a gap.
+LOG_LABEL_GAP = 16.0
+
+#: Mantissas of a log axis's labels, roundest first (:func:`_log_ticks` places them in
+#: this order).
+LOG_MANTISSAS = (
+    (1.0,),
+    (2.0, 5.0),
+    (3.0, 4.0, 6.0, 7.0, 8.0, 9.0),
+    (1.5, 2.5),
+    (1.2, 1.4, 1.6, 1.8, 3.5, 4.5),
+    (1.1, 1.3, 1.7, 1.9, 2.2, 2.4, 2.6, 2.8, 3.2, 3.4, 3.6, 3.8, 4.2, 4.4, 4.6, 4.8,
+     5.5, 6.5, 7.5, 8.5, 9.5),
+)  # fmt: skip
+
+
+def _log_ticks(axis: Any, low: float, high: float) -> list[float]:
+    """The labelled values of a log y axis from ``low`` to ``high`` (its limits), sorted:
+    the mantissas of :data:`LOG_MANTISSAS` in their order, each value kept where it lies at
+    least :data:`LOG_LABEL_GAP` points on the page from every value kept before (the axis's
+    height in points over its decades gives points per decade). [] for limits that are not
+    positive."""
+    if not 0 < low < high:
+        return []
+    ax = axis.axes
+    height = ax.get_position().height * ax.figure.get_figheight() * 72.0  # points
+    span = math.log10(high / low)
+    gap = LOG_LABEL_GAP / height * span  # [decades]
+    kept: list[float] = []  # log10 of the values kept
+    decades = range(math.floor(math.log10(low)), math.ceil(math.log10(high)) + 1)
+    for level in LOG_MANTISSAS:
+        for k in decades:
+            for mantissa in level:
+                value = mantissa * 10.0**k
+                if not low <= value <= high:
+                    continue
+                where = math.log10(value)
+                if all(abs(where - other) >= gap for other in kept):
+                    kept.append(where)
+    return sorted(float(f"{10.0**w:.6g}") for w in kept)
+
+
 def improvement(
     results: ExperimentResults,
     baseline: str = "ga",
     method: str = "tsbo-tsp",
     split: str = "test",
     manoeuvres: list[str] | None = None,
+    heading: str = "",
+    metrics: Sequence[str] | None = None,
 ) -> Figure:
     """Fig. 7: per-manoeuvre relative RMSE improvement of ``method`` over ``baseline`` (for
-    β, yaw rate and ay; for another model, for each scored channel)."""
+    β, yaw rate and ay; for another model, for each scored channel). The paper's figure is
+    TSBO-tSP over GA (the defaults); the report also draws TR-BO, the tuner ``kftune tune``
+    runs, over the manual filter. ``heading``: the title's first line, saying which of the
+    two a reader sees (the title's line below names the pair and the split). ``metrics``:
+    the channel metrics drawn (default: all; the β figure of TR-BO over the manual filter
+    draws β alone: yaw rate and ay are scored against their measurements, which a filter
+    that follows the gyro copies, so their bars measure the fit to the sensors rather than
+    accuracy, and dwarf β's)."""
     rel = relative_improvement(results, baseline, method, split)
     names = [n for n in (manoeuvres or list(rel)) if n in rel]
     x = np.arange(len(names))
-    metrics = channel_metrics(results)
-    width = 0.8 / len(metrics)
+    drawn = {k: v for k, v in channel_metrics(results).items() if metrics is None or k in metrics}
+    width = 0.8 / len(drawn)
     fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(names) + 2), 3.8))
-    for i, (metric, label) in enumerate(metrics.items()):
+    for i, (metric, label) in enumerate(drawn.items()):
         values = [rel[n][metric] for n in names]
         colour, hatch = CHANNEL_STYLES[i % len(CHANNEL_STYLES)]
         ax.bar(
-            x + (i - (len(metrics) - 1) / 2) * width,
+            x + (i - (len(drawn) - 1) / 2) * width,
             values,
             width,
             color=colour,
@@ -166,7 +235,8 @@ def improvement(
     ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
     ax.set_ylabel("relative improvement [%]")
     b, m = results.method(baseline).label, results.method(method).label
-    ax.set_title(f"{m} vs {b}, {split} set (positive: {m} better)")
+    title = f"{m} vs {b}, {split} set (positive: {m} better)"
+    ax.set_title(f"{heading}\n{title}" if heading else title, fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(True, axis="y", alpha=0.3)
     return fig
@@ -375,6 +445,14 @@ def cost_slice(results: ExperimentResults) -> Figure:
     return fig
 
 
+#: The half-width of :func:`estimate_trace`'s band in σ: the 95 % interval of a Gaussian,
+#: as in the consistency tables (``cov95``), so that the figure and the tables agree.
+BAND_Z = 1.96
+
+#: The band's legend entry.
+BAND_LABEL = "±1.96σ (95 %)"
+
+
 def estimate_trace(
     t: np.ndarray,
     beta: np.ndarray,
@@ -384,7 +462,8 @@ def estimate_trace(
     label: str = "β",
     unit: str = "rad",
 ) -> Figure:
-    """``kftune estimate``: an estimate (by default the sideslip β) with its ±2σ band and,
+    """``kftune estimate``: an estimate (by default the sideslip β) with its ±1.96σ band
+    (:data:`BAND_Z`: the 95 % interval that every consistency table counts) and,
     when there is one, the reference and the error; radians are shown in degrees, other
     units as they are. The title gives the share of the reference the band covers, and its
     median half-width when it is too narrow to see (:func:`_band_note`)."""
@@ -403,8 +482,9 @@ def estimate_trace(
     est = show(beta)
     colour = COLOURS["estimate"]
     if beta_std is not None:
-        band = 2.0 * show(beta_std)
-        ax.fill_between(t, est - band, est + band, color=colour, alpha=0.25, lw=0, label="±2σ")
+        band = BAND_Z * show(beta_std)
+        ax.fill_between(t, est - band, est + band, color=colour, alpha=0.25, lw=0,
+                        label=BAND_LABEL)  # fmt: skip
     ax.plot(t, est, color=colour, lw=1.0, label="estimate")
     if beta_ref is not None:
         ref = show(beta_ref)
@@ -412,7 +492,7 @@ def estimate_trace(
         ax_e = axes[1, 0]
         ax_e.axhline(0.0, color="black", lw=0.6)
         if beta_std is not None:
-            ax_e.fill_between(t, -band, band, color=colour, alpha=0.25, lw=0, label="±2σ")
+            ax_e.fill_between(t, -band, band, color=colour, alpha=0.25, lw=0, label=BAND_LABEL)
         ax_e.plot(t, est - ref, color=colour, lw=0.9, label="estimate − reference")
         ax_e.set_ylabel(f"error [{shown_unit}]")
         if beta_std is not None:
@@ -454,13 +534,13 @@ def _fit_band(ax: Any, lines: Sequence[np.ndarray], centre: np.ndarray, half: np
         ax.set_ylim(values.min() - pad, values.max() + pad)
 
 
-#: The narrowest ±2σ band that can be seen [points, 1/72 in]: about 3.6 pixels at the
+#: The narrowest ±1.96σ band that can be seen [points, 1/72 in]: about 3.6 pixels at the
 #: 130 dpi of :func:`save`.
 VISIBLE_BAND = 2.0
 
 
 def _band_note(ax: Any, half: np.ndarray, error: np.ndarray | None, unit: str) -> str:
-    """A title's second line on a ±2σ band of half-width ``half`` (N,) drawn on ``ax`` (its
+    """A title's second line on a ±1.96σ band of half-width ``half`` (N,) drawn on ``ax`` (its
     limits final): the share of the samples whose ``error`` (N,) it covers, and its median
     half-width where the band, at the axis's scale on the page, is narrower than
     :data:`VISIBLE_BAND` — a band that cannot be seen says so rather than pass for one that
@@ -481,7 +561,7 @@ def _band_note(ax: Any, half: np.ndarray, error: np.ndarray | None, unit: str) -
         inside, n = covered(error, half, 1.0)
         if n:
             notes.append(f"covers {100.0 * inside / n:.0f} % of the reference")
-    return f"\n±2σ band: {'; '.join(notes)}" if notes else ""
+    return f"\n±1.96σ band: {'; '.join(notes)}" if notes else ""
 
 
 #: Markers of the methods' curves in the reliability figure, in report order.
@@ -589,7 +669,7 @@ def identifiability(results: ExperimentResults, keys: Sequence[str] | None = Non
             ax.axvline(first["start"], color=COLOURS["reference"], ls="--", lw=1.0, label="start")
         if first["scale"] == "log10":
             ax.set_xscale("log")
-            _label_log_axis(ax.xaxis, first["low"], first["high"])
+            label_log_axis(ax.xaxis, first["low"], first["high"])
         ax.set_xlim(first["low"], first["high"])
         ax.set_yscale("symlog", linthresh=rel)
         ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
