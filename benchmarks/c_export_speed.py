@@ -12,6 +12,8 @@ filter steps per second over the bundled set's 23 test manoeuvres:
 * ``kftune_steps_per_s`` — kftune's own run of the tuned filter on the same manoeuvres
   (:meth:`kftune.tuning.runs.FilterSpec.run`, what ``kftune estimate`` calls: the input
   checks and the prepared inputs included, after compilation);
+* for the UKF also ``kftune_generic_steps_per_s``, kftune's generic UKF kernel on the same
+  model (the algorithm the export writes out, for any n), and ``c_vs_kftune_generic``;
 * ``c_vs_kftune`` — the ratio; ``max_rel_dev`` — the largest relative normwise deviation
   of the C filter's states from kftune's on these manoeuvres (a run that measured a wrong
   filter would say so).
@@ -174,8 +176,19 @@ def main() -> None:
                     for m in manoeuvres
                 ]
 
-            want = np.vstack(kftune_run())  # compiles the kernel
-            c_times, k_times = [], []
+            def generic_run(spec=spec, tuned=tuned, p=p) -> list:
+                """The generic kernel (the single-track UKF's other way in kftune)."""
+                runner = spec.filter_object(tuned.settings)
+                return [
+                    runner.run(spec.model, *spec.inputs(m), m.dt, tuned.q, tuned.r, params=p).x
+                    for m in manoeuvres
+                ]
+
+            want = np.vstack(kftune_run())  # compiles the kernels
+            also_generic = spec.fast
+            if also_generic:
+                generic_run()
+            c_times, k_times, g_times = [], [], []
             states = None
             for _ in range(args.repeats):  # interleaved: one C batch, one kftune repetition
                 secs, states = c_rate(folder, manoeuvres, spec, 1, cc)
@@ -183,6 +196,10 @@ def main() -> None:
                 t0 = time.perf_counter()
                 kftune_run()
                 k_times.append(time.perf_counter() - t0)
+                if also_generic:
+                    t0 = time.perf_counter()
+                    generic_run()
+                    g_times.append(time.perf_counter() - t0)
             dev = max(
                 float(np.linalg.norm(states[:, j] - want[:, j]) / np.linalg.norm(want[:, j]))
                 for j in range(want.shape[1])
@@ -196,6 +213,10 @@ def main() -> None:
                 "c_vs_kftune": round(c_rate_ / k_rate, 3),
                 "max_rel_dev": dev,
             }
+            if also_generic:
+                g_rate = steps / statistics.median(g_times)
+                out[filt]["kftune_generic_steps_per_s"] = round(g_rate)
+                out[filt]["c_vs_kftune_generic"] = round(c_rate_ / g_rate, 3)
             print(
                 f"{filt}: C {c_rate_:,.0f} steps/s, kftune ({out[filt]['kftune_kernel']}) "
                 f"{k_rate:,.0f} steps/s, ratio {c_rate_ / k_rate:.2f}, states within {dev:.1e}"
