@@ -458,3 +458,16 @@ def test_check_without_a_compiler_says_so_and_writes_nothing(tuned, tmp_path, ca
 def test_c_options_with_another_format_are_usage_errors(tuned, capsys, extra, says):
     assert main(["export", str(tuned("single-track", "ukf")), "-o", "-", *extra]) == 2
     assert says in capsys.readouterr().err
+
+
+def test_a_record_that_does_not_fit_the_model_is_refused(tuned, tmp_path, capsys):
+    """A UKF whose record lost its sigma points: exit 3 naming it, nothing written."""
+    doc = json.loads(tuned("single-track", "ukf").read_text())
+    doc["deployment"]["sigma_points"] = None
+    params = tmp_path / "edited.json"
+    params.write_text(json.dumps(doc))
+    out = tmp_path / "c"
+    assert main(["export", str(params), "-f", "c", "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "no C export" in err and "sigma_points" in err and "Traceback" not in err
+    assert not out.exists()

@@ -92,6 +92,30 @@ CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic")
 # --------------------------------------------------------------------------------------
 
 
+def _check_document(doc: Mapping[str, Any], model: StateSpaceModel) -> None:
+    """Refuse an export document that does not fit ``model`` (an edited tuned file, or the
+    model file changed since): the C arrays take their sizes from the model, so a shorter
+    list would run with zeros.
+
+    Raises:
+        ValueError: naming the key, what it holds and what the model needs.
+    """
+    if doc["filter"] not in ("ukf", "ekf"):
+        raise ValueError(f"filter {doc['filter']!r}: the C export writes a UKF or an EKF")
+    if doc["filter"] == "ukf" and "ukf_alpha" not in doc:
+        raise ValueError("the deployment record of this UKF has no sigma_points")
+    for key, names, what in (
+        ("q_diag", model.state_names, "states"),
+        ("r_diag", model.measurement_names, "measurements"),
+        ("model_params", model.param_names, "parameters"),
+    ):
+        if len(doc[key]) != len(names):
+            raise ValueError(
+                f"{key} holds {len(doc[key])} values, model {model.name!r} has "
+                f"{len(names)} {what} ({', '.join(names)})"
+            )
+
+
 def _float(v: float) -> str:
     """A C double literal of ``v`` that reads back as the same double."""
     text = repr(float(v))
@@ -1244,6 +1268,7 @@ def c_files(
     why = export_refusal(model)
     if why is not None:
         raise ValueError(why)
+    _check_document(doc, model)
     assert model.c_code is not None  # refusal says so
     code = model.c_code if model.c_code.endswith("\n") else model.c_code + "\n"
     return {
