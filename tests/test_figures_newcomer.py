@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import shutil
+import sqlite3
 from pathlib import Path
 from typing import Any
 
@@ -255,6 +257,20 @@ def test_tune_resumed_on_another_dataset_says_to_name_the_studys(
     assert refused.returncode == 3, refused.stderr
     err = refused.stderr
     assert f"({SMALL_TRAIN[0]} … {SMALL_TRAIN[-1]})" in err
-    assert "name the dataset it was made on" in err and "--cost nrmse" not in err
-    assert "Traceback" not in err
-    assert json.loads((tmp_path / "t.json").read_text())["params"]
+    assert f"kftune tune {small.resolve()} --storage {db} --resume" in err
+    assert "--cost nrmse" not in err and "Traceback" not in err
+    # the dataset is recorded to name it, not to match it: the same data moved elsewhere
+    # resume, and so does a study made before datasets were recorded
+    moved = tmp_path / "moved"
+    shutil.copytree(small, moved)
+    again = run_cli("tune", str(moved), "-n", "3", "-q", "--storage", str(db), "--resume",
+                    "-o", str(tmp_path / "v.json"))  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    with sqlite3.connect(db) as conn:
+        (text,) = conn.execute("SELECT value FROM meta WHERE key = 'settings'").fetchone()
+        settings = json.loads(text)
+        assert settings["objective"].pop("dataset")["path"] == str(moved.resolve())  # the last
+        conn.execute("UPDATE meta SET value = ? WHERE key = 'settings'", (json.dumps(settings),))
+    old = run_cli("tune", str(small), "-n", "3", "-q", "--storage", str(db), "--resume",
+                  "-o", str(tmp_path / "w.json"))  # fmt: skip
+    assert old.returncode == 0, old.stderr

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 #: Most characters of a file's (or a user's) text that a message quotes: :func:`excerpt`.
 EXCERPT_CHARS = 60
 #: Most characters of a :class:`DataError` message; longer ones are cut (a last resort:
@@ -89,13 +92,21 @@ class ObjectiveMismatchError(ConfigError):
     """A stored study was created for another objective (data, cost, model) than the run
     that resumes it; a caller that chose the objective's defaults can say how to match.
     ``stored`` and ``current``: the two objectives' readable summaries (a tuning problem's
-    ``fingerprint()["summary"]``), for a caller to tell which part differs; None when
-    not known."""
+    ``fingerprint()["summary"]``), for a caller to tell which part differs; ``dataset``:
+    the dataset the study was made on, as it recorded it (``{"name": …, "path": …}``, the
+    path None for the bundled set); None when not known."""
 
-    def __init__(self, message: str, stored: str | None = None, current: str | None = None):
+    def __init__(
+        self,
+        message: str,
+        stored: str | None = None,
+        current: str | None = None,
+        dataset: Mapping[str, Any] | None = None,
+    ):
         super().__init__(message)
         self.stored = stored
         self.current = current
+        self.dataset = dataset
 
 
 class DataWarning(UserWarning):

@@ -304,6 +304,13 @@ def _noise_share(total: int) -> int:
     return min(total - 1, max(1, round(total * NOISE_STAGE_SHARE)))
 
 
+def with_dataset(fingerprint: dict[str, Any], dataset: Mapping[str, Any] | None) -> dict[str, Any]:
+    """A study's objective: a problem's fingerprint and, where known, the dataset it was
+    made on (``"dataset"``: ``{"name": …, "path": …}``, read only to name it;
+    :mod:`kftune.optim.study` compares objectives without it)."""
+    return fingerprint if dataset is None else {**fingerprint, "dataset": dataset}
+
+
 def tune(
     problem: TuningProblem,
     method: str = DEFAULT_METHOD,
@@ -318,6 +325,7 @@ def tune(
     widen_bounds: bool = False,
     engine: Engine | None = None,
     batch: int | None = None,
+    dataset: Mapping[str, Any] | None = None,
 ) -> OptimizeResult:
     """Tune the filter of ``problem`` with one method (``kftune tune``).
 
@@ -332,7 +340,9 @@ def tune(
     True/False force the bar or nothing (:class:`~kftune.progress.ProgressBar`).
 
     The study (``storage``) records the problem's :meth:`~TuningProblem.fingerprint`, so
-    resuming it on other data, another cost or another model is refused.
+    resuming it on other data, another cost or another model is refused; ``dataset`` (its
+    name and where it was read) is recorded beside it, for the refusal to name it, and is
+    no part of what must match (a dataset moved elsewhere resumes).
 
     With model parameters tuned and a method of :data:`SEEDABLE_METHODS` (TR-BO), the
     budget runs in two stages (:func:`staging`): the noise alone at the recorded model
@@ -404,7 +414,7 @@ def tune(
                     resume=resume,
                     timeout=timeout,
                     callback=bar,
-                    objective=noise.fingerprint(),
+                    objective=with_dataset(noise.fingerprint(), dataset),
                     batch=batch,
                     **opts,
                 )
@@ -431,7 +441,7 @@ def tune(
                 resume=resume,
                 timeout=timeout,
                 callback=bar,
-                objective=problem.fingerprint(),
+                objective=with_dataset(problem.fingerprint(), dataset),
                 engine=engine,
                 batch=batch,
                 **opts,

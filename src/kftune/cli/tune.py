@@ -337,6 +337,7 @@ def run(args: argparse.Namespace) -> int:
                     widen_bounds=widen,
                     engine=engine,
                     batch=pick(args, config, "batch", None),
+                    dataset=dataset_record(dataset.name, pick(args, config, "dataset", None)),
                 )
             except OptimizationInterrupted as stop:
                 _interrupted(args, stop.result, problem, dataset)
@@ -465,12 +466,21 @@ def _engine(problem: TuningProblem, scheduler: str | None, workers: int) -> Iter
         engine.close()
 
 
+def dataset_record(name: str, spec: Any) -> dict[str, Any]:
+    """What a study records of the dataset it is made on, to name it when a resume on
+    other data is refused: its name and the absolute path it was read from (None for the
+    bundled set, ``spec`` None or "default")."""
+    bundled = spec is None or str(spec) == "default"
+    return {"name": name, "path": None if bundled else str(Path(spec).resolve())}
+
+
 def mismatch_hint(
     exc: ObjectiveMismatchError, dataset: str, storage: Any, default_cost: bool
 ) -> str:
     """What to do about a study made for another objective, to append to its message: where
     the data differ, that the study was made on other data (its manoeuvres, from the
-    study's objective) and to name that dataset; where the cost differs and this run tunes
+    study's objective), and to name that dataset (by its recorded name and path where the
+    study recorded them, :func:`dataset_record`); where the cost differs and this run tunes
     tune's default cost (``default_cost``) while the study has the paper's, the option that
     resumes it. "" when neither applies (or the summaries are not known).
 
@@ -488,10 +498,16 @@ def mismatch_hint(
             if exc.stored == exc.current
             else ""
         )
+        made, named, where = exc.dataset, "", "DATASET"  # a study before datasets were named
+        if made is not None:
+            path = made.get("path")
+            named = f" {made.get('name')!r}" + (f" ({path})" if path else "")
+            where = path or "default"
         hint += (
-            f". The study was made on other data than this run's dataset {dataset!r}: "
-            f"{old_data}{changed}; to resume it, name the dataset it was made on: "
-            f"kftune tune DATASET --storage {storage} --resume"
+            f". The study was made on other data than this run's dataset {dataset!r}: on the "
+            f"dataset{named} of {old_data}{changed}; to resume it, name the dataset it was "
+            f"made on: kftune tune {shlex.quote(where)} --storage {shlex.quote(str(storage))} "
+            "--resume"
         )
     paper_cost = old_cost.startswith("nrmse") and "dataset-normalised" not in old_cost
     if default_cost and old_cost != new_cost and paper_cost:

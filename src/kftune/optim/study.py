@@ -606,7 +606,7 @@ def _check_settings(
     it is refused with the reason (the method plans its run by the budget)."""
     for key in sorted(set(stored) | set(current)):
         old, new = stored.get(key), current.get(key)
-        if old == new:
+        if old == new or (key == "objective" and _same_objective(old, new)):
             continue
         if key == "budget" and _is_count(old) and _is_count(new) and new > old:
             if extendable:
@@ -636,12 +636,29 @@ def _check_settings(
                 + "; resume it on the same data, cost and model, or use another storage file",
                 stored=old["summary"],
                 current=new["summary"],
+                dataset=old.get("dataset"),
             )
         raise ConfigError(
             f"study {p} was created with {key} = {json.dumps(old, ensure_ascii=False)}, but "
             f"this run asks for {key} = {json.dumps(new, ensure_ascii=False)}; resume it with "
             "the same settings or use another storage file"
         )
+
+
+#: Keys of a study's objective that describe it without being part of it: the dataset's
+#: name and where it was read (a dataset moved elsewhere is the same objective).
+OBJECTIVE_NOTES = ("dataset",)
+
+
+def _same_objective(old: Any, new: Any) -> bool:
+    """Whether two objectives are equal but for :data:`OBJECTIVE_NOTES` (a study made before
+    the dataset was recorded resumes with a run that records it)."""
+    if not (isinstance(old, dict) and isinstance(new, dict)):
+        return False
+    drop = set(OBJECTIVE_NOTES)
+    return {k: v for k, v in old.items() if k not in drop} == {
+        k: v for k, v in new.items() if k not in drop
+    }
 
 
 def _is_count(v: Any) -> TypeGuard[int]:
