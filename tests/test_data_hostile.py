@@ -21,11 +21,18 @@ from hypothesis import strategies as st
 
 from conftest import run_cli
 from kftune.cli import main
-from kftune.data import SIDESLIP_CHANNELS, Dataset, load_dataset, load_mat, save_dataset, textfile
+from kftune.data import (
+    SIDESLIP_CHANNELS,
+    Dataset,
+    import_recordings,
+    load_dataset,
+    save_dataset,
+    textfile,
+)
 from kftune.data.io import file_stem, read_csv
 from kftune.data.readers import read_text_table
 from kftune.data.textfile import ReadLimits, read_values
-from kftune.errors import ConfigError, DataError
+from kftune.errors import ConfigError, DataError, DataWarning
 from kftune.optim import METHODS
 from kftune.vehicle import preset
 from test_data_helpers import synthetic_channels, synthetic_dataset, synthetic_manoeuvre
@@ -438,17 +445,17 @@ def test_any_bytes_give_data_or_a_short_data_error(tmp_path, data: bytes):
 
 
 # =========================================================================== MATLAB
-MAPPING = {c: c for c in SIDESLIP_CHANNELS}  # variables named as the channels, SI
+MAPPING = {"vehicle": "bmw-320i", "channels": {c: c for c in SIDESLIP_CHANNELS}}  # SI
 
 
 @pytest.mark.parametrize(
     "content", [b"", b"hello, I am text\n" * 20, b"MATLAB 5.0 MAT-file" + b"\0" * 200]
 )
-def test_load_mat_on_text_or_empty_files_raises_data_error(tmp_path: Path, content: bytes):
+def test_mat_import_of_text_or_empty_files_raises_data_error(tmp_path: Path, content: bytes):
     f = tmp_path / "rec.mat"
     f.write_bytes(content)
     with pytest.raises(DataError, match="not a readable MATLAB file") as info:
-        load_mat(f, MAPPING, preset("bmw-320i"))
+        import_recordings([f], MAPPING)
     assert info.value.file == str(f)
 
 
@@ -468,7 +475,7 @@ def test_damaged_mat_files_raise_data_error(tmp_path, flips, cut, compress):
         data[pos % len(data)] = value
     f.write_bytes(bytes(data[: max(1, cut % (len(data) + 1))]))
     try:
-        load_mat(f, MAPPING, preset("bmw-320i"))
+        import_recordings([f], MAPPING)
     except DataError as exc:
         assert exc.file == str(f) and len(str(exc)) < 600
 
@@ -476,9 +483,10 @@ def test_damaged_mat_files_raise_data_error(tmp_path, flips, cut, compress):
 def test_mat_variables_beyond_the_row_limit_are_refused_before_loading(tmp_path: Path):
     f = tmp_path / "rec.mat"
     scipy.io.savemat(f, synthetic_channels(n=500))
-    assert len(load_mat(f, MAPPING, preset("bmw-320i")).manoeuvres[0].t) == 500
+    with pytest.warns(DataWarning, match="makes none of the 1 manoeuvre test"):  # uncut
+        assert len(import_recordings([f], MAPPING).manoeuvres[0].t) == 500
     with pytest.raises(DataError, match="has 500 elements, more than the limit of 400") as info:
-        load_mat(f, MAPPING, preset("bmw-320i"), limits=ReadLimits(max_rows=400))
+        import_recordings([f], MAPPING, limits=ReadLimits(max_rows=400))
     assert textfile.ENV_MAX_ROWS in str(info.value)
 
 

@@ -15,18 +15,14 @@ import scipy.io
 from kftune.data import (
     SIDESLIP_CHANNELS,
     Dataset,
-    Source,
-    load_columns,
+    import_recordings,
     load_dataset,
-    load_mat,
     open_dataset,
-    recording_to_dataset,
     save_dataset,
 )
 from kftune.data.io import read_csv
 from kftune.data.validate import STANDARD_GRAVITY
-from kftune.errors import DataError
-from kftune.vehicle import preset
+from kftune.errors import DataError, DataWarning
 from test_data_helpers import synthetic_channels, synthetic_dataset, synthetic_manoeuvre
 
 if sys.version_info >= (3, 11):
@@ -194,11 +190,13 @@ def test_manifest_units_convert_to_si(tmp_path):
 
 
 # ----------------------------------------------------------------- mapped recordings
+# (the importer, kftune's one path for recordings; its own tests: test_data_import.py)
 def _recording(n: int = 3000) -> dict:
     c = synthetic_channels(n=n, seed=3, t0=12.5)
     return c
 
 
+#: kftune channel → (source name, unit) of a user's recording.
 USER_MAPPING = {
     "t": ("time_s", "s"),
     "delta": ("SteerAngle", "deg"),
@@ -206,7 +204,7 @@ USER_MAPPING = {
     "ay": ("AccY", "g"),
     "r": ("YawRate", "deg/s"),
     "vx": ("Speed", "km/h"),
-    "beta_ref": Source("Beta", "deg"),
+    "beta_ref": ("Beta", "deg"),
     "vy_true": ("Vy", "m/s"),
 }
 USER_SCALE = {
@@ -219,6 +217,15 @@ USER_SCALE = {
     "Beta": 180 / math.pi,
     "Vy": 1.0,
 }
+
+
+def _mapping(channels: dict = USER_MAPPING, vehicle: str = "revs-250lm", **top) -> dict:
+    """An import mapping (as a dict) of ``channels``: channel → (source, unit)."""
+    return {
+        "vehicle": vehicle,
+        **top,
+        "channels": {c: {"column": s, "unit": u} for c, (s, u) in channels.items()},
+    }
 
 
 def _user_signals(c: dict) -> dict:
@@ -237,11 +244,13 @@ def _user_signals(c: dict) -> dict:
 
 def test_column_files_with_mapping_and_segments(tmp_path):
     c = _recording()
+    folder = tmp_path / "run"
+    folder.mkdir()
     for name, values in _user_signals(c).items():
-        (tmp_path / f"{name}.txt").write_text(
+        (folder / f"{name}.txt").write_text(
             "% exported by a logger\n" + "\n".join(f"{v:.12e}" for v in values) + "\n"
         )
-    ds = load_columns(tmp_path, USER_MAPPING, preset("revs-250lm"), name="run", segment_length=5.0)
+    ds = import_recordings([folder], _mapping(segment_length=5.0))
     assert ds.names == ("run-s01", "run-s02", "run-s03", "run-s04", "run-s05", "run-s06")
     assert [m.split for m in ds.manoeuvres] == ["train", "test", "test", "train", "test", "test"]
     assert sum(m.n for m in ds.manoeuvres) == c["t"].size
@@ -260,21 +269,18 @@ def test_column_files_errors_name_the_file(tmp_path):
     # yaw rate declared rad/s although the file holds deg/s
     bad = dict(USER_MAPPING, r=("YawRate", "rad/s"))
     with pytest.raises(DataError) as info:
-        load_columns(tmp_path, bad, preset("revs-250lm"))
+        import_recordings([tmp_path], _mapping(bad))
     assert info.value.file == str(tmp_path / "YawRate.txt") and info.value.column == "r"
-    with pytest.raises(DataError, match="gives no source for the time channel"):
-        load_columns(
-            tmp_path, {k: v for k, v in USER_MAPPING.items() if k != "t"}, preset("revs-250lm")
-        )
-    with pytest.raises(DataError, match="file not found"):
-        load_columns(tmp_path, dict(USER_MAPPING, ax=("AccelX", "g")), preset("revs-250lm"))
+    with pytest.raises(DataError, match="map t to the time column"):
+        import_recordings([tmp_path], _mapping({k: v for k, v in USER_MAPPING.items() if k != "t"}))
+    with pytest.raises(DataError, match=r"no file 'AccelX\.txt' in the folder") as info:
+        import_recordings([tmp_path], _mapping(dict(USER_MAPPING, ax=("AccelX", "g"))))
+    assert info.value.file == str(tmp_path)
     with pytest.raises(DataError, match="angle"):
-        load_columns(
-            tmp_path, dict(USER_MAPPING, delta=("SteerAngle", "km/h")), preset("revs-250lm")
-        )
+        import_recordings([tmp_path], _mapping(dict(USER_MAPPING, delta=("SteerAngle", "km/h"))))
     (tmp_path / "Speed.txt").write_text("\n".join(repr(float(v)) for v in sig["Speed"][:-3]))
-    with pytest.raises(DataError) as info:
-        load_columns(tmp_path, USER_MAPPING, preset("revs-250lm"))
+    with pytest.raises(DataError, match="aligned sample by sample") as info:
+        import_recordings([tmp_path], _mapping())
     assert info.value.file == str(tmp_path / "Speed.txt") and info.value.row == 498
 
 
@@ -284,13 +290,15 @@ def test_mat_recording(tmp_path, struct):
     sig = {k: v.reshape(-1, 1) for k, v in _user_signals(c).items()}  # MATLAB column vectors
     f = tmp_path / "run.mat"
     scipy.io.savemat(f, sig if struct is None else {"log": {"signals": sig}})
-    ds = load_mat(f, USER_MAPPING, preset("bmw-320i"), struct=struct)
+    source = {} if struct is None else {"source": {"struct": struct}}
+    with pytest.warns(DataWarning, match="makes none of the 1 manoeuvre test"):  # uncut
+        ds = import_recordings([f], _mapping(vehicle="bmw-320i", **source))
     assert len(ds) == 1 and ds.manoeuvres[0].name == "run"
     m = ds.manoeuvres[0]
     np.testing.assert_allclose(m.ay, c["ay"], rtol=1e-12)
     np.testing.assert_allclose(m.delta, c["delta"], rtol=1e-12)
     with pytest.raises(DataError, match="not found"):
-        load_mat(f, dict(USER_MAPPING, ax=("ACC", "g")), preset("bmw-320i"), struct=struct)
+        import_recordings([f], _mapping(dict(USER_MAPPING, ax=("ACC", "g")), **source))
 
 
 def test_mat_errors(tmp_path):
@@ -300,38 +308,42 @@ def test_mat_errors(tmp_path):
     f = tmp_path / "bad.mat"
     scipy.io.savemat(f, sig)
     with pytest.raises(DataError, match="numeric vector") as info:
-        load_mat(f, USER_MAPPING, preset("bmw-320i"))
-    assert info.value.column == "ay"
+        import_recordings([f], _mapping())
+    assert info.value.column == "AccY"
     sig = _user_signals(c)
     sig["YawRate"] = sig["YawRate"].copy()
     sig["YawRate"][99] = np.nan
     scipy.io.savemat(f, sig)
-    with pytest.raises(DataError) as info:
-        load_mat(f, USER_MAPPING, preset("bmw-320i"))
-    assert (info.value.column, info.value.row) == ("r", 100)  # 1-based, as MATLAB
+    with pytest.raises(DataError, match=r"r \(source 'YawRate'\): 1 value\(s\) not a finite "
+                       r"number, at row\(s\) 100 "):  # fmt: skip
+        import_recordings([f], _mapping())  # 1-based, as MATLAB
     (tmp_path / "junk.mat").write_bytes(b"not a mat file at all" * 10)
     with pytest.raises(DataError, match="MATLAB"):
-        load_mat(tmp_path / "junk.mat", USER_MAPPING, preset("bmw-320i"))
+        import_recordings([tmp_path / "junk.mat"], _mapping())
     with pytest.raises(DataError, match="struct"):
-        load_mat(tmp_path / "bad.mat", USER_MAPPING, preset("bmw-320i"), struct="nothere")
+        import_recordings([tmp_path / "bad.mat"], _mapping(source={"struct": "nothere"}))
     sig = _user_signals(c)
     sig["Speed"] = sig["Speed"] + 1j  # a complex variable is refused, not silently cut
     scipy.io.savemat(f, sig)
     with pytest.raises(DataError, match="complex") as info:
-        load_mat(f, USER_MAPPING, preset("bmw-320i"))
-    assert (info.value.file, info.value.column) == (str(f), "vx")
+        import_recordings([f], _mapping())
+    assert (info.value.file, info.value.column) == (str(f), "Speed")
 
 
-def test_segmentation_is_deterministic_and_documented():
+def test_segmentation_is_deterministic_and_documented(tmp_path):
     c = synthetic_channels(n=10_000)
-    ds = recording_to_dataset(c, name="rec", vehicle=preset("bmw-320i"), segment_length=10.0)
+    for name, values in c.items():
+        (tmp_path / f"{name}.txt").write_text("\n".join(repr(float(v)) for v in values))
+    mapping = {"vehicle": "bmw-320i", "channels": {k: k for k in c}}  # SI: no unit
+    ds = import_recordings([tmp_path], mapping | {"segment_length": 10.0}, labels=["rec"])
     assert len(ds) == 10
     assert [i for i, m in enumerate(ds.manoeuvres) if m.split == "train"] == [0, 3, 6, 9]
     assert all(m.kind == "segment" for m in ds.manoeuvres)
-    one = recording_to_dataset(c, name="rec", vehicle=preset("bmw-320i"))
+    with pytest.warns(DataWarning, match="makes none of the 1 manoeuvre test"):
+        one = import_recordings([tmp_path], mapping, labels=["rec"])
     assert one.names == ("rec",) and one.manoeuvres[0].split == "train"
-    with pytest.raises(ValueError, match=r"segment_length = 1.5 s .* \(segment_length >= 2 s"):
-        recording_to_dataset(c, name="rec", vehicle=preset("bmw-320i"), segment_length=1.5)
+    with pytest.raises(DataError, match=r"segment_length = 1.5 s .* \(segment_length >= 2 s"):
+        import_recordings([tmp_path], mapping | {"segment_length": 1.5}, labels=["rec"])
 
 
 def test_manifest_dt_that_disagrees_with_a_file_names_the_file(tmp_path):

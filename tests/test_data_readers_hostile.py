@@ -394,9 +394,18 @@ def test_a_device_or_a_fifo_is_not_a_regular_file(tmp_path: Path):
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert_refused(res, tmp_path / "out", str(fifo), "not a regular file")
-    for src, what in ((zero, "not a regular file"), (tmp_path, "is a folder")):
-        res, out = run_import(tmp_path, src, mapping)
+    for src, what in ((zero, "not a regular file"), (tmp_path, "no file 't.txt' in the folder")):
+        res, out = run_import(tmp_path, src, mapping)  # a folder: one file per signal
         assert_refused(res, out, str(src), what)
+    folder = tmp_path / "cols"  # a signal's file in a folder of column files: also refused
+    folder.mkdir()
+    os.mkfifo(folder / "t.txt")
+    res = subprocess.run(
+        [sys.executable, "-m", "kftune", "dataset", "import", str(folder), "--mapping",
+         str(mapping), "-o", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert_refused(res, tmp_path / "out", str(folder / "t.txt"), "not a regular file")
 
 
 # =========================================================================== disk full

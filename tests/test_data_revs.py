@@ -1,5 +1,5 @@
-"""The real recording (revs-250lm) through the column-per-file path; skipped when
-``../shared/data`` is absent."""
+"""The real recording (revs-250lm), a folder of one file per signal, imported by its
+built-in mapping; skipped when ``../shared/data`` is absent."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ import functools
 import numpy as np
 import pytest
 
-from kftune.data import REVS_MAPPING, Source, load_revs, open_dataset, read_columns
-from kftune.errors import DataError
+from kftune.data import import_recordings, load_revs, open_dataset
+from kftune.data.importer import builtin_mapping
+from kftune.data.jsonfile import read_toml
+from kftune.errors import DataError, DataWarning
 from kftune.vehicle import preset
 
 
@@ -51,17 +53,28 @@ def test_reference_and_measurements(revs):
     assert np.sqrt(ds.r_default[0]) == pytest.approx(0.05, rel=0.1)
 
 
+def _revs_mapping(**channels: dict) -> dict:
+    """The built-in revs-250lm mapping as a dict, with ``channels`` replaced, uncut."""
+    data = read_toml(builtin_mapping("revs-250lm"))
+    data.pop("segment_length")
+    return data | {"channels": data["channels"] | channels}
+
+
 def test_filtered_yaw_rate_trap_is_caught(revs_dir):
     """yawRateFilt.txt is in deg/s; declared as rad/s it is refused, naming the file."""
-    bad = dict(REVS_MAPPING, r=Source("yawRateFilt", "rad/s"))
+    bad = _revs_mapping(r={"column": "yawRateFilt", "unit": "rad/s"})
     with pytest.raises(DataError) as info:
-        read_columns(revs_dir, bad)
+        import_recordings([revs_dir], bad)
     assert info.value.file.endswith("yawRateFilt.txt") and info.value.column == "r"
     assert "deg/s" in str(info.value)
-    good = read_columns(revs_dir, dict(REVS_MAPPING, r=Source("yawRateFilt", "deg/s")))
-    raw = read_columns(revs_dir, REVS_MAPPING)
+    with pytest.warns(DataWarning, match="none of the 1 manoeuvre test"):  # uncut
+        good = import_recordings(
+            [revs_dir], _revs_mapping(r={"column": "yawRateFilt", "unit": "deg/s"})
+        )
+    raw = _load(str(revs_dir))
     # filtered and raw yaw rate agree once the unit is right
-    assert np.corrcoef(good["r"], raw["r"])[0, 1] > 0.99
+    r_raw = np.concatenate([m.r for m in raw.manoeuvres])
+    assert np.corrcoef(good.manoeuvres[0].r, r_raw)[0, 1] > 0.99
 
 
 def test_open_dataset_detects_the_layout(revs):

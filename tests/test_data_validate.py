@@ -11,7 +11,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kftune.data import Manoeuvre, load_dataset, read_columns, save_dataset, validate_channels
+from kftune.data import (
+    Manoeuvre,
+    import_recordings,
+    load_dataset,
+    save_dataset,
+    validate_channels,
+)
 from kftune.data.validate import _LIMITS, SIDESLIP_CHANNELS, sample_time
 from kftune.errors import DataError
 from test_data_helpers import synthetic_channels, synthetic_dataset
@@ -325,10 +331,10 @@ def test_fuzz_column_files(tmp_path_factory, channel, line, kind):
         lines[line - 1] = kind
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(DataError) as info:
-        read_columns(d, {k: k for k in SIDESLIP_CHANNELS})
+        import_recordings([d], {"channels": {k: k for k in SIDESLIP_CHANNELS}})
     e = info.value
     if kind == "truncate":
         assert "samples" in str(e) or "too short" in str(e)
     else:
         assert e.file == str(path)
-        assert e.row == line
+        assert e.row == line or f"at row(s) {line} " in str(e)  # NaN: with every bad channel

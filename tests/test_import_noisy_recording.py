@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import run_cli
-from kftune.data import load_columns, load_dataset, load_mat, validate_channels
+from kftune.data import import_recordings, load_dataset, validate_channels
 from kftune.data.validate import (
     CORNERING,
     KINEMATIC_RATIO,
@@ -26,7 +26,6 @@ from kftune.data.validate import (
     plausibility_findings,
 )
 from kftune.errors import DataError, DataWarning
-from kftune.vehicle import preset
 
 RATE = 200.0  # Hz
 DURATION = 120.0  # s: six 20 s segments
@@ -213,27 +212,9 @@ def test_a_segment_refused_alone_names_the_file_and_its_row(tmp_path):
     assert "manoeuvre" not in text
 
 
-def test_a_segment_refused_by_load_mat_names_the_file_and_its_row(tmp_path):
-    """The same for the Python loaders that cut a recording (load_mat, load_columns,
-    load_revs): one implementation locates a segment's error in its recording."""
-    c = drive()
-    first = round(FLIPPED[0] * RATE)
-    c["ay"] = c["ay"].copy()
-    c["ay"][first : first + round((FLIPPED[1] - FLIPPED[0]) * RATE)] *= -1.0
-    write(tmp_path, c)
-    mapping = {"t": "time", "vx": "Speed", "ax": "AccX", "ay": "AccY", "r": "YawRate"}
-    with pytest.raises(DataError) as info:
-        load_mat(tmp_path / "rec.mat", mapping, preset("bmw-320i"), segment_length=20.0)
-    e = info.value
-    flipped = segment(c, FLIPPED)
-    peak = first + int(np.argmax(np.abs(flipped["vx"] * flipped["r"])))
-    assert (e.file, e.column, e.row) == (str(tmp_path / "rec.mat"), "ay", peak + 1)
-    assert str(e).endswith("(segment 'rec-s04')")
-
-
-def test_a_segment_refused_by_load_columns_names_the_column_s_own_file(tmp_path):
-    """A column-per-file recording: the refused segment's error names the file of the
-    column at fault (ay's), not the folder, and that file's row."""
+def test_a_segment_refused_in_column_files_names_the_column_s_own_file(tmp_path):
+    """A column-per-file recording (a folder): the refused segment's error names the file
+    of the column at fault (ay's), not the folder, and that file's row."""
     c = drive(held=None)
     first = round(FLIPPED[0] * RATE)
     c["ay"] = c["ay"].copy()
@@ -242,7 +223,9 @@ def test_a_segment_refused_by_load_columns_names_the_column_s_own_file(tmp_path)
     for channel, name in names.items():
         np.savetxt(tmp_path / f"{name}.txt", c[channel])
     with pytest.raises(DataError) as info:
-        load_columns(tmp_path, names, preset("bmw-320i"), segment_length=20.0)
+        import_recordings(
+            [tmp_path], {"vehicle": "bmw-320i", "segment_length": 20.0, "channels": names}
+        )
     e = info.value
     flipped = segment(c, FLIPPED)
     peak = first + int(np.argmax(np.abs(flipped["vx"] * flipped["r"])))

@@ -14,22 +14,8 @@ of its own, :mod:`kftune.sim` (it needs the ``[simulate]`` extra).
 
 from __future__ import annotations
 
-from kftune.data.importer import import_recordings
-from kftune.data.io import (
-    REVS_MAPPING,
-    Source,
-    bundled_dataset_path,
-    default_dataset,
-    load_columns,
-    load_dataset,
-    load_mat,
-    load_revs,
-    open_dataset,
-    read_columns,
-    read_mat,
-    recording_to_dataset,
-    save_dataset,
-)
+from kftune.data.importer import import_recordings, load_revs, open_dataset
+from kftune.data.io import bundled_dataset_path, default_dataset, load_dataset, save_dataset
 from kftune.data.manoeuvre import KINDS, SPLITS, Dataset, Manoeuvre
 from kftune.data.noise import estimate_measurement_noise
 from kftune.data.textfile import ReadLimits
@@ -43,26 +29,19 @@ from kftune.data.validate import (
 __all__ = [
     "KINDS",
     "REQUIRED_CHANNELS",
-    "REVS_MAPPING",
     "SIDESLIP_CHANNELS",
     "SPLITS",
     "UNITS",
     "Dataset",
     "Manoeuvre",
     "ReadLimits",
-    "Source",
     "bundled_dataset_path",
     "default_dataset",
     "estimate_measurement_noise",
     "import_recordings",
-    "load_columns",
     "load_dataset",
-    "load_mat",
     "load_revs",
     "open_dataset",
-    "read_columns",
-    "read_mat",
-    "recording_to_dataset",
     "save_dataset",
     "validate_channels",
 ]

@@ -13,6 +13,7 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     min_duration = 5.0              # [s] drop kept stretches shorter than this
     split_at_gaps = true            # a dropout in time ends a stretch (default: refused)
     segment_length = 30.0           # [s] cut each stretch into segments of about this length
+    seed = 0                        # of the generator of the channels' noise (below)
 
     [source]                        # reader options (each format uses its own)
     format = "csv"                  # the reader, instead of the file's suffix (a .txt export)
@@ -23,6 +24,7 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     encoding = "cp1252"             # CSV: the text encoding (default utf-8)
     decimal = ","                   # CSV: decimal comma (12340,5), with ";" or tab between
     struct = "data"                 # MATLAB: the signals are fields of this struct
+    suffix = ".dat"                 # a folder of one file per signal: <name>.dat (default .txt)
     # raster = "YawRate"            # MDF: resample onto this signal's timestamps
 
     [split]                         # one rule: test = [globs], train_every = k, test_fraction = f
@@ -36,6 +38,7 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     delta = { column = "SWA", unit = "deg", hand_wheel = true }   # ÷ steering ratio
     beta_ref = { atan2 = ["Vy", "Vx"], unit = "km/h" }        # atan2(Vy, Vx)
     p_brake = { column = "BrakePress", unit = "bar", scale = 1.0, offset = 0.0 }
+    vx_meas = { column = "VxINS", unit = "m/s", noise = 0.05 }  # + white noise, σ in SI
     # computed channels, e.g. for a logger without ay and with four wheel speeds:
     # vx = { expr = "(wheel_fl + wheel_fr + wheel_rl + wheel_rr) / 4", unit = "km/h" }
     # ay = { expr = "vx * omega", unit = "m/s^2" }
@@ -44,6 +47,17 @@ A source value becomes ``sign · (scale · raw + offset) · unit factor`` (``sca
 ``offset`` in the source's unit). ``hand_wheel = true`` divides by ``steering_ratio`` (the
 mapping's, else the vehicle's); ``atan2 = [vy, vx]`` gives atan2(vy, vx) of two speed
 sources (an ``offset`` there is refused: it would shift the speeds, not the angle).
+``noise = σ`` then adds white Gaussian noise of standard deviation σ (in the channel's SI
+unit): a measurement simulated from a reference-grade signal, such as a wheel-speed Vx from
+an INS velocity. It is drawn from ``numpy.random.default_rng(seed)`` (the mapping's ``seed``,
+default 0), one generator for the whole import: recordings in the order given, in each the
+channels in the mapping's order (computed ones after the columns). An expression that names
+such a channel sees it with its noise.
+
+A source is a file, or a folder of one plain-text file per signal (a column's name is its
+file's stem; :func:`~kftune.data.readers.read_column_files`). A mapping is a file, or the
+name of one shipped with kftune (:func:`builtin_mapping`): ``revs-250lm``, the race-car
+recording of the README (:func:`load_revs`, and :func:`open_dataset` of its folder).
 
 ``expr = "..."`` computes a channel (:mod:`kftune.data.expr`: numbers, ``+ - * / **``,
 parentheses, abs, sqrt, sin, cos, tan, atan2, mean, clip, gradient/diff over time, lowpass).
@@ -85,7 +99,7 @@ segments — and only then validated: a recording's every bad channel is reporte
 then applies over all recordings in the order given: ``test = [globs]`` makes every
 segment of a recording whose file name (or stem) matches a glob test; ``train_every = k``
 makes segment ``i`` (0-based, counted over all recordings) training when ``i % k == 0``
-(the default, k = 3, as for :func:`~kftune.data.io.recording_to_dataset`);
+(the default, k = 3);
 ``test_fraction = f`` makes test the segments that start after the first ``1 − f`` of the
 total duration (so one uncut recording gives no test segment: cut it with
 ``segment_length``). ``per = "file"`` beside either counts ``i`` (or measures the
@@ -110,6 +124,7 @@ import re
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -117,15 +132,17 @@ import numpy as np
 
 from kftune.data.expr import ExprError, Expression, parse
 from kftune.data.io import (
+    DEFAULT_DATASET,
+    MANIFEST_NAMES,
     _vehicle_from,
+    default_dataset,
     file_stem,
+    load_dataset,
     save_dataset,
-    segment_bounds,
-    segment_manoeuvre,
 )
 from kftune.data.jsonfile import read_toml
 from kftune.data.manoeuvre import Dataset, Manoeuvre
-from kftune.data.readers import FORMATS, READER_OPTIONS, Format, Table, format_named, format_of
+from kftune.data.readers import READER_OPTIONS, Format, Table, format_named, format_of
 from kftune.data.textfile import ReadLimits, check_regular_file
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
@@ -165,9 +182,12 @@ MAPPING_KEYS = {
     "source": f"reader options: {', '.join(READER_OPTIONS)}",
     "split": "test = [globs] | train_every = k | test_fraction = f; per = 'all' | 'file'",
     "channels": "kftune channel = source column, or a table (column, atan2 or expr)",
+    "seed": "seed of the generator of the channels' noise (default 0)",
 }
 #: Keys of one ``[channels]`` entry.
-CHANNEL_KEYS = ("column", "atan2", "expr", "unit", "scale", "offset", "sign", "hand_wheel")
+CHANNEL_KEYS = (
+    *("column", "atan2", "expr", "unit", "scale", "offset", "sign", "hand_wheel", "noise"),
+)
 SPLIT_RULES = ("test", "train_every", "test_fraction")
 #: What ``[split] per`` takes: the segments counted over all recordings, or within each file.
 SPLIT_PER = ("all", "file")
@@ -194,6 +214,7 @@ class ChannelSpec:
     sign: float = 1.0
     hand_wheel: bool = False
     expression: Expression | None = None  # a computed channel
+    noise: float = 0.0  # σ of the white noise added [the channel's SI unit]
 
     @property
     def label(self) -> str:
@@ -227,6 +248,7 @@ class Mapping_:
     raster_by_file: tuple[tuple[str, float], ...] = ()  # [source] raster per file glob
     given: Mapping[str, Any] = field(default_factory=dict)  # quantities as written
     state_space: StateSpaceModel | None = None  # the model named by ``model``
+    seed: int = 0  # of the generator of the channels' noise
 
     def raster_for(self, path: Path) -> float | None:
         """The raster step [s] a recording is resampled onto: that of the first glob of
@@ -250,11 +272,25 @@ class Mapping_:
 
 
 # ------------------------------------------------------------------------------ mapping
+def builtin_mapping(name: str) -> Path | None:
+    """The file of the mapping shipped with kftune under ``name`` (``"revs-250lm"``: the
+    race-car recording, see the README), or None when there is none."""
+    path = Path(str(resources.files("kftune") / "data" / "mappings" / f"{name}.toml"))
+    return path if _BUILTIN_NAME.fullmatch(name) and path.is_file() else None
+
+
+_BUILTIN_NAME = re.compile(r"[a-z0-9][a-z0-9-]*")
+
+
 def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
-    """Parse and check a mapping (a TOML file or a dict); errors name the file and key."""
+    """Parse and check a mapping (a TOML file, the name of a built-in mapping where no file
+    of that name exists (:func:`builtin_mapping`), or a dict); errors name the file and
+    key."""
     if isinstance(mapping, Mapping):
         file, data = "<mapping>", dict(mapping)
     else:
+        if not Path(mapping).exists():
+            mapping = builtin_mapping(str(mapping)) or mapping
         file = str(mapping)
         data = read_toml(mapping)
 
@@ -382,6 +418,9 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
             )
     model = data.get("model")
     state_space = None if model is None else _check_model(model, channels, vehicle, file)
+    seed = data.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise bad("seed", f"expected an integer >= 0, got {excerpt(seed)}")
     for key in ("name", "description"):
         if key in data and not isinstance(data[key], str):
             raise bad(key, f"expected a string, got {excerpt(data[key])}")
@@ -406,6 +445,7 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         raster_by_file=tuple(raster_by_file),
         given={k: data[k] for k in ("min_speed", "min_duration", "split") if k in data},
         state_space=state_space,
+        seed=seed,
     )
 
 
@@ -550,11 +590,29 @@ def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
             raise DataError(f"key '{key}.sign': expected 1 or -1", file=file)
         if numbers["scale"] == 0.0:
             raise DataError(f"key '{key}.scale': must not be 0", file=file)
+        noise = spec.get("noise", 0.0)
+        if (
+            isinstance(noise, bool)
+            or not isinstance(noise, (int, float))
+            or not (math.isfinite(noise) and noise >= 0)
+            or (noise and channel == "t")
+        ):
+            raise DataError(
+                f"key '{key}.noise': expected a standard deviation >= 0 (in the channel's SI "
+                f"unit; none for the time t), got {excerpt(noise)}",
+                file=file,
+            )
         hand_wheel = spec.get("hand_wheel", False)
         if not isinstance(hand_wheel, bool):
             raise DataError(f"key '{key}.hand_wheel': expected true or false", file=file)
         out[channel] = ChannelSpec(
-            channel, tuple(sources), unit, hand_wheel=hand_wheel, expression=expression, **numbers
+            channel,
+            tuple(sources),
+            unit,
+            hand_wheel=hand_wheel,
+            expression=expression,
+            noise=float(noise),
+            **numbers,
         )
     _computing_order(out, file)
     return out
@@ -671,6 +729,7 @@ class _Recording:
     kept_s: float
     total_s: float
     units: dict[str, str]  # SI unit of each channel kftune does not know
+    files: dict[str, str]  # channel → the file of its own that holds it (column files)
 
 
 def _columns_of(m: Mapping_, spec: ChannelSpec) -> list[str]:
@@ -682,7 +741,7 @@ def _columns_of(m: Mapping_, spec: ChannelSpec) -> list[str]:
 
 
 def _convert(
-    m: Mapping_, path: Path, table: Table
+    m: Mapping_, path: Path, table: Table, rng: np.random.Generator
 ) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, tuple[str, str]]]:
     """The table's columns as SI channels, with time (see the module docstring), then the
     computed channels in dependency order; the SI unit of each channel kftune does not
@@ -748,7 +807,7 @@ def _convert(
             si_units[channel] = "rad"
         else:
             value = values[0]
-        out[channel] = _finish(m, spec, value)
+        out[channel] = _finish(m, spec, value, rng)
     if table.time is not None:
         out["t"] = table.time
     elif "t" in out:
@@ -782,7 +841,7 @@ def _convert(
                 row=None if exc.index is None else exc.index + table.row_offset,
             ) from None
         factor = unit_factor(unit, dim, file=m.file, column=channel)
-        out[channel] = _finish(m, spec, (value * spec.scale + spec.offset) * factor)
+        out[channel] = _finish(m, spec, (value * spec.scale + spec.offset) * factor, rng)
         si_units[channel] = SI_UNIT[UNITS[unit.strip()][0]]
         taken[channel] = (unit.strip(), how)
     extra = {c: u for c, u in si_units.items() if c not in CHANNEL_DIMENSION}
@@ -846,13 +905,19 @@ def _expression_unit(
     )
 
 
-def _finish(m: Mapping_, spec: ChannelSpec, value: np.ndarray) -> np.ndarray:
-    """A converted channel with its hand-wheel ratio and sign applied."""
+def _finish(
+    m: Mapping_, spec: ChannelSpec, value: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """A converted channel with its hand-wheel ratio and sign applied, and its ``noise``
+    added (drawn from ``rng``)."""
     if spec.hand_wheel:
         ratio = m.steering_ratio or (m.vehicle and m.vehicle.steering_ratio)
         assert ratio, "read_mapping checks that a hand_wheel channel has a ratio"
         value = value / ratio
-    return spec.sign * value
+    value = spec.sign * value
+    if spec.noise:
+        value = value + rng.normal(0.0, spec.noise, value.size)
+    return value
 
 
 def _stretches(
@@ -977,13 +1042,15 @@ def _check_stretches(
     stretches: list[dict[str, np.ndarray]],
     offset: int,
     taken: Mapping[str, tuple[str, str]],
+    files: Mapping[str, str],
 ) -> None:
     """Validate every kept stretch (all bad channels at once, then each stretch and the
     model's own check), naming rows as ``start + offset + index``; warn about a stretch
     whose ay/(vx·r) is off but not certainly wrong (the whole recording is judged before
     it is cut into segments, and each segment again when it becomes a manoeuvre). Where a
     message can name a fix in the mapping (a unit, ``sign = -1``, ``hand_wheel = true``)
-    or a computed channel to suspect, it does (``taken``: each channel's unit as read)."""
+    or a computed channel to suspect, it does (``taken``: each channel's unit as read). A
+    channel read from a file of its own (``files``) is located in that file."""
     problems: dict[str, str] = {}
     for a, part in zip(starts, stretches):
         found = channel_problems(part, row_offset=a + offset, speed_option=SPEED_OPTION)
@@ -994,10 +1061,12 @@ def _check_stretches(
     if problems:
         label_of = {c: s.label for c, s in m.channels.items()}
         label_of.setdefault("t", "t (sample_time)")
+        only = next(iter(problems)) if len(problems) == 1 and files else None
         raise DataError(
             f"{len(problems)} bad channel(s): "
             + "; ".join(f"{label_of[c]}: {text}" for c, text in problems.items()),
-            file=file,
+            file=files.get(only, file) if only else file,
+            column=only,
         )
     for a, part in zip(starts, stretches):
         row = a + offset
@@ -1009,6 +1078,7 @@ def _check_stretches(
                 resample_option=RASTER_OPTION,
                 gap_option=GAP_OPTION,
                 speed_option=SPEED_OPTION,
+                files=files,
             )
         except CrossCheckError as exc:
             raise DataError(
@@ -1165,8 +1235,11 @@ def _cross_check_fixes(
     return text + _suspects(m, exc.channels, taken)
 
 
-def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording:
-    check_regular_file(path)  # before any reader opens it: a FIFO would block the open
+def _read(
+    m: Mapping_, path: Path, label: str, limits: ReadLimits, rng: np.random.Generator
+) -> _Recording:
+    if not path.is_dir():  # a folder is read as column files, each of them checked
+        check_regular_file(path)  # before any reader opens it: a FIFO would block the open
     fmt = m.format or format_of(path)
     file = str(path)
     names = list(dict.fromkeys(s for spec in m.channels.values() for s in _columns_of(m, spec)))
@@ -1198,13 +1271,21 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             file=exc.file,
             column=exc.column,
         ) from None
-    channels, units, taken = _convert(m, path, table)
+    channels, units, taken = _convert(m, path, table, rng)
+    files = {  # a channel read from a file of its own (column files): errors name that file
+        c: table.files[s.sources[0]]
+        for c, s in m.channels.items()
+        if s.expression is None and len(s.sources) == 1 and s.sources[0] in table.files
+    }
     try:  # every reader's time, once, over the whole recording (rows min_speed drops too)
-        check_increasing(channels["t"], file=file, row_offset=table.row_offset)
+        check_increasing(channels["t"], file=files.get("t", file), row_offset=table.row_offset)
     except DataError as exc:
         spec = m.channels.get("t")
         raise DataError(
-            f"{spec.label if spec else 't'}: {exc.message}", file=file, column="t", row=exc.row
+            f"{spec.label if spec else 't'}: {exc.message}",
+            file=exc.file,
+            column="t",
+            row=exc.row,
         ) from None
     starts, stretches = [], []
     for first, piece in _pieces(m, channels, file, table.row_offset):
@@ -1239,7 +1320,7 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
             column="vx",
         )
     try:
-        _check_stretches(m, file, starts, stretches, table.row_offset, taken)
+        _check_stretches(m, file, starts, stretches, table.row_offset, taken, files)
     except DataError as exc:
         if raster_step is None or fmt.own_time:
             raise
@@ -1253,26 +1334,97 @@ def _read(m: Mapping_, path: Path, label: str, limits: ReadLimits) -> _Recording
     total = float(t[-1] - t[0]) if t.size > 1 else 0.0
     kept = sum(float(p["t"][-1] - p["t"][0]) for p in stretches)
     rows = [a + table.row_offset for a in starts]
-    return _Recording(path, label, stretches, rows, kept, total, units)
+    return _Recording(path, label, stretches, rows, kept, total, units, files)
+
+
+def segment_bounds(t: np.ndarray, segment_length: float | None, name: str) -> list[int]:
+    """Sample indices that cut a recording of times ``t`` into
+    ``k = max(1, round(duration / segment_length))`` segments of (nearly) equal sample counts:
+    ``[0, …, n]`` (``segment_length=None``: ``[0, n]``, one segment).
+
+    Raises:
+        ValueError: ``segment_length`` not > 0, or segments shorter than
+            :data:`~kftune.data.validate.MIN_SAMPLES` (the message names ``name``).
+    """
+    n = t.size
+    if segment_length is None:
+        return [0, n]
+    if not segment_length > 0:
+        raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
+    k = max(1, round(float(t[-1] - t[0]) / segment_length))
+    bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
+    shortest = min(b - a for a, b in itertools.pairwise(bounds))
+    if shortest < MIN_SAMPLES:
+        dt = float(np.median(np.diff(t)))
+        raise ValueError(
+            f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
+            f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
+            f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
+        )
+    return bounds
+
+
+def segment_manoeuvre(
+    label: str,
+    split: str,
+    seg: Mapping[str, np.ndarray],
+    description: str,
+    *,
+    file: str | None,
+    row: int,
+    note: str = "",
+    files: Mapping[str, str] | None = None,
+) -> Manoeuvre:
+    """A segment of a recording as a manoeuvre of kind ``"segment"``. Its own checks (the
+    kinematic ones judge the segment alone) name the recording's ``file`` (for a channel
+    with a file of its own, ``files[channel]``) and a row of it (``row``: the segment's
+    first sample's), with the segment's name and ``note`` — not the manoeuvre as the file
+    and an index inside the segment as the row.
+
+    Raises:
+        DataError: a check refuses the segment (located in ``file`` when given).
+    """
+    try:
+        return Manoeuvre(
+            label,
+            "segment",
+            split,
+            seg["t"],
+            channels={c: v for c, v in seg.items() if c != "t"},
+            description=description,
+        )
+    except DataError as exc:
+        if file is None:
+            raise
+        raise DataError(
+            f"{exc.message} (segment {label!r}{note})",
+            file=(files or {}).get(exc.column or "", file),
+            column=exc.column,
+            row=None if exc.row is None else row + exc.row,
+        ) from None
 
 
 def import_recordings(
     sources: Sequence[str | Path],
-    mapping: str | Path | Mapping[str, Any],
+    mapping: str | Path | Mapping[str, Any] | Mapping_,
     out: str | Path | None = None,
     *,
     name: str | None = None,
+    labels: Sequence[str] | None = None,
     limits: ReadLimits | None = None,
 ) -> Dataset:
     """Read recordings through one mapping and merge them into one dataset.
 
     Args:
         sources: recording files, in any format of :data:`kftune.data.readers.FORMATS`
-            (their suffix picks the reader).
-        mapping: a mapping TOML file, or its content as a dict (see the module docstring).
+            (their suffix picks the reader; a folder holds one file per signal).
+        mapping: a mapping TOML file, the name of a built-in one (:func:`builtin_mapping`),
+            its content as a dict (see the module docstring), or one parsed already.
         out: write the dataset there (:func:`~kftune.data.io.save_dataset`) when given.
         name: dataset name (default: the mapping's ``name``, else ``out``'s folder name,
             else ``"imported"``).
+        labels: each recording's name, which its manoeuvres are named after (default: its
+            file name up to the first dot, reduced by :func:`~kftune.data.io.file_stem`).
         limits: size limits of each file (``None``: the defaults or the environment).
 
     Returns:
@@ -1285,9 +1437,10 @@ def import_recordings(
     """
     if not sources:
         raise ConfigError("no recordings to import")
-    m = read_mapping(mapping)
+    m = mapping if isinstance(mapping, Mapping_) else read_mapping(mapping)
     lim = ReadLimits.from_env() if limits is None else limits
-    labels = [file_stem(Path(s).name.split(".")[0]) for s in sources]
+    if labels is None:
+        labels = [file_stem(Path(s).name.split(".")[0]) for s in sources]
     for a, b in itertools.combinations(range(len(labels)), 2):
         if labels[a] == labels[b]:
             raise ConfigError(
@@ -1303,7 +1456,8 @@ def import_recordings(
                 DataWarning,
                 stacklevel=2,
             )
-    recordings = [_read(m, Path(s), lab, lim) for s, lab in zip(sources, labels)]
+    rng = np.random.default_rng(m.seed)  # one generator: the recordings' noise in order
+    recordings = [_read(m, Path(s), lab, lim, rng) for s, lab in zip(sources, labels)]
     steps = [sample_time(r.stretches[0]["t"]) for r in recordings]
     for r, step in zip(recordings, steps):
         if abs(step - steps[0]) > 0.01 * steps[0]:
@@ -1354,6 +1508,10 @@ def import_recordings(
         meta["model"] = m.model
     if m.min_speed is not None:
         meta["min_speed"] = m.min_speed  # [m/s]
+    noise = {c: s.noise for c, s in m.channels.items() if s.noise}
+    if noise:
+        meta["noise"] = noise  # [SI unit of each channel]
+        meta["seed"] = m.seed
     dataset = Dataset(
         dataset_name,
         m.vehicle,
@@ -1377,7 +1535,7 @@ def _segment(
     desc: str,
     row: int,
 ) -> Manoeuvre:
-    """A segment of a recording as a manoeuvre (:func:`~kftune.data.io.segment_manoeuvre`:
+    """A segment of a recording as a manoeuvre (:func:`segment_manoeuvre`:
     its errors name the recording's file and row, ``row`` the segment's first)."""
     note = ""
     step = m.raster_for(r.file)
@@ -1385,7 +1543,9 @@ def _segment(
         note = (
             f"; resampled: a row counts {step:g} s raster samples from the first row of its stretch"
         )
-    return segment_manoeuvre(label, split, seg, desc, file=str(r.file), row=row, note=note)
+    return segment_manoeuvre(
+        label, split, seg, desc, file=str(r.file), row=row, note=note, files=r.files
+    )
 
 
 def _matches(r: _Recording, glob: str, segment: str | None = None) -> bool:
@@ -1463,9 +1623,70 @@ def _split_warnings(
     return out
 
 
-def format_table() -> str:
-    """The formats read, one line each (for ``--help``)."""
-    return "; ".join(
-        f"{f.name} ({' '.join(f.suffixes)}{f', extra [{f.extra}]' if f.extra else ''})"
-        for f in FORMATS
+# ------------------------------------------------------------------------------ revs-250lm
+#: The built-in mapping of the revs-250lm race-car recording (its traps are in the file).
+REVS_MAPPING = "revs-250lm"
+#: Files whose presence marks a folder as the revs-250lm layout.
+REVS_MARKERS = ("t.txt", "ayCG.txt", "yawRate.txt", "beta_true.txt", "vx.txt")
+
+
+def load_revs(
+    directory: str | Path,
+    *,
+    segment_length: float = 30.0,
+    train_every: int = 3,
+    vx_noise: float = 0.05,
+    seed: int = 0,
+    limits: ReadLimits | None = None,
+) -> Dataset:
+    """The revs-250lm race-car recording (a folder of one file per signal), imported by its
+    built-in mapping (``data/mappings/revs-250lm.toml``) with its vehicle (preset
+    ``"revs-250lm"``) and cut into ``segment_length`` segments, every ``train_every``-th
+    from the first training: 18 segments ``revs-250lm-s01`` … ``-s18``, 6 training.
+
+    The recording has no wheel speeds: the Vx measurement is the INS velocity plus white
+    noise of σ = ``vx_noise`` m/s (drawn from ``numpy.random.default_rng(seed)``; 0 keeps the
+    INS value); the INS velocities stay as the extras ``vx_ins`` and ``vy_ins``.
+
+    Raises:
+        ValueError: ``segment_length`` not > 0, ``train_every`` < 1 or ``vx_noise`` < 0.
+        DataError: a file of the folder is missing or unusable.
+    """
+    if not segment_length > 0:
+        raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
+    if train_every < 1:
+        raise ValueError(f"train_every must be >= 1, got {train_every!r}")
+    if not vx_noise >= 0:
+        raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
+    m = read_mapping(builtin_mapping(REVS_MAPPING) or REVS_MAPPING)
+    channels = m.channels | {"vx": dataclasses.replace(m.channels["vx"], noise=float(vx_noise))}
+    m = dataclasses.replace(
+        m,
+        channels=channels,
+        segment_length=float(segment_length),
+        split=("train_every", train_every),
+        seed=seed,
     )
+    return import_recordings([directory], m, labels=[REVS_MAPPING], limits=limits)
+
+
+def open_dataset(spec: str | Path | None) -> Dataset:
+    """Open a dataset named on a command line.
+
+    ``None`` or ``"default"``: the bundled dataset; a folder or file with a kftune manifest:
+    :func:`~kftune.data.io.load_dataset`; a folder in the revs-250lm layout: imported by its
+    built-in mapping (:func:`load_revs`).
+    """
+    if spec is None or str(spec) == DEFAULT_DATASET:
+        return default_dataset()
+    path = Path(spec)
+    if path.is_dir() and not any((path / n).is_file() for n in MANIFEST_NAMES):
+        if all((path / f).is_file() for f in REVS_MARKERS):
+            return load_revs(path)
+        raise DataError(
+            f"neither a kftune dataset ({' / '.join(MANIFEST_NAMES)}) nor the revs-250lm "
+            f"layout ({', '.join(REVS_MARKERS)}); a recording is imported first with "
+            "`kftune dataset import`",
+            file=str(path),
+        )
+    return load_dataset(path)

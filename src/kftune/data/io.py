@@ -1,22 +1,12 @@
-"""Reading and writing manoeuvre data.
+"""Reading and writing datasets in the kftune format, and the bundled dataset.
 
-Three layouts are read; all of them are validated completely before a dataset is returned
-(:mod:`kftune.data.validate`), and every error names the file, the column and the row.
-
-1. **The kftune format** (:func:`load_dataset`, :func:`save_dataset`): a directory with
-   ``manifest.toml`` (or ``manifest.json``, same keys) and one CSV per manoeuvre (optionally
-   gzip-compressed, ``.csv.gz``). See "Data format" in the README and :data:`MANIFEST_KEYS`.
-2. **Column-per-file text** (:func:`load_columns`): a directory with one plain-text file per
-   signal, one value per line (lines starting with ``#`` or ``%`` are comments), all
-   aligned — the layout of many logger exports, e.g. the revs-250lm recording
-   (:func:`load_revs`).
-3. **MATLAB** ``.mat`` (v4–v7.2, through ``scipy.io.loadmat``) (:func:`load_mat`): one
-   variable per signal, at the top level or inside a struct.
-
-For 2 and 3 a *column mapping* says which source signal is which kftune channel and in
-which unit (``deg``→rad, ``km/h``→m/s, ``deg/s``→rad/s, ``g``→m/s², …); a long recording
-can be cut into segments split deterministically into training and test
-(:func:`recording_to_dataset`).
+**The kftune format** (:func:`load_dataset`, :func:`save_dataset`): a directory with
+``manifest.toml`` (or ``manifest.json``, same keys) and one CSV per manoeuvre (optionally
+gzip-compressed, ``.csv.gz``); see "Data format" in the README and :data:`MANIFEST_KEYS`. A
+dataset is validated completely before it is returned (:mod:`kftune.data.validate`), and
+every error names the file, the column and the row. Recordings in other layouts (CSV, MATLAB,
+MDF, a folder of one file per signal, …) become datasets through one path, a column mapping
+(:mod:`kftune.data.importer`).
 
 Input is treated as untrusted: text files are read in blocks within size limits
 (:mod:`kftune.data.textfile`, :class:`~kftune.data.textfile.ReadLimits`), so memory follows
@@ -29,12 +19,10 @@ from __future__ import annotations
 import contextlib
 import gzip
 import io
-import itertools
 import json
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -44,18 +32,14 @@ import numpy as np
 
 from kftune.data.jsonfile import read_json, read_toml
 from kftune.data.manoeuvre import SPLITS, Dataset, Manoeuvre
-from kftune.data.readers import mat_variables
 from kftune.data.textfile import (
     SEPARATORS,
     NumericRows,
     ReadLimits,
-    check_regular_file,
     line_blocks,
-    read_values,
 )
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
-    MIN_SAMPLES,
     REQUIRED_CHANNELS,
     SI_UNIT,
     SIDESLIP_CHANNELS,
@@ -595,412 +579,6 @@ def _check_header(header: list[str], factors: Mapping[str, float], file: str) ->
             )
 
 
-# ------------------------------------------------------------------- mapped recordings
-@dataclass(frozen=True)
-class Source:
-    """Where a kftune channel comes from in a user's recording.
-
-    Attributes:
-        name: the signal's name in the recording (file stem, or MATLAB variable / field).
-        unit: its unit, one of :data:`kftune.data.validate.UNITS` (converted to SI).
-    """
-
-    name: str
-    unit: str
-
-
-#: A column mapping: kftune channel → Source (or ``(name, unit)``, or just the name for SI).
-ColumnMapping = Mapping[str, "Source | tuple[str, str] | str"]
-
-
-def _normalise_mapping(mapping: ColumnMapping, file: str) -> dict[str, Source]:
-    out: dict[str, Source] = {}
-    for channel, src in mapping.items():
-        check_channel_name(channel, file=file)
-        dim = CHANNEL_DIMENSION.get(channel)
-        if isinstance(src, Source):
-            s = src
-        elif isinstance(src, str):
-            if dim is None:
-                raise DataError(
-                    f"extra channel {channel!r} needs a unit: give (name, unit)",
-                    file=file,
-                    column=channel,
-                )
-            s = Source(src, SI_UNIT[dim])
-        elif isinstance(src, (tuple, list)) and len(src) == 2:
-            s = Source(str(src[0]), str(src[1]))
-        else:
-            raise DataError(
-                f"mapping entry must be a name, (name, unit) or Source, got {src!r}",
-                file=file,
-                column=channel,
-            )
-        unit_factor(s.unit, dim, file=file, column=channel)
-        out[channel] = s
-    for c in REQUIRED_CHANNELS:
-        if c not in out:
-            raise DataError(
-                f"the column mapping gives no source for the time channel {c!r} "
-                "(every recording needs one)",
-                file=file,
-                column=c,
-            )
-    return out
-
-
-def _mapped_units(mapping: ColumnMapping, file: str) -> dict[str, str]:
-    """SI unit of each mapped channel kftune does not know (for :attr:`Dataset.units`)."""
-    return {
-        c: SI_UNIT[UNITS[src.unit.strip()][0]]
-        for c, src in _normalise_mapping(mapping, file).items()
-        if c not in CHANNEL_DIMENSION
-    }
-
-
-def column_files(directory: Path, mapping: ColumnMapping, suffix: str = ".txt") -> dict[str, str]:
-    """channel → the file of a column-per-file recording in ``directory`` that holds it
-    (``<source name><suffix>``)."""
-    sources = _normalise_mapping(mapping, str(directory))
-    return {
-        c: str(directory / (s.name if s.name.endswith(suffix) else s.name + suffix))
-        for c, s in sources.items()
-    }
-
-
-def read_columns(
-    directory: str | Path,
-    mapping: ColumnMapping,
-    suffix: str = ".txt",
-    limits: ReadLimits | None = None,
-) -> dict[str, np.ndarray]:
-    """Read and validate a column-per-file recording into SI channels.
-
-    Args:
-        directory: holds one file per signal (``<source name><suffix>``), one value a line
-            (lines starting with ``#`` or ``%`` are comments).
-        mapping: kftune channel → source (see :class:`Source`).
-        limits: size limits of each file (``None``: the defaults or the environment; see
-            :class:`~kftune.data.textfile.ReadLimits`).
-
-    Returns:
-        channel → (n,) array in SI units, validated (rows reported as file line numbers).
-    """
-    directory = Path(directory)
-    if not directory.is_dir():
-        raise DataError("recording directory not found", file=str(directory))
-    sources = _normalise_mapping(mapping, str(directory))
-    files = column_files(directory, mapping, suffix)
-    channels: dict[str, np.ndarray] = {}
-    for channel, src in sources.items():
-        path = Path(files[channel])
-        if not path.is_file():
-            raise DataError("file not found (named in the column mapping)", file=str(path))
-        factor = unit_factor(
-            src.unit, CHANNEL_DIMENSION.get(channel), file=str(path), column=channel
-        )
-        channels[channel] = read_values(path, limits)
-        if factor != 1.0:
-            channels[channel] *= factor
-    validate_channels(channels, file=str(directory), row_offset=1, files=files)
-    return channels
-
-
-def read_mat(
-    path: str | Path,
-    mapping: ColumnMapping,
-    struct: str | None = None,
-    limits: ReadLimits | None = None,
-) -> dict[str, np.ndarray]:
-    """Read and validate a MATLAB recording into SI channels.
-
-    Only the variables the mapping names (or the struct holding them) are loaded (see
-    :func:`kftune.data.readers.mat_variables`).
-
-    Args:
-        path: a ``.mat`` file (v4–v7.2 through SciPy; v7.3/HDF5 through h5py, the extra
-            ``mat73``).
-        mapping: kftune channel → source variable (or struct field) name and unit.
-        struct: dotted path of the struct holding the signals (``None``: top level).
-        limits: see :class:`~kftune.data.textfile.ReadLimits` (``None``: the defaults or the
-            environment).
-
-    Returns:
-        channel → (n,) array in SI units, validated (rows reported 1-based, as MATLAB).
-    """
-    path = Path(path)
-    file = str(path)
-    check_regular_file(path)
-    sources = _normalise_mapping(mapping, file)
-    lim = ReadLimits.from_env() if limits is None else limits
-    try:
-        values = mat_variables(path, [s.name for s in sources.values()], struct, lim)
-    except DataError as exc:  # name the kftune channel, as the other loaders do
-        channel = next((c for c, s in sources.items() if s.name == exc.column), exc.column)
-        raise DataError(exc.message, file=exc.file, column=channel, row=exc.row) from None
-    channels = {
-        channel: values[src.name]
-        * unit_factor(src.unit, CHANNEL_DIMENSION.get(channel), file=file, column=channel)
-        for channel, src in sources.items()
-    }
-    validate_channels(channels, file=file, row_offset=1)
-    return channels
-
-
-def segment_bounds(t: np.ndarray, segment_length: float | None, name: str) -> list[int]:
-    """Sample indices that cut a recording of times ``t`` into
-    ``k = max(1, round(duration / segment_length))`` segments of (nearly) equal sample counts:
-    ``[0, …, n]`` (``segment_length=None``: ``[0, n]``, one segment).
-
-    Raises:
-        ValueError: ``segment_length`` not > 0, or segments shorter than
-            :data:`~kftune.data.validate.MIN_SAMPLES` (the message names ``name``).
-    """
-    n = t.size
-    if segment_length is None:
-        return [0, n]
-    if not segment_length > 0:
-        raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
-    k = max(1, round(float(t[-1] - t[0]) / segment_length))
-    bounds = np.linspace(0, n, k + 1).round().astype(int).tolist()
-    shortest = min(b - a for a, b in itertools.pairwise(bounds))
-    if shortest < MIN_SAMPLES:
-        dt = float(np.median(np.diff(t)))
-        raise ValueError(
-            f"segment_length = {segment_length!r} s cuts {name!r} into {k} segments of "
-            f"{shortest} samples; a manoeuvre needs at least {MIN_SAMPLES} "
-            f"(segment_length >= {MIN_SAMPLES * dt:g} s at dt = {dt:g} s)"
-        )
-    return bounds
-
-
-def segment_manoeuvre(
-    label: str,
-    split: str,
-    seg: Mapping[str, np.ndarray],
-    description: str,
-    *,
-    file: str | None,
-    row: int,
-    note: str = "",
-    files: Mapping[str, str] | None = None,
-) -> Manoeuvre:
-    """A segment of a recording as a manoeuvre of kind ``"segment"``. Its own checks (the
-    kinematic ones judge the segment alone) name the recording's ``file`` (for a channel
-    with a file of its own, ``files[channel]``) and a row of it (``row``: the segment's
-    first sample's), with the segment's name and ``note`` — not the manoeuvre as the file
-    and an index inside the segment as the row.
-
-    Raises:
-        DataError: a check refuses the segment (located in ``file`` when given).
-    """
-    try:
-        return Manoeuvre(
-            label,
-            "segment",
-            split,
-            seg["t"],
-            channels={c: v for c, v in seg.items() if c != "t"},
-            description=description,
-        )
-    except DataError as exc:
-        if file is None:
-            raise
-        raise DataError(
-            f"{exc.message} (segment {label!r}{note})",
-            file=(files or {}).get(exc.column or "", file),
-            column=exc.column,
-            row=None if exc.row is None else row + exc.row,
-        ) from None
-
-
-def recording_to_dataset(
-    channels: Mapping[str, np.ndarray],
-    *,
-    name: str,
-    vehicle: VehicleParams | None,
-    segment_length: float | None = None,
-    train_every: int = 3,
-    description: str = "",
-    meta: Mapping[str, Any] | None = None,
-    units: Mapping[str, str] | None = None,
-    file: str | None = None,
-    row_offset: int = 0,
-    files: Mapping[str, str] | None = None,
-) -> Dataset:
-    """Turn one validated recording into a dataset, cut into segments.
-
-    Segmentation: ``k = max(1, round(duration / segment_length))`` segments of (nearly)
-    equal sample counts, named ``<name>-s01`` … (kind ``"segment"``); segment ``i``
-    (0-based) is *training* when ``i % train_every == 0`` and *test* otherwise — training
-    segments are spread over the whole recording (different laps, tyre temperatures) and
-    the split is a pure function of the recording's length. With ``segment_length=None``
-    the whole recording is one training manoeuvre. ``file`` and ``row_offset`` (the row of
-    sample 0 in it), and ``files`` (channel → its own file, for a column-per-file
-    recording), locate a segment's errors in the recording (:func:`segment_manoeuvre`).
-    """
-    t = np.asarray(channels["t"])
-    if train_every < 1:
-        raise ValueError(f"train_every must be >= 1, got {train_every!r}")
-    bounds = segment_bounds(t, segment_length, name)
-    manoeuvres = []
-    width = max(2, len(str(len(bounds) - 1)))
-    for i, (a, b) in enumerate(itertools.pairwise(bounds)):
-        seg = {c: np.asarray(v)[a:b] for c, v in channels.items()}
-        label = name if len(bounds) == 2 else f"{name}-s{i + 1:0{width}d}"
-        manoeuvres.append(
-            segment_manoeuvre(
-                label,
-                "train" if i % train_every == 0 else "test",
-                seg,
-                f"{name}, t = {t[a]:.2f} … {t[b - 1]:.2f} s",
-                file=file,
-                row=a + row_offset,
-                files=files,
-            )
-        )
-    dt = sample_time(t)
-    return Dataset(
-        name, vehicle, dt, tuple(manoeuvres), description, dict(meta or {}), dict(units or {})
-    )
-
-
-def load_columns(
-    directory: str | Path,
-    mapping: ColumnMapping,
-    vehicle: VehicleParams | None,
-    *,
-    name: str | None = None,
-    segment_length: float | None = None,
-    train_every: int = 3,
-    suffix: str = ".txt",
-    limits: ReadLimits | None = None,
-) -> Dataset:
-    """A column-per-file recording as a dataset (see :func:`read_columns` and
-    :func:`recording_to_dataset`)."""
-    directory = Path(directory)
-    channels = read_columns(directory, mapping, suffix, limits)
-    return recording_to_dataset(
-        channels,
-        name=name or directory.name,
-        vehicle=vehicle,
-        segment_length=segment_length,
-        train_every=train_every,
-        meta={"source": directory.name},
-        units=_mapped_units(mapping, str(directory)),
-        file=str(directory),
-        row_offset=1,
-        files=column_files(directory, mapping, suffix),
-    )
-
-
-def load_mat(
-    path: str | Path,
-    mapping: ColumnMapping,
-    vehicle: VehicleParams | None,
-    *,
-    struct: str | None = None,
-    name: str | None = None,
-    segment_length: float | None = None,
-    train_every: int = 3,
-    limits: ReadLimits | None = None,
-) -> Dataset:
-    """A MATLAB recording as a dataset (see :func:`read_mat` and
-    :func:`recording_to_dataset`)."""
-    path = Path(path)
-    channels = read_mat(path, mapping, struct, limits)
-    return recording_to_dataset(
-        channels,
-        name=name or path.stem,
-        vehicle=vehicle,
-        segment_length=segment_length,
-        train_every=train_every,
-        meta={"source": path.name},
-        units=_mapped_units(mapping, str(path)),
-        file=str(path),
-        row_offset=1,
-    )
-
-
-# ------------------------------------------------------------------------------ revs
-#: Column mapping of the revs-250lm recording (Stanford Revs; Leanza, Reina &
-#: Blanco-Claraco 2021). Its traps, and how this mapping meets them:
-#: * ``yawRateFilt.txt`` is in deg/s although named like ``yawRate.txt`` (rad/s): the raw
-#:   ``yawRate`` is used; mapping ``yawRateFilt`` as rad/s is refused by validation
-#:   (|r| up to 34 "rad/s", and ay ≠ vx·r).
-#: * raw IMU channels (``axCG``, ``ayCG``, ``yawRate``) repeat ~12 % of their samples
-#:   (sample-and-hold of a slower logger): they are the measurements, kept as they are;
-#:   the INS-filtered ``*Filt`` channels are smoothed and would hide the noise R is
-#:   estimated from.
-#: * ``delta`` is already the mean road-wheel angle (no steering ratio to apply).
-#: * time starts at 149.99 s: kept (segments say where they are in the recording).
-#: * there are no wheel speeds: ``vx`` is the INS velocity (see :func:`load_revs`).
-REVS_MAPPING: dict[str, Source] = {
-    "t": Source("t", "s"),
-    "delta": Source("delta", "rad"),
-    "ax": Source("axCG", "m/s^2"),
-    "ay": Source("ayCG", "m/s^2"),
-    "r": Source("yawRate", "rad/s"),
-    "vx": Source("vx", "m/s"),
-    "beta_ref": Source("beta_true", "rad"),
-    "vy_ins": Source("vy", "m/s"),
-}
-#: Files whose presence marks a directory as the revs-250lm layout.
-REVS_MARKERS = ("t.txt", "ayCG.txt", "yawRate.txt", "beta_true.txt", "vx.txt")
-
-
-def load_revs(
-    directory: str | Path,
-    *,
-    segment_length: float = 30.0,
-    train_every: int = 3,
-    vx_noise: float = 0.05,
-    seed: int = 0,
-    limits: ReadLimits | None = None,
-) -> Dataset:
-    """The revs-250lm race-car recording, loaded through the column-per-file path with its
-    vehicle parameters (preset ``"revs-250lm"``) and cut into training and test segments.
-
-    550 s at 100 Hz → 18 segments of ≈ 30.6 s named ``revs-250lm-s01`` … ``-s18``; segments
-    1, 4, 7, 10, 13, 16 (every third from the first) are training, the other 12 test
-    (see :func:`recording_to_dataset`).
-
-    The recording has no wheel speeds; as its README suggests, the Vx *measurement* is the
-    INS velocity plus white noise of σ = ``vx_noise`` m/s (the size of a wheel-speed
-    estimate's, drawn from ``numpy.random.default_rng(seed)``; 0 keeps the INS value). The
-    INS velocities stay available as extras ``vx_ins`` and ``vy_ins``. The reference β is
-    the INS sideslip ``beta_true`` (= atan2(vy, vx)).
-    """
-    directory = Path(directory)
-    channels = read_columns(directory, REVS_MAPPING, limits=limits)
-    if vx_noise < 0:
-        raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
-    channels["vx_ins"] = channels["vx"]
-    if vx_noise > 0:
-        rng = np.random.default_rng(seed)
-        channels["vx"] = channels["vx"] + rng.normal(0.0, vx_noise, channels["vx"].size)
-    return recording_to_dataset(
-        channels,
-        name="revs-250lm",
-        vehicle=preset("revs-250lm"),
-        segment_length=segment_length,
-        train_every=train_every,
-        description=(
-            "Stanford Revs race car, 550 s of track driving (Leanza, Reina & Blanco-Claraco, "
-            "Sensors 2021); INS sideslip reference; Vx = INS + noise"
-        ),
-        meta={
-            "source": "revs-250lm",
-            "vx_noise": vx_noise,
-            "seed": seed,
-            "units": {"vx_ins": "m/s", "vy_ins": "m/s"},
-        },
-        file=str(directory),
-        row_offset=1,
-        files=column_files(directory, REVS_MAPPING),
-    )
-
-
 # =========================================================================== bundled
 #: Name of the bundled dataset directory inside the package (``kftune/datasets/<name>``).
 DEFAULT_DATASET = "default"
@@ -1019,26 +597,6 @@ def default_dataset() -> Dataset:
         raise DataError(
             "the bundled default dataset is missing from this installation; regenerate it "
             "with `kftune dataset generate src/kftune/datasets/default`",
-            file=str(path),
-        )
-    return load_dataset(path)
-
-
-def open_dataset(spec: str | Path | None) -> Dataset:
-    """Open a dataset named on a command line.
-
-    ``None`` or ``"default"``: the bundled dataset; a directory or file with a kftune
-    manifest: :func:`load_dataset`; a directory in the revs-250lm layout: :func:`load_revs`.
-    """
-    if spec is None or str(spec) == DEFAULT_DATASET:
-        return default_dataset()
-    path = Path(spec)
-    if path.is_dir() and not any((path / n).is_file() for n in MANIFEST_NAMES):
-        if all((path / m).is_file() for m in REVS_MARKERS):
-            return load_revs(path)
-        raise DataError(
-            f"neither a kftune dataset ({' / '.join(MANIFEST_NAMES)}) nor the revs-250lm "
-            f"layout ({', '.join(REVS_MARKERS)})",
             file=str(path),
         )
     return load_dataset(path)

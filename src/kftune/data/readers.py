@@ -31,9 +31,15 @@ MATLAB     .mat                     (mat73)     v4 through ``scipy.io.loadmat``;
 MDF4       .mf4 .mdf                mdf         through asammdf; signals resampled onto one
                                                 raster (:func:`read_mdf`); rows are raster
                                                 samples, 1-based
+columns    a folder                 —           one file per signal (``<name>.txt``, or the
+                                                ``suffix`` given), one value a line, ``#`` and
+                                                ``%`` lines comments (the revs-250lm layout,
+                                                :func:`read_column_files`); rows are each
+                                                file's line numbers
 ========== ======================== =========== ==================================================
 
-A file's suffix picks its format (:func:`format_of`); a mapping's ``[source] format`` names
+A file's suffix picks its format, a folder is read as column files (:func:`format_of`); a
+mapping's ``[source] format`` names
 one instead (:func:`format_named`: ``"csv"`` for a ``.txt`` or ``.dat`` logger export).
 Only the signals asked for are read. A file is untrusted input: messages quote at most a
 short excerpt of it, and the size limits of :class:`~kftune.data.textfile.ReadLimits` hold.
@@ -63,7 +69,9 @@ from kftune.data.textfile import (
     RATIO_FREE_BYTES,
     NumericRows,
     ReadLimits,
+    check_regular_file,
     line_blocks,
+    read_values,
 )
 from kftune.data.validate import UNITS, check_increasing
 from kftune.errors import ConfigError, DataError, excerpt
@@ -79,12 +87,15 @@ class Table:
         time: (n,) time [s] for a format with its own time axis (MDF), else None.
         row_offset: the row number a user sees for sample 0 (a CSV's first data line, 1 for
             1-based indices).
+        files: source name → the file that holds it, for a format of one file per signal
+            (messages name that file), else empty.
     """
 
     columns: dict[str, np.ndarray]
     units: dict[str, str] = field(default_factory=dict)
     time: np.ndarray | None = None
     row_offset: int = 1
+    files: dict[str, str] = field(default_factory=dict)
 
 
 Reader = Callable[[Path, Sequence[str], Mapping[str, Any], ReadLimits], Table]
@@ -251,6 +262,43 @@ def read_text_table(
         {n: units[n] for n in names if n in units},
         row_offset=first_row + body,
     )
+
+
+# ----------------------------------------------------------------------------- column files
+def read_column_files(
+    path: Path, names: Sequence[str], options: Mapping[str, Any], limits: ReadLimits
+) -> Table:
+    """A folder of one plain-text file per signal, all aligned sample by sample: the signal
+    ``name`` is the file ``<name><suffix>`` (``suffix`` of ``options``, default ``.txt``; a
+    name that ends in it is the file's whole name), one value a line, lines starting with
+    ``#`` or ``%`` comments (:func:`~kftune.data.textfile.read_values`). The layout of many
+    logger exports, and of the revs-250lm recording. Units: the mapping's, or SI."""
+    suffix = options.get("suffix", ".txt")
+    files = {n: path / (n if n.endswith(suffix) else n + suffix) for n in names}
+    columns = {}
+    for name, file in files.items():
+        if not file.exists():
+            known = sorted(p.name for p in path.glob(f"*{suffix}"))
+            raise DataError(
+                f"signal {excerpt(name)}: no file {excerpt(file.name)} in the folder; it has "
+                f"{excerpt(known, 300)}",
+                file=str(path),
+                column=name,
+            )
+        check_regular_file(file)
+        columns[name] = read_values(file, limits)
+    sizes = [v.size for v in columns.values()]
+    n = max(set(sizes), key=lambda k: (sizes.count(k), -sizes.index(k)))  # the most common
+    for name, values in columns.items():
+        if values.size != n:  # rows as the file's line numbers: where the shorter one ends
+            raise DataError(
+                f"{values.size} samples, {sizes.count(n)} other file(s) of the folder {n}: "
+                "the files of one recording must be aligned sample by sample",
+                file=str(files[name]),
+                column=name,
+                row=min(values.size, n) + 1,
+            )
+    return Table(columns, row_offset=1, files={k: str(f) for k, f in files.items()})
 
 
 # ----------------------------------------------------------------------------- Parquet
@@ -1007,7 +1055,10 @@ FORMATS: tuple[Format, ...] = (
     Format("Parquet", (".parquet", ".pq"), read_parquet, "parquet", ()),
     Format("MATLAB", (".mat",), read_mat, "mat73", ("struct",)),
     Format("MDF4", (".mf4", ".mdf"), read_mdf, "mdf", ("raster",), own_time=True),
+    Format("columns", (), read_column_files, None, ("suffix",)),
 )  # fmt: skip
+#: The format of a folder: one file per signal.
+COLUMN_FILES = FORMATS[-1]
 
 #: ``[source]`` options of every format, applied by the importer: ``format`` (a name of
 #: :func:`format_named`, instead of the suffix) and ``raster`` (a step [s] to resample onto;
@@ -1017,6 +1068,11 @@ COMMON_OPTIONS: tuple[str, ...] = ("format", "raster")
 READER_OPTIONS: tuple[str, ...] = tuple(
     dict.fromkeys([*COMMON_OPTIONS, *(o for f in FORMATS for o in f.options)])
 )
+
+
+def suffix_text(fmt: Format) -> str:
+    """A format's suffixes for messages (``.csv .tsv``), or what it reads instead."""
+    return " ".join(fmt.suffixes) or "a folder of one file per signal"
 
 
 def format_names(fmt: Format) -> tuple[str, ...]:
@@ -1042,16 +1098,19 @@ def format_named(name: str) -> Format:
 
 
 def format_of(path: str | Path) -> Format:
-    """The format of a file, by its suffix (case-insensitive; the longest match wins).
+    """The format of a file, by its suffix (case-insensitive; the longest match wins); of
+    a folder, :data:`COLUMN_FILES`.
 
     Raises:
         DataError: a suffix no reader takes (the message lists the ones read, and how a
             mapping names the format of a file of another suffix).
     """
+    if Path(path).is_dir():
+        return COLUMN_FILES
     name = Path(path).name.lower()
     matches = [(len(s), f) for f in FORMATS for s in f.suffixes if name.endswith(s)]
     if not matches:
-        known = ", ".join(f"{f.name} ({' '.join(f.suffixes)})" for f in FORMATS)
+        known = ", ".join(f"{f.name} ({suffix_text(f)})" for f in FORMATS)
         raise DataError(
             f"unknown file type; kftune reads {known}: for another suffix (a .txt or .dat "
             'export), name the format in the mapping, e.g. [source] format = "csv"',
