@@ -173,8 +173,23 @@ def test_study_plot_labels_its_log_axis():
     plots.plt.close("all")
 
 
-def test_the_report_draws_trbo_against_the_manual_filter_and_names_the_papers_figure(tmp_path):
+def test_the_report_draws_trbo_against_the_manual_filter_and_names_the_papers_figure(
+    tmp_path, monkeypatch
+):
+    drawn: list[tuple[tuple[Any, ...], dict[str, Any]]] = []
+    improvement = plots.improvement
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        drawn.append((args[1:], kwargs))
+        return improvement(*args, **kwargs)
+
+    monkeypatch.setattr(plots, "improvement", spy)
     write_report(_results(("manual", "ga", "tsbo-tsp", "trbo")), tmp_path / "all")
+    # TR-BO's figure: β alone (r and ay are scored against the sensors its filter copies)
+    assert [kw.get("metrics") for args, kw in drawn if args == ("manual", "trbo")] == [
+        ("rmse_beta",)
+    ]
+    assert [kw.get("metrics") for args, kw in drawn if not args] == [None]  # the paper's
     md = (tmp_path / "all" / "report.md").read_text()
     assert (tmp_path / "all" / "figures" / "improvement_trbo_test.png").is_file()
     assert (tmp_path / "all" / "figures" / "improvement_test.png").is_file()
