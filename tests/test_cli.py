@@ -636,7 +636,7 @@ def test_the_readme_documents_the_exit_code_of_an_unwritable_output():
 
 
 def test_output_checks(tmp_path):
-    from kftune.cli._common import output_dir, output_file
+    from kftune.cli.outputs import output_dir, output_file
     from kftune.errors import ConfigError
 
     f = tmp_path / "f"

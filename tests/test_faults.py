@@ -237,7 +237,7 @@ def test_an_immutable_output_file_is_refused_at_once(tmp_path, capsys):
 def test_an_output_that_fails_at_the_end_is_kept_in_a_fallback_file(tmp_path):
     """The folder vanishes between the check and the write: the text goes to a fallback
     file that the error names; nothing is left half-written."""
-    from kftune.cli._common import output_file, write_output
+    from kftune.cli.outputs import output_file, write_output
 
     out = tmp_path / "gone" / "t.json"
     out.parent.mkdir()

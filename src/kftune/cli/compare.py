@@ -36,18 +36,16 @@ from kftune.cli._common import (
     add_command,
     add_common,
     burn_in,
-    command_inputs,
     cost_spec,
     emit_json,
     filter_spec_of,
     load_config,
     model_choice,
-    output_dir,
     parameterization,
     pick,
-    writing,
 )
 from kftune.cli.exit_codes import EXIT_INTERRUPTED, EXIT_OK
+from kftune.cli.outputs import command_inputs, output_dir, writing
 from kftune.errors import ConfigError, UsageError, excerpt
 from kftune.optim import COMPARE_METHODS, DEFAULT_METHOD, METHODS
 

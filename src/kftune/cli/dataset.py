@@ -103,7 +103,7 @@ def register(subparsers: Any) -> None:
 # ------------------------------------------------------------------------------ generate
 def run_generate(args: argparse.Namespace) -> int:
     """Simulate and write the reference dataset."""
-    from kftune.cli._common import output_dir
+    from kftune.cli.outputs import output_dir
     from kftune.data import save_dataset
     from kftune.sim.generate import DEFAULT_SEED, generate_dataset
     from kftune.sim.plant import SimulationError
@@ -231,7 +231,7 @@ def _save_in_place(dataset: Dataset, out: Path, old_files: list[Path]) -> Path:
 # ------------------------------------------------------------------------------ import
 def run_import(args: argparse.Namespace) -> int:
     """Import recordings into a dataset folder."""
-    from kftune.cli._common import output_dir, refuse_inputs
+    from kftune.cli.outputs import output_dir, refuse_inputs
     from kftune.data.importer import import_recordings
 
     output_dir(args.out, "--out")
@@ -461,7 +461,7 @@ def run_show(args: argparse.Namespace) -> int:
             m = dataset[args.manoeuvre]
         except KeyError as exc:  # a name the data do not hold: bad input (3), not usage
             raise ConfigError(f"--manoeuvre: {exc.args[0]}") from None
-    from kftune.cli._common import command_inputs, output_file, write_output
+    from kftune.cli.outputs import command_inputs, output_file, write_output
     from kftune.data.io import file_stem
 
     default = Path(f"{file_stem(m.name)}.png")  # the name comes from a manifest: no path

@@ -58,17 +58,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kftune.cli._common import (
-    add_command,
-    command_inputs,
-    emit_json,
-    filter_spec_of,
-    output_dir,
-    refuse_inputs,
-    split_model_file,
-    write_output,
-    writing,
-)
+from kftune.cli._common import add_command, emit_json, filter_spec_of, split_model_file
 from kftune.cli.evaluate import (
     add_force,
     add_no_calibration,
@@ -78,6 +68,7 @@ from kftune.cli.evaluate import (
     require_named_model,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
+from kftune.cli.outputs import command_inputs, output_dir, refuse_inputs, write_output, writing
 from kftune.errors import ConfigError, UsageError, excerpt
 
 FORMATS = ("csv", "parquet")

@@ -46,19 +46,17 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from kftune.cli._common import (
+from kftune.cli._common import add_command, emit_json, split_model_file
+from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
+from kftune.cli.outputs import (
     Input,
-    add_command,
     command_inputs,
     dataset_inputs,
-    emit_json,
     output_dir,
     output_file,
     refuse_inputs,
-    split_model_file,
     write_output,
 )
-from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
 from kftune.errors import ConfigError, DataWarning, UsageError, excerpt
 
 FORMATS = ("json", "yaml", "c", "matlab")

@@ -13,8 +13,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kftune.cli._common import add_command, emit_json, output_dir, writing
+from kftune.cli._common import add_command, emit_json
 from kftune.cli.exit_codes import EXIT_OK
+from kftune.cli.outputs import output_dir, writing
 
 
 def register(subparsers: Any) -> None:

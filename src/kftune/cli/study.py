@@ -21,8 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from kftune.cli._common import emit_json, output_dir, output_file, same_file, write_output
+from kftune.cli._common import emit_json
 from kftune.cli.exit_codes import EXIT_OK
+from kftune.cli.outputs import output_dir, output_file, same_file, write_output
 from kftune.errors import ConfigError
 
 #: Figures ``study plot`` writes into its folder.

@@ -85,20 +85,18 @@ from kftune.cli._common import (
     add_command,
     add_common,
     burn_in,
-    command_inputs,
     cost_spec,
     emit_json,
     filter_spec_of,
     load_config,
     model_file_for,
-    output_file,
     parameterization,
     pick,
     recommended,
     split_model_file,
-    write_output,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from kftune.cli.outputs import command_inputs, output_file, write_output
 from kftune.errors import (
     ConfigError,
     ObjectiveMismatchError,
