@@ -1,5 +1,5 @@
 """The arithmetic of ``benchmarks/ukf_tuning.py`` — gaps, evaluations to 1 %, the
-monotonicity check and the issue-11 target verdicts — on made-up runs with known answers."""
+monotonicity check and a candidate's target verdicts — on made-up runs with known answers."""
 
 from __future__ import annotations
 

@@ -2,7 +2,8 @@
 (:mod:`kftune.data.expr`) checked against NumPy and SciPy computed here, hostile
 expressions refused, logger headers (``# time(s)``, ``name(unit)``, ``kmph``), an offset on
 an atan2 channel, missing vehicle keys, the split per file and by segment name, a raster
-per recording, and the issue's recording imported and tuned from the command line."""
+per recording, and a logger's drive (wheel speeds in km/h, no lateral acceleration)
+imported and tuned from the command line."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ WHEELS = {"wheel_fl": 1.012, "wheel_fr": 0.991, "wheel_rl": 1.004, "wheel_rr": 0
 
 
 def _logger_columns(n: int = 600, seed: int = 0) -> tuple[dict, dict]:
-    """(SI channels, the columns as the issue's logger writes them: time in s, four wheel
+    """(SI channels, the columns as a logger without an ay sensor writes them: time in s, four wheel
     speeds in km/h, ax in m/s², the yaw rate ``omega`` in rad/s, the steering angle in deg;
     no lateral acceleration)."""
     c = synthetic_channels(n=n, dt=DT, seed=seed)
@@ -53,7 +54,7 @@ def _savetxt(path: Path, cols: dict, units: dict) -> Path:
 UNITS = {"time": "s", **dict.fromkeys(WHEELS, "kmph"), "ax": "m/s^2", "omega": "rad/s",
          "steer": "deg"}  # fmt: skip
 
-ISSUE_MAPPING = """
+LOGGER_MAPPING = """
 name = "logger-car"
 vehicle = "bmw-320i"
 model = "single-track"
@@ -77,12 +78,12 @@ def _mapping(**channels: object) -> dict:
     return {"channels": {"t": "time", **channels}}
 
 
-# ----------------------------------------------------------------------- the issue's file
-def test_the_issues_recording_imports_with_computed_channels(tmp_path):
+# ------------------------------------------------------------------------ a logger's drive
+def test_a_logger_drive_imports_with_computed_vx_and_ay(tmp_path):
     c, cols = _logger_columns()
     src = _savetxt(tmp_path / "drive.csv", cols, UNITS)
     assert src.read_text().startswith("# time(s),wheel_fl(kmph),")
-    (tmp_path / "map.toml").write_text(ISSUE_MAPPING)
+    (tmp_path / "map.toml").write_text(LOGGER_MAPPING)
     ds = import_recordings([src], tmp_path / "map.toml")
     vx = np.concatenate([m.vx for m in ds.manoeuvres])
     ay = np.concatenate([m.ay for m in ds.manoeuvres])
@@ -97,10 +98,10 @@ def test_the_issues_recording_imports_with_computed_channels(tmp_path):
     assert [m.split for m in ds.manoeuvres][:3] == ["train", "test", "train"]
 
 
-def test_the_issues_recording_imports_and_tunes_from_the_command_line(tmp_path):
+def test_a_logger_drive_imports_and_tunes_from_the_command_line(tmp_path):
     _, cols = _logger_columns(n=1200)
     src = _savetxt(tmp_path / "drive.csv", cols, UNITS)
-    (tmp_path / "map.toml").write_text(ISSUE_MAPPING.replace("2.0", "4.0"))
+    (tmp_path / "map.toml").write_text(LOGGER_MAPPING.replace("2.0", "4.0"))
     out = tmp_path / "ds"
     imp = run_cli("dataset", "import", src, "--mapping", tmp_path / "map.toml", "-o", out)
     assert imp.returncode == 0, imp.stderr
@@ -420,7 +421,7 @@ def test_the_held_samples_warning_names_the_raster_option():
     assert "[source] raster = <step>" in found and '{ "<file glob>" = <step> }' in found
 
 
-def test_the_readme_computed_channels_example_imports_the_issues_recording(tmp_path):
+def test_the_readme_computed_channels_example_imports_a_logger_drive(tmp_path):
     readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
     section = readme.split("**Computed channels**", 1)[1]
     block = section.split("```toml\n", 1)[1].split("```", 1)[0]

@@ -77,7 +77,7 @@ def _doc(problem: AnalyticProblem, hits: list[dict], method: str = "trbo") -> di
 
 
 def test_a_flat_edge_is_said_to_be_flat_with_the_measured_gain_and_no_widening():
-    problem = AnalyticProblem(slope=2e-4)  # 0.02 % over the last decade: the case
+    problem = AnalyticProblem(slope=2e-4)  # 0.02 % over the last decade: a plateau
     (hit,) = edge_probes(problem, [1.0, 5.0], _hits(problem, [1.0, 5.0]))
     edge = hit["edge"]
     assert edge["value"] == pytest.approx(0.1, rel=1e-9)  # one decade in

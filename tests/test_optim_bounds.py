@@ -13,7 +13,7 @@ from kftune.optim.widen import round_storage
 from kftune.space import Param
 from kftune.tuning.parameterization import NoiseParameterization
 
-#: issue 11: the revs-250lm optimum, found by three CMA-ES runs of 2,000 evaluations.
+#: The revs-250lm optimum, found by three CMA-ES runs of 2,000 evaluations (BENCHMARKS.md).
 REVS_Q = (3.77e-6, 6.27e-4, 1.0)
 REVS_JSTAR = 0.548688
 #: the bundled set's optimum (BENCHMARKS.md), well inside [1e-10, 1].
@@ -50,7 +50,7 @@ def test_bound_report_uses_one_percent_of_the_range():
 
 
 def test_revs_optimum_is_a_minimum_against_its_bound(revs_dir):
-    """On the real recording the issue's optimum has the cost the issue measured, and moving
+    """On the real recording the CMA-ES optimum has the cost J* found with it, and moving
     q_r in from the bound raises it: the optimum presses against the bound."""
     from kftune.data import load_revs
     from kftune.tuning.problem import TuningProblem

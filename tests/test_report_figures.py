@@ -38,7 +38,7 @@ def _legend_texts(fig) -> list[str]:
     return [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().texts]
 
 
-#: The issue's case: a subset of methods without the paper's GA and TSBO-tSP.
+#: A subset of methods without the paper's GA and TSBO-tSP.
 RAN = (("manual", "Manual", 1), ("trbo", "TR-BO", 40), ("cma", "CMA-ES", 40),
        ("random", "Random", 225))  # fmt: skip
 

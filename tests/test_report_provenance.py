@@ -45,7 +45,7 @@ def test_every_method_has_its_own_colour():
     for a, b in itertools.combinations(keys, 2):
         delta = np.linalg.norm(_lab(plots.COLOURS[a]) - _lab(plots.COLOURS[b]))
         assert delta >= 20, f"{a} and {b} look alike (ΔE {delta:.1f})"
-    # the pair the issue names: TSBO-GP's blue and Optuna TPE's former cyan
+    # the pair that looked alike: TSBO-GP's blue and Optuna TPE's former cyan
     hue = [
         colorsys.rgb_to_hsv(*to_rgb(plots.COLOURS[k]))[0] * 360 for k in ("tsbo-gp", "optuna-tpe")
     ]

@@ -66,7 +66,7 @@ def assert_stopped(res, step: int, cause: int) -> None:
 
 
 def test_huge_process_noise_runs_away_beyond_60_degrees():
-    """Q = 1e9 lets Vy jump anywhere: |β| passes 60° almost at once (the issue's case)."""
+    """Q = 1e9 lets Vy jump anywhere: |β| passes 60° almost at once."""
     man = demo_manoeuvre(seed=3)
     q = [1e9, 1e9, 1e9]
     runs = both(man.u[:N], man.z[:N], q, man.r_var)
