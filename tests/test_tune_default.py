@@ -82,7 +82,10 @@ def test_tune_writes_the_recommended_setting_and_an_old_study_names_how_to_resum
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-9)
 
     db = tmp_path / "s.db"
-    old = run_cli("tune", str(small), "-n", "2", "-q", "--cost", "nrmse", "--storage", str(db))
+    old = run_cli(
+        "tune", str(small), "-n", "2", "-q", "--cost", "nrmse", "--storage", str(db),
+        "-o", str(tmp_path / "old.json"),
+    )  # fmt: skip
     assert old.returncode == 0, old.stderr
     refused = run_cli("tune", str(small), "-n", "3", "-q", "--storage", str(db), "--resume")
     assert refused.returncode == 3
