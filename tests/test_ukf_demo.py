@@ -1,4 +1,5 @@
-"""``kftune demo`` (what ``make run`` calls until the tuning pipeline exists)."""
+"""``kftune demo``: the UKF on a built-in simulated manoeuvre — its KPIs against the filter
+run here, its seed, its text output and a bad option."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Search spaces: validation with clear errors, and the [0, 1]^d mapping."""
+"""Search spaces (:mod:`kftune.space`): validation with clear errors, and the [0, 1]^d mapping."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kftune.optim import Param, Space
+from kftune.space import Param, Space
 
 
 @pytest.mark.parametrize(
