@@ -339,6 +339,7 @@ def test_a_two_stage_joint_tuning_refuses_another_budget_before_touching_a_study
     assert read_study(noise).settings["budget"] == 2  # a quarter of 8, as planned
 
 
+@pytest.mark.filterwarnings("default::kftune.errors.SettingWarning")  # said, not raised
 @pytest.mark.filterwarnings("error::UserWarning")  # a parameter tried at one value only
 def test_show_names_a_joint_tunings_first_stage_and_plot_names_the_cost(small, tmp_path):
     from kftune.cli.study import _figures, summarise
@@ -348,6 +349,7 @@ def test_show_names_a_joint_tunings_first_stage_and_plot_names_the_cost(small, t
     tuned = run_cli("tune", small, "--tune-model", "mu=0.8:1.6", "--storage", db, "-n", "8",
                     "-o", tmp_path / "j.json", "--no-calibration")  # fmt: skip
     assert tuned.returncode == 0, tuned.stderr
+    assert "initial designs" in tuned.stderr  # -n 8 leaves both stages inside their designs
     noise = tmp_path / "j.noise-only.db"
     assert noise.is_file()
     shown = run_cli("study", "show", db)
