@@ -7,17 +7,29 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from kftune.cli import main
-from kftune.data import Dataset, Manoeuvre, load_dataset, load_revs, open_dataset
+from kftune.data import (
+    Dataset,
+    Manoeuvre,
+    import_recordings,
+    load_dataset,
+    load_revs,
+    open_dataset,
+)
+from kftune.data.importer import builtin_mapping, read_mapping
 from kftune.data.validate import sample_time
+from kftune.errors import DataError
 from kftune.tuning.deploy import dataset_fingerprint
 from kftune.tuning.problem import TuningProblem
 from kftune.vehicle import preset
+from test_data_helpers import synthetic_channels
 
 #: The reference loader's column mapping: kftune channel → (file stem, SI unit), in the
 #: order of the channels it gave (``vx_ins`` follows, a copy of vx before the noise).
@@ -138,3 +150,59 @@ def test_dataset_import_with_the_built_in_mapping_writes_the_same_data(revs_dir,
 def test_bad_options_are_refused(revs_dir, bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         load_revs(revs_dir, **bad)
+
+
+# ------------------------------------------------------------- the mapping keys it uses
+def _folder(tmp_path: Path, n: int = 600) -> tuple[Path, dict]:
+    """A recording as a folder of one file per signal (SI units), and its channels."""
+    c = synthetic_channels(n=n, seed=4)
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    for name, values in c.items():
+        (folder / f"{name}.txt").write_text("\n".join(repr(float(v)) for v in values) + "\n")
+    return folder, c
+
+
+def test_noise_is_drawn_from_the_seeded_generator(tmp_path):
+    """``noise = σ`` adds ``default_rng(seed).normal(0, σ, n)`` to the converted channel
+    (here in m/s, so the values read are the file's), and the dataset records it."""
+    folder, c = _folder(tmp_path)
+    channels = {k: k for k in c} | {"vx": {"column": "vx", "noise": 0.1}, "vx_ins": {
+        "column": "vx", "unit": "m/s"}}  # fmt: skip
+    ds = import_recordings(
+        [folder], {"vehicle": "bmw-320i", "seed": 5, "channels": channels, "segment_length": 3.0}
+    )
+    vx = np.concatenate([m.vx for m in ds.manoeuvres])
+    expected = c["vx"] + np.random.default_rng(5).normal(0.0, 0.1, c["vx"].size)
+    np.testing.assert_allclose(vx, expected, rtol=0, atol=1e-12)
+    assert np.array_equal(np.concatenate([m.channel("vx_ins") for m in ds.manoeuvres]), c["vx"])
+    assert (dict(ds.meta["noise"]), ds.meta["seed"]) == ({"vx": 0.1}, 5)
+
+
+@pytest.mark.parametrize(
+    ("entry", "top", "message"),
+    [
+        ({"vx": {"column": "vx", "noise": -0.1}}, {}, "key 'channels.vx.noise'"),
+        ({"vx": {"column": "vx", "noise": "0.1"}}, {}, "key 'channels.vx.noise'"),
+        ({"vx": {"column": "vx", "noise": math.inf}}, {}, "key 'channels.vx.noise'"),
+        ({"t": {"column": "t", "noise": 0.01}}, {}, "none for the time t"),
+        ({}, {"seed": -1}, "key 'seed': expected an integer >= 0"),
+        ({}, {"seed": 1.5}, "key 'seed': expected an integer >= 0"),
+    ],
+)
+def test_bad_noise_or_seed_is_refused_naming_the_key(tmp_path, entry, top, message):
+    folder, c = _folder(tmp_path)
+    mapping = {"channels": {k: k for k in c} | entry, **top}
+    with pytest.raises(DataError, match=re.escape(message)):
+        import_recordings([folder], mapping)
+
+
+def test_built_in_mapping_by_name_and_a_file_of_that_name_first(tmp_path, monkeypatch):
+    assert builtin_mapping("revs-250lm") is not None
+    assert builtin_mapping("no-such-mapping") is None and builtin_mapping("../io") is None
+    assert read_mapping("revs-250lm").vehicle == preset("revs-250lm")
+    monkeypatch.chdir(tmp_path)
+    Path("revs-250lm").write_text('vehicle = "bmw-320i"\n[channels]\nt = "t"\n')
+    assert read_mapping("revs-250lm").vehicle == preset("bmw-320i")  # the user's file
+    with pytest.raises(DataError, match=r"no mapping shipped with kftune .*\(revs-250lm"):
+        read_mapping("no-such-mapping")

@@ -275,10 +275,11 @@ class Mapping_:
 def builtin_mapping(name: str) -> Path | None:
     """The file of the mapping shipped with kftune under ``name`` (``"revs-250lm"``: the
     race-car recording, see the README), or None when there is none."""
-    path = Path(str(resources.files("kftune") / "data" / "mappings" / f"{name}.toml"))
+    path = _BUILTIN_MAPPINGS / f"{name}.toml"
     return path if _BUILTIN_NAME.fullmatch(name) and path.is_file() else None
 
 
+_BUILTIN_MAPPINGS = Path(str(resources.files("kftune") / "data" / "mappings"))
 _BUILTIN_NAME = re.compile(r"[a-z0-9][a-z0-9-]*")
 
 
@@ -290,7 +291,15 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         file, data = "<mapping>", dict(mapping)
     else:
         if not Path(mapping).exists():
-            mapping = builtin_mapping(str(mapping)) or mapping
+            builtin = builtin_mapping(str(mapping))
+            if builtin is None:
+                names = sorted(f.stem for f in _BUILTIN_MAPPINGS.glob("*.toml"))
+                raise DataError(
+                    "mapping not found: no such file, and no mapping shipped with kftune of "
+                    f"that name ({', '.join(names)})",
+                    file=str(mapping),
+                )
+            mapping = builtin
         file = str(mapping)
         data = read_toml(mapping)
 
@@ -1633,40 +1642,45 @@ REVS_MARKERS = ("t.txt", "ayCG.txt", "yawRate.txt", "beta_true.txt", "vx.txt")
 def load_revs(
     directory: str | Path,
     *,
-    segment_length: float = 30.0,
-    train_every: int = 3,
-    vx_noise: float = 0.05,
-    seed: int = 0,
+    segment_length: float | None = None,
+    train_every: int | None = None,
+    vx_noise: float | None = None,
+    seed: int | None = None,
     limits: ReadLimits | None = None,
 ) -> Dataset:
     """The revs-250lm race-car recording (a folder of one file per signal), imported by its
-    built-in mapping (``data/mappings/revs-250lm.toml``) with its vehicle (preset
-    ``"revs-250lm"``) and cut into ``segment_length`` segments, every ``train_every``-th
-    from the first training: 18 segments ``revs-250lm-s01`` … ``-s18``, 6 training.
+    built-in mapping (``data/mappings/revs-250lm.toml``, which holds every default): its
+    vehicle (preset ``"revs-250lm"``), cut into segments of ``segment_length`` (30 s: 18
+    segments ``revs-250lm-s01`` … ``-s18``), every ``train_every``-th (3rd) from the first
+    training.
 
     The recording has no wheel speeds: the Vx measurement is the INS velocity plus white
-    noise of σ = ``vx_noise`` m/s (drawn from ``numpy.random.default_rng(seed)``; 0 keeps the
-    INS value); the INS velocities stay as the extras ``vx_ins`` and ``vy_ins``.
+    noise of σ = ``vx_noise`` (0.05 m/s; drawn from ``numpy.random.default_rng(seed)``, seed
+    0; 0 keeps the INS value); the INS velocities stay as the extras ``vx_ins`` and
+    ``vy_ins``. ``None`` keeps the mapping's value.
 
     Raises:
         ValueError: ``segment_length`` not > 0, ``train_every`` < 1 or ``vx_noise`` < 0.
         DataError: a file of the folder is missing or unusable.
     """
-    if not segment_length > 0:
-        raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
-    if train_every < 1:
-        raise ValueError(f"train_every must be >= 1, got {train_every!r}")
-    if not vx_noise >= 0:
-        raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
-    m = read_mapping(builtin_mapping(REVS_MAPPING) or REVS_MAPPING)
-    channels = m.channels | {"vx": dataclasses.replace(m.channels["vx"], noise=float(vx_noise))}
-    m = dataclasses.replace(
-        m,
-        channels=channels,
-        segment_length=float(segment_length),
-        split=("train_every", train_every),
-        seed=seed,
-    )
+    m = read_mapping(_BUILTIN_MAPPINGS / f"{REVS_MAPPING}.toml")
+    changes: dict[str, Any] = {}
+    if segment_length is not None:
+        if not segment_length > 0:
+            raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
+        changes["segment_length"] = float(segment_length)
+    if train_every is not None:
+        if train_every < 1:
+            raise ValueError(f"train_every must be >= 1, got {train_every!r}")
+        changes["split"] = ("train_every", train_every)
+    if vx_noise is not None:
+        if not vx_noise >= 0:
+            raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
+        vx = dataclasses.replace(m.channels["vx"], noise=float(vx_noise))
+        changes["channels"] = m.channels | {"vx": vx}
+    if seed is not None:
+        changes["seed"] = seed
+    m = dataclasses.replace(m, **changes)
     return import_recordings([directory], m, labels=[REVS_MAPPING], limits=limits)
 
 
