@@ -86,10 +86,24 @@ def register(subparsers: Any) -> None:
         "rule, the vehicle; see the README, 'Importing your recordings'), merge them into "
         "one dataset and write it in the kftune format. "
         "Formats by suffix: CSV/TSV (.csv .tsv), Parquet (.parquet, extra [parquet]), "
-        "MATLAB (.mat; v7.3 needs extra [mat73]), MDF4 (.mf4 .mdf, extra [mdf]).",
+        "MATLAB (.mat; v7.3 needs extra [mat73]), MDF4 (.mf4 .mdf, extra [mdf]); a folder "
+        "is a recording of one text file per signal (<name>.txt). --mapping takes a TOML "
+        "file or the name of a mapping kftune ships (revs-250lm: "
+        "kftune dataset import path/to/revs-250lm --mapping revs-250lm -o revs/).",
     )
-    imp.add_argument("sources", nargs="+", type=Path, metavar="SOURCE", help="recording files")
-    imp.add_argument("--mapping", required=True, type=Path, help="column mapping (TOML)")
+    imp.add_argument(
+        "sources",
+        nargs="+",
+        type=Path,
+        metavar="SOURCE",
+        help="recording files, or folders of one file per signal",
+    )
+    imp.add_argument(
+        "--mapping",
+        required=True,
+        type=Path,
+        help="column mapping: a TOML file, or a built-in mapping's name (revs-250lm)",
+    )
     imp.add_argument("--out", "-o", required=True, type=Path, help="output dataset folder")
     imp.add_argument("--name", default=None, help="dataset name (default: the mapping's, or OUT's)")
     imp.add_argument(
