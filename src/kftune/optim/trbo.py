@@ -9,50 +9,37 @@ stage, and a global one — but lets them alternate for the whole budget:
   it — for a log10 parameter that is a variance the centres of its two faces of the box
   (``"axial"``, the axial points of a face-centred composite design), for any other
   DIRECT's first trisection, the centre ± 1/3 (``"direct"``). A log10 variance spans
-  decades (Q's 10, R's factors 4, or whatever box a user gives) and its two
-  ends are regimes — a noise too small to matter, a model ignored — where the cost
-  flattens into plateaus, and optima lie on or next to its bounds (on five of six datasets
-  measured J* has a coordinate on a bound); probing every face from the start is what
-  reaches them (DIRECT's points instead left 17 of 40 seeds above 3 % of J* on the bundled
-  set at 40 evaluations, median 2.1 % against 0.49 %). A linear box carries no such prior,
-  and there the face centres can lead into a boundary-side basin: on Hartmann-6 they led
-  every seed into the second basin (regret 0.119 at 100 evaluations), DIRECT's points
-  every seed into the global one (4.4e-5; Optuna's GP 1.6e-4), and over the whole
-  synthetic suite the two designs are level (paired per seed, lower in 87 and higher in
-  73 of 160 runs). Nor does a narrow log10 box (at most :data:`WIDE_DECADES` decades) of a
+  decades (Q's 10, R's factors 4, or whatever box a user gives) and its two ends are
+  regimes — a noise too small to matter, a model ignored — where the cost flattens into
+  plateaus, and the optima of the tuning problems lie on or next to its bounds; probing
+  every face from the start is what reaches them. A linear box carries no such prior, and
+  there the face centres can lead into a basin beside a face that is not the global one
+  (Hartmann-6). Nor does a narrow log10 box (at most :data:`WIDE_DECADES` decades) of a
   :class:`~kftune.space.Param` marked ``physical`` — a model parameter, the plausible
   range of a physical quantity around its guess (a cornering stiffness in [2e4, 4e5]
   N/rad, 1.3 decades; a friction coefficient in [0.4, 1.6]): its faces are cars nobody
   has, the first basin they lead into is an artefact of the box, and the optimum lies
-  inside. Tuning Q with C_af, C_ar and μ of a wrongly guessed vehicle (bundled set, seeds
-  0–9) the thirds gave the lower cost on 8 of 10 seeds at d = 6 (100 evaluations, median
-  6 % lower) and at d = 9 (with R's diagonal, 150), on 3 of 10 at d = 5 (μ held wrong;
-  median 1.8 % higher) (BENCHMARKS.md, "Tuning model parameters"). Q's and R's boxes
-  keep the faces whatever their width (a user's narrow Q box too), so a Q-only or
-  Q-and-R search proposes exactly what it did before and its older studies resume.
+  inside. Q's and R's boxes keep the faces whatever their width (a user's narrow Q box
+  too), so a Q-only or Q-and-R search proposes exactly what it did before and its older
+  studies resume.
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
   δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
   that span decades become comparable, and differences near the best stay resolved (output
-  warping, cf. HEBO). δ = 1 %, the first choice, magnified the incumbent into a spike: on
-  revs-250lm 12 of 40 seeds ended above 3 % of J* at 40 evaluations, against 3 of 40 with
-  10 %, and Branin and Hartmann-3 were two orders of magnitude further from their optima;
-  with the trust region starting at 0.4 the bundled set paid at 40 (median gap 0.47 % →
-  0.89 %, 40 seeds), which the start at 0.2 (below) more than recovers.
-  Length scales are bounded below by 0.05 of the unit cube: without the bound the warped
-  costs were fitted with length scales down to 0.005, and EI then crept along slopes in
-  steps of 0.02.
+  warping, cf. HEBO); a smaller δ magnifies the incumbent into a spike, which locks the
+  search into its basin. Length scales are bounded below by 0.05 of the unit cube
+  (:data:`LENGTH_SCALE_BOUNDS`): without the bound the warped costs are fitted with tiny
+  length scales, and EI then creeps along slopes in tiny steps.
 * **Local steps** (TuRBO, Eriksson et al. 2019): EI maximised inside a trust region around
   the incumbent — a box of side ``L`` stretched by the GP's length scales (each relative
   to their geometric mean, clipped to [1/4, 4]), of side 0.2 at the start
-  (``length_init``; with the 10 % warp a start at 0.4 left the bundled set's median gap
-  at 40 evaluations at 0.89 % instead of 0.39 % over 40 seeds, revs-250lm's at 0.14 %
-  either way; TuRBO starts at 0.8). Two improvements in a row double ``L``
-  (at most ``length_max``), three failures halve it; an improvement must beat the
-  incumbent by ``improvement_rtol`` (1e-3) of its value. When ``L`` falls below
-  ``length_min`` the region restarts at ``length_init`` and the next ``escape`` steps go
-  where the model is least sure (largest predictive standard deviation over the whole
-  box): EI alone stays in a basin that the model believes it knows.
+  (``length_init``; TuRBO starts at 0.8: a smaller first region reaches the bottom of the
+  design's best basin sooner). Two improvements in a row double ``L`` (at most
+  ``length_max``), three failures halve it; an improvement must beat the incumbent by
+  ``improvement_rtol`` (1e-3) of its value. When ``L`` falls below ``length_min`` the
+  region restarts at ``length_init`` and the next ``escape`` steps go where the model is
+  least sure (largest predictive standard deviation over the whole box): EI alone stays in
+  a basin that the model believes it knows.
 * **Restarts** (``restart="alternate"``): the first collapse re-centres the region on the
   incumbent (one more polish of its basin); the second leaves it — the new region is
   centred on the best escape step and, like TuRBO's restarted regions, measures its local
@@ -60,13 +47,10 @@ stage, and a global one — but lets them alternate for the whole budget:
   centre), so it descends into the basin it found rather than chasing the incumbent's
   value; and so on, alternating. A global step that beats the incumbent still re-centres
   the region there; one that only beats the new region's centre does not pull it back
-  into the basin it left. On a fresh noise draw of the bundled plant (``kftune dataset
-  generate --seed 7``) the design's best point lies in a basin 7.9 % above J*, on the
-  opposite face from the optimum: restarting at the incumbent (``"incumbent"``, the
-  default before) left 8 of 10 seeds there after 100 evaluations; with alternation 3 of
-  20 seeds ended above 3 %, the median at 0.05 % (``"fresh"``, every restart leaving: 1 of
-  20 — but on the bundled set it left a not-yet-polished basin for good: one seed stayed
-  at +1.19 % from 40 to 100 evaluations). Nothing changes before the first collapse.
+  into the basin it left. Restarting always at the incumbent (``"incumbent"``) re-polishes
+  the first basin when the optimum lies in another; always leaving (``"fresh"``) can
+  abandon a basin before it is polished, so that more budget buys nothing. Nothing changes
+  before the first collapse.
 * **Axis probes** (plateaus): after ``probe_after`` (5) model-based results in a row
   without an improvement, the next step moves the incumbent along the coordinate the GP
   finds least relevant — the longest length scale, if it is at least
@@ -78,10 +62,7 @@ stage, and a global one — but lets them alternate for the whole budget:
   time. A probe that improves nothing doubles the wait for the next one; any improvement
   resets it. A probe takes the place of the step it replaces (a scheduled global step or an
   escape step counts as made) and is a global step for the trust region: one that improves
-  re-centres the region afresh. On revs-250lm 4 of 40 seeds ended above 3 % of J* after 40
-  evaluations without probes (two at +11 %, on such a plateau), none with them (worst
-  +1.4 %); where the optimum lies on a plateau (the bundled set) the probes cost a little
-  at 40 evaluations (median gap 0.39 → 0.49 %, 40 seeds) and nothing at 100.
+  re-centres the region afresh.
 * **Global steps**: every ``global_every``-th model-based step maximises EI over the whole
   box instead — exploration where the model is unsure, which is how the search leaves a
   basin.
@@ -102,8 +83,12 @@ Nothing depends on the budget, so a run with more budget starts as the shorter o
 (anytime: more budget never ends worse). Failed evaluations are imputed with the worst
 value seen, as in TSBO; values beyond ±1e100 are clipped for the surrogate.
 
-Evidence for every default (paired by seed, bundled set and revs-250lm, seeds 0–9; gap to
-the best known cost J* at 40 and 100 evaluations): see BENCHMARKS.md, section "TR-BO".
+The runs that chose each default (paired by seed on the bundled set, revs-250lm, fresh
+noise draws of the bundled plant and the synthetic suite) are in BENCHMARKS.md: the
+sections "TR-BO …" (the design runs; the warp δ and the trust region's start; axis
+probes; alternating restarts and DIRECT's design on a third dataset; the design per
+parameter scale), "Tuning model parameters" (the design of physical parameters), and,
+gathered per default, "Moved from module docstrings", "kftune.optim.trbo".
 """
 
 from __future__ import annotations
@@ -149,7 +134,7 @@ def auto_design(param: Any) -> str:
 
 class TrustRegionBO(Optimizer):
     """Trust-region Bayesian optimisation over one surrogate of the whole run (see the
-    module docstring for the algorithm and the evidence behind each default).
+    module docstring for the algorithm and why each default, BENCHMARKS.md for the runs).
 
     Args:
         space, budget, seed: see :class:`~kftune.optim.base.Optimizer`.

@@ -32,9 +32,9 @@ Decisions where the paper is silent (each is tested in ``tests/test_optim_tsbo.p
     choice is made before the earliest possible switch (stage 1 lasts at least ``max_fe`` =
     15 AF-chosen iterations), so stage 2 always runs with the chosen AF. ``"switch"``
     (improved mode) alternates through all of stage 1 and chooses at the switch: five turns
-    each decide nothing reliable (the first improvements are large and mostly luck — on the
-    UKF problem, seed 0, one early CBM step won CBM, β = 0.01, the rest of the run), and
-    alternating keeps EI's exploration in stage 1.
+    each decide nothing reliable (the first improvements are large and mostly luck: one
+    early step can fix the AF for the rest of the run), and alternating keeps EI's
+    exploration in stage 1.
 *gain*
     The realised improvement of the incumbent credited to the AF that chose the point:
     ``gain_a = Σ max(0, y*_before − y)`` over the evaluations AF ``a`` chose (a failed
@@ -58,11 +58,10 @@ TR_FE units (``tr_fe_units``)
 Minimum resolution (``min_resolution`` = ε)
     Faithful: 0 — only exact repeats (1e-9) are excluded, so pure exploitation (CBM with
     β = 0.01, or stage 2) keeps splitting the incumbent's leaf and spends evaluations on
-    points ever closer to it (UKF tuning, seed 0: 23 of the 40 evaluations lie within 1e-3
-    of an earlier one). With ε > 0
-    no candidate within ε (max-norm, unit cube, inclusive) of any asked point is proposed —
-    tree candidates are filtered, fallback points too — so the leaves near an evaluated
-    point stop yielding candidates and the AF must look elsewhere. Improved: ε = 1e-3, a
+    points ever closer to it. With ε > 0 no candidate within ε (max-norm, unit cube,
+    inclusive) of any asked point is proposed — tree candidates are filtered, fallback
+    points too — so the leaves near an evaluated point stop yielding candidates and the AF
+    must look elsewhere. Improved: ε = 1e-3, a
     sixth of the paper's stage-2 half-width on the default 10-decade log space (log10(1.15)
     /10 ≈ 0.006) and a twentieth of the improved box floor (0.02), so stage 2 still refines
     three 3^d levels inside its box; on a 10-decade axis 1e-3 is a 2.3 % change of q.
@@ -118,29 +117,11 @@ Modes: ``mode="faithful"`` (default) is the paper as above. ``mode="improved"`` 
 ``keep_stage1_data=True``, ``min_box_halfwidth=0.02``, ``stage2_reserve=0.25`` and
 ``max_af="switch"`` (EI and CBM alternate through the whole of stage 1; the one with the
 larger gain is fixed at the switch). ``min_resolution`` (no candidate within ε of an asked
-point) and ``tr_fe_units="unit-cube"`` are options, off in both presets. Evidence
-(``benchmarks/optimizers.py``: 8 problems × budgets 40/100 × seeds 0–9, paired by seed;
-``benchmarks/ukf_tuning.py``: best cost at 40 evaluations, paired by seed):
-
-- the first three settings alone beat faithful in 81 and lost in 53 synthetic runs with the
-  tSP (sign test p ≈ 0.02), 91 to 47 with the GP (p ≈ 0.0002);
-- adding ``max_af="switch"`` beat them in 103 and lost in 53 (p ≈ 8e-5); the largest gains
-  are on Hartmann-6 and Branin, it loses on noise-free Hartmann-3 (3 to 6);
-- ``min_resolution=1e-3`` and unit-cube TR_FE, fixed a priori together with the alternation,
-  were dropped after that run: ε = 1e-3 floors the precision (that full preset did worse
-  than the alternation alone, p ≈ 0.001, winning on none of 10 seeds at Branin@100 and at
-  Hartmann-3; ε alone went 64 to 78) and unit-cube TR_FE alone lost 10 to 24 (126 ties);
-- on fresh synthetic seeds 100–109 the revised preset beat faithful in 98 runs and lost in
-  62 with the tSP (p ≈ 0.006), 105 to 52 with the GP (p ≈ 3e-5); against the first three
-  settings alone it went 87 to 70 with the tSP (p ≈ 0.2, not shown) and 96 to 60 with the
-  GP (p ≈ 0.005); re-run on 2026-12-01: 99 to 61 (p ≈ 0.003) and 105 to 52;
-- on the UKF problem (fresh seeds 20–39) the revised preset beat faithful in 18 of 20
-  seeds with the tSP (p ≈ 0.0004) and 17 of 20 with the GP (p ≈ 0.003), by a median
-  0.0011 in cost (0.3 %); on seeds 10–19 it was 3 to 6 with the tSP, so its edge over the
-  first three settings alone on the UKF is not shown (12 to 7, p ≈ 0.36, seeds 20–39).
-  On the regenerated bundle (2026-12-01): 18 of 20 with the tSP (p ≈ 0.0004), 16 of 20
-  with the GP (p ≈ 0.01); seeds 0–9: 6 of 10 and 7 of 10.
-
+point) and ``tr_fe_units="unit-cube"`` are options, off in both presets. The improved
+preset beats the faithful one, paired by seed, on the synthetic suite and on the UKF
+problem, also on seeds it was not chosen on; ε and the unit-cube TR_FE did not help and
+stay off (BENCHMARKS.md: "Optimisers on known functions", "Tuning the sideslip UKF", and
+the ablation in "Moved from module docstrings", "kftune.optim.tsbo").
 So it is offered, opt-in; the default stays the paper's algorithm.
 """
 
