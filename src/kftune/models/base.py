@@ -72,9 +72,9 @@ FIRST_MODEL_STOP = 2
 
 #: The most states a model may have. Every state gets a process-noise variance of its own
 #: in the search, and kftune's tuners are measured up to about ten dimensions (BENCHMARKS.md);
-#: the filter's compile time also grows steeply with n (measured on a 2-core machine: 35 s at
-#: n = 50, 74 s at 200, 490 s for one UKF run at 1,000, and 1,011 s for a first tuning
-#: evaluation there). A model beyond it is refused when it is made, by name and count.
+#: the filter's compile time also grows steeply with n, to minutes at a few hundred states
+#: (BENCHMARKS.md, "Moved from module docstrings"). A model beyond it is refused when it is
+#: made, by name and count.
 MAX_STATES = 100
 
 #: The generic stop causes in words.
