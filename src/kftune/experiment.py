@@ -506,8 +506,12 @@ def edge_probes(
     the top of its box for a 0.02 % lower cost sits on a plateau, and the step in says so;
     but a plateau can end in a drop further out (msp on revs-250lm: flat from q_vx = 0.1
     to 10, 2 % lower at 100; BENCHMARKS.md, "Best points on a bound"), which only the
-    step out sees. The edge is *flat* when the step in rose by less than the threshold
-    and the step out (where measured) is lower by less than it: :data:`FLAT_RISE`
+    step out sees. The edge is *flat* — a wider box will not pay — when the step out (where
+    a widening would search) is not lower by the threshold, or diverges; where there is no
+    step out (a linear or a model parameter, never widened), when the step in rose by less
+    than the threshold. The step in is reported either way: a rise there with no drop
+    beyond says the optimum lies at the bound or within a decade or two of it, where a
+    widening could gain less than that rise. The threshold is :data:`FLAT_RISE`
     (:func:`flat_rise`; for a mean log-likelihood the 95 % likelihood-ratio rise of
     :func:`kftune.tuning.identify.rise_of`: the data cannot tell the points apart).
 
@@ -585,10 +589,13 @@ def edge_probes(
                     "beyond": beyond,
                     "best_cost": j_best,
                     "threshold": threshold,
-                    # the last step gained little, and a widening's reach gains no more
-                    "flat": r_in is not None
-                    and r_in < threshold
-                    and (beyond is None or beyond["rise"] is None or beyond["rise"] > -threshold),
+                    # a widening's reach is no lower (where it is measured), or else the
+                    # last step gained little
+                    "flat": (
+                        beyond["rise"] is None or beyond["rise"] > -threshold
+                        if beyond is not None
+                        else r_in is not None and r_in < threshold
+                    ),
                     "cost_kind": problem.cost_spec.kind,
                 },
             }

@@ -42,12 +42,13 @@ tune says which parameter and which bound, and the file records it (``on_bounds`
 optimum may lie beyond. Unless the cost is flat there: tune runs the filter with that
 parameter one step in (a decade, or a tenth of a linear box) and, where ``--widen-bounds``
 would move the bound, two decades beyond it (:func:`kftune.experiment.edge_probes`),
-records both (``on_bounds[].edge``) and, where the cost gained less than 0.1 % over the
-step in and would gain less than that beyond, says a wider box will not help instead of
-suggesting one. ``--widen-bounds`` (config ``widen_bounds = true``) then moves that
-bound out by two decades and runs the method again on the wider box with the same budget,
-at most three times; the follow-up studies lie beside ``--storage`` (``study.widen1.db`` …)
-and ``--resume`` continues them too. The best point of all runs is kept.
+records both (``on_bounds[].edge``) and, where the cost is not 0.1 % lower two decades
+out (or, where no widening would search, rose less than 0.1 % over the step in), says a
+wider box is unlikely to help instead of suggesting one. ``--widen-bounds`` (config
+``widen_bounds = true``) then moves that bound out by two decades and runs the method
+again on the wider box with the same budget, at most three times; the follow-up studies
+lie beside ``--storage`` (``study.widen1.db`` …) and ``--resume`` continues them too. The
+best point of all runs is kept.
 
 Parallel and distributed evaluation: ``--batch Q`` asks the method for Q points at a time
 (``--workers`` keeps its meaning: processes that share the manoeuvres of one evaluation).
@@ -561,7 +562,10 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
         if edge is not None and edge["flat"] and edge.get("beyond") is not None:
             searched = log and not model and doc.get("method") != "manual"
             box = "widening the box (--widen-bounds)" if searched else "a wider box"
-            lines.append(f"{where}, but {box} will not help: {edge_text(name, edge)}")
+            lines.append(
+                f"{where}, but {box} is unlikely to help (no worthwhile drop beyond "
+                f"it): {edge_text(name, edge)}"
+            )
             continue
         if edge is not None and edge["flat"]:  # only the step in: a parameter never widened
             lines.append(

@@ -292,7 +292,7 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
     """Which methods' best points lie on a bound of the search box (``extra["on_bounds"]``,
     written by ``kftune compare``), with what the cost gained over the last step up to the
     bound where it was measured (``"edge"``, :func:`kftune.experiment.edge_probes`): where
-    it is flat a wider box will not help, and the list says so; nothing for results that
+    it is flat a wider box is unlikely to help, and the list says so; nothing for results that
     do not record bounds."""
     from kftune.report.tables import edge_text
 
@@ -306,9 +306,9 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
     md += [
         "These tuned parameters lie within 1 % of the range of a bound. Where the cost still "
         "falls beyond the bound the optimum may lie there (widen the box: `kftune tune "
-        "--widen-bounds`, or `[parameters] q_bounds`); where the cost rose by less than "
-        "0.1 % over the last step (a decade on a log10 parameter) and, where a widening "
-        "would search, is not 0.1 % lower two decades out, a wider box will not help:",
+        "--widen-bounds`, or `[parameters] q_bounds`); where a widening would search and "
+        "the cost is not 0.1 % lower two decades out, or (where none would) it rose by less "
+        "than 0.1 % over the last step in, a wider box is unlikely to help:",
         "",
     ]
     for label, h in hits:
@@ -319,7 +319,7 @@ def _bound_lines(results: ExperimentResults) -> list[str]:
             line += f"; {edge_text(name, edge)}"
             if edge["flat"]:
                 line += (
-                    ": a wider box will not help"
+                    ": no worthwhile drop beyond, a wider box is unlikely to help"
                     if edge.get("beyond")
                     else ": flat there, a wider box is unlikely to help"
                 )
