@@ -121,6 +121,8 @@ TUNED_FORMAT = "kftune-tuned-1"
 #: A held-out β RMSE above another by at most this factor is no worse: the same filter run
 #: from a point that went through the unit cube and back differs in the last digits.
 SAME_RMSE = 1.0 + 1e-6
+#: How a warning inside the held-out evidence starts a line (as the CLI's own warnings do).
+WARN = "\nkftune: warning: "
 
 
 def register(subparsers: Any) -> None:
@@ -802,7 +804,7 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
         if first is not None and (tuned is None or tuned > first * SAME_RMSE):
             worse = "diverged" if tuned is None else f"{100 * (tuned / first - 1):.1f} % worse"
             line += (
-                f"\nwarning: the widened box's filter is {worse} on the held-out manoeuvres "
+                f"{WARN}the widened box's filter is {worse} on the held-out manoeuvres "
                 "than the best in the box as given: the wider box fitted the training "
                 "manoeuvres, not the car. To deploy the first box's filter, run the same "
                 "tune without --widen-bounds, with --storage STUDY --resume (its first study "
@@ -820,19 +822,19 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
         if noise not in ("absent", None) and (tuned is None or tuned > noise * SAME_RMSE):
             worse = "diverged" if tuned is None else f"{100 * (tuned / noise - 1):.1f} % worse"
             line += (
-                f"\nwarning: the joint filter is {worse} on the held-out manoeuvres than the "
+                f"{WARN}the joint filter is {worse} on the held-out manoeuvres than the "
                 "noise-only one; the tuned file keeps the joint filter (choosing by these "
                 "data would leave no held-out evidence): tune without --tune-model to deploy "
                 "the noise alone, or tune on more varied manoeuvres"
             )
         if recorded is not None and (tuned is None or tuned > recorded * SAME_RMSE):
             line += (
-                "\nwarning: the tuned model parameters make the filter worse on the held-out "
+                f"{WARN}the tuned model parameters make the filter worse on the held-out "
                 "manoeuvres than the recorded ones with the same Q: they fit the training "
                 "manoeuvres, not the car (tune fewer, or on more varied manoeuvres)"
             )
         if manual is not None and (tuned is None or tuned > manual):
-            line += "\nwarning: the joint filter is worse there than the manual rule of thumb"
+            line += f"{WARN}the joint filter is worse there than the manual rule of thumb"
         return line
     worse = manual is not None and (tuned is None or tuned > manual)
     left_out = h.get("n_left_out", 0)
@@ -867,7 +869,7 @@ def cross_validation_line(cv: dict[str, Any]) -> str:
     refit, recorded = cv["mean_refit"], cv["mean_recorded_model"]
     if refit is not None and recorded is not None and refit > recorded:
         line += (
-            "\nwarning: model parameters fitted without a manoeuvre predict it worse than the "
+            f"{WARN}model parameters fitted without a manoeuvre predict it worse than the "
             "recorded ones: they fit the training manoeuvres, not the car"
         )
     return line
