@@ -89,6 +89,7 @@ def pooled(runs: list[RunErrors]):
     )
 
 
+@pytest.mark.slow
 def test_the_filter_with_the_true_noise_is_left_unchanged():
     """The true Q, R and P0: the fitted c lies within the χ² band of the mean NEES around 1
     (c is the mean NEES at c = 1 for a linear filter), so calibrating changes nothing that
@@ -224,6 +225,7 @@ def test_a_manoeuvre_dominated_by_bias_is_named():
     assert fit_scale(runs(errs)).warning is None
 
 
+@pytest.mark.slow
 def test_scaling_after_the_run_is_the_run_with_scaled_q_r_and_p0_of_a_linear_filter():
     """What kftune applies (covariances c times larger after the run, the estimate kept) is,
     for a Kalman filter, the run with c·Q, c·R and c·P0: kftune's EKF and UKF of the linear
@@ -519,6 +521,7 @@ def test_compare_shows_the_calibrated_consistency_and_the_same_kpis(small):
     assert table.header[-2] == "Covariances × c (calibration)" and table.rows[0][-2] == c
 
 
+@pytest.mark.slow
 def test_a_model_without_beta_is_fitted_on_its_referenced_states_else_on_the_nis():
     """The CTRV tracker (no β): c is fitted on the states with a reference (v_ref,
     omega_ref), pooled, to a mean NEES of 1 (or the least CRPS); without any reference on

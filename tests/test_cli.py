@@ -189,6 +189,7 @@ def test_bad_option_values_exit_2_and_name_the_option(args):
     assert option in res.stderr
 
 
+@pytest.mark.slow
 def test_the_readme_configuration_serves_every_command(tmp_path):
     """The README's configuration block (the TOML block with a [cost] table), as it is, for
     tune, evaluate and compare: another command's keys (budgets for compare) are left out,
@@ -379,6 +380,7 @@ def test_a_dataset_normalised_cost_is_recorded_and_evaluated_the_same_way(small,
     assert json.loads(paper.stdout)["cost"] != pytest.approx(doc["cost"], rel=1e-3)
 
 
+@pytest.mark.slow
 def test_tune_gives_trbo_100_evaluations_and_compare_the_papers_40(small, tmp_path):
     res = kftune("tune", str(small), "--json", "--quiet", "-o", str(tmp_path / "t.json"))
     assert res.returncode == 0, res.stderr
@@ -392,6 +394,7 @@ def test_tune_gives_trbo_100_evaluations_and_compare_the_papers_40(small, tmp_pa
     assert cost["TR-BO"]["Evaluations"] == 40 and cost["Manual"]["Evaluations"] == 1
 
 
+@pytest.mark.slow
 def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
     out = tmp_path / "rep"
     res = kftune(
@@ -443,6 +446,7 @@ def test_compare_writes_report_and_report_rebuilds_it(small, tmp_path):
         assert (tmp_path / "again" / "tables" / csv.name).read_text() == csv.read_text()
 
 
+@pytest.mark.slow
 def test_tune_resume_after_sigkill_equals_uninterrupted_run(small, tmp_path):
     budget = "24"
     full = kftune("tune", str(small), "-n", budget, "--quiet", "-o", str(tmp_path / "full.json"))
@@ -508,6 +512,7 @@ def _interrupt_tune(
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
+@pytest.mark.slow
 def test_ctrl_c_keeps_the_best_so_far_and_says_how_to_resume(small, tmp_path):
     db = tmp_path / "s.db"
     res = _interrupt_tune(
@@ -546,6 +551,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.mark.slow
 def test_sigterm_is_handled_as_ctrl_c_with_exit_143(small, tmp_path):
     """Batch schedulers stop a job with SIGTERM: the best point so far and the resume hint
     as for Ctrl-C, no traceback, exit 143, and the pool's workers go too."""
@@ -574,6 +580,7 @@ def test_sigterm_is_handled_as_ctrl_c_with_exit_143(small, tmp_path):
         assert not any(map(_alive, workers))
 
 
+@pytest.mark.slow
 def test_a_reader_that_closes_early_gets_no_traceback():
     """``kftune dataset info | true``: exit 141 as for SIGPIPE, nothing on stderr."""
     proc = subprocess.Popen(
@@ -590,6 +597,7 @@ def test_a_reader_that_closes_early_gets_no_traceback():
 
 @pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
 @pytest.mark.parametrize("json_flag", [[], ["--json"]])
+@pytest.mark.slow
 def test_a_full_standard_output_is_a_message_not_a_traceback(json_flag):
     """``kftune evaluate --manual > /dev/full``: exit 1 and one line saying what failed."""
     with DEV_FULL.open("w") as full:

@@ -182,6 +182,7 @@ def test_the_filter_with_q_and_r_ten_times_too_small_is_detected(seed):
     assert nis.mean > nis.band[1] and not nis.inside
 
 
+@pytest.mark.slow
 def test_nees_and_nis_equal_filterpys_on_a_scalar_model():
     """A scalar random walk: kftune's filter and statistics give the mean NEES and NIS that
     FilterPy's Kalman filter and its NEES give."""
@@ -281,6 +282,7 @@ def test_evaluate_reports_consistency_per_manoeuvre_and_pooled(small, tuned):
     assert all(len(line) <= 100 for line in lines)
 
 
+@pytest.mark.slow
 def test_estimate_says_what_its_mean_nis_should_be(small, tuned, tmp_path):
     """estimate: per manoeuvre and over all of them, the consistency of β and the NIS with
     m = 3 and its band (JSON and table); "mean_nis" is kept; nothing but its tables and

@@ -88,6 +88,7 @@ def _same(a, b):
     assert [r.state for r in a.history] == [r.state for r in b.history]
 
 
+@pytest.mark.slow
 def test_results_equal_the_sequential_run_bit_for_bit(cluster, problem):
     rng = np.random.default_rng(7)
     X = [problem.space.from_unit(rng.random(problem.space.dim)) for _ in range(3)]
@@ -108,6 +109,7 @@ def test_results_equal_the_sequential_run_bit_for_bit(cluster, problem):
         _same(one_by_one, minimize(problem, problem.space, "trbo", budget=3))
 
 
+@pytest.mark.slow
 def test_a_worker_killed_mid_evaluation_loses_nothing(cluster, tmp_path):
     """SIGKILL of a worker holding an evaluation: it is sent again and the run ends as the
     sequential one does. The evaluations wait for the kill (they used to sleep 0.4 s, and a
@@ -143,6 +145,7 @@ def test_a_worker_killed_mid_evaluation_loses_nothing(cluster, tmp_path):
     _same(result, minimize(fun, space, "random", budget=4, batch=2))
 
 
+@pytest.mark.slow
 def test_a_run_killed_during_a_batch_resumes_exactly(cluster, problem, tmp_path):
     db = tmp_path / "study.db"
     config = tmp_path / "tune.toml"  # a short initial design: the batches after it are the
@@ -202,6 +205,7 @@ def test_unreachable_scheduler_and_missing_extra_are_bad_input(monkeypatch, prob
     assert main(["tune", "--scheduler", "local", "-n", "2", "-q", "-o", os.devnull]) == 3
 
 
+@pytest.mark.slow
 def test_an_address_that_is_not_a_dask_scheduler_is_given_up(problem, monkeypatch):
     """A service that accepts the connection and never answers in Dask's protocol (an HTTP
     server on the port) made tune wait for ever: distributed's timeout does not cover the
@@ -256,6 +260,7 @@ def _finished(db) -> int:
         return 0
 
 
+@pytest.mark.slow
 def test_ctrl_c_on_a_local_cluster_prints_no_worker_tracebacks(tmp_path):
     """A terminal's Ctrl-C reaches the whole process group: each local worker printed a
     KeyboardInterrupt traceback (71 lines on stderr). The workers now ignore SIGINT; the
@@ -375,6 +380,7 @@ def test_junk_that_reaches_distributed_is_refused_too(problem, monkeypatch, answ
     assert not [c for c in gc.get_objects() if isinstance(c, distributed.Client)]
 
 
+@pytest.mark.slow
 def test_a_killed_scheduler_keeps_what_finished_and_says_how_to_resume(tmp_path):
     """SIGKILL of the scheduler mid-run: the command said "failed: Timed out trying to
     connect" after 30 lines of distributed's tracebacks. Now: exit 1, the address named,
@@ -471,6 +477,7 @@ def test_a_malformed_scheduler_address_is_refused_before_connecting(problem, add
         DaskEngine(problem, scheduler=address, connect_timeout=30)
 
 
+@pytest.mark.slow
 def test_a_point_that_kills_every_worker_is_recorded_failed(cluster):
     points = [[0.2, 0.2], [0.9, 0.1], [0.3, 0.4]]
     space = [(0.0, 1.0), (0.0, 1.0)]

@@ -62,6 +62,7 @@ def test_bad_input_exit_codes(tmp_path):
     assert res.returncode == 2 and "unknown manoeuvre" in res.stderr
 
 
+@pytest.mark.slow
 def test_generate_is_bit_identical_for_a_seed(tmp_path):
     pytest.importorskip("vehiclemodels")
     runs = {}

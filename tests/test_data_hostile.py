@@ -216,6 +216,7 @@ def test_gzip_bomb_stops_at_the_byte_limit_with_little_memory(tmp_path: Path):
     assert info.value.row == 1002 and textfile.ENV_MAX_ROWS in str(info.value)
 
 
+@pytest.mark.slow
 def test_the_limits_come_from_the_environment_in_the_command(dataset_dir: Path):
     res = kftune("dataset", "info", dataset_dir, env={"KFTUNE_MAX_ROWS": "300"})
     assert_clean_failure(res, 3, str(dataset_dir / "tr0.csv"), "row 302", "KFTUNE_MAX_ROWS")

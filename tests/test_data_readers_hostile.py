@@ -380,6 +380,7 @@ def test_blank_lines_stop_after_a_thousand(tmp_path, monkeypatch, compress: bool
 
 
 # =========================================================================== not a file
+@pytest.mark.slow
 def test_a_device_or_a_fifo_is_not_a_regular_file(tmp_path: Path):
     """Refused before it is opened: a FIFO with no writer would block the open for ever
     (so it runs in a subprocess, whose timeout only guards against that hang)."""

@@ -95,6 +95,7 @@ def test_a_dataset_of_any_channels_round_trips(track):
         TuningProblem(ds.train, None, [1.0, 1.0, 1.0])
 
 
+@pytest.mark.slow
 def test_a_tracking_model_is_tuned_and_evaluated_on_its_own_dataset_through_the_cli(
     track, tmp_path
 ):
@@ -217,6 +218,7 @@ def no_reference(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_a_sideslip_recording_without_a_reference_loads_and_tunes_on_nis(no_reference, tmp_path):
     ds = load_dataset(no_reference)
     assert not any(m.has("beta_ref") for m in ds.manoeuvres)

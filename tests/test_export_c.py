@@ -21,6 +21,9 @@ from kftune.data import Dataset, default_dataset, load_dataset, save_dataset
 from kftune.report.c_export import CFLAGS, build_demo, find_compiler, manoeuvre_csv, run_demo
 from kftune.tuning.deploy import TunedFilter, estimate
 
+#: Every test here compiles C (seconds each): outside the fast inner loop.
+pytestmark = pytest.mark.slow
+
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "linear_bicycle.py"
 MODELS = ("single-track", "single-track-ay-bias", "single-track-biases", "ctrv", "example")
 #: Relative normwise deviation a double export may have from kftune (the issue's target).

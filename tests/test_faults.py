@@ -82,6 +82,7 @@ def immutable_dir(tmp_path):
 
 
 # ------------------------------------------------------------------ the study file
+@pytest.mark.slow
 def test_a_copy_of_the_study_file_alone_keeps_every_finished_evaluation(tmp_path):
     """SIGKILL at a random moment, then copy only ``s.db`` (not ``s.db-wal``): the copy
     holds every evaluation the killed run finished — all but the last when the kill fell
@@ -114,6 +115,7 @@ def test_a_copy_of_the_study_file_alone_keeps_every_finished_evaluation(tmp_path
     assert strip_timings(res) == strip_timings(ref)
 
 
+@pytest.mark.slow
 def test_deleting_files_beside_a_study_cannot_let_a_second_run_in(tmp_path):
     """The lock is on the study itself: delete whatever lies beside it apart from SQLite's
     own files (a lock file, say) and a second run is still refused at once."""
@@ -144,6 +146,7 @@ def _limit_file_size(limit: int):
     return set_limit
 
 
+@pytest.mark.slow
 def test_a_study_that_cannot_grow_fails_cleanly_keeps_everything_and_resumes(small, tmp_path):
     """A file-size limit (as a full disk) stops the study mid-run: exit 1, a message naming
     the study, what it keeps and how to resume; no traceback; resuming without the limit
@@ -201,6 +204,7 @@ def test_a_read_only_folder_is_refused_before_any_work(immutable_dir, tmp_path, 
 
 # ------------------------------------------------------------------ outputs
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+@pytest.mark.slow
 def test_an_output_that_is_a_pipe_or_a_dangling_link_is_refused_at_once(tmp_path):
     """Checked before the work: a FIFO (writing it would block forever) and a link into a
     missing folder give exit 3 naming --out, within seconds."""
@@ -255,6 +259,7 @@ def test_an_output_that_fails_at_the_end_is_kept_in_a_fallback_file(tmp_path):
         fallback.unlink()
 
 
+@pytest.mark.slow
 def test_tune_whose_output_cannot_be_written_at_the_end_prints_the_result(small, tmp_path):
     """A file-size limit below the tuned file's size and no study: exit 1, no traceback,
     and the tuned parameters are in the message, since no file could hold them."""
@@ -275,6 +280,7 @@ def test_tune_whose_output_cannot_be_written_at_the_end_prints_the_result(small,
     assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.tmp"))
 
 
+@pytest.mark.slow
 def test_a_report_that_cannot_be_written_keeps_the_studies_and_resume_writes_it(
     small, tmp_path, capsys, monkeypatch
 ):
@@ -309,6 +315,7 @@ def test_a_report_that_cannot_be_written_keeps_the_studies_and_resume_writes_it(
     assert after == before
 
 
+@pytest.mark.slow
 def test_closed_standard_output(tmp_path):
     """``kftune tune --json >&-``: exit 2 at once, naming --json; without --json the run
     goes on and writes its file."""
@@ -341,6 +348,7 @@ def test_closed_standard_output(tmp_path):
 
 # ------------------------------------------------------------------ worker processes
 @pytest.mark.skipif(not LINUX, reason="reads the process tree from /proc")
+@pytest.mark.slow
 def test_killing_the_parent_of_a_workers_run_takes_its_workers_along(small, tmp_path):
     """SIGKILL of ``kftune tune --workers 2``: its two pool workers (and the resource
     tracker) exit within seconds instead of living on."""
@@ -387,6 +395,7 @@ def _ctrl_c(args: list[str], ready) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
+@pytest.mark.slow
 def test_ctrl_c_with_workers_prints_no_worker_traceback(small, tmp_path):
     db = tmp_path / "s.db"
     res = _ctrl_c(
@@ -399,6 +408,7 @@ def test_ctrl_c_with_workers_prints_no_worker_traceback(small, tmp_path):
     assert "--resume" in res.stderr and str(db) in res.stderr
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_compare_says_how_to_resume(small, tmp_path):
     out = tmp_path / "rep"
     db = out / "studies" / "ga.db"
@@ -597,6 +607,7 @@ RESULT_KEYS = st.sampled_from(["schema", "meta", "methods", "cost_slice"])
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(changes=st.dictionaries(TUNED_KEYS, JSON_VALUES, max_size=3), data=st.data())
+@pytest.mark.slow
 def test_any_tuned_document_is_read_or_refused_with_a_data_error(
     tuned_doc, tmp_path_factory, changes, data
 ):
@@ -640,6 +651,7 @@ def test_any_results_document_is_read_or_refused_with_a_data_error(
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(record=st.one_of(st.text(max_size=30), JSON_VALUES.map(json.dumps)))
+@pytest.mark.slow
 def test_any_damaged_record_is_refused_with_a_study_error(tmp_path_factory, record):
     db = tmp_path_factory.mktemp("hyp") / "s.db"
     minimize(objective, SPACE, "random", budget=2, seed=0, storage=db)

@@ -173,6 +173,7 @@ def test_study_plot_labels_its_log_axis():
     plots.plt.close("all")
 
 
+@pytest.mark.slow
 def test_the_report_draws_trbo_against_the_manual_filter_and_names_the_papers_figure(
     tmp_path, monkeypatch
 ):

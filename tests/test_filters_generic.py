@@ -261,6 +261,7 @@ def assert_equal_to(res, ref, tol):
 
 
 @pytest.mark.parametrize("name", CASES)
+@pytest.mark.slow
 def test_ukf_equals_filterpy_on_every_built_in_model(cases, name):
     case = cases[name]
     res = run(UKF(), case)
@@ -280,11 +281,13 @@ def test_ukf_equals_filterpy_for_other_sigma_point_settings(cases, name, setting
 
 
 @pytest.mark.parametrize("name", CASES)
+@pytest.mark.slow
 def test_ekf_equals_filterpy_given_the_same_jacobians(cases, name):
     case = cases[name]
     assert_equal_to(run(EKF(), case), filterpy_ekf(case), 1e-9)
 
 
+@pytest.mark.slow
 def test_ekf_with_central_differences_equals_filterpy_given_them_too(cases):
     case = cases["ctrv"]
     res = run(EKF(numerical_jacobians=True), case)
@@ -296,6 +299,7 @@ def test_ekf_with_central_differences_equals_filterpy_given_them_too(cases):
 # ------------------------------------------------------------------ today's 3×3 kernel -----
 
 
+@pytest.mark.slow
 def test_generic_ukf_reproduces_run_ukf_on_the_sideslip_model(man):
     args = (man.u, man.z, man.dt)
     ref = run_ukf(*args, man.params, DEFAULT_Q, man.r_var)
@@ -341,6 +345,7 @@ def test_held_runaways_stop_where_they_began_as_in_run_ukf(man):
     assert res.diverged_step == 200
 
 
+@pytest.mark.slow
 def test_batches_equal_single_runs_and_run_ukf_batch(man):
     rng = np.random.default_rng(2)
     q = np.array(DEFAULT_Q) * 10.0 ** rng.uniform(-2, 2, size=(5, 3))
@@ -406,6 +411,7 @@ def kalman_filter(F, G, H, D, q, r, u, z, x0, P0):
         (EKF(), (7, 0, 5)),
     ],
 )
+@pytest.mark.slow
 def test_ukf_and_ekf_equal_a_linear_kalman_filter_on_linear_models(filt, sizes):
     n, nu, m = sizes
     F, G, H, D, q, r, u, z = linear_system(seed=n, n=n, nu=nu, m=m)
@@ -480,6 +486,7 @@ def pendulum():
 
 
 @pytest.mark.parametrize("filt", [UKF(), EKF()], ids=["ukf", "ekf"])
+@pytest.mark.slow
 def test_a_users_own_model_runs_through_both_filters(pendulum, filt):
     u, z, x_true, dt = pendulum
     model = pendulum_model()
@@ -490,6 +497,7 @@ def test_a_users_own_model_runs_through_both_filters(pendulum, filt):
     assert 0.5 < np.mean(res.nis) < 2.0  # χ² with 1 dof: mean 1
 
 
+@pytest.mark.slow
 def test_a_users_check_and_held_cause_stop_the_run_where_the_condition_began(pendulum):
     u, z, _, dt = pendulum
     model = pendulum_model(
@@ -525,6 +533,7 @@ def assert_flagged_not_silent(res, n: int) -> None:
 
 
 @pytest.mark.parametrize("filt", [UKF(), EKF()], ids=["ukf", "ekf"])
+@pytest.mark.slow
 def test_overflow_is_divergence_at_its_step_never_an_exception(cases, filt):
     case = cases["single-track"]
     z = case.z.copy()
@@ -543,6 +552,7 @@ def test_overflow_is_divergence_at_its_step_never_an_exception(cases, filt):
 
 
 @pytest.mark.parametrize("run_kernel", ["ukf", "ekf"])
+@pytest.mark.slow
 def test_unrepairable_prior_is_divergence_at_step_0_and_singular_is_repaired(cases, run_kernel):
     case = cases["ctrv"]
     model, steps = case.model, 50

@@ -238,6 +238,7 @@ def test_an_isolated_rough_value_does_not_close_a_flat_range():
 # ------------------------------------------------------- a real tuning problem, joint tuning
 
 
+@pytest.mark.slow
 def test_joint_tuning_far_from_the_friction_limit_determines_the_stiffnesses_not_mu():
     """Data simulated on the bundled vehicle with |ay| ≤ 3 m/s² (29 % of μ·g), a recorded
     vehicle whose stiffnesses are off (×0.8, ×1.25), Q, C_af, C_ar and μ tuned together
@@ -377,6 +378,7 @@ def test_the_record_reads_back_from_its_json_form_and_a_damaged_one_is_named():
         Identifiability.from_dict({})
 
 
+@pytest.mark.slow
 def test_compare_reports_the_identifiability_of_each_tuned_method_with_its_figure(small, tmp_path):
     """compare with a tuned model parameter records each tuned method's identifiability
     (not the manual point's), and the report shows its lines and the profile figure;

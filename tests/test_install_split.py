@@ -19,6 +19,7 @@ import sys
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions
 from pathlib import Path
 
+import pytest
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
@@ -75,6 +76,7 @@ def _not_core_modules() -> list[str]:
     )
 
 
+@pytest.mark.slow
 def test_the_blocked_modules_include_the_extras():
     """The check below is only as good as its list: the extras' packages are on it."""
     blocked = set(_not_core_modules())
@@ -84,6 +86,7 @@ def test_the_blocked_modules_include_the_extras():
     assert not {"numpy", "scipy", "numba", "matplotlib", "kftune"} & blocked
 
 
+@pytest.mark.slow
 def test_the_main_job_runs_without_any_extra(small, tmp_path):
     """compare with its default methods (small budgets), report, demo, tune, evaluate,
     estimate and export, run where no extra can be imported; a peer optimiser there is

@@ -111,6 +111,7 @@ def test_the_recorded_value_outside_the_box_is_refused(ds, short):
 
 
 @pytest.mark.parametrize(("model", "filt"), [("single-track", "ukf"), ("single-track", "ekf")])
+@pytest.mark.slow
 def test_a_point_runs_the_model_it_names_on_every_path(ds, short, model, filt):
     """A joint point's cost equals the noise-only cost on a vehicle that has those values,
     serially, in batches (grouped by model values), per manoeuvre and in worker processes;
@@ -141,6 +142,7 @@ def test_a_point_runs_the_model_it_names_on_every_path(ds, short, model, filt):
             assert pooled(points[0]) == pytest.approx(reference[0], rel=1e-12)
 
 
+@pytest.mark.slow
 def test_msp_cost_predicts_with_the_points_vehicle(ds, short):
     from kftune.tuning.cost import CostSpec
 
@@ -216,6 +218,7 @@ def test_a_noise_only_study_keeps_its_fingerprint_and_a_joint_one_differs(ds, sh
     assert "model parameters C_af, C_ar tuned" in joint.fingerprint()["summary"]
 
 
+@pytest.mark.slow
 def test_joint_tuning_recovers_known_cornering_stiffnesses(ds, short):
     """The bundled data come from a plant whose single-track stiffnesses are known (the
     bundled vehicle's C_af, C_ar); a filter handed C_af ×0.7 and C_ar ×1.4 finds them again
@@ -358,6 +361,7 @@ def test_bad_tune_model_tables_are_refused_naming_file_and_key(small, tmp_path, 
 
 
 @pytest.mark.parametrize("stage", ["noise-only", "joint"])
+@pytest.mark.slow
 def test_a_joint_study_resumes_exactly_after_sigkill_in_either_stage(small, tmp_path, stage):
     """40 evaluations in two stages (10 + 30 with the share of 1/4, each stage's study file
     beside --storage); killed in the first or in the second, the resumed run keeps every
@@ -640,6 +644,7 @@ def test_models_lists_the_parameters_tune_model_can_search():
     assert "C_af [N/rad] 1000…2e+06" in text
 
 
+@pytest.mark.slow
 def test_compare_tunes_model_parameters_with_every_method_and_reports_them(small, tmp_path):
     out = tmp_path / "cmp"
     res = run_cli("compare", str(small), "--methods", "manual", "random", "ga", "--budget",
@@ -660,6 +665,7 @@ def test_compare_tunes_model_parameters_with_every_method_and_reports_them(small
     assert "model parameters" not in parameter_note(("q_vx", "q_vy", "q_r", "gain"))
 
 
+@pytest.mark.slow
 def test_compare_stages_trbo_as_tune_does(small, tmp_path):
     """compare --tune-model with TR-BO: the same two stages (the first one's study beside
     the method's), its first joint evaluation the noise-only optimum, and the budget

@@ -17,6 +17,9 @@ from numba import njit
 
 from kftune.models import StateSpaceModel, _generated
 
+#: Every test here compiles kernels in child processes: outside the fast inner loop.
+pytestmark = pytest.mark.slow
+
 MODEL = """
 import numpy as np
 from numba import njit

@@ -76,6 +76,7 @@ def test_a_tuned_file_never_runs_the_model_file_it_names(tuned, tmp_path, where)
 
 
 @pytest.mark.parametrize("kind", ["fifo", "device"])
+@pytest.mark.slow
 def test_a_model_file_named_by_a_tuned_file_is_hashed_only_if_it_is_a_regular_file(
     tuned, tmp_path, kind
 ):
@@ -201,6 +202,7 @@ def faulty(folder: Path, fault: str, marker: bool = False) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_hook_that_writes_out_of_bounds_in_some_states_is_named(small, tmp_path):
     """f writes beyond out only once the yaw rate exceeds 0.2 rad/s, not at the prior mean
     where the first-sample probe looks: compiled code does not check bounds, so a tuning
@@ -240,6 +242,7 @@ MODEL = StateSpaceModel(name="walk", state_names=("s",), state_units=("m",), inp
 """
 
 
+@pytest.mark.slow
 def test_the_hook_check_runs_the_sigma_points_of_the_filter_it_protects(tmp_path):
     """evaluate and estimate run the tuned α, β, κ: a check with the default sigma points
     never visits the states a wider spread reaches (κ = 100: √101 ≈ 10 prior σ out)."""
@@ -255,6 +258,7 @@ def test_the_hook_check_runs_the_sigma_points_of_the_filter_it_protects(tmp_path
         check_model_file(str(model), "ukf", runs, np.zeros(0), q, r, UKFSettings(kappa=100.0))
 
 
+@pytest.mark.slow
 def test_a_hook_that_crashes_its_process_is_named(small, tmp_path):
     model = faulty(tmp_path, "out[10**9] = 1.0")  # far beyond: a segmentation fault
     res = kftune("tune", small, "--model", model, "-n", "2", "-o", tmp_path / "t.json")
@@ -264,6 +268,7 @@ def test_a_hook_that_crashes_its_process_is_named(small, tmp_path):
 
 
 @pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+@pytest.mark.slow
 def test_a_hook_that_never_returns_is_stopped_by_a_signal(small, tmp_path, signum, code):
     """f loops for ever once the yaw rate exceeds 0.2 rad/s: a compiled loop does not see
     signals, so a probe in the command's own process could only be SIGKILLed. The hooks
@@ -298,6 +303,7 @@ def test_a_hook_that_never_returns_is_stopped_by_a_signal(small, tmp_path, signu
         os.kill(child, 0)
 
 
+@pytest.mark.slow
 def test_a_long_hook_check_says_why_the_command_waits(small, tmp_path, monkeypatch):
     """A check that takes long (a hook that never returns, or a large model's compile)
     warns that Ctrl-C or SIGTERM stops it, instead of waiting without a word."""

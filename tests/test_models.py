@@ -301,6 +301,7 @@ def test_linear_model_is_its_matrices():
 
 
 @pytest.mark.parametrize("model", VEHICLE_MODELS, ids=lambda m: m.name)
+@pytest.mark.slow
 def test_single_track_analytic_jacobians_agree_with_central_differences(model, vehicle_points):
     """At random states, many deep in the Dugoff saturation, and at a lifted rear axle."""
     p = BMW.to_array()

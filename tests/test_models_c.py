@@ -434,6 +434,7 @@ def same_check(
 
 @needs_cc
 @pytest.mark.parametrize("model", _single_track_models(), ids=lambda m: m.name)
+@pytest.mark.slow
 def test_single_track_c_matches_python_on_the_bundled_data(
     model: StateSpaceModel, c_model: Callable[..., CModel]
 ) -> None:
@@ -494,6 +495,7 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "linear_bicycle.py"
 
 
 @needs_cc
+@pytest.mark.slow
 def test_example_model_c_matches_its_python(c_model: Callable[..., CModel]) -> None:
     """examples/linear_bicycle.c against linear_bicycle.py on the bundled data."""
     from kftune.data import default_dataset

@@ -149,6 +149,7 @@ def _sleepy(x):
 
 
 @pytest.mark.parametrize("method", METHODS)
+@pytest.mark.slow
 def test_timeouts_fail_the_evaluation_only(method):
     method = _method(method)
     res = minimize(_sleepy, SPACE, method, budget=8, seed=2, timeout=0.5, **_options(method))

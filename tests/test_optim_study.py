@@ -174,6 +174,7 @@ def test_foreign_file_is_refused(tmp_path):
         minimize(objective, SPACE, "random", budget=2, storage=str(other), resume=True)
 
 
+@pytest.mark.slow
 def test_study_in_use_gives_clear_error_and_lock_dies_with_process(tmp_path):
     db = tmp_path / "s.db"
     log = tmp_path / "log.txt"
@@ -206,6 +207,7 @@ minimize(fun, {"a": (0.0, 1.0)}, "random", budget=5, seed=0, storage=sys.argv[1]
 """
 
 
+@pytest.mark.slow
 def test_killed_parent_leaves_no_worker_holding_the_study(tmp_path):
     """SIGKILL of a run with a timeout (evaluations in a worker process) during a hung
     evaluation: the study can be resumed at once (the worker does not hold the lock) and the
@@ -285,6 +287,7 @@ def _wait_for(cond, proc, limit=HANG_GUARD, exit_ok=False):
 
 
 @pytest.mark.parametrize(("method", "budget"), [("tsbo-tsp", 24), ("ga", 60), ("trbo", 30)])
+@pytest.mark.slow
 def test_sigkill_at_random_moments_then_resume(tmp_path, method, budget):
     """Kill the study's process with SIGKILL several times at random moments; after the last
     resume the result equals the uninterrupted run's and no finished evaluation was redone."""
@@ -367,6 +370,7 @@ def _die(x):
     return objective(x)
 
 
+@pytest.mark.slow
 def test_timeout_and_dying_worker_fail_the_evaluation_only():
     # the limit counts only the evaluation (not a worker start-up), so a fast evaluation on
     # a loaded machine stays far below it

@@ -148,6 +148,7 @@ def test_corner_minimum_found_exactly_in_40(seed):
     assert np.max(np.abs(np.asarray(res.x) - np.array([1.0, 0.0, 1.0]))) <= 1e-3, res.x
 
 
+@pytest.mark.slow
 def test_decoy_basin_is_left_on_most_seeds():
     """Measured: the global minimum is reached (value < 0.01; the decoy's floor is 0.3) within
     100 evaluations on 28 of seeds 0-39 (13 of 0-19, 15 of 20-39; the face-centre design,
@@ -200,6 +201,7 @@ def test_an_improvement_smaller_than_improvement_rtol_is_a_failure(rtol, success
 
 
 @pytest.mark.parametrize(("fun", "space"), [(decoy, CUBE3), (branin_log, BRANIN_SPACE)])
+@pytest.mark.slow
 def test_anytime_more_budget_never_ends_worse(fun, space):
     for seed in range(2):
         short = minimize(fun, space, "trbo", budget=40, seed=seed)

@@ -119,6 +119,7 @@ def test_a_toml_input_that_is_a_device_is_refused_before_it_is_read(tmp_path, wh
     assert _files(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_tuned_file_that_is_a_fifo_is_refused_not_waited_on(tmp_path):
     """A FIFO with no writer blocked the open for ever. In a subprocess, whose timeout is
     only a hang guard."""
@@ -301,6 +302,7 @@ def test_dataset_show_refuses_a_name_that_is_a_file_of_its_dataset(work):
     assert _snapshot(work) == before
 
 
+@pytest.mark.slow
 def test_export_to_a_closed_standard_output_fails_with_a_message(work):
     """``export -o - >&-``: nothing can be written, and the command says so (exit 2)."""
     res = subprocess.run(
@@ -528,6 +530,7 @@ def test_the_limits_are_in_the_help():
 
 # ------------------------------------------------------------------ closed standard error
 @pytest.mark.parametrize("stderr", ["closed", str(DEV_FULL)])
+@pytest.mark.slow
 def test_tune_with_standard_error_closed_runs_to_the_end(work, stderr):
     """``tune 2>&-`` or ``2>/dev/full``: the progress bar and messages have nowhere to go;
     the run must not fail on them (it exited 1 with no message, leaving an empty study or,

@@ -151,6 +151,7 @@ def test_tables(results):
     assert rel["skidpad-1"]["rmse_beta"] == pytest.approx(20.0)
 
 
+@pytest.mark.slow
 def test_write_report_writes_everything(results, tmp_path):
     path = write_report(results, tmp_path / "rep")
     text = path.read_text()
@@ -318,6 +319,7 @@ def test_the_verdict_says_by_how_much_sigma_is_off(mean, said):
     assert sigma_verdict({"mean": 1.1, "inside": True, "n_eff": 400.0}) == "consistent"
 
 
+@pytest.mark.slow
 def test_the_cost_table_and_report_say_how_many_evaluations_failed_and_why(results, tmp_path):
     ga = results.method("ga")
     ga.history_cost[5] = ga.history_cost[9] = math.nan  # three failed of 30, with index 2

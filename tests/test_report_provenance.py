@@ -144,6 +144,7 @@ def test_results_json_records_how_it_was_made(compared):
     assert run["extra"]["options"]["mode"] == "improved"
 
 
+@pytest.mark.slow
 def test_report_md_shows_it_and_rebuilds_the_same(compared, tmp_path):
     md = (compared / "report.md").read_text()
     meta = json.loads((compared / "results.json").read_text())["meta"]

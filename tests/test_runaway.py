@@ -165,6 +165,7 @@ def test_no_manual_or_tuned_filter_of_revs_is_flagged(revs_dir):
         assert _max_abs_beta_deg(ds.manoeuvres, ds.vehicle, ds.r_default, q) < 20.0
 
 
+@pytest.mark.slow
 def test_evaluate_exits_1_naming_the_runaway_manoeuvres_and_still_prints_kpis():
     res = subprocess.run(
         [sys.executable, "-m", "kftune", "evaluate", "--q", "1e9", "1e9", "1e9"],

@@ -322,6 +322,7 @@ def test_a_dataset_warns_once_per_finding_naming_dataset_and_manoeuvre():
     assert str(record[0].message).startswith("dataset 'd', manoeuvre 'held-5': 80% of the")
 
 
+@pytest.mark.slow
 def test_the_command_line_prints_data_warnings_plainly_and_goes_on(good, tmp_path):
     low_mu = corrupt(good, tmp_path, manifest=lambda t: re.sub(r"\nmu = .*", "\nmu = 0.3", t))
     res = kftune("dataset", "info", str(low_mu))

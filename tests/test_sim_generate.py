@@ -21,6 +21,7 @@ def seeded():
     return generate_dataset(seed=11, names=SHORT)
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes(seeded, tmp_path):
     again = generate_dataset(seed=11, names=SHORT)
     for a, b in zip(seeded.manoeuvres, again.manoeuvres):
@@ -51,6 +52,7 @@ def test_a_manoeuvres_noise_does_not_depend_on_the_others(seeded):
 @pytest.mark.parametrize(
     "name", ["train-04-j-turn", "train-07-lane-change", "test-18-random-steer", "test-20-track-lap"]
 )
+@pytest.mark.slow
 def test_bundled_dataset_is_this_generators_output(name):
     """Regenerating a bundled manoeuvre with the default seed reproduces it to within what
     floating point allows across CPUs: at most one step of each channel, on a small share of

@@ -126,6 +126,7 @@ def test_plot_draws_the_running_best_and_each_parameter_in_its_box(study, tmp_pa
     assert pb.get_ylim() == pytest.approx((1e-4, 10.0)) and pb.get_yscale() == "log"
 
 
+@pytest.mark.slow
 def test_export_loads_in_optuna_with_the_same_trials(study, tmp_path):
     optuna = pytest.importorskip("optuna")
     out = tmp_path / "o.db"

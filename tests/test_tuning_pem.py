@@ -48,6 +48,7 @@ def filterpy_nll(m, vehicle, q, r, n: int, settings) -> float:
     return total / n
 
 
+@pytest.mark.slow
 def test_pem_cost_equals_filterpy_innovation_likelihood():
     ds = default_dataset()
     m = min(ds.train, key=lambda m: m.n)
@@ -81,6 +82,7 @@ def _simulate(q_true: float, r_true: float, a: float, n: int, seed: int):
     return z
 
 
+@pytest.mark.slow
 def test_minimising_the_likelihood_recovers_the_true_process_noise():
     """Monte Carlo: AR(1) states seen in white noise; the ML estimate of a scalar q (Q = q·I,
     R known) lands near the true q, with both the 3×3 kernel and the generic one."""
@@ -110,6 +112,7 @@ def test_minimising_the_likelihood_recovers_the_true_process_noise():
     assert all(abs(math.log(e / q_true)) < math.log(1.5) for e in estimates)
 
 
+@pytest.mark.slow
 def test_multistep_cost_prefers_the_filter_with_the_better_sideslip():
     """On the simulated set, the reference-free msp cost ranks the NRMSE-tuned filter (small
     Vy noise, yaw rate following the gyro) above the manual one, as the β errors do; the

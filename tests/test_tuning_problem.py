@@ -121,6 +121,7 @@ def test_cost_matches_paper_formula_computed_directly(ds):
     assert nis_problem(q) == pytest.approx(abs(math.log(nis.mean() / 3)), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_parallel_workers_give_the_serial_cost(ds):
     q = [1e-5, 1e-7, 1e-2]
     serial = TuningProblem(ds.train, ds.vehicle, ds.r_default).evaluate(q)

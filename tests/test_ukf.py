@@ -83,6 +83,7 @@ def test_manoeuvre_exercises_the_dugoff_saturation(manoeuvre):
     assert np.abs(manoeuvre.z[:, 1]).max() > 7.0
 
 
+@pytest.mark.slow
 def test_kernel_equals_filterpy_on_nonlinear_manoeuvre(manoeuvre):
     settings = UKFSettings()
     res = run_ukf(

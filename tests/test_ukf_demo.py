@@ -41,6 +41,7 @@ def test_demo_is_seeded_and_noise_matters():
 CLI = "import sys; from kftune.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
+@pytest.mark.slow
 def test_demo_command_line_text_and_bad_option():
     run = subprocess.run(
         [sys.executable, "-c", CLI, "demo"], capture_output=True, text=True, check=False

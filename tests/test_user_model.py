@@ -15,6 +15,7 @@ from conftest import run_cli as kftune
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "linear_bicycle.py"
 
 
+@pytest.mark.slow
 def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     model = tmp_path / "my_model.py"
     shutil.copyfile(EXAMPLE, model)
@@ -37,6 +38,7 @@ def test_a_model_file_is_tuned_and_evaluated_through_the_cli(small, tmp_path):
     assert json.loads(ev.stdout)["cost"] == pytest.approx(doc["cost"], rel=1e-12)
 
 
+@pytest.mark.slow
 def test_an_edited_model_file_is_not_taken_for_the_tuned_one(small, tmp_path):
     """The tuned file and the study record the model file's SHA-256: after an edit,
     evaluate refuses (--force runs it with a warning), export warns, and a study does not
@@ -66,6 +68,7 @@ def test_an_edited_model_file_is_not_taken_for_the_tuned_one(small, tmp_path):
     assert res.returncode == 3 and "model file sha256" in res.stderr, res.stderr
 
 
+@pytest.mark.slow
 def test_the_tuned_file_says_where_its_model_file_lies_from_any_working_directory(small, tmp_path):
     """A tuned file records its model file relative to itself when it lies beside it (the
     folder can move), otherwise absolute; run elsewhere, ``evaluate`` and ``estimate``
@@ -161,6 +164,7 @@ def test_unknown_model_and_filter_are_refused(tmp_path):
     assert res.returncode == 2 and "--filter" in res.stderr
 
 
+@pytest.mark.slow
 def test_a_model_files_parameters_are_tuned_and_evaluated(small, tmp_path):
     """A model of one's own (no vehicle, no declared ranges): its parameter joins the
     search from its default, the tuned file records it, and evaluate runs it (the training
