@@ -415,8 +415,9 @@ def plot_manoeuvre(m: Manoeuvre, units: Mapping[str, str] | None = None) -> Any:
     import matplotlib.pyplot as plt
 
     from kftune.data.validate import SIDESLIP_CHANNELS
+    from kftune.report.plots import TIME_LABEL
 
-    t = m.t - m.t[0]
+    t = m.t  # the recording's time, as compare's and estimate's figures draw it
     if not all(m.has(c) for c in SIDESLIP_CHANNELS if c != "beta_ref"):  # every channel
         names = [c for c in m.channel_names if c != "t"]
         fig, axs = plt.subplots(len(names), 1, figsize=(9, 2 * len(names)), sharex=True)
@@ -425,7 +426,7 @@ def plot_manoeuvre(m: Manoeuvre, units: Mapping[str, str] | None = None) -> Any:
             unit = channel_unit(units or {}, c)
             ax.set_ylabel(f"{c} [{unit}]" if unit else c)
             ax.grid(True, lw=0.3)
-        np.atleast_1d(axs)[-1].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
+        np.atleast_1d(axs)[-1].set_xlabel(TIME_LABEL)
         fig.suptitle(f"{m.name} ({m.kind}, {m.split})\n{m.description}", fontsize=9)
         fig.tight_layout()
         return fig
@@ -451,7 +452,7 @@ def plot_manoeuvre(m: Manoeuvre, units: Mapping[str, str] | None = None) -> Any:
         if "beta_true" in m.extra:
             axes[4].plot(t, np.degrees(m.extra["beta_true"]), lw=0.8, ls="--", label="β true")
         axes[4].set_ylabel("sideslip β [°]")
-    axes[-1].set_xlabel(f"time [s] (from t = {m.t[0]:.2f} s)")
+    axes[-1].set_xlabel(TIME_LABEL)
     for ax in axes:
         ax.grid(True, lw=0.3)
         if len(ax.get_legend_handles_labels()[0]) > 1 or ax is axes[1]:

@@ -22,7 +22,9 @@ one figure (``--no-plot`` leaves them out):
   NAME.png   β with its ±1.96σ band (95 %), and the reference and the error where there is
              one (for another model: its first state or output with a reference); the
              title says what share of the reference the band covers, and when it is too
-             narrow to see.
+             narrow to see; time is the recording's, as in NAME.csv's t (an imported
+             recording trimmed of a standstill starts later than 0), as every kftune
+             figure over a manoeuvre draws it.
 
 With a reference it prints the sideslip KPIs (RMSE, MAE = maximum absolute error, and both
 for |ay| ≥ 4 m/s², in degrees) after the file's burn-in; for another model, the RMSE of

@@ -4,9 +4,12 @@
 best so far, state, why it failed), the best point and the failed ones grouped by reason;
 ``--json`` prints the same as one JSON object. ``study plot STUDY -o DIR`` draws the cost
 against evaluations with the best so far (convergence.png) and each parameter against
-evaluations (parameters.png). ``study export STUDY --optuna FILE.db`` writes the study into
-Optuna's storage, so that ``optuna-dashboard sqlite:///FILE.db`` shows its history,
-slices and parameter importances (needs the ``peers`` extra).
+evaluations (parameters.png); of the joint stage of a two-stage joint tuning, they say that
+its evaluation 0 is the best point of the first, noise-only stage and name that stage's
+study (``<stem>.noise-only.db``), which ``study plot`` draws in turn. ``study export STUDY
+--optuna FILE.db`` writes the study into Optuna's storage, so that ``optuna-dashboard
+sqlite:///FILE.db`` shows its history, slices and parameter importances (needs the
+``peers`` extra).
 
 The study is only read, never written: a study that a ``tune`` run holds open can be
 looked at while it runs.
@@ -333,7 +336,13 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
         label_log_axis(ax.yaxis, y_low, y_high, vertical=True)
     ax.set_xlabel("evaluation")
     ax.set_ylabel(cost_label(s.get("objective")))
-    ax.set_title(f"{Path(s['study']).name}: {s['method']}, seed {s['seed']}", fontsize=10, pad=10)
+    stage = _first_stage_note(s)
+    ax.set_title(
+        f"{Path(s['study']).name}: {s['method']}, seed {s['seed']}"
+        + (f"\n{stage}" if stage else ""),
+        fontsize=10,
+        pad=10,
+    )
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     conv = fig
@@ -355,16 +364,31 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
             a.set_yscale("log")
         a.set_title(p["name"], fontsize=9, pad=7)  # clear of the points on the upper bound
         a.set_xlabel("evaluation", fontsize=8)
-        a.tick_params(labelsize=7)
+        a.tick_params(which="both", labelsize=7)  # a log axis labels minor ticks too
         a.grid(alpha=0.3)
     for k in range(len(params), rows * cols):
         axes[k // cols][k % cols].set_visible(False)
     fig.suptitle(
-        "parameters over the evaluations (x: failed; dashed: the best point; y: the search box)",
+        "parameters over the evaluations (x: failed; dashed: the best point; y: the search box)"
+        + (f"\n{stage}" if stage else ""),
         fontsize=9,
     )
     fig.tight_layout()
     return {"convergence.png": conv, "parameters.png": fig}
+
+
+def _first_stage_note(s: dict[str, Any]) -> str:
+    """For the joint stage of a two-stage joint tuning (its first, noise-only stage's study
+    ``s["first_stage"]`` lies beside it), what a reader of its figures must know: they draw
+    this stage alone, and its evaluation 0 is the first stage's best point; ``""`` for
+    any other study."""
+    first = s.get("first_stage")
+    if not first:
+        return ""
+    return (
+        "the joint stage of a two-stage tuning: evaluation 0 is the best point of\n"
+        f"its first, noise-only stage, drawn by kftune study plot {Path(first).name}"
+    )
 
 
 def _evaluations(n: int) -> str:

@@ -742,6 +742,12 @@ def held_out(
     test = [
         m for m in dataset.test if m.has("beta_ref") and m.n - first_scored(m, problem.burn_in) >= 2
     ]
+    if not any(m.has("beta_ref") for m in dataset.test):
+        return None, (
+            "the held-out β check needs a sideslip reference, a beta_ref channel, which "
+            "none of the test manoeuvres has; kftune evaluate --split test (below) scores "
+            "the tuned filter on their measured channels"
+        )
     if not test:
         return None, "no test manoeuvre has a sideslip reference longer than the burn-in"
     rmse: dict[str, float | None] = {}

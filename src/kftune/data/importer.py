@@ -12,7 +12,9 @@ One mapping (a TOML file, or the same as a dict) says how every recording become
     min_speed = 1.0                 # [m/s] keep the stretches above it (standstill, reversing out)
     min_duration = 5.0              # [s] drop kept stretches shorter than this
     split_at_gaps = true            # a dropout in time ends a stretch (default: refused)
-    segment_length = 30.0           # [s] cut each stretch into segments of about this length
+    segment_length = 30.0           # [s] cut each stretch into equal segments of about this length
+    kind = "track-lap"              # the manoeuvres' kind (default "segment" when cut, else
+    # kind = { "run3*" = "skidpad" }  #  "recording"); by file name, stem or manoeuvre name
     seed = 0                        # of the generator of the channels' noise (below)
 
     [source]                        # reader options (each format uses its own)
@@ -78,6 +80,13 @@ among them, with the unit each was taken in, and the mapping entry the ratio poi
 (``sign = -1``, a ``unit``, ``hand_wheel = true``).
 Expressions are computed over the whole recording before it is trimmed and resampled.
 
+``segment_length = L`` cuts a stretch of duration D into k = max(1, round(D / L)) segments
+of equal sample counts (D = 169 s, L = 30 s: 6 of 28.2 s). A manoeuvre's ``kind`` (shown
+beside its name by figures and ``dataset info``) is the mapping's ``kind``: one string for
+all, or a table whose first glob that matches the file name, stem or manoeuvre name gives
+it; else ``"segment"`` for a piece cut by ``segment_length`` and ``"recording"`` for one
+imported whole (a recording, or a stretch of one).
+
 Quantities (``sample_time``, ``min_speed``, ``min_duration``, ``segment_length``,
 a ``raster`` step) are SI numbers or strings with a unit (``"5 km/h"``, ``"5 ms"``).
 
@@ -99,7 +108,8 @@ segments — and only then validated: a recording's every bad channel is reporte
 then applies over all recordings in the order given: ``test = [globs]`` makes every
 segment of a recording whose file name (or stem) matches a glob test; ``train_every = k``
 makes segment ``i`` (0-based, counted over all recordings) training when ``i % k == 0``
-(the default, k = 3);
+(the default, k = 3: the first manoeuvre and every third after it, ``-s01``, ``-s04``, …,
+as names count from 1);
 ``test_fraction = f`` makes test the segments that start after the first ``1 − f`` of the
 total duration (so one uncut recording gives no test segment: cut it with
 ``segment_length``). ``per = "file"`` beside either counts ``i`` (or measures the
@@ -147,6 +157,7 @@ from kftune.data.textfile import ReadLimits, check_regular_file
 from kftune.data.validate import (
     CHANNEL_DIMENSION,
     GAP_STEPS,
+    KINEMATIC_RATIO,
     MIN_SAMPLES,
     SI_UNIT,
     STANDARD_GRAVITY,
@@ -156,10 +167,12 @@ from kftune.data.validate import (
     channel_problems,
     check_channel_name,
     check_increasing,
+    kinematic_ratio,
     plausibility_findings,
     sample_time,
     unit_factor,
     validate_channels,
+    with_article,
 )
 from kftune.errors import ConfigError, DataError, DataWarning, excerpt
 from kftune.vehicle.params import VehicleParams
@@ -178,6 +191,7 @@ MAPPING_KEYS = {
     "min_duration": "[s] drop kept stretches shorter than it",
     "split_at_gaps": "true: a gap in time ends a stretch instead of being refused",
     "segment_length": "[s] cut stretches into segments",
+    "kind": 'the manoeuvres\' kind: one for all, or a table { "<glob>" = kind }',
     "steering_ratio": "hand-wheel to road-wheel ratio for hand_wheel channels",
     "source": f"reader options: {', '.join(READER_OPTIONS)}",
     "split": "test = [globs] | train_every = k | test_fraction = f; per = 'all' | 'file'",
@@ -189,6 +203,11 @@ CHANNEL_KEYS = (
     *("column", "atan2", "expr", "unit", "scale", "offset", "sign", "hand_wheel", "noise"),
 )
 SPLIT_RULES = ("test", "train_every", "test_fraction")
+#: The kind of a manoeuvre cut from a recording by ``segment_length``, and of one imported
+#: whole (a recording, or a stretch of one that ``min_speed`` or a gap delimits), unless
+#: the mapping's ``kind`` names one; figures and ``dataset info`` show it beside the name.
+CUT_KIND = "segment"
+WHOLE_KIND = "recording"
 #: What ``[split] per`` takes: the segments counted over all recordings, or within each file.
 SPLIT_PER = ("all", "file")
 DEFAULT_TRAIN_EVERY = 3
@@ -249,6 +268,7 @@ class Mapping_:
     given: Mapping[str, Any] = field(default_factory=dict)  # quantities as written
     state_space: StateSpaceModel | None = None  # the model named by ``model``
     seed: int = 0  # of the generator of the channels' noise
+    kind_by_name: tuple[tuple[str, str], ...] = ()  # kind: (glob, kind), the first match's
 
     def raster_for(self, path: Path) -> float | None:
         """The raster step [s] a recording is resampled onto: that of the first glob of
@@ -259,6 +279,16 @@ class Mapping_:
             if fnmatch.fnmatch(path.name, glob) or fnmatch.fnmatch(stem, glob):
                 return step
         return self.raster_step
+
+    def kind_for(self, path: Path, stem: str, name: str, cut: bool) -> str:
+        """A manoeuvre's kind: that of the first glob of the mapping's ``kind`` that
+        matches its recording's file name or stem, or its own name (``run1-s02``); else
+        :data:`CUT_KIND` for a piece cut by ``segment_length``, :data:`WHOLE_KIND` for a
+        recording (or a stretch of one) imported whole."""
+        for glob, kind in self.kind_by_name:
+            if any(fnmatch.fnmatch(n, glob) for n in (path.name, stem, name)):
+                return kind
+        return CUT_KIND if cut else WHOLE_KIND
 
     def echo(self, key: str, si_value: float, dimension: str) -> str:
         """A quantity for messages: in the unit the mapping wrote ``key`` in, then in SI
@@ -433,6 +463,19 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
     for key in ("name", "description"):
         if key in data and not isinstance(data[key], str):
             raise bad(key, f"expected a string, got {excerpt(data[key])}")
+    kinds = data.get("kind", {})
+    if isinstance(kinds, str):
+        kinds = {"*": kinds}
+    if not isinstance(kinds, dict) or ("kind" in data and not kinds):
+        raise bad(
+            "kind",
+            'expected a kind ("skidpad") or a table { "<file or manoeuvre glob>" = "<kind>" }, '
+            f"got {excerpt(data['kind'])}",
+        )
+    for glob, kind in kinds.items():
+        if not isinstance(kind, str) or not kind.strip():
+            key = "kind" if "kind" in data and isinstance(data["kind"], str) else f"kind.{glob}"
+            raise bad(key, f"expected a non-empty string (a manoeuvre kind), got {excerpt(kind)}")
     return Mapping_(
         file=file,
         channels=channels,
@@ -455,6 +498,7 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
         given={k: data[k] for k in ("min_speed", "min_duration", "split") if k in data},
         state_space=state_space,
         seed=seed,
+        kind_by_name=tuple(kinds.items()),
     )
 
 
@@ -898,7 +942,9 @@ def _expression_unit(
         why = "its inputs are in SI units" if units else "its inputs declare no unit"
         return SI_UNIT[dim], f"SI: no unit given and {why}"
     listed = ", ".join(f"{s} [{u or 'no unit'}]" for s, u in inputs.items()) or "none"
-    quantity = f"a {dim} (SI unit {SI_UNIT[dim]})" if dim else "a channel kftune does not know"
+    quantity = (
+        f"{with_article(dim)} (SI unit {SI_UNIT[dim]})" if dim else "a channel kftune does not know"
+    )
     raise DataError(
         f"{spec.label}: no unit in the mapping for the expression's result, and its inputs "
         f"({listed}; in {path.name}) do not all share one unit of this channel, "
@@ -1100,7 +1146,9 @@ def _check_stretches(
         doubt = plausibility_findings(part, None).get("kinematic")
         if doubt:
             where = f"file {file}, rows {row}–{row + part['t'].size - 1}"
-            doubt += _suspects(m, ("ay", "vx", "r"), taken)
+            fit = kinematic_ratio(part)
+            if fit is None or _unit_could_explain("kinematic", fit.ratio):
+                doubt += _suspects(m, ("ay", "vx", "r"), taken)
             warnings.warn(f"{where}: {doubt}", DataWarning, stacklevel=2)
 
 
@@ -1241,7 +1289,20 @@ def _cross_check_fixes(
         elif 0 < value < STEER_L_EFF[0] and taken.get("delta", ("",))[0] in ("deg", "°"):
             fixes.append(f"if δ is in rad: {_entry(m, 'delta', unit='rad')} {where}")
     text = "; " + "; ".join(fixes) if fixes else ""
+    if not _unit_could_explain(exc.check, value):  # a sign: no unit is to blame
+        return text
     return text + _suspects(m, exc.channels, taken)
+
+
+def _unit_could_explain(check: str, value: float) -> bool:
+    """Whether a failed check between channels (``check`` of :class:`CrossCheckError`:
+    ``"kinematic"``, ay/(vx·r) = ``value``; ``"steering"``, the effective wheelbase
+    ``value`` [m]) could come from a channel in a wrong unit: its magnitude lies outside
+    the expected range (:data:`~kftune.data.validate.KINEMATIC_RATIO`,
+    :data:`~kftune.data.validate.STEER_L_EFF`). A value of the expected size but negative
+    is a sign convention, which no unit explains."""
+    low, high = KINEMATIC_RATIO if check == "kinematic" else STEER_L_EFF
+    return not low <= abs(value) <= high
 
 
 def _read(
@@ -1383,8 +1444,10 @@ def segment_manoeuvre(
     row: int,
     note: str = "",
     files: Mapping[str, str] | None = None,
+    kind: str = CUT_KIND,
 ) -> Manoeuvre:
-    """A segment of a recording as a manoeuvre of kind ``"segment"``. Its own checks (the
+    """A segment of a recording as a manoeuvre of ``kind`` (default ``"segment"``,
+    :data:`CUT_KIND`). Its own checks (the
     kinematic ones judge the segment alone) name the recording's ``file`` (for a channel
     with a file of its own, ``files[channel]``) and a row of it (``row``: the segment's
     first sample's), with the segment's name and ``note`` — not the manoeuvre as the file
@@ -1396,7 +1459,7 @@ def segment_manoeuvre(
     try:
         return Manoeuvre(
             label,
-            "segment",
+            kind,
             split,
             seg["t"],
             channels={c: v for c, v in seg.items() if c != "t"},
@@ -1437,8 +1500,9 @@ def import_recordings(
         limits: size limits of each file (``None``: the defaults or the environment).
 
     Returns:
-        The dataset: per recording, each kept stretch (or its segments) a manoeuvre of kind
-        ``"segment"`` named ``<file stem>`` or ``<file stem>-sNN``.
+        The dataset: per recording, each kept stretch (or its segments) a manoeuvre named
+        ``<file stem>`` or ``<file stem>-sNN``, of the mapping's ``kind`` where it names
+        one, else ``"segment"`` when cut by ``segment_length`` and ``"recording"`` when not.
 
     Raises:
         DataError: naming the file (recording or mapping), the column or key, the row.
@@ -1479,6 +1543,7 @@ def import_recordings(
             )
     pieces = []  # (recording, label, channels, description)
     first_rows = []  # the row of each piece's first sample in its file
+    kinds = []  # each piece's kind (Mapping_.kind_for)
     for r in recordings:
         parts = []
         for row, part in zip(r.starts, r.stretches):
@@ -1487,21 +1552,31 @@ def import_recordings(
             except ValueError as exc:  # segments too short
                 raise DataError(f"key 'segment_length': {exc}", file=m.file) from None
             parts += [
-                ({c: v[a:b] for c, v in part.items()}, row + a)
+                ({c: v[a:b] for c, v in part.items()}, row + a, len(bounds) > 2)
                 for a, b in itertools.pairwise(bounds)
             ]
         width = max(2, len(str(len(parts))))
-        for i, (seg, row) in enumerate(parts):
+        for i, (seg, row, cut) in enumerate(parts):
             label = r.label if len(parts) == 1 else f"{r.label}-s{i + 1:0{width}d}"
             where = f"{r.file.name}, rows {row}–{row + seg['t'].size - 1}"
             pieces.append((r, label, seg, f"{where}, t = {seg['t'][0]:.2f} … {seg['t'][-1]:.2f} s"))
             first_rows.append(row)
+            kinds.append(m.kind_for(r.file, r.label, label, cut))
+    for glob, _ in m.kind_by_name:
+        if glob != "*" and not any(_matches(r, glob, label) for (r, label, _, _) in pieces):
+            warnings.warn(
+                f"mapping {m.file}, key 'kind.{glob}': pattern {excerpt(glob)} matches none "
+                f"of the recordings {excerpt([r.file.name for r in recordings], 200)} and none "
+                f"of their manoeuvres {excerpt([label for _, label, _, _ in pieces], 200)}",
+                DataWarning,
+                stacklevel=2,
+            )
     splits = _splits(m, pieces)
     for text in _split_warnings(m, recordings, splits, [label for _, label, _, _ in pieces]):
         warnings.warn(text, DataWarning, stacklevel=2)
     manoeuvres = [
-        _segment(m, r, label, split, seg, desc, row)
-        for (r, label, seg, desc), split, row in zip(pieces, splits, first_rows)
+        _segment(m, r, label, split, seg, desc, row, kind)
+        for (r, label, seg, desc), split, row, kind in zip(pieces, splits, first_rows, kinds)
     ]
     units = {c: u for r in recordings for c, u in r.units.items()}
     dataset_name = name or m.name or (Path(out).name if out is not None else "imported")
@@ -1543,8 +1618,9 @@ def _segment(
     seg: dict[str, np.ndarray],
     desc: str,
     row: int,
+    kind: str,
 ) -> Manoeuvre:
-    """A segment of a recording as a manoeuvre (:func:`segment_manoeuvre`:
+    """A segment of a recording as a manoeuvre of ``kind`` (:func:`segment_manoeuvre`:
     its errors name the recording's file and row, ``row`` the segment's first)."""
     note = ""
     step = m.raster_for(r.file)
@@ -1553,7 +1629,7 @@ def _segment(
             f"; resampled: a row counts {step:g} s raster samples from the first row of its stretch"
         )
     return segment_manoeuvre(
-        label, split, seg, desc, file=str(r.file), row=row, note=note, files=r.files
+        label, split, seg, desc, file=str(r.file), row=row, note=note, files=r.files, kind=kind
     )
 
 

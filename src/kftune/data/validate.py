@@ -262,12 +262,19 @@ def unit_factor(unit: str, dimension: str | None, *, file: str | None, column: s
     if dimension is not None and dim != dimension:
         allowed = sorted(u for u, (d, _) in UNITS.items() if d == dimension)
         raise DataError(
-            f"unit {excerpt(unit)} is a {dim} unit, but this channel is a {dimension}; "
+            f"unit {excerpt(unit)} is {with_article(dim)} unit, but this channel is "
+            f"{with_article(dimension)}; "
             f"expected one of {allowed}",
             file=file,
             column=column,
         )
     return factor
+
+
+def with_article(noun: str) -> str:
+    """``noun`` after its indefinite article, for messages: ``"an angle"``,
+    ``"a speed"`` (by its first letter: the dimensions' names need no more)."""
+    return f"{'an' if noun[:1].lower() in 'aeiou' else 'a'} {noun}"
 
 
 def sample_time(t: np.ndarray) -> float:
@@ -577,12 +584,19 @@ def _check_magnitudes(
     if fit is not None and fit.certainly_wrong:
         ay, vxr = arrays["ay"], arrays["vx"] * arrays["r"]
         k = fit.row
+        # a sign alone flips the ratio; only a magnitude off by a factor is a unit's doing
+        why = []
+        if fit.ratio < 0:
+            why.append(
+                "negative: ay and r use opposite sign conventions; ISO 8855: both positive "
+                "to the left"
+            )
+        if not KINEMATIC_RATIO[0] <= abs(fit.ratio) <= KINEMATIC_RATIO[1]:
+            why.append("is ay in g, r in deg/s or rad/s, vx in km/h?")
         raise CrossCheckError(
             f"lateral acceleration and vx·yaw rate disagree: ay/(vx·r) = {fit.ratio:.3g} in "
-            f"cornering ({fit.describe()}), expected ≈ 1 (is ay in g, r in deg/s or rad/s, vx "
-            f"in km/h? a negative ratio means ay and r use opposite sign conventions; "
-            f"ISO 8855: both positive to the left; at this row ay = {ay[k]:.4g}, "
-            f"vx·r = {vxr[k]:.4g})",
+            f"cornering ({fit.describe()}), expected ≈ 1 ({'; '.join(why)}; at this row "
+            f"ay = {ay[k]:.4g}, vx·r = {vxr[k]:.4g})",
             check="kinematic",
             value=fit.ratio,
             channels=("ay", "vx", "r"),
