@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -134,7 +135,10 @@ def write_report(results: ExperimentResults, directory: str | Path) -> Path:
                 results,
                 "manual",
                 "trbo",
-                heading=f"{heading}\n({setting}; not kftune tune's default)",
+                # wrapped: a joint comparison's setting is longer than a 6-inch figure
+                heading=heading
+                + "\n"
+                + textwrap.fill(f"({setting}; not kftune tune's default)", 72),
                 metrics=beta,
             ),
             out / "figures" / "improvement_trbo_test.png",
