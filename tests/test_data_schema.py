@@ -197,7 +197,10 @@ def test_compare_and_report_a_tracking_model_by_its_channel_rmses(track, tmp_pat
     assert "| RMSE v [m/s] |" in md and "| RMSE omega [rad/s] |" in md
     assert "sideslip" not in md.lower() and "β" not in md
     figures = {p.name for p in (out / "figures").glob("*.png")}
-    assert figures == {"convergence.png", "cost_slice.png", "channels_run-3.png", "reliability.png"}
+    assert figures == {
+        "convergence.png", "cost_slice.png", "channels_run-3.png", "reliability.png",
+        "improvement_trbo_test.png",  # TR-BO against the manual filter, on the model's channels
+    }  # fmt: skip
     assert "(figures/channels_run-3.png)" in md
     assert "filters tuned by Manual, Random, TR-BO against" in md  # none left out
     header = (out / "tables" / "per_manoeuvre.csv").read_text().splitlines()[0]

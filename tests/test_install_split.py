@@ -102,8 +102,8 @@ def test_the_main_job_runs_without_any_extra(small, tmp_path):
         ["estimate", str(small), "--params", str(tuned), "-o", str(tmp_path / "est")],
     ]
     for fmt in ("json", "yaml", "c", "matlab"):
-        out = tmp_path / (f"kf.{fmt}" if fmt != "c" else "kf_c")  # c: a folder
-        commands.append(["export", str(tuned), "--format", fmt, "-o", str(out)])
+        dest = tmp_path / (f"kf.{fmt}" if fmt != "c" else "kf_c")  # c: a folder
+        commands.append(["export", str(tuned), "--format", fmt, "-o", str(dest)])
     # an option whose extra is missing: one exit code (3, as a configuration), the package named
     missing = [
         ["tune", str(small), "-m", "cma", "-n", "2", "-q", "-o", "never.json"],

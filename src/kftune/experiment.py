@@ -174,7 +174,11 @@ def complete_points(
             raise ConfigError(f"{where}: point {n} gives no {', '.join(missing_q)}; {ways}")
         bad = [k for k, v in given.items() if not _is_number(v)]
         if bad:
-            raise ConfigError(f"{where}: point {n}: {', '.join(bad)} must be numbers")
+            booleans = [k for k in bad if isinstance(given[k], bool)]
+            raise ConfigError(
+                f"{where}: point {n}: {', '.join(bad)} must be numbers"
+                + (f" ({', '.join(booleans)} not true/false)" if booleans else "")
+            )
         filled.update(k for k in rest if k not in given)
         points.append([float(given.get(k, defaults[k])) for k in names])
     if not filled:
