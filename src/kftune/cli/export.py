@@ -7,7 +7,8 @@ Reads a tuned-parameters file written by ``kftune tune`` and writes
           tuned Q, R, model parameters, dt, sigma points and covariance scale; the init/step
           API and the filter's conventions in the header's comments; the tuned values also
           as the KFTUNE_* macros), kftune_model.h/.c (the model's C), kftune_demo.c (reads
-          a manoeuvre's CSV on stdin, writes the columns of kftune estimate on stdout) and
+          a manoeuvre's uncompressed CSV on stdin: gzip -dc FILE.csv.gz | DIR/kftune_demo
+          for a dataset's gzipped files; writes the columns of kftune estimate on stdout) and
           a Makefile (make builds kftune_demo with cc -std=c99 -O2 -Wall -Wextra -Werror
           -pedantic; make asan with the sanitizers). Only libm is needed and nothing is
           allocated. --precision float computes in float (for targets without a double
@@ -15,9 +16,12 @@ Reads a tuned-parameters file written by ``kftune tune`` and writes
           StateSpaceModel(c_code=...)): one without is refused, naming the reason.
           --check DATASET builds the demo with the C compiler ($CC, else cc) and compares
           every column with kftune's own estimate on the DATASET's --split (default test):
-          the worst relative deviation ||C - kftune|| / ||kftune|| per manoeuvre, and for
-          float also against the double filter; exit 1 when a double export is off by more
-          than 1e-9 or stops elsewhere than kftune's filter
+          the worst relative deviation ||C - kftune|| / ||kftune|| per manoeuvre; for
+          float also, per column, the largest deviation in the column's own terms (a state
+          or beta in units of its sigma, a sigma relative, an innovation in units of
+          sqrt(R), the NIS absolutely) against the stated bounds (0.1 sigma, 10 %, 0.1
+          sqrt(R), 0.5). Exit 1 when a double export is off by more than 1e-9, a float
+          one is beyond a bound, or either stops elsewhere than kftune's filter
   json    the tuned values as one flat JSON object: model, filter, sample time dt [s], the
           diagonals of Q (variance per step of dt) and R named by state and measurement with
           their units, the sigma-point settings, the model's parameter vector and the
@@ -267,7 +271,8 @@ def _run_c(args: argparse.Namespace) -> int:
         print(
             f"C export of {args.params} ({doc['filter'].upper()}, model {model.name!r}, "
             f"{precision}) written to {out}: {', '.join(files)}\n"
-            f"build its demo: make -C {out}; run it: {out}/kftune_demo < manoeuvre.csv"
+            f"build its demo: make -C {out}; run it on a manoeuvre (a dataset's files are "
+            f"gzipped): gzip -dc manoeuvre.csv.gz | {out}/kftune_demo > estimates.csv"
         )
     code = EXIT_OK
     if check is not None:
@@ -320,10 +325,19 @@ def _check(
     folder, run it and kftune on every manoeuvre and print the deviations."""
     import tempfile
 
-    from kftune.report.c_export import TOLERANCE, build_demo, c_files, check_manoeuvre
+    from kftune.report.c_export import (
+        FLOAT_MEASURES,
+        TOLERANCE,
+        build_demo,
+        c_files,
+        check_manoeuvre,
+        demo_columns,
+        float_summary,
+    )
 
     tuned, dataset, manoeuvres, vehicle = check
     quiet = args.json
+    r_diag = dict(zip(model.measurement_names, doc["r_diag"]))
     rows = []
     with tempfile.TemporaryDirectory(prefix="kftune-c-check-") as tmp:
         work = Path(tmp)
@@ -351,7 +365,7 @@ def _check(
             )
             print(f"{'manoeuvre':{width}s}  deviation  {'column':16s}  stop (step, cause){vs}")
         for m in manoeuvres:
-            row = check_manoeuvre(exe, tuned, m, vehicle, double_exe)
+            row = check_manoeuvre(exe, tuned, m, vehicle, double_exe, r_diag)
             rows.append(row)
             if not quiet:
                 stop = "-" if row.stop is None else f"{row.stop[0]}, {row.stop[1]}"
@@ -363,9 +377,12 @@ def _check(
                 print((line + f"{stop:18s}{extra}").rstrip(), flush=True)
     worst = max(r.deviation for r in rows)
     worst_double = max((r.vs_double for r in rows if r.vs_double is not None), default=None)
-    passed = (
-        worst <= TOLERANCE if precision == "double" else all(r.stop == r.kftune_stop for r in rows)
-    )
+    same_stops = all(r.stop == r.kftune_stop for r in rows)
+    summary = {}
+    if precision == "float":
+        summary = float_summary(rows, demo_columns(model))
+    beyond = [name for name, col in summary.items() if not col.within]
+    passed = worst <= TOLERANCE if precision == "double" else same_stops and not beyond
     doc_check = {
         "dataset": dataset.name,
         "compiler": " ".join(cc),
@@ -384,6 +401,21 @@ def _check(
             for r in rows
         },
     }
+    if precision == "float":
+        doc_check["float"] = {
+            "measures": FLOAT_MEASURES,
+            "columns": {
+                name: {
+                    "kind": col.kind,
+                    "max": _num(col.largest),
+                    "p99": _num(col.p99),
+                    "bound": col.bound,
+                    "within": col.within,
+                }
+                for name, col in summary.items()
+            },
+            "beyond": beyond,
+        }
     if not quiet:
         if precision == "double":
             verdict = (
@@ -393,17 +425,60 @@ def _check(
             )
             print(f"worst {worst:.2e} (limit {TOLERANCE:g}): {verdict}")
         else:
-            print(
-                f"float: worst {worst:.2e} against kftune, {worst_double:.2e} against the "
-                "double C filter (rounding of float, about 6e-8 per operation)"
-                + ("" if passed else "; it stops elsewhere than kftune on some manoeuvres")
-            )
+            _print_float(summary, worst, worst_double, same_stops)
     if not passed:
         print(
             "kftune: failed: the exported filter's check found deviations beyond its limit",
             file=sys.stderr,
         )
     return doc_check, EXIT_OK if passed else EXIT_FAILURE
+
+
+#: How the float check's table names each kind's measure (FLOAT_MEASURES in short).
+_UNITS = {
+    "state": "sigma",
+    "std": "of sigma",
+    "innovation": "sqrt(R)",
+    "nis": "",
+    "other": "of rms",
+}
+
+
+def _print_float(
+    summary: dict[str, Any], worst: float, worst_double: float | None, stops: bool
+) -> None:
+    """The float check's table: each column's largest deviation from kftune's double filter
+    and its 99th percentile in its own terms, against the stated bound, and the verdict."""
+    print(
+        "float against kftune's double filter, over every sample: a state or beta in units "
+        "of its own sigma, a sigma relative, an innovation in units of sqrt(R), the NIS "
+        "absolutely"
+    )
+    print(f"{'column':16s}  {'largest':>9s}  {'p99':>9s}  {'bound':>7s}  {'unit':8s}  verdict")
+    for name, col in summary.items():
+        verdict = "within" if col.within else f"BEYOND ({col.largest / col.bound:.3g} x the bound)"
+        print(
+            f"{name:16s}  {col.largest:9.2e}  {col.p99:9.2e}  {col.bound:7.2g}  "
+            f"{_UNITS[col.kind]:8s}  {verdict}"
+        )
+    beyond = [name for name, col in summary.items() if not col.within]
+    norms = (
+        f"(largest relative deviation of a column's norm: {worst:.2e} against kftune, "
+        f"{worst_double:.2e} against the double C filter)"
+    )
+    if not beyond and stops:
+        print(f"float: every column within the stated bounds {norms}")
+        return
+    if beyond:
+        print(
+            f"float: BEYOND the stated bound in {', '.join(beyond)} {norms}: this filter "
+            "loses too much in float. A UKF whose sigma of a state is a small fraction of its "
+            "value (Vx known to 1e-4 of itself) cannot spread its sigma points finely enough "
+            "in float's 24 bits: export it in double, or its EKF (kftune tune --filter ekf), "
+            "which held every bound on the same data (BENCHMARKS.md)"
+        )
+    if not stops:
+        print("float: it stops elsewhere than kftune on some manoeuvres")
 
 
 def _num(v: float | None) -> float | None:

@@ -56,15 +56,22 @@ from kftune.tuning.deploy import DT_TOLERANCE
 __all__ = [
     "CFLAGS",
     "C_FILES",
+    "FLOAT_BOUNDS",
+    "FLOAT_MEASURES",
     "PRECISIONS",
     "TOLERANCE",
     "CheckRow",
     "DemoRun",
+    "FloatColumn",
     "build_demo",
     "c_files",
     "check_manoeuvre",
     "column_deviations",
+    "column_kind",
+    "demo_columns",
     "find_compiler",
+    "float_deviations",
+    "float_summary",
     "manoeuvre_csv",
     "run_demo",
 ]
@@ -844,6 +851,12 @@ def _columns(model: StateSpaceModel) -> tuple[list[str], list[str]]:
     return names, exprs
 
 
+def demo_columns(model: StateSpaceModel) -> list[str]:
+    """The columns the demo of a filter of ``model`` writes before the references: ``t``
+    and those of :func:`kftune.tuning.deploy.estimates_of`."""
+    return ["t", *_columns(model)[0]]
+
+
 def _reference_candidates(model: StateSpaceModel, computed: Sequence[str]) -> list[str]:
     """The reference columns estimate copies from a recording that has them, in order."""
     out = ["beta_ref"]
@@ -882,8 +895,11 @@ _DEMO = r"""/*
  * kftune_demo.c: run the exported filter on a manoeuvre.
  *
  *     ./kftune_demo < manoeuvre.csv > estimates.csv
+ *     gzip -dc manoeuvre.csv.gz | ./kftune_demo > estimates.csv
  *
- * Input: a manoeuvre of a kftune dataset as CSV (the dataset's files, uncompressed): a
+ * Input: a manoeuvre of a kftune dataset as uncompressed CSV on standard input. A dataset's
+ * manoeuvre files are gzipped (.csv.gz: the bundled set's, and those kftune dataset import
+ * and kftune dataset generate write): decompress them on the way in, as above. The CSV is a
  * header row naming the columns, among them t [s], the model's inputs and measurements (in
  * any order; other columns are ignored, except the references kftune estimate copies, such
  * as beta_ref), then one row of numbers per sample.
@@ -1222,6 +1238,8 @@ int main(void)
 _MAKEFILE = """\
 # Build the exported kftune filter's demo: make (or make CC=clang CFLAGS=...).
 # make asan: the same with the address and undefined-behaviour sanitizers.
+# Run it on a manoeuvre's uncompressed CSV; a dataset's files are gzipped (.csv.gz):
+#     gzip -dc manoeuvre.csv.gz | ./kftune_demo > estimates.csv
 CC ?= cc
 CFLAGS ?= -std=c99 -O2 -Wall -Wextra -Werror -pedantic
 LDLIBS ?= -lm
@@ -1403,6 +1421,82 @@ def column_deviations(
     return out
 
 
+#: How a float export's check measures each kind of column against the double filter
+#: (:func:`float_deviations`), sample by sample.
+FLOAT_MEASURES = {
+    "state": "|f - d| / sigma_d (in units of the column's own standard deviation)",
+    "std": "|sigma_f - sigma_d| / sigma_d (relative)",
+    "innovation": "|y_f - y_d| / sqrt(R) (in units of the measurement noise)",
+    "nis": "|NIS_f - NIS_d| (absolute)",
+    "other": "|f - d| / rms(d) (relative to the column's size)",
+}
+#: The largest deviation of a float export's column from the double filter that its check
+#: accepts, per kind of column (:data:`FLOAT_MEASURES`): a tenth of the column's own σ for
+#: a state or β, 10 % of a σ, a tenth of √R for an innovation, 0.5 for the NIS (a χ² gate
+#: moved by less than that). Chosen for what an estimate is used for, and checked against
+#: the float filters measured in BENCHMARKS.md ("--precision float"): the EKFs, and the
+#: UKFs whose σ of every state stays well above float's resolution of its value, are inside
+#: with a margin of 2 or more; UKFs with a state known to about 1e-4 of its size (Vx with a
+#: q_vx of 1e-8 or less) are not, and their check says so. "other" (an output without a σ
+#: column; no built-in model has one) is not measured: 1e-3 of the column's RMS.
+FLOAT_BOUNDS = {"state": 0.1, "std": 0.1, "innovation": 0.1, "nis": 0.5, "other": 1e-3}
+
+
+def column_kind(name: str, columns: Sequence[str]) -> str:
+    """The kind of the estimate column ``name`` among ``columns`` (:data:`FLOAT_MEASURES`):
+    a state or output with a ``<name>_std`` column, a standard deviation, an innovation, the
+    NIS, or another (an output without σ, a copied reference)."""
+    if name == "nis":
+        return "nis"
+    if name.startswith("innovation_"):
+        return "innovation"
+    if name.endswith("_std") and name[: -len("_std")] in columns:
+        return "std"
+    if f"{name}_std" in columns:
+        return "state"
+    return "other"
+
+
+def float_deviations(
+    got: Mapping[str, np.ndarray], want: Mapping[str, np.ndarray], r_diag: Mapping[str, float]
+) -> dict[str, np.ndarray]:
+    """Sample by sample, how far each column of a float filter's run ``got`` is from the
+    double filter's (or kftune's) ``want``, in the terms of its kind (:func:`column_kind`,
+    :data:`FLOAT_MEASURES`): a state or output in units of its own standard deviation
+    σ_d (the ``<name>_std`` column of ``want``), a σ relative to σ_d, an innovation in units
+    of √R of its measurement (``r_diag``: measurement name → variance; √S ≥ √R, so this is
+    the stricter measure), the NIS absolutely, any other column relative to its RMS.
+
+    Returns:
+        column name → (N,) deviations over the rows where both are finite (the rows where
+        only one is finite are a stop at another step, which the check reports apart).
+    """
+    out: dict[str, np.ndarray] = {}
+    names = list(want)
+    for name, w in want.items():
+        if name == "t" or name not in got:
+            continue
+        g, w = np.asarray(got[name], dtype=float), np.asarray(w, dtype=float)
+        ok = np.isfinite(g) & np.isfinite(w)
+        diff = np.abs(g - w)
+        kind = column_kind(name, names)
+        if kind == "state":
+            scale = np.asarray(want[f"{name}_std"], dtype=float)
+            ok &= np.isfinite(scale) & (scale > 0)
+        elif kind == "std":
+            scale = np.abs(w)
+            ok &= scale > 0
+        elif kind == "innovation":
+            scale = np.full(w.shape, math.sqrt(r_diag[name[len("innovation_") :]]))
+        elif kind == "nis":
+            scale = np.ones(w.shape)
+        else:
+            rms = float(np.sqrt(np.mean(w[ok] ** 2))) if ok.any() else 0.0
+            scale = np.full(w.shape, rms if rms > 0 else 1.0)
+        out[name] = diff[ok] / scale[ok]
+    return out
+
+
 @dataclass(frozen=True)
 class CheckRow:
     """How an exported filter's demo agreed with kftune on one manoeuvre.
@@ -1416,6 +1510,9 @@ class CheckRow:
         kftune_stop: (step, cause) where kftune's stopped, or None.
         vs_double: for a float export, the largest deviation from the double export's
             demo (None otherwise).
+        float_deviation: for a float export, each column's deviations from kftune's
+            estimate sample by sample, in the terms of its kind (:func:`float_deviations`);
+            None otherwise.
     """
 
     manoeuvre: str
@@ -1424,6 +1521,7 @@ class CheckRow:
     stop: tuple[int, int] | None
     kftune_stop: tuple[int, int] | None
     vs_double: float | None = None
+    float_deviation: Mapping[str, np.ndarray] | None = None
 
 
 def check_manoeuvre(
@@ -1432,10 +1530,13 @@ def check_manoeuvre(
     m: Any,
     vehicle: Any,
     double_exe: Path | None = None,
+    r_diag: Mapping[str, float] | None = None,
 ) -> CheckRow:
     """Run the demo ``exe`` and kftune's estimate (:func:`kftune.tuning.deploy.estimate`)
     of the tuned filter ``tuned`` on the manoeuvre ``m`` and compare every column; with
-    ``double_exe`` (the double export's demo of a float export) compare with it too."""
+    ``double_exe`` (the double export's demo of a float export) compare with it too, and
+    measure each column in its own terms (:func:`float_deviations`, with ``r_diag``, the
+    measurement name → R variance)."""
     from kftune.tuning.deploy import estimate
 
     est = estimate(tuned, m, vehicle, probe=False)
@@ -1446,8 +1547,50 @@ def check_manoeuvre(
     res = est.result
     kftune_stop = (int(res.diverged_step), int(res.diverged_cause)) if res.diverged else None
     vs_double = None
+    per_sample = None
     if double_exe is not None:
         other = run_demo(double_exe, text)
         vs_double = max(column_deviations(run.columns, other.columns).values())
+        per_sample = float_deviations(run.columns, est.columns, r_diag or {})
     deviation = dev[column] if run.stop == kftune_stop else math.inf
-    return CheckRow(m.name, deviation, column, run.stop, kftune_stop, vs_double)
+    return CheckRow(m.name, deviation, column, run.stop, kftune_stop, vs_double, per_sample)
+
+
+@dataclass(frozen=True)
+class FloatColumn:
+    """How far one column of a float export is from kftune's estimate over a check's
+    manoeuvres (:func:`float_summary`).
+
+    Attributes:
+        kind: its kind (:data:`FLOAT_MEASURES`); largest, p99: the largest deviation and
+            its 99th percentile over every sample, in the kind's terms; bound: the bound of
+            its kind (:data:`FLOAT_BOUNDS`).
+    """
+
+    kind: str
+    largest: float
+    p99: float
+    bound: float
+
+    @property
+    def within(self) -> bool:
+        """Whether the largest deviation is within the bound."""
+        return self.largest <= self.bound
+
+
+def float_summary(rows: Sequence[CheckRow], columns: Sequence[str]) -> dict[str, FloatColumn]:
+    """Pool the float deviations of a check's ``rows`` column by column (the estimate's
+    ``columns``, to tell each column's kind); references copied from the input are left
+    out (they are the input's numbers)."""
+    pooled: dict[str, list[np.ndarray]] = {}
+    for row in rows:
+        for name, values in (row.float_deviation or {}).items():
+            if not name.endswith("_ref"):
+                pooled.setdefault(name, []).append(values)
+    out: dict[str, FloatColumn] = {}
+    for name, parts in pooled.items():
+        v = np.concatenate(parts)
+        kind = column_kind(name, columns)
+        largest, p99 = (float(v.max()), float(np.percentile(v, 99))) if v.size else (0.0, 0.0)
+        out[name] = FloatColumn(kind, largest, p99, FLOAT_BOUNDS[kind])
+    return out
