@@ -27,8 +27,9 @@ from kftune.data.validate import (
 from kftune.errors import DataError, DataWarning, MissingChannelError, excerpt
 from kftune.vehicle.params import VehicleParams
 
-#: Manoeuvre types of the paper's dataset (Sec. V-A), plus "segment" for a piece of a long
-#: recording; other strings are accepted (a user's own manoeuvre types).
+#: Manoeuvre types of the paper's dataset (Sec. V-A), plus what an import gives without
+#: the mapping's ``kind``: "segment" for a piece cut from a recording, "recording" for one
+#: imported whole; other strings are accepted (a user's own manoeuvre types).
 KINDS: tuple[str, ...] = (
     "braking-in-turn",
     "skidpad",
@@ -39,6 +40,7 @@ KINDS: tuple[str, ...] = (
     "track-lap",
     "spiral",
     "segment",
+    "recording",
 )
 SPLITS: tuple[str, ...] = ("train", "test")
 
