@@ -16,13 +16,14 @@ import pytest
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
 from kftune.data import default_dataset, load_revs
 from kftune.errors import FilterDivergedError
-from kftune.filters import UKFSettings, _kernel, run_ukf, run_ukf_batch, run_ukf_reference
+from kftune.filters import UKFSettings, _kernel, run_ukf, run_ukf_batch
 from kftune.report import ExperimentResults, MethodRun
 from kftune.report.tables import kpi_table, per_manoeuvre_table
 from kftune.tuning.kpi import average_kpis
 from kftune.tuning.problem import TuningProblem, assess
 from kftune.vehicle import preset
 from kftune.vehicle.single_track import MAX_SIDESLIP
+from reference_ukf import run_ukf_reference
 from test_ukf import filterpy_run
 
 BMW = preset("bmw-320i")

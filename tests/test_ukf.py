@@ -14,18 +14,17 @@ from filterpy.kalman import UnscentedKalmanFilter as FilterPyUKF
 from kftune.cli.demo import DEFAULT_Q, demo_inputs, demo_manoeuvre
 from kftune.filters import (
     UKFSettings,
-    UnscentedKalmanFilter,
     default_initial_state,
     merwe_weights,
     run_ukf,
     run_ukf_batch,
     run_ukf_linear,
-    run_ukf_reference,
     sigma_points,
     unscented_transform,
 )
 from kftune.filters._kernel import chol3, chol3_repair
 from kftune.vehicle import lateral_forces, measure, preset, simulate, slip_angles, step_rk4
+from reference_ukf import UnscentedKalmanFilter, run_ukf_reference
 
 BMW = preset("bmw-320i")
 

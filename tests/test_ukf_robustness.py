@@ -20,9 +20,9 @@ from kftune.filters import (
     merwe_weights,
     run_ukf,
     run_ukf_batch,
-    run_ukf_reference,
 )
 from kftune.vehicle import preset
+from reference_ukf import run_ukf_reference
 
 BMW = preset("bmw-320i")
 N = 200

@@ -25,9 +25,9 @@ from kftune.filters import (
     _kernel,
     merwe_weights,
     run_ukf,
-    run_ukf_reference,
     run_ukf_simd,
 )
+from reference_ukf import run_ukf_reference
 
 FIELDS = ("x", "P_diag", "z_hat", "innovation", "nis")
 

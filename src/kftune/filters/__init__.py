@@ -1,5 +1,5 @@
 """Kalman filters: UKF and EKF over any state-space model (one interface, one result type),
-the hand-written 3×3 single-track UKF (``run_ukf``, the fast path), and a numpy reference."""
+the hand-written 3×3 single-track UKF (``run_ukf``, the fast path) and its SIMD lanes."""
 
 from kftune.filters.generic import (
     EKF,
@@ -19,12 +19,10 @@ from kftune.filters.sigma_points import (
 from kftune.filters.ukf import (
     UKFBatchResult,
     UKFResult,
-    UnscentedKalmanFilter,
     default_initial_state,
     run_ukf,
     run_ukf_batch,
     run_ukf_linear,
-    run_ukf_reference,
     run_ukf_simd,
 )
 
@@ -37,7 +35,6 @@ __all__ = [
     "UKFBatchResult",
     "UKFResult",
     "UKFSettings",
-    "UnscentedKalmanFilter",
     "default_initial_state",
     "filter_names",
     "get_filter",
@@ -45,7 +42,6 @@ __all__ = [
     "run_ukf",
     "run_ukf_batch",
     "run_ukf_linear",
-    "run_ukf_reference",
     "run_ukf_simd",
     "sigma_points",
     "unscented_transform",
