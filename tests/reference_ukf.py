@@ -17,6 +17,8 @@ from kftune.errors import FilterDivergedError
 from kftune.filters import _kernel
 from kftune.filters.sigma_points import UKFSettings, merwe_weights, unscented_transform
 from kftune.filters.ukf import UKFResult, _alloc, _check_run
+from kftune.models import sideslip
+from kftune.models.base import STOP_NUMERICAL
 from kftune.vehicle import VehicleParams, measure, step_rk4
 from kftune.vehicle.single_track import MAX_SIDESLIP
 
@@ -157,21 +159,21 @@ def run_ukf_reference(
                 ukf.update(z_arr[k], u_arr[k])
                 z_hat = measure(ukf.x, u_arr[k], p)
         except (FilterDivergedError, ValueError):  # ValueError: the model met a non-finite state
-            return stopped(k, _kernel.STOP_NUMERICAL)
+            return stopped(k, STOP_NUMERICAL)
         if not (np.isfinite(ukf.x).all() and math.isfinite(ukf.nis)):
-            return stopped(k, _kernel.STOP_NUMERICAL)
+            return stopped(k, STOP_NUMERICAL)
         if not ukf.x[0] > 0:
-            return stopped(k, _kernel.STOP_REVERSE)
+            return stopped(k, sideslip.STOP_REVERSE)
         beta = abs(math.atan2(ukf.x[1], ukf.x[0]))
-        if beta > _kernel.RUNAWAY_BETA:
-            return stopped(k, _kernel.STOP_SIDESLIP)
+        if beta > sideslip.RUNAWAY_BETA:
+            return stopped(k, sideslip.STOP_SIDESLIP)
         held_beta = held_beta + 1 if beta > MAX_SIDESLIP else 0
-        off = abs(ukf.x[0] - z_arr[k, 0]) > _kernel.RUNAWAY_VX * z_arr[k, 0]
+        off = abs(ukf.x[0] - z_arr[k, 0]) > sideslip.RUNAWAY_VX * z_arr[k, 0]
         held_vx = held_vx + 1 if off else 0
         if held_beta >= n_hold:
-            return stopped(k + 1 - n_hold, _kernel.STOP_SIDESLIP_HELD)
+            return stopped(k + 1 - n_hold, sideslip.STOP_SIDESLIP_HELD)
         if held_vx >= n_hold:
-            return stopped(k + 1 - n_hold, _kernel.STOP_SPEED)
+            return stopped(k + 1 - n_hold, sideslip.STOP_SPEED)
         out.x[k] = ukf.x
         out.P_diag[k] = np.diag(ukf.P)
         out.z_hat[k] = z_hat

@@ -17,6 +17,7 @@ from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
 from kftune.data import default_dataset, load_revs
 from kftune.errors import FilterDivergedError
 from kftune.filters import UKFSettings, _kernel, run_ukf, run_ukf_batch
+from kftune.models import sideslip
 from kftune.report import ExperimentResults, MethodRun
 from kftune.report.tables import kpi_table, per_manoeuvre_table
 from kftune.tuning.kpi import average_kpis
@@ -72,7 +73,7 @@ def test_huge_process_noise_runs_away_beyond_60_degrees():
     q = [1e9, 1e9, 1e9]
     runs = both(man.u[:N], man.z[:N], q, man.r_var)
     for res in runs:
-        assert res.diverged and res.diverged_cause == _kernel.STOP_SIDESLIP
+        assert res.diverged and res.diverged_cause == sideslip.STOP_SIDESLIP
         k = res.diverged_step
         assert k < 20
         assert np.all(np.abs(res.beta[:k]) <= math.radians(60.0))
@@ -91,7 +92,7 @@ def test_sideslip_held_beyond_46_degrees_for_half_a_second_is_a_runaway_from_its
     u, z = coasting(50.0)
     x0 = [50.0, 50.0 * math.tan(math.radians(55.0)), 0.0]
     for res in both(u, z, [0.0] * 3, R_IGNORE, x0=x0, P0=[1e-6] * 3):
-        assert_stopped(res, 0, _kernel.STOP_SIDESLIP_HELD)
+        assert_stopped(res, 0, sideslip.STOP_SIDESLIP_HELD)
 
 
 def test_sideslip_beyond_46_degrees_for_less_than_half_a_second_is_not_flagged():
@@ -111,7 +112,7 @@ def test_estimated_speed_off_the_measurement_for_half_a_second_is_a_runaway():
     u, z = coasting(20.0)
     kw = {"x0": [40.0, 0.0, 0.0], "P0": [1e-6, 1e-2, 1e-6]}
     for res in both(u, z, [0.0, 1e-4, 1e-6], [1e8, 0.01, 1e-5], **kw):
-        assert_stopped(res, 0, _kernel.STOP_SPEED)
+        assert_stopped(res, 0, sideslip.STOP_SPEED)
 
 
 @pytest.mark.parametrize(("glitch", "flagged"), [(45, False), (55, True)])
@@ -122,7 +123,7 @@ def test_a_speed_glitch_counts_only_when_it_lasts_half_a_second(glitch, flagged)
     z[100 : 100 + glitch, 0] = 8.0
     for res in both(u, z, [0.0, 1e-4, 1e-6], [1e4, 0.01, 1e-5]):
         if flagged:
-            assert_stopped(res, 100, _kernel.STOP_SPEED)
+            assert_stopped(res, 100, sideslip.STOP_SPEED)
         else:
             assert not res.diverged
 
@@ -131,7 +132,7 @@ def test_batch_reports_the_cause_per_set():
     man = demo_manoeuvre(seed=3)
     res = run_ukf_batch(man.u[:N], man.z[:N], man.dt, BMW, [DEFAULT_Q, [1e9] * 3], man.r_var)
     assert res.diverged.tolist() == [False, True]
-    assert res.diverged_cause.tolist() == [0, _kernel.STOP_SIDESLIP]
+    assert res.diverged_cause.tolist() == [0, sideslip.STOP_SIDESLIP]
     assert "60°" in res[1].diverged_reason
 
 

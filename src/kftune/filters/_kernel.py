@@ -61,16 +61,12 @@ from numba import njit, prange
 
 from kftune.models.base import STOP_NONE, STOP_NUMERICAL
 from kftune.models.sideslip import (
-    RUNAWAY_BETA,
     RUNAWAY_HOLD,
-    RUNAWAY_VX,
-    STOP_REVERSE,
-    STOP_SIDESLIP,
     STOP_SIDESLIP_HELD,
     STOP_SPEED,
+    runaway,
 )
 from kftune.vehicle.single_track import (
-    MAX_SIDESLIP,
     measure_scalar,
     rk4_scalar,
     step_context_scalar,
@@ -89,8 +85,6 @@ JITTER_MAX = 1e-6
 # runaway bounds RUNAWAY_* are defined), imported above.
 
 _NAN = math.nan
-_TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
-_TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
 
 
 @njit(cache=True)
@@ -498,14 +492,12 @@ def run_kernel(
             _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
             return k, n_rep, STOP_NUMERICAL
         if check_vx:
-            if not x0 > 0.0:
+            cause, beyond, off = runaway(x0, x1, z[k, 0])
+            if cause != 0:
                 _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-                return k, n_rep, STOP_REVERSE
-            if abs(x1) > _TAN_RUNAWAY_BETA * x0:
-                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-                return k, n_rep, STOP_SIDESLIP
-            held_beta = held_beta + 1 if abs(x1) > _TAN_MAX_SIDESLIP * x0 else 0
-            held_vx = held_vx + 1 if abs(x0 - z[k, 0]) > RUNAWAY_VX * z[k, 0] else 0
+                return k, n_rep, cause
+            held_beta = held_beta + 1 if beyond else 0
+            held_vx = held_vx + 1 if off else 0
             if held_beta >= n_hold or held_vx >= n_hold:
                 k0 = k + 1 - n_hold  # the runaway started there
                 _fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)

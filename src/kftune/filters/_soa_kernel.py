@@ -50,16 +50,8 @@ from numba import njit
 
 from kftune.filters._kernel import chol3, chol3_repair, hold_steps
 from kftune.models.base import STOP_NONE, STOP_NUMERICAL
-from kftune.models.sideslip import (
-    RUNAWAY_BETA,
-    RUNAWAY_VX,
-    STOP_REVERSE,
-    STOP_SIDESLIP,
-    STOP_SIDESLIP_HELD,
-    STOP_SPEED,
-)
+from kftune.models.sideslip import STOP_SIDESLIP_HELD, STOP_SPEED, runaway
 from kftune.vehicle.single_track import (
-    MAX_SIDESLIP,
     measure_scalar,
     rk4_scalar,
     step_context_scalar,
@@ -92,8 +84,6 @@ Y0, Y1, Y2, NIS, H0, H1, H2, OK_P, OK_S, OK_PB = _rows(36, 10)
 NROWS = 46
 BLOCK = NROWS * LANES
 
-_TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
-_TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
 _NAN = math.nan
 
 
@@ -753,18 +743,12 @@ def run_kernel_soa(
                     s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
                 )
                 continue
-            if not x0 > 0.0:
-                n_active = _retire(
-                    s, ints, j, n_active, k, STOP_REVERSE, out_div, out_rep, out_cause
-                )
+            cause, beyond, off = runaway(x0, x1, zk0)
+            if cause != 0:
+                n_active = _retire(s, ints, j, n_active, k, cause, out_div, out_rep, out_cause)
                 continue
-            if abs(x1) > _TAN_RUNAWAY_BETA * x0:
-                n_active = _retire(
-                    s, ints, j, n_active, k, STOP_SIDESLIP, out_div, out_rep, out_cause
-                )
-                continue
-            ints[2, j] = ints[2, j] + 1 if abs(x1) > _TAN_MAX_SIDESLIP * x0 else 0
-            ints[3, j] = ints[3, j] + 1 if abs(x0 - zk0) > RUNAWAY_VX * zk0 else 0
+            ints[2, j] = ints[2, j] + 1 if beyond else 0
+            ints[3, j] = ints[3, j] + 1 if off else 0
             if ints[2, j] >= n_hold or ints[3, j] >= n_hold:
                 why = STOP_SIDESLIP_HELD if ints[2, j] >= n_hold else STOP_SPEED
                 n_active = _retire(

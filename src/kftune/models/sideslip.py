@@ -181,20 +181,40 @@ def measurement_biases(x: np.ndarray, u: np.ndarray, p: np.ndarray, out: np.ndar
     out[2] += x[5]
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def runaway(vx: float, vy: float, vx_measured: float) -> tuple[int, bool, bool]:
+    """The single-track runaway rules (module docstring) on a posterior estimate, the one
+    place they are written: every kernel that runs the model calls this (the generic
+    filters through :func:`check`, the hand-written 3×3 and SIMD kernels directly).
+    |Vy| > tan(bound)·Vx instead of atan2.
+
+    Args:
+        vx, vy: [m/s] the posterior Vx⁺ and Vy⁺. vx_measured: [m/s] the measured Vx.
+
+    Returns:
+        (cause, beyond_sideslip, off_speed): cause STOP_REVERSE (Vx⁺ ≤ 0) or STOP_SIDESLIP
+        (|β⁺| > RUNAWAY_BETA) to stop now, else 0; and whether the held conditions hold at
+        this step: |β⁺| > MAX_SIDESLIP, |Vx⁺ − Vx measured| > RUNAWAY_VX·Vx measured (their
+        counting over RUNAWAY_HOLD is the kernel's).
+    """
+    if not vx > 0.0:
+        return STOP_REVERSE, False, False
+    if abs(vy) > _TAN_RUNAWAY_BETA * vx:
+        return STOP_SIDESLIP, False, False
+    beyond = abs(vy) > _TAN_MAX_SIDESLIP * vx
+    off = abs(vx - vx_measured) > RUNAWAY_VX * vx_measured
+    return 0, beyond, off
+
+
 @njit(cache=True, error_model="numpy")
 def check(x: np.ndarray, z: np.ndarray, u: np.ndarray, p: np.ndarray, held: np.ndarray) -> int:
-    """Vx > 0 and the runaway rules (module docstring); |Vy| > tan(bound)·Vx, no atan2.
-
-    held[0]: |β⁺| > MAX_SIDESLIP; held[1]: |Vx⁺ − z_Vx| > RUNAWAY_VX·z_Vx.
-    """
-    vx = x[0]
-    vy = x[1]
-    if not vx > 0.0:
-        return STOP_REVERSE
-    if abs(vy) > _TAN_RUNAWAY_BETA * vx:
-        return STOP_SIDESLIP
-    held[0] = abs(vy) > _TAN_MAX_SIDESLIP * vx
-    held[1] = abs(vx - z[0]) > RUNAWAY_VX * z[0]
+    """The runaway rules (:func:`runaway`) as the model's check: held[0]: |β⁺| >
+    MAX_SIDESLIP; held[1]: |Vx⁺ − z_Vx| > RUNAWAY_VX·z_Vx."""
+    cause, beyond, off = runaway(x[0], x[1], z[0])
+    if cause != 0:
+        return cause
+    held[0] = beyond
+    held[1] = off
     return 0
 
 
