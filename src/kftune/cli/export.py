@@ -472,10 +472,10 @@ def _print_float(
     if beyond:
         print(
             f"float: BEYOND the stated bound in {', '.join(beyond)} {norms}: this filter "
-            "loses too much in float. A UKF whose sigma of a state is a small fraction of its "
-            "value (Vx known to 1e-4 of itself) cannot spread its sigma points finely enough "
+            "loses too much in float. A UKF whose sigma of a state is a tiny fraction of its "
+            "value (Vx known to 1e-5 of itself) cannot place its sigma points finely enough "
             "in float's 24 bits: export it in double, or its EKF (kftune tune --filter ekf), "
-            "which held every bound on the same data (BENCHMARKS.md)"
+            "which held every bound on the data measured (BENCHMARKS.md)"
         )
     if not stops:
         print("float: it stops elsewhere than kftune on some manoeuvres")
