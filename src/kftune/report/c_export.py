@@ -1469,9 +1469,9 @@ FLOAT_MEASURES = {
 #: a state or β, 10 % of a σ, a tenth of √R for an innovation, 0.5 for the NIS (a χ² gate
 #: moved by less than that). Chosen for what an estimate is used for, and checked against
 #: the eleven float filters measured in BENCHMARKS.md ("--precision float"): nine are
-#: inside, the nearest 1.7 times (σ of r where the gyro is followed tightly); a UKF whose
-#: Vx is known to about 1e-5 of itself (q_vx at tune's lower bound 1e-10) is not, and its
-#: check says so. "other" (an output without a σ column; no built-in model has one) is not
+#: inside, the nearest 1.7 times (σ of r where the gyro is followed tightly); the two UKFs
+#: whose Vx is known to about 1e-5 of itself (q_vx at tune's lower bound 1e-10) are not,
+#: and their check says so. "other" (an output without a σ column; no built-in model has one) is not
 #: measured: 1e-3 of the column's RMS.
 FLOAT_BOUNDS = {"state": 0.1, "std": 0.1, "innovation": 0.1, "nis": 0.5, "other": 1e-3}
 
