@@ -15,7 +15,7 @@ import pytest
 
 from conftest import run_cli
 from kftune.cli.exit_codes import EXIT_BAD_INPUT, EXIT_OK
-from kftune.cli.tune import bound_lines
+from kftune.cli.tune import UNCONVERGED, bound_lines
 from kftune.experiment import FLAT_RISE, LABELS, complete_points, edge_probes
 from kftune.optim import COMPARE_METHODS
 from kftune.space import Param, Space
@@ -146,6 +146,8 @@ def test_a_cost_that_rises_towards_the_bound_is_not_flat_whatever_the_step():
     (line,) = bound_lines(_doc(problem, [hit]), problem, widened=False)
     assert "one decade in, at q_a = 0.1, the cost is 5 % lower" in line
     assert "2 decades out, at q_a = 100, 10 % higher" in line and "unlikely to help" in line
+    # the step in is lower than the tuned point: the search had not converged there
+    assert line.endswith(UNCONVERGED)
 
 
 def test_a_log_cost_is_flat_by_an_absolute_rise():

@@ -118,9 +118,12 @@ if TYPE_CHECKING:
     from kftune.tuning.problem import TuningProblem
 
 TUNED_FORMAT = "kftune-tuned-1"
-#: A held-out β RMSE above another by at most this factor is no worse: the same filter run
-#: from a point that went through the unit cube and back differs in the last digits.
-SAME_RMSE = 1.0 + 1e-6
+#: A held-out β RMSE is called worse than another's in a warning only above this factor:
+#: a 0.3 % gap on six test manoeuvres (a newcomer's joint tuning, C_af moved 1 %) is no
+#: verdict on the parameters, and the test error of one tuning moves by a few per cent
+#: between seeds (BENCHMARKS.md, "Tuning model parameters"). Smaller gaps are shown, not
+#: warned about.
+WORSE_RMSE = 1.02
 #: How a warning inside the held-out evidence starts a line (as the CLI's own warnings do).
 WARN = "\nkftune: warning: "
 
@@ -589,7 +592,22 @@ def bound_lines(doc: dict[str, Any], problem: TuningProblem, widened: bool) -> l
             f" ({'; '.join(notes)})" if notes else ""
         )
         lines.append(said)
+    hints = [line for line in lines if line.startswith("best point on a bound:")]
+    for line, hit in zip(hints, doc["on_bounds"]):  # one hint per hit, in order
+        edge = hit.get("edge") or {}
+        rise, threshold = edge.get("rise"), edge.get("threshold")
+        if rise is not None and threshold is not None and rise < -threshold:
+            # the step in from the bound is lower than the tuned point
+            lines[lines.index(line)] = line + UNCONVERGED
     return lines
+
+
+#: Said after a bound hint whose step in from the bound found a lower cost than the tuned
+#: point (by more than the flatness threshold).
+UNCONVERGED = (
+    " — the step in is lower than the tuned point, so the search had not converged here: "
+    "tune again with a larger -n (a new --storage)"
+)
 
 
 def probe_edges(
@@ -807,7 +825,7 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
     if first != "absent":  # --widen-bounds moved the best point out of the given box
         line = held_out_line({k: v for k, v in h.items() if k != "first_box_beta_rmse_deg"}, cost)
         line += f"\n  best in the box as given (before --widen-bounds): β RMSE {deg(first)}"
-        if first is not None and (tuned is None or tuned > first * SAME_RMSE):
+        if first is not None and (tuned is None or tuned > first * WORSE_RMSE):
             worse = "diverged" if tuned is None else f"{100 * (tuned / first - 1):.1f} % worse"
             line += (
                 f"{WARN}the widened box's filter is {worse} on the held-out manoeuvres "
@@ -823,9 +841,12 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
         line = held_out_line({k: v for k, v in h.items() if k not in joint_keys}, cost)
         noise = h.get("noise_only_beta_rmse_deg", "absent")
         if noise != "absent":  # the first stage of a two-stage joint tuning
-            line += f"\n  noise-only filter (Q tuned alone, first stage): β RMSE {deg(noise)}"
+            line += (
+                "\n  noise-only filter (the noise tuned alone at the recorded model, first "
+                f"stage): β RMSE {deg(noise)}"
+            )
         line += f"\n  tuned Q on the recorded model: β RMSE {deg(recorded)}"
-        if noise not in ("absent", None) and (tuned is None or tuned > noise * SAME_RMSE):
+        if noise not in ("absent", None) and (tuned is None or tuned > noise * WORSE_RMSE):
             worse = "diverged" if tuned is None else f"{100 * (tuned / noise - 1):.1f} % worse"
             line += (
                 f"{WARN}the joint filter is {worse} on the held-out manoeuvres than the "
@@ -833,7 +854,7 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
                 "data would leave no held-out evidence): tune without --tune-model to deploy "
                 "the noise alone, or tune on more varied manoeuvres"
             )
-        if recorded is not None and (tuned is None or tuned > recorded * SAME_RMSE):
+        if recorded is not None and (tuned is None or tuned > recorded * WORSE_RMSE):
             line += (
                 f"{WARN}the tuned model parameters make the filter worse on the held-out "
                 "manoeuvres than the recorded ones with the same Q: they fit the training "

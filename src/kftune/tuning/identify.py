@@ -289,7 +289,8 @@ class ParameterIdentifiability:
             text += (
                 f": not assessed: the search had not converged along {self.name} (the cost "
                 f"is lower at {self.name} = {v:.4g}, by {self.cost - j:.3g}: "
-                f"{(self.cost - j) / self.delta_j:.3g}× the rise that ends a range)"
+                f"{(self.cost - j) / self.delta_j:.3g}× the rise that ends a range; tune "
+                "again with a larger -n, a new --storage, to let it get there)"
             )
             return text + (f"\n      {self.reason}" if self.reason else "")
         lo, hi = self.range_low, self.range_high
