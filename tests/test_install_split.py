@@ -129,7 +129,7 @@ def test_the_main_job_runs_without_any_extra(small, tmp_path):
         assert package in proc.stderr, package
     assert "Traceback" not in proc.stderr
     assert not list(tmp_path.glob("never*"))
-    assert (out / "report.md").is_file() and (tmp_path / "kf.c").is_file()
+    assert (out / "report.md").is_file() and (tmp_path / "kf_c" / "kftune_filter.c").is_file()
 
 
 def _make_variable(name: str) -> str:
