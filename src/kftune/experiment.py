@@ -620,7 +620,9 @@ def flat_rise(problem: TuningProblem, j_best: float) -> float:
         return FLAT_RISE
     if kind in MEAN_NLL_KINDS:
         n_scored = sum(m.n - first_scored(m, problem.burn_in) for m in problem.manoeuvres)
-        return float(rise_of(kind, max(n_scored, 1)))  # type: ignore[arg-type]
+        rise = rise_of(kind, max(n_scored, 1))
+        if rise is not None:  # always, for these kinds
+            return rise
     return FLAT_RISE * (abs(j_best) or 1.0)
 
 
@@ -704,17 +706,18 @@ def figure_manoeuvres(dataset: Dataset, kinds: Sequence[str], sideslip: bool = T
     return picked or [max(test, key=peak).name]
 
 
-def require_success(result: OptimizeResult, method: str) -> None:
-    """Raise :class:`~kftune.errors.RunFailedError` if every evaluation of ``result`` (a run
-    of ``method``) failed, with the count and the reasons grouped by kind
-    (:func:`~kftune.tuning.runs.failure_kinds`)."""
-    if result.x is None:
+def require_success(result: OptimizeResult, method: str) -> tuple[np.ndarray, float]:
+    """The best point and cost of ``result`` (a run of ``method``): (d,) natural units, J.
+    Raises :class:`~kftune.errors.RunFailedError` if every evaluation failed, with the count
+    and the reasons grouped by kind (:func:`~kftune.tuning.runs.failure_kinds`)."""
+    if result.x is None or result.fun is None:
         kinds = failure_kinds(r.reason for r in result.history)
         raise RunFailedError(
             f"every evaluation of {method!r} failed ({result.n_failed} of {result.n_evals}): "
             + ("; ".join(f"{kind} ({n})" for kind, n in kinds) or "no evaluation ran")
             + "; leave the method out or widen its search space"
         )
+    return result.x, float(result.fun)
 
 
 def sideslip_report(model: StateSpaceModel, dataset: Dataset) -> bool:
@@ -786,7 +789,7 @@ def method_run(
         (the :class:`MethodRun`, manoeuvre → β estimate [rad] ``beta_<key>`` for every
         manoeuvre; with ``channels``, their estimates ``<channel>_<key>`` instead).
     """
-    require_success(result, key)
+    x, best_cost = require_success(result, key)
     # time = what the optimiser and the evaluations took (stored in the study, so a resumed
     # run reports the same as an uninterrupted one; the study's own I/O, a few fsyncs a
     # step, is left out: it depends on the disk, see benchmarks/study_io.py)
@@ -795,14 +798,14 @@ def method_run(
     averages: dict[str, dict[str, float]] = {}
     consistency: dict[str, dict[str, Any] | None] = {}
     betas: dict[str, dict[str, np.ndarray]] = {}
-    calibration, calibration_failed = _calibration(problem, result.x)
+    calibration, calibration_failed = _calibration(problem, x)
     scale = problem.cov_scale
     problem.cov_scale = 1.0 if calibration is None else calibration["factor"]
     try:
         for split, manoeuvres in splits.items():
             if not manoeuvres:
                 continue
-            per, runs = assess(problem, result.x, manoeuvres, channels)
+            per, runs = assess(problem, x, manoeuvres, channels)
             metrics[split] = per
             consistency[split] = consistency_docs(problem, manoeuvres, runs, RELIABILITY_LEVELS)[1]
             if channels is None:
@@ -821,12 +824,12 @@ def method_run(
                 }
     finally:
         problem.cov_scale = scale
-    q, r_diag, ukf = problem.decode(result.x)
+    q, r_diag, ukf = problem.decode(x)
     run = MethodRun(
         key=key,
         label=LABELS.get(key, key),
         params=dict(result.params or {}),
-        best_cost=float(result.fun),
+        best_cost=best_cost,
         n_evals=result.n_evals,
         wall_time_s=float(steps.sum()),
         history_cost=[math.nan if r.value is None else float(r.value) for r in result.history],
@@ -864,7 +867,7 @@ def _probed_bounds(problem: TuningProblem, result: OptimizeResult) -> list[dict[
     help; the hits alone where the probes could not run (the report then says only where
     the point lies)."""
     hits = on_bounds(result)
-    if not hits:
+    if not hits or result.x is None:
         return hits
     try:
         return edge_probes(problem, result.x, hits, Space.from_dict(result.space))
@@ -1046,7 +1049,11 @@ def run_compare(
                     "noise_budget": stages.noise_budget,
                     "joint_budget": stages.joint_budget,
                 }
-            if problem.parameterization.model_names and method != "manual":
+            if (
+                problem.parameterization.model_names
+                and method != "manual"
+                and result.x is not None  # always: method_run refused a run without one
+            ):
                 from kftune.tuning.identify import identify_problem
 
                 # whether the data determine the tuned model parameters: the report's

@@ -137,8 +137,9 @@ def run(args: argparse.Namespace) -> int:
             f"--budget {idle[0]}=…: {idle[0]} is not among the methods run "
             f"({' '.join(methods or COMPARE_METHODS)}); add it with --methods or drop the budget"
         )
+    chosen: dict[str, Any] = {"methods": tuple(methods)} if methods else {}
     settings = CompareSettings(
-        **({"methods": tuple(methods)} if methods else {}),
+        **chosen,
         seed=pick(args, config, "seed", 0),
         budgets={**config.get("budgets", {}), **dict(args.budget or [])},
         cost=cost_spec(args, config),

@@ -421,8 +421,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"σ not calibrated: {no_calibration}")
         if doc["held_out"] is not None:
             print(held_out_line(doc["held_out"], doc["cost_spec"]))
-            if (line := held_out_consistency_line(doc["held_out"])) is not None:
-                print(line)
+            if (pooled := held_out_consistency_line(doc["held_out"])) is not None:
+                print(pooled)
         elif no_evidence:
             print(f"no held-out evidence: {no_evidence}")
         for line in ident.lines() if ident is not None else []:
@@ -632,6 +632,8 @@ def probe_edges(
             file=sys.stderr,
             flush=True,
         )
+    if result.x is None:
+        return hits
     try:
         return edge_probes(problem, result.x, hits, Space.from_dict(result.space))
     except KeyboardInterrupt:
@@ -863,7 +865,7 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
         if manual is not None and (tuned is None or tuned > manual):
             line += f"{WARN}the joint filter is worse there than the manual rule of thumb"
         return line
-    worse = manual is not None and (tuned is None or tuned > manual)
+    behind = manual is not None and (tuned is None or tuned > manual)
     left_out = h.get("n_left_out", 0)
     return (
         f"on the {h['n_manoeuvres']} held-out test manoeuvres"
@@ -872,7 +874,7 @@ def held_out_line(h: dict[str, Any], cost: dict[str, Any] | None = None) -> str:
         + (
             "; the tuned filter is the worse one there — the search stopped early (a larger "
             "-n), or the cost is a poor proxy on these data" + _cost_hint(cost)
-            if worse
+            if behind
             else ""
         )
     )
@@ -1027,10 +1029,11 @@ def tuned_document(
     JSON; ``deployment`` holds everything needed to run the filter elsewhere (``kftune
     export``, see :func:`kftune.tuning.deploy.deployment_record`). A model file is recorded
     so that it is found from the file's folder (:func:`~kftune.cli._common.model_file_for`)."""
-    from kftune.experiment import on_bounds
+    from kftune.experiment import on_bounds, require_success
     from kftune.tuning.deploy import deployment_record, model_params_record
 
-    q, r, ukf = problem.decode(result.x)
+    x, _ = require_success(result, result.method)
+    q, r, ukf = problem.decode(x)
     model = model_file_for(problem.model_spec, out)
     return {
         "format": TUNED_FORMAT,

@@ -261,7 +261,7 @@ def linear_model(
     n, nu, m = F_arr.shape[0], G_arr.shape[1], H_arr.shape[0]
     if (x0 is None) != (P0 is None):
         raise ValueError("linear_model needs both x0 and P0 for a fixed prior, or neither")
-    prior, prior_c = (None, "") if x0 is None else _fixed_prior(x0, P0, n)
+    prior, prior_c = (None, "") if x0 is None or P0 is None else _fixed_prior(x0, P0, n)
     pnames = tuple(
         f"{mat}[{i},{j}]"
         for mat, (rows, cols) in (("F", (n, n)), ("G", (n, nu)), ("H", (m, n)), ("D", (m, nu)))

@@ -38,6 +38,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from numba import njit
+from numba.core.dispatcher import Dispatcher
 from scipy.ndimage import uniform_filter1d
 
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
@@ -367,9 +368,9 @@ def sideslip_angle(x: np.ndarray) -> np.ndarray:
 def _model(
     name: str,
     states: tuple[tuple[str, str], ...],
-    f: object,
-    h: object,
-    prior: object,
+    f: Dispatcher,
+    h: Dispatcher,
+    prior: PriorRule,
     description: str,
 ) -> StateSpaceModel:
     return StateSpaceModel(

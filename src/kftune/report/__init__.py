@@ -42,8 +42,8 @@ def all_tables(results: ExperimentResults) -> dict[str, Table]:
     for split in ("train", "test"):
         if split in splits:
             tables[f"kpi_{split}"] = kpi_table(results, split)
-    if (split := consistency_split(results)) is not None:
-        tables[f"consistency_{split}"] = consistency_table(results, split)
+    if (pooled := consistency_split(results)) is not None:
+        tables[f"consistency_{pooled}"] = consistency_table(results, pooled)
     tables["per_manoeuvre"] = per_manoeuvre_table(results)
     tables["parameters"] = _parameter_table(results)
     return tables

@@ -57,7 +57,8 @@ def render(fig: Figure, dpi: int = 130, tight: bool = True) -> bytes:
     ignores a failed one (``savefig`` to the full device succeeds)."""
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, format="png", dpi=dpi, **({"bbox_inches": "tight"} if tight else {}))
+        # bbox_inches=None: savefig's default (rcParams["savefig.bbox"])
+        fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
     finally:
         plt.close(fig)
     return buf.getvalue()

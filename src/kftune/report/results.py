@@ -117,7 +117,7 @@ class ExperimentResults:
             "cost_slice": self.cost_slice,
         }
         (out / RESULTS_FILE).write_text(json.dumps(_jsonable(doc), indent=1) + "\n")
-        flat = {
+        flat: dict[str, Any] = {  # Any: savez's **arrays could otherwise name allow_pickle
             f"{man}::{sig}": np.asarray(arr)
             for man, sigs in self.traces.items()
             for sig, arr in sigs.items()

@@ -65,7 +65,7 @@ class Table:
     def best_cells(self, digits: int | None = None) -> frozenset[tuple[int, int]]:
         """Cells holding the smallest finite value of their group; with ``digits``, compared
         as :meth:`to_markdown` shows them, so values that print alike are all best."""
-        best = set()
+        best: set[tuple[int, int]] = set()
         for group in self.groups:
             values = {
                 (i, j): v
