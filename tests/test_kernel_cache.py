@@ -172,3 +172,25 @@ def test_a_bounds_checked_copy_of_a_model_is_other_code(tmp_path):
     checked = checked_model(model)
     assert checked.f.targetoptions.get("boundscheck") is True
     assert _generated._key(model, "code") != _generated._key(checked, "code")
+
+
+def test_the_cache_runs_only_code_kftune_wrote_in_a_folder_only_its_user_writes(tmp_path):
+    """The cache holds code kftune imports: a module planted under the name kftune would
+    use is never run (kftune's own text is compiled elsewhere instead), and a cache folder
+    that other users can write is not used at all."""
+    model_file = tmp_path / "probe_model.py"
+    model_file.write_text(MODEL.format(gain=1.0))
+    cache = tmp_path / "cache"
+    first = _run(model_file, "ukf", str(cache))
+    planted = cache / "kernels" / f"{first['module']}.py"
+    marker = tmp_path / "RAN"
+    planted.write_text(f"open({str(marker)!r}, 'w').close()\n")
+    again = _run(model_file, "ukf", str(cache))
+    assert not marker.exists() and again["x"] == first["x"]
+    assert planted.read_text().startswith("open(")  # left as it was, not imported
+
+    shared = tmp_path / "shared"
+    (shared / "kernels").mkdir(parents=True)
+    (shared / "kernels").chmod(0o777)
+    out = _run(model_file, "ukf", str(shared))
+    assert out["x"] == first["x"] and not list((shared / "kernels").iterdir())

@@ -23,7 +23,9 @@ is compiled in a temporary folder, as every model was before).
 
 Where: ``$KFTUNE_CACHE_DIR`` if set (empty: no persistent cache), else
 ``$XDG_CACHE_HOME/kftune/kernels`` or ``~/.cache/kftune/kernels``; a folder that cannot be
-written is replaced by a temporary one for the process.
+written, or that other users can write (it holds code kftune imports), is replaced by a
+temporary one for the process, and a module there that is not the text kftune would write
+is never imported.
 """
 
 from __future__ import annotations
@@ -115,12 +117,23 @@ def _generated_module(model: StateSpaceModel, what: str, code: str) -> types.Mod
     if not path.exists():
         _write_once(path, text + code)
         _prune(folder)
+    if _read(path) != text + code:  # not what kftune writes: never run it
+        path = _temporary_dir() / f"{name}.py"
+        _write_once(path, text + code)
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None  # a .py file always has a loader
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def _read(path: Path) -> str | None:
+    """The text of a generated module, None where it cannot be read as one."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def _write_once(path: Path, text: str) -> None:
@@ -168,9 +181,19 @@ def cache_dir() -> Path:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
             pass  # the folder can be written
+        private = all(_private(f) for f in (folder, folder / "__pycache__") if f.exists())
     except OSError:
         return _temporary_dir()
-    return folder
+    return folder if private else _temporary_dir()
+
+
+def _private(folder: Path) -> bool:
+    """Whether only this user can write into ``folder``: the cache holds code (the modules
+    and numba's compiled files) that kftune imports, so a folder others can write is not
+    used (a shared ``KFTUNE_CACHE_DIR`` such as /tmp itself)."""
+    st = folder.stat()
+    owner = st.st_uid == os.getuid() if hasattr(os, "getuid") else True
+    return owner and not st.st_mode & 0o022
 
 
 @functools.cache
