@@ -441,7 +441,10 @@ def test_a_joint_tuning_seeds_its_search_with_the_noise_only_optimum(small, tmp_
     metrics, _ = assess(recorded, q, ds.test)
     expected = np.mean([row["rmse"] for row in metrics.values()])
     assert held["noise_only_beta_rmse_deg"] == pytest.approx(expected, rel=1e-9)
-    assert "noise-only filter (Q tuned alone, first stage): β RMSE" in res.stdout
+    assert (
+        "noise-only filter (the noise tuned alone at the recorded model, first stage): β RMSE"
+        in res.stdout
+    )
 
 
 @pytest.mark.parametrize("stage", [1, 2])
