@@ -186,11 +186,13 @@ def test_the_cache_runs_only_code_kftune_wrote_in_a_folder_only_its_user_writes(
     marker = tmp_path / "RAN"
     planted.write_text(f"open({str(marker)!r}, 'w').close()\n")
     again = _run(model_file, "ukf", str(cache))
-    assert not marker.exists() and again["x"] == first["x"]
+    assert not marker.exists()
+    np.testing.assert_allclose(again["x"], first["x"], rtol=1e-12)
     assert planted.read_text().startswith("open(")  # left as it was, not imported
 
     shared = tmp_path / "shared"
     (shared / "kernels").mkdir(parents=True)
     (shared / "kernels").chmod(0o777)
     out = _run(model_file, "ukf", str(shared))
-    assert out["x"] == first["x"] and not list((shared / "kernels").iterdir())
+    np.testing.assert_allclose(out["x"], first["x"], rtol=1e-12)
+    assert not list((shared / "kernels").iterdir())
