@@ -28,7 +28,7 @@ import numpy as np
 
 from kftune.data import open_dataset
 from kftune.errors import FilterDivergedError
-from kftune.optim import TrustRegionBO
+from kftune.optim import TRBOSettings, TrustRegionBO
 from kftune.tuning.problem import TuningProblem
 
 BUNDLED_JSTAR = 0.352017
@@ -36,7 +36,7 @@ BUNDLED_JSTAR = 0.352017
 
 def run(problem: TuningProblem, seed: int, budget: int, opts: dict) -> dict:
     """One TR-BO run: best-so-far trace and optimiser time per evaluation."""
-    opt = TrustRegionBO(problem.space, budget=budget, seed=seed, **opts)
+    opt = TrustRegionBO(problem.space, TRBOSettings(**opts), budget=budget, seed=seed)
     values, t_eval, t0 = [], 0.0, time.perf_counter()
     while not opt.done:
         trial = opt.ask()

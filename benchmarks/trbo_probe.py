@@ -45,7 +45,7 @@ import optimizers as suite
 from kftune.bo import make_surrogate
 from kftune.bo.acquisition import log_expected_improvement
 from kftune.optim.base import Proposal
-from kftune.optim.trbo import TrustRegionBO
+from kftune.optim.trbo import TRBOSettings, TrustRegionBO
 from kftune.space import Space
 
 GLOBAL_WARPS = ("same", "none", "logmin1", "rank")
@@ -152,12 +152,12 @@ def run(function: str, seed: int, budget: int, args: argparse.Namespace) -> list
         f, space, truth, f_star = suite.observed(prob, seed), prob.space, prob.f, prob.f_star
     opt = ProbeTRBO(
         Space.coerce(space),
+        TRBOSettings(**json.loads(args.options)),
         budget=budget,
         seed=seed,
         global_warp=args.global_warp,
         polish=args.polish,
         global_outside=args.global_outside,
-        **json.loads(args.options),
     )
     best, regret, curve = np.inf, np.inf, []
     for _ in range(budget):

@@ -14,13 +14,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kftune.optim import ExhaustedError, Space, minimize
-from kftune.optim.tsbo import TSBO, PartitionTree, stage2_box
+from kftune.optim.tsbo import TSBO, PartitionTree, TSBOSettings, stage2_box
 from optim_fakes import BRANIN_SPACE, CountingGP, branin
+
+
+def tsbo(space, *, budget=None, seed=0, **settings) -> TSBO:
+    """A TSBO with ``settings`` (:class:`TSBOSettings`) by name."""
+    return TSBO(space, TSBOSettings(**settings), budget=budget, seed=seed)
 
 
 def run(space, fun, **kw) -> TSBO:
     kw.setdefault("surrogate", CountingGP)
-    opt = TSBO(space, **kw)
+    opt = tsbo(space, **kw)
     while not opt.done:
         t = opt.ask()
         opt.tell(t, fun(t.x))
@@ -80,7 +85,7 @@ def test_split_tiles_the_parent(d, k):
 
 def test_stage1_tree_grows_by_2d_minus_1_and_leaves_tile_the_cube():
     sp = {"a": (0.0, 1.0), "b": (0.0, 1.0), "c": (0.0, 1.0)}
-    opt = TSBO(sp, surrogate=CountingGP, budget=12, max_fe=100, seed=1)
+    opt = tsbo(sp, surrogate=CountingGP, budget=12, max_fe=100, seed=1)
     first = opt.ask()
     np.testing.assert_array_equal(first.u, [0.5, 0.5, 0.5])
     assert (first.stage, first.acquisition, first.hyperparameters) == (1, "centre", None)
@@ -163,7 +168,7 @@ def test_tr_fe_in_the_unit_cube_on_a_hand_made_history():
     }
     for name, (q_new, small_natural, small_unit) in cases.items():
         for units, expect in (("natural", small_natural), ("unit-cube", small_unit)):
-            opt = TSBO(sp, surrogate=CountingGP, tr_fe_units=units)
+            opt = tsbo(sp, surrogate=CountingGP, tr_fe_units=units)
             opt._X = np.array([sp.to_unit(np.array(base)), sp.to_unit(np.array(q_new))])
             assert opt._small_move(0, 1) is expect, (name, units)
 
@@ -272,7 +277,7 @@ def test_max_af_switch_alternates_through_stage1_and_chooses_at_the_switch():
 def test_first_choice_is_a_random_tie_break_among_symmetric_candidates():
     firsts = set()
     for seed in range(8):
-        opt = TSBO({"a": (0.0, 1.0), "b": (0.0, 1.0)}, surrogate=CountingGP, seed=seed)
+        opt = tsbo({"a": (0.0, 1.0), "b": (0.0, 1.0)}, surrogate=CountingGP, seed=seed)
         opt.tell(opt.ask(), 1.0)
         firsts.add(tuple(opt.ask().u))
     assert firsts <= {(0.25, 0.25), (0.25, 0.75), (0.75, 0.25), (0.75, 0.75)}
@@ -311,7 +316,7 @@ def test_failures_imputed_pessimistically_and_never_reproposed():
             raise RuntimeError("diverged")
         return branin(x)
 
-    opt = TSBO(BRANIN_SPACE, surrogate=CountingGP, budget=25, seed=4, max_fe=100)
+    opt = tsbo(BRANIN_SPACE, surrogate=CountingGP, budget=25, seed=4, max_fe=100)
     while not opt.done:
         t = opt.ask()
         try:
@@ -408,7 +413,7 @@ def test_without_min_resolution_the_same_runs_come_closer():
 def test_min_resolution_exhaustion_falls_back_then_stops_clearly():
     # d = 1, ε = 0.2: the tree offers 0.5, 0.25, 0.75 (finer centres are within 0.2 of
     # those); random fallback points then fit only in [0, 0.05) and (0.95, 1], one each.
-    opt = TSBO({"a": (0.0, 1.0)}, surrogate=CountingGP, budget=10, max_fe=100, min_resolution=0.2)
+    opt = tsbo({"a": (0.0, 1.0)}, surrogate=CountingGP, budget=10, max_fe=100, min_resolution=0.2)
     with pytest.raises(ExhaustedError, match=r"min_resolution=0\.2 "):
         while not opt.done:
             t = opt.ask()
@@ -440,19 +445,19 @@ def test_records_carry_stage_acquisition_and_hyperparameters():
 
 def test_bad_options():
     with pytest.raises(ValueError, match="mode must be"):
-        TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="fast")
+        tsbo(BRANIN_SPACE, surrogate=CountingGP, mode="fast")
     with pytest.raises(ValueError, match="alpha must be in"):
-        TSBO(BRANIN_SPACE, surrogate=CountingGP, alpha=1.5)
+        tsbo(BRANIN_SPACE, surrogate=CountingGP, alpha=1.5)
     with pytest.raises(ValueError, match="sm_freeze"):
-        TSBO(BRANIN_SPACE, surrogate=CountingGP, sm_freeze="some")
+        tsbo(BRANIN_SPACE, surrogate=CountingGP, sm_freeze="some")
     with pytest.raises(ValueError, match="unknown surrogate"):
-        TSBO(BRANIN_SPACE, surrogate="svm")
+        tsbo(BRANIN_SPACE, surrogate="svm")
     with pytest.raises(ValueError, match="min_resolution must be in"):
-        TSBO(BRANIN_SPACE, surrogate=CountingGP, min_resolution=0.3)
+        tsbo(BRANIN_SPACE, surrogate=CountingGP, min_resolution=0.3)
     with pytest.raises(ValueError, match="tr_fe_units must be one of"):
-        TSBO(BRANIN_SPACE, surrogate=CountingGP, tr_fe_units="natural-log")
+        tsbo(BRANIN_SPACE, surrogate=CountingGP, tr_fe_units="natural-log")
     with pytest.raises(ValueError, match="max_af must be a positive integer or 'switch'"):
-        TSBO(BRANIN_SPACE, surrogate=CountingGP, max_af="always")
+        tsbo(BRANIN_SPACE, surrogate=CountingGP, max_af="always")
 
 
 def test_modes_are_presets_of_six_options():
@@ -464,11 +469,11 @@ def test_modes_are_presets_of_six_options():
         "tr_fe_units",
         "max_af",
     )
-    f = TSBO(BRANIN_SPACE, surrogate=CountingGP).options()
+    f = tsbo(BRANIN_SPACE, surrogate=CountingGP).options()
     assert [f[k] for k in names] == [False, 0.0, 0.0, 0.0, "natural", 10]
-    i = TSBO(BRANIN_SPACE, surrogate=CountingGP, mode="improved").options()
+    i = tsbo(BRANIN_SPACE, surrogate=CountingGP, mode="improved").options()
     assert [i[k] for k in names] == [True, 0.02, 0.25, 0.0, "natural", "switch"]
-    o = TSBO(
+    o = tsbo(
         BRANIN_SPACE, surrogate=CountingGP, mode="improved", stage2_reserve=0.0, max_af=4
     ).options()
     assert [o[k] for k in names] == [True, 0.02, 0.0, 0.0, "natural", 4]
@@ -479,7 +484,7 @@ def test_defaults_are_the_papers_table_iii():
     """ν = 15, MAX_FE = 15, MAX_PE = 40, MAX_SM = 38, β = 0.01, α = 0.15, TR_FE = 0.01."""
     from kftune.bo import make_surrogate
 
-    t = TSBO(BRANIN_SPACE)
+    t = tsbo(BRANIN_SPACE)
     o = t.options()
     assert t.budget == 40 and o["surrogate"] == "tsp" and o["mode"] == "faithful"
     assert (o["max_fe"], o["max_sm"], o["beta"], o["alpha"], o["tr_fe"]) == (

@@ -7,6 +7,8 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
   :data:`METHODS`, built with :func:`make_optimizer`; :data:`DEFAULT_METHOD` is
   :class:`TrustRegionBO` (``"trbo"``), the paper's TSBO is ``"tsbo-tsp"``;
 * :func:`minimize` — the loop on top, with failures, timeouts and SQLite studies;
+* :class:`TRBOSettings`, :class:`TSBOSettings` — TR-BO's and TSBO's settings as records
+  (:func:`make_optimizer` builds them from options by name);
 * :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind;
 * :func:`minimize_widening` — follow-up runs on a wider box while the best point lies on
   a bound.
@@ -35,8 +37,8 @@ from kftune.optim.study import (
     is_study,
     study_files,
 )
-from kftune.optim.trbo import TrustRegionBO
-from kftune.optim.tsbo import TSBO
+from kftune.optim.trbo import TRBOSettings, TrustRegionBO
+from kftune.optim.tsbo import TSBO, TSBOSettings
 from kftune.optim.widen import minimize_widening
 from kftune.space import Param, Space
 
@@ -66,6 +68,8 @@ __all__ = [
     "StudyError",
     "StudyInUseError",
     "StudyWriteError",
+    "TRBOSettings",
+    "TSBOSettings",
     "Trial",
     "TrustRegionBO",
     "is_study",

@@ -65,6 +65,7 @@ import numpy as np
 from kftune.optim.base import ExhaustedError, Optimizer
 from kftune.optim.engine import Engine, EngineLostError, SerialEngine
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
+from kftune.optim.settings import option_names, settings_from
 from kftune.optim.study import Study, StudyError
 from kftune.processes import watch_parent
 from kftune.space import Space
@@ -121,25 +122,42 @@ COMPARE_METHODS: tuple[str, ...] = (*PAPER_METHODS, DEFAULT_METHOD)
 def make_optimizer(
     method: str, space: Any, *, budget: int | None = None, seed: int = 0, **options: Any
 ) -> Optimizer:
-    """Construct an optimiser by name (see :data:`METHODS`).
+    """Construct an optimiser by name (see :data:`METHODS`), its options by name.
+
+    This is where keyword options (a configuration's ``[options.<method>]`` table, the
+    ``**method_options`` of :func:`minimize`) meet the optimisers: a method whose class
+    declares a settings record (``settings_type``: TR-BO's
+    :class:`~kftune.optim.trbo.TRBOSettings`, TSBO's :class:`~kftune.optim.tsbo.TSBOSettings`)
+    gets one built from them (:func:`~kftune.optim.settings.settings_from`); any other
+    takes them as keyword arguments.
 
     Raises:
-        ValueError: unknown method or an option the method does not have.
+        ValueError: unknown method or an option the method does not have (naming it and
+            listing the method's options), or an option's value out of its range.
         kftune.optim.peers.PeerUnavailableError: a peer's package is missing.
     """
     reg = _registry()
     if method not in reg:
         raise ValueError(f"unknown method {method!r}; choose one of {list(METHODS)}")
     cls, defaults = reg[method]
-    params = inspect.signature(cls.__init__).parameters
-    allowed = [n for n in params if n not in ("self", "space", "budget", "seed")]
+    record = getattr(cls, "settings_type", None)
+    if record is not None:
+        allowed = option_names(record)
+    else:
+        params = inspect.signature(cls.__init__).parameters
+        allowed = [n for n in params if n not in ("self", "space", "budget", "seed")]
     unknown = sorted(set(options) - set(allowed))
     if unknown:
         raise ValueError(f"method {method!r} has no option(s) {unknown}; its options: {allowed}")
     clash = sorted(set(options) & set(defaults))
     if clash:
         raise ValueError(f"method {method!r} fixes {clash}; use another method name instead")
-    return cls(Space.coerce(space), budget=budget, seed=seed, **defaults, **options)
+    sp = Space.coerce(space)
+    if record is not None:
+        settings = settings_from(record, {**defaults, **options}, method)
+        with_record: Any = cls  # its __init__ takes the record after the space
+        return with_record(sp, settings, budget=budget, seed=seed)
+    return cls(sp, budget=budget, seed=seed, **defaults, **options)
 
 
 class OptimizationInterrupted(KeyboardInterrupt):

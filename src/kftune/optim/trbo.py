@@ -94,6 +94,8 @@ gathered per default, "Moved from module docstrings", "kftune.optim.trbo".
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -132,48 +134,154 @@ def auto_design(param: Any) -> str:
     return "direct" if narrow and getattr(param, "physical", False) else "axial"
 
 
+def _check_number(name: str, value: Any, ok: Any, expected: str) -> None:
+    """Refuse ``value`` unless it is a number (not a bool) for which ``ok(value)`` holds."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and ok(value)):
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class TRBOSettings:
+    """Every setting of :class:`TrustRegionBO`, checked once (see the module docstring for
+    the algorithm and why each default, BENCHMARKS.md for the runs). Lengths are in the unit
+    cube [0, 1]^d of the search space; counts are evaluations or steps.
+
+    Surrogate:
+        surrogate: ``"gp"`` (default), ``"tsp"`` or ``"robust-gp"``.
+        surrogate_options: keyword options of the surrogate
+            (:func:`kftune.bo.make_surrogate`); ``length_scale_bounds`` defaults to
+            :data:`LENGTH_SCALE_BOUNDS`. Default None: none.
+        warp: output warping, ``"log-min"`` (default), ``"log"`` (log y when y > 0) or
+            ``"none"``.
+        warp_delta: δ of ``"log-min"`` as a share of (median − min) of the values, > 0
+            (default 0.1).
+
+    Initial design:
+        n_init: points of the initial design, ≥ 1 (default None: 2d + 1, the centre and
+            two points on each axis).
+        init_design: ``"auto"`` (default; :func:`auto_design`: ``"axial"`` along log10
+            variances, ``"direct"`` along linear and narrow physical parameters; recorded
+            as ``"axial"`` or ``"direct"`` when all are alike), ``"axial"`` (centre, face
+            centres, then Sobol points), ``"direct"`` (centre, centre ± 1/3 along each
+            axis, then Sobol points) or ``"sobol"`` (centre, then scrambled Sobol points).
+        x0: points (natural units; one (d,) or several (k, d), inside the box) evaluated
+            first, before the design — a known good point, such as the optimum of Q tuned
+            on the recorded model when the model's parameters join the search, so the run
+            ends no worse than it (a design point that coincides with one is left out).
+            Default None: none.
+
+    Trust region (TuRBO):
+        length_init, length_min, length_max: the region's side at the start and after a
+            restart, the side below which it has collapsed, its largest side; need
+            0 < length_min ≤ length_init ≤ length_max (defaults 0.2, 2⁻⁷, 1.0).
+        success_tol: consecutive successful rounds that double the side, ≥ 1 (default 2).
+        failure_tol: failed local evaluations that halve it, ≥ 1 (default None:
+            max(3, d)).
+        improvement_rtol: a result improves (a success for the trust region, a reset of
+            the stall count) when it beats the centre (local) or the incumbent (global) by
+            this share of its magnitude, in [0, 1) (default :data:`IMPROVEMENT_RTOL`,
+            1e-3).
+        restart: after a collapse, ``"alternate"`` (default: re-centre on the incumbent,
+            then on the escape steps' best the next time, and so on), ``"fresh"`` (always
+            the escape steps' best) or ``"incumbent"`` (always the incumbent).
+        escape: global steps (largest predictive standard deviation) after the trust
+            region collapsed, ≥ 0 (default 2).
+
+    Global steps and axis probes:
+        global_every: every this-many model-based steps is global, ≥ 0 (0: never;
+            default 4).
+        probe_after: an axis probe after this many model-based results in a row without
+            an improvement, ≥ 0 (0: never; default 5); doubled after each probe that
+            improves nothing.
+        probe_length_scale: only coordinates whose GP length scale (unit cube) is at least
+            this are probed, ≥ 0 (default 0.5).
+
+    Maximising the acquisition:
+        n_candidates: random candidates per step, ≥ 1 (more cost time, not evaluations;
+            default 500).
+        faces: add candidates moved onto the faces that the region touches (default True).
+
+    Hyperparameter fits:
+        refit_every: a fit with restarts every this-many steps, ≥ 1 (default 5).
+        full_fit_until: fits with restarts while there are at most this many results, ≥ 0
+            (default 20); otherwise warm-started from the last fit.
+    """
+
+    surrogate: str = "gp"
+    surrogate_options: Mapping[str, Any] | None = None
+    warp: str = "log-min"
+    warp_delta: float = 0.1
+    n_init: int | None = None
+    init_design: str = "auto"
+    x0: Any = None
+    length_init: float = 0.2
+    length_min: float = 2.0**-7
+    length_max: float = 1.0
+    success_tol: int = 2
+    failure_tol: int | None = None
+    improvement_rtol: float = IMPROVEMENT_RTOL
+    restart: str = "alternate"
+    escape: int = 2
+    global_every: int = 4
+    probe_after: int = 5
+    probe_length_scale: float = 0.5
+    n_candidates: int = 500
+    faces: bool = True
+    refit_every: int = 5
+    full_fit_until: int = 20
+
+    def __post_init__(self) -> None:
+        """Refuse a setting out of its range (ValueError naming it); the checks that need
+        the space (``x0``) are :class:`TrustRegionBO`'s."""
+        if self.warp not in WARPS:
+            raise ValueError(f"warp must be one of {WARPS}, got {self.warp!r}")
+        _check_number(
+            "warp_delta", self.warp_delta, lambda v: 0.0 < v < math.inf, "a positive number"
+        )
+        _check_number(
+            "probe_length_scale",
+            self.probe_length_scale,
+            lambda v: 0.0 <= v < math.inf,
+            "a number >= 0",
+        )
+        _check_number(
+            "improvement_rtol",
+            self.improvement_rtol,
+            lambda v: 0.0 <= v < 1.0,
+            "a number in [0, 1)",
+        )
+        if self.restart not in RESTARTS:
+            raise ValueError(f"restart must be one of {RESTARTS}, got {self.restart!r}")
+        if self.init_design not in INIT_DESIGNS:
+            raise ValueError(f"init_design must be one of {INIT_DESIGNS}, got {self.init_design!r}")
+        if not 0.0 < self.length_min <= self.length_init <= self.length_max:
+            raise ValueError(
+                "need 0 < length_min <= length_init <= length_max, got "
+                f"{self.length_min!r}, {self.length_init!r}, {self.length_max!r}"
+            )
+        positive = ("n_init", "success_tol", "failure_tol", "n_candidates", "refit_every")
+        counts = (*positive, "global_every", "escape", "probe_after", "full_fit_until")
+        for name in counts:
+            val = getattr(self, name)
+            low = 1 if name in positive else 0
+            if val is None and name in ("n_init", "failure_tol"):  # d-dependent defaults
+                continue
+            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {val!r}")
+
+
 class TrustRegionBO(Optimizer):
     """Trust-region Bayesian optimisation over one surrogate of the whole run (see the
     module docstring for the algorithm and why each default, BENCHMARKS.md for the runs).
 
     Args:
         space, budget, seed: see :class:`~kftune.optim.base.Optimizer`.
-        surrogate: ``"gp"`` (default), ``"tsp"`` or ``"robust-gp"``.
-        surrogate_options: options of the surrogate; ``length_scale_bounds`` defaults to
-            :data:`LENGTH_SCALE_BOUNDS`.
-        n_init: points of the initial design (default 2d + 1: the centre and the face
-            centres).
-        init_design: ``"auto"`` (:func:`auto_design`: ``"axial"`` along log10 variances,
-            ``"direct"`` along linear and narrow physical parameters; recorded as
-            ``"axial"`` or ``"direct"`` when all are alike),
-            ``"axial"`` (centre, face centres, then Sobol points), ``"direct"`` (centre,
-            centre ± 1/3 along each axis, then Sobol points) or ``"sobol"`` (centre, then
-            scrambled Sobol points).
-        x0: points (natural units; one (d,) or several (k, d), inside the box) evaluated
-            first, before the design — a known good point, such as the optimum of Q tuned
-            on the recorded model when the model's parameters join the search, so the run
-            ends no worse than it (a design point that coincides with one is left out).
-        warp: output warping, ``"log-min"``, ``"log"`` (log y when y > 0) or ``"none"``.
-        warp_delta: δ of ``"log-min"`` as a share of (median − min) of the values.
-        length_init, length_min, length_max: trust-region side in the unit cube.
-        success_tol, failure_tol: consecutive successes that double / failures that halve
-            the side (``failure_tol`` default max(3, d)).
-        global_every: every this-many model-based steps is global (0: never).
-        escape: global steps after the trust region collapsed.
-        probe_after: an axis probe after this many model-based results in a row without
-            an improvement (0: never); doubled after each probe that improves nothing.
-        probe_length_scale: only coordinates whose GP length scale is at least this (unit
-            cube) are probed.
-        restart: after a collapse, ``"alternate"`` (re-centre on the incumbent, then on
-            the escape steps' best the next time, and so on), ``"fresh"`` (always the
-            escape steps' best) or ``"incumbent"`` (always the incumbent).
-        improvement_rtol: a result improves (a success for the trust region, a reset of
-            the stall count) when it beats the centre (local) or the incumbent (global) by
-            this share of its magnitude.
-        n_candidates: random candidates per step (more cost time, not evaluations).
-        faces: add candidates moved onto the faces that the region touches.
-        refit_every, full_fit_until: hyperparameter fits with restarts (see module
-            docstring).
+        settings: every other setting (:class:`TRBOSettings`; default: its defaults). By
+            name, as a configuration's ``[options.trbo]`` gives them:
+            ``make_optimizer("trbo", space, n_init=9)``.
+
+    The settings in use, with the space's defaults filled in (``n_init``, ``failure_tol``,
+    ``init_design``), are :attr:`settings`.
     """
 
     method: str = "trbo"
@@ -182,115 +290,64 @@ class TrustRegionBO(Optimizer):
     #: reached the second one on most seeds of every dataset measured (BENCHMARKS.md).
     default_budget: ClassVar[int] = 100
     budget_independent: ClassVar[bool] = True
+    #: The record of this optimiser's settings (:func:`kftune.optim.make_optimizer`).
+    settings_type: ClassVar[type] = TRBOSettings
 
     def __init__(
         self,
         space: Any,
+        settings: TRBOSettings | None = None,
         *,
         budget: int | None = None,
         seed: int = 0,
-        surrogate: str = "gp",
-        surrogate_options: dict[str, Any] | None = None,
-        n_init: int | None = None,
-        init_design: str = "auto",
-        x0: Any = None,
-        warp: str = "log-min",
-        warp_delta: float = 0.1,
-        length_init: float = 0.2,
-        length_min: float = 2.0**-7,
-        length_max: float = 1.0,
-        success_tol: int = 2,
-        failure_tol: int | None = None,
-        global_every: int = 4,
-        escape: int = 2,
-        n_candidates: int = 500,
-        faces: bool = True,
-        refit_every: int = 5,
-        full_fit_until: int = 20,
-        probe_after: int = 5,
-        probe_length_scale: float = 0.5,
-        restart: str = "alternate",
-        improvement_rtol: float = IMPROVEMENT_RTOL,
     ) -> None:
         super().__init__(space, budget=budget, seed=seed)
+        s = TRBOSettings() if settings is None else settings
+        if not isinstance(s, TRBOSettings):
+            raise TypeError(f"settings must be a TRBOSettings, got {type(s).__name__}")
         d = self.space.dim
-        if warp not in WARPS:
-            raise ValueError(f"warp must be one of {WARPS}, got {warp!r}")
-        if isinstance(warp_delta, bool) or not (
-            isinstance(warp_delta, (int, float)) and 0.0 < warp_delta < math.inf
-        ):
-            raise ValueError(f"warp_delta must be a positive number, got {warp_delta!r}")
-        if isinstance(probe_length_scale, bool) or not (
-            isinstance(probe_length_scale, (int, float)) and 0.0 <= probe_length_scale < math.inf
-        ):
-            raise ValueError(
-                f"probe_length_scale must be a number >= 0, got {probe_length_scale!r}"
-            )
-        if isinstance(improvement_rtol, bool) or not (
-            isinstance(improvement_rtol, (int, float)) and 0.0 <= improvement_rtol < 1.0
-        ):
-            raise ValueError(
-                f"improvement_rtol must be a number in [0, 1), got {improvement_rtol!r}"
-            )
-        if restart not in RESTARTS:
-            raise ValueError(f"restart must be one of {RESTARTS}, got {restart!r}")
-        if init_design not in INIT_DESIGNS:
-            raise ValueError(f"init_design must be one of {INIT_DESIGNS}, got {init_design!r}")
-        if not 0.0 < length_min <= length_init <= length_max:
-            raise ValueError(
-                "need 0 < length_min <= length_init <= length_max, got "
-                f"{length_min!r}, {length_init!r}, {length_max!r}"
-            )
-        ints = {
-            "n_init": n_init if n_init is not None else 2 * d + 1,
-            "success_tol": success_tol,
-            "failure_tol": failure_tol if failure_tol is not None else max(3, d),
-            "global_every": global_every,
-            "escape": escape,
-            "probe_after": probe_after,
-            "n_candidates": n_candidates,
-            "refit_every": refit_every,
-            "full_fit_until": full_fit_until,
-        }
-        positive = ("n_init", "success_tol", "failure_tol", "n_candidates", "refit_every")
-        for name, val in ints.items():
-            low = 1 if name in positive else 0
-            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {val!r}")
-        self.n_init, self.success_tol, self.failure_tol = (
-            int(ints["n_init"]),
-            int(ints["success_tol"]),
-            int(ints["failure_tol"]),
-        )
-        self.global_every, self.escape = int(global_every), int(escape)
-        self.probe_after, self.probe_length_scale = int(probe_after), float(probe_length_scale)
-        self.n_candidates, self.refit_every = int(n_candidates), int(refit_every)
-        self.full_fit_until = int(full_fit_until)
+        init_design = s.init_design
         if init_design == "auto":  # one kind of parameter: say which (and old studies resume)
             kinds = {auto_design(p) for p in self.space.params}
             init_design = kinds.pop() if len(kinds) == 1 else "auto"
-        self.init_design, self.warp, self.faces = init_design, warp, bool(faces)
-        self.restart = restart
-        self.improvement_rtol = float(improvement_rtol)
-        self.warp_delta = float(warp_delta)
-        self.length_init, self.length_min, self.length_max = (
-            float(length_init),
-            float(length_min),
-            float(length_max),
+        s = replace(
+            s,
+            n_init=s.n_init if s.n_init is not None else 2 * d + 1,
+            failure_tol=s.failure_tol if s.failure_tol is not None else max(3, d),
+            init_design=init_design,
         )
-        self.surrogate_name = surrogate
+        self.settings = s
+        self.n_init, self.success_tol, self.failure_tol = (
+            int(s.n_init or 0),
+            int(s.success_tol),
+            int(s.failure_tol or 0),
+        )
+        self.global_every, self.escape = int(s.global_every), int(s.escape)
+        self.probe_after, self.probe_length_scale = int(s.probe_after), float(s.probe_length_scale)
+        self.n_candidates, self.refit_every = int(s.n_candidates), int(s.refit_every)
+        self.full_fit_until = int(s.full_fit_until)
+        self.init_design, self.warp, self.faces = init_design, s.warp, bool(s.faces)
+        self.restart = s.restart
+        self.improvement_rtol = float(s.improvement_rtol)
+        self.warp_delta = float(s.warp_delta)
+        self.length_init, self.length_min, self.length_max = (
+            float(s.length_init),
+            float(s.length_min),
+            float(s.length_max),
+        )
+        self.surrogate_name = s.surrogate
         self.surrogate_options = {
             "length_scale_bounds": LENGTH_SCALE_BOUNDS,
-            **(surrogate_options or {}),
+            **(s.surrogate_options or {}),
         }
         from kftune.bo import make_surrogate
 
         seeds = self.seed_sequence.spawn(3)
         self.surrogate = make_surrogate(
-            surrogate, seed=int(seeds[1].generate_state(1)[0]), **self.surrogate_options
+            s.surrogate, seed=int(seeds[1].generate_state(1)[0]), **self.surrogate_options
         )
         self._n_restarts = self.surrogate.n_restarts
-        self.x0 = self._check_x0(x0)
+        self.x0 = self._check_x0(s.x0)
         design = self._initial_design(np.random.default_rng(seeds[2]))
         if self.x0 is not None:
             u0 = np.clip(self.space.to_unit(self.x0), 0.0, 1.0)
@@ -302,7 +359,7 @@ class TrustRegionBO(Optimizer):
         self.n_success = self.n_failure = 0
         self.tr_restarts = 0
         self._stall = 0  # model-based results told since the last improvement
-        self._probe_wait = int(probe_after)  # stall length that triggers the next probe
+        self._probe_wait = self.probe_after  # stall length that triggers the next probe
         self._iter = 0  # model-based results told so far
         self._n_model = 0  # model-based proposals asked so far (told or pending)
         self._force_global = 0  # escape steps still to hand out

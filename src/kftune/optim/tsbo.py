@@ -130,7 +130,8 @@ from __future__ import annotations
 import copy
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -259,118 +260,174 @@ def stage2_box(
     return np.clip(lo, 0.0, 1.0), np.clip(hi, 0.0, 1.0)
 
 
+@dataclass(frozen=True)
+class TSBOSettings:
+    """Every setting of :class:`TSBO`, checked once (the module docstring gives each
+    decision). The paper's values (Table III) are the defaults; ``mode`` presets the options
+    whose default is None (the modes are listed in the module docstring), and an option
+    given explicitly overrides the preset.
+
+    Surrogate:
+        surrogate: ``"tsp"`` (default; Student-t process, ν = 15), ``"gp"``,
+            ``"robust-gp"``, or a callable ``factory(seed=int) -> Surrogate``.
+        surrogate_options: keyword options for ``kftune.bo.make_surrogate`` (or the
+            factory). Default None: none.
+        max_sm: MAX_SM, evaluations after which the surrogate is frozen, ≥ 1 (default None:
+            ``budget − 2``; paper: 38 of 40).
+        sm_freeze: ``"hyperparameters"`` (default) or ``"full"``.
+
+    Stage 1 (fast exploration) and the switch (Eq. 10):
+        max_fe: MAX_FE, consecutive small moves of the incumbent that end stage 1, ≥ 1
+            (default 15, the paper's).
+        max_af: MAX_AF, AF-chosen stage-1 iterations of EI/CBM alternation, ≥ 1, or
+            ``"switch"``: alternate through all of stage 1 and choose at the switch
+            (default None: the mode's, faithful 10, improved ``"switch"``).
+        beta: CBM exploration weight β, ≥ 0 (default 0.01, the paper's).
+        tr_fe: TR_FE as a fraction of ‖q*‖ (paper: 0.01, the default), or of the unit
+            cube's diagonal √d with ``tr_fe_units="unit-cube"``; ≥ 0.
+        tr_fe_units: ``"natural"`` (paper: ‖Δq*‖ < tr_fe·‖q*‖) or ``"unit-cube"``
+            (‖Δu*‖ < tr_fe·√d). Default None: the mode's (``"natural"``).
+        stage2_reserve: share of the budget reserved for stage 2, in [0, 1) (default None:
+            the mode's, faithful 0, improved 0.25).
+
+    Stage 2 (pure exploitation, Eq. 11):
+        alpha: the stage-2 box's half-width α, relative in natural units, in (0, 1)
+            (default 0.15, the paper's).
+        min_box_halfwidth: floor of the stage-2 half-width in the unit cube, in [0, 0.5]
+            (default None: the mode's, faithful 0, improved 0.02).
+        keep_stage1_data: the stage-2 surrogate also fits the stage-1 data (default None:
+            the mode's, faithful False, improved True).
+
+    Both stages:
+        mode: ``"faithful"`` (default) or ``"improved"``: the presets above.
+        min_resolution: ε (unit cube, max-norm), in [0, 0.25): no point within ε of an
+            asked point is proposed (default None: the mode's, 0 = the paper's, which only
+            excludes exact repeats).
+    """
+
+    surrogate: str | Callable[..., Any] = "tsp"
+    surrogate_options: Mapping[str, Any] | None = None
+    max_sm: int | None = None
+    sm_freeze: str = "hyperparameters"
+    max_fe: int = 15
+    max_af: int | str | None = None
+    beta: float = 0.01
+    tr_fe: float = 0.01
+    tr_fe_units: str | None = None
+    stage2_reserve: float | None = None
+    alpha: float = 0.15
+    min_box_halfwidth: float | None = None
+    keep_stage1_data: bool | None = None
+    mode: str = "faithful"
+    min_resolution: float | None = None
+
+    def __post_init__(self) -> None:
+        """Refuse a setting out of its range (ValueError naming it); the presets of
+        ``mode`` are valid, so checking what is given checks what is used."""
+        if self.mode not in _MODES:
+            raise ValueError(f"mode must be one of {list(_MODES)}, got {self.mode!r}")
+        if self.sm_freeze not in ("hyperparameters", "full"):
+            raise ValueError(
+                f"sm_freeze must be 'hyperparameters' or 'full', got {self.sm_freeze!r}"
+            )
+        for name, val in (("max_fe", self.max_fe), ("max_af", self.max_af)):
+            if name == "max_af" and val in ("switch", None):
+                continue
+            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 1:
+                extra = " or 'switch'" if name == "max_af" else ""
+                raise ValueError(f"{name} must be a positive integer{extra}, got {val!r}")
+        max_sm = self.max_sm
+        if max_sm is not None and (not isinstance(max_sm, (int, np.integer)) or max_sm < 1):
+            raise ValueError(f"max_sm must be a positive integer, got {max_sm!r}")
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha!r}")
+        if not self.beta >= 0.0 or not self.tr_fe >= 0.0:
+            raise ValueError(f"beta and tr_fe must be >= 0, got {self.beta!r}, {self.tr_fe!r}")
+        preset = _MODES[self.mode]
+        halfwidth = float(self._pick("min_box_halfwidth", preset))
+        reserve = float(self._pick("stage2_reserve", preset))
+        if not 0.0 <= halfwidth <= 0.5 or not 0.0 <= reserve < 1.0:
+            raise ValueError(
+                "min_box_halfwidth must be in [0, 0.5] and stage2_reserve in [0, 1); got "
+                f"{halfwidth!r}, {reserve!r}"
+            )
+        resolution = float(self._pick("min_resolution", preset))
+        if not 0.0 <= resolution < 0.25:
+            raise ValueError(f"min_resolution must be in [0, 0.25) (unit cube), got {resolution!r}")
+        units = str(self._pick("tr_fe_units", preset))
+        if units not in _TR_FE_UNITS:
+            raise ValueError(f"tr_fe_units must be one of {list(_TR_FE_UNITS)}, got {units!r}")
+        if not isinstance(self.surrogate, str) and not callable(self.surrogate):
+            raise ValueError(f"surrogate must be a name or a factory, got {self.surrogate!r}")
+
+    def _pick(self, name: str, preset: Mapping[str, Any]) -> Any:
+        """The option ``name`` as given, or the preset's value when it is None."""
+        value = getattr(self, name)
+        return preset[name] if value is None else value
+
+    def with_preset(self) -> TSBOSettings:
+        """These settings with every option left to the mode (None) set to its preset, in
+        the types :class:`TSBO` uses (``max_sm`` stays: its default needs the budget)."""
+        preset = _MODES[self.mode]
+        return replace(
+            self,
+            max_af=self._pick("max_af", preset),
+            keep_stage1_data=bool(self._pick("keep_stage1_data", preset)),
+            min_box_halfwidth=float(self._pick("min_box_halfwidth", preset)),
+            stage2_reserve=float(self._pick("stage2_reserve", preset)),
+            min_resolution=float(self._pick("min_resolution", preset)),
+            tr_fe_units=str(self._pick("tr_fe_units", preset)),
+        )
+
+
 class TSBO(Optimizer):
     """Two-stage Bayesian optimisation (see the module docstring for every decision).
 
     Args:
         space: search space.
+        settings: the algorithm's settings (:class:`TSBOSettings`; default: the paper's).
+            By name, as a configuration's ``[options.tsbo-tsp]`` gives them:
+            ``make_optimizer("tsbo-tsp", space, max_fe=10)``.
         budget: total evaluations = MAX_PE (paper: 40).
         seed: drives the surrogate fits, tie-breaks and fallbacks.
-        surrogate: ``"tsp"`` (Student-t process, ν = 15), ``"gp"``, ``"robust-gp"``, or a
-            callable ``factory(seed=int) -> Surrogate``.
-        surrogate_options: keyword options for ``kftune.bo.make_surrogate``.
-        max_fe: MAX_FE, consecutive small moves that end stage 1 (paper: 15).
-        max_sm: MAX_SM, evaluations after which the surrogate is frozen; default
-            ``budget − 2`` (paper: 38 of 40).
-        max_af: MAX_AF, AF-chosen stage-1 iterations of EI/CBM alternation, or
-            ``"switch"``: alternate through all of stage 1 and choose at the switch.
-            Default: the mode's (faithful 10, improved ``"switch"``).
-        beta: CBM exploration weight β (paper: 0.01).
-        alpha: stage-2 box half-width α, relative in natural units (paper: 0.15).
-        tr_fe: TR_FE as a fraction of ‖q*‖ (paper: 0.01), or of the unit cube's diagonal
-            √d with ``tr_fe_units="unit-cube"``.
-        mode: ``"faithful"`` or ``"improved"`` (presets for ``max_af`` and the options
-            below; an option given explicitly overrides the preset).
-        sm_freeze: ``"hyperparameters"`` or ``"full"``.
-        keep_stage1_data: stage-2 surrogate also fits the stage-1 data.
-        min_box_halfwidth: floor of the stage-2 half-width in the unit cube.
-        stage2_reserve: share of the budget reserved for stage 2.
-        min_resolution: ε (unit cube, max-norm): no point within ε of an asked point is
-            proposed (0 = paper, which only excludes exact repeats).
-        tr_fe_units: ``"natural"`` (paper: ‖Δq*‖ < tr_fe·‖q*‖) or ``"unit-cube"``
-            (‖Δu*‖ < tr_fe·√d).
+
+    The settings in use, the mode's presets and ``max_sm``'s default filled in, are
+    :attr:`settings`.
     """
 
     method: str = "tsbo"
     default_budget: ClassVar[int] = 40
+    #: The record of this optimiser's settings (:func:`kftune.optim.make_optimizer`).
+    settings_type: ClassVar[type] = TSBOSettings
 
     def __init__(
         self,
         space: Any,
+        settings: TSBOSettings | None = None,
         *,
         budget: int | None = None,
         seed: int = 0,
-        surrogate: str | Callable[..., Any] = "tsp",
-        surrogate_options: dict[str, Any] | None = None,
-        max_fe: int = 15,
-        max_sm: int | None = None,
-        max_af: int | str | None = None,
-        beta: float = 0.01,
-        alpha: float = 0.15,
-        tr_fe: float = 0.01,
-        mode: str = "faithful",
-        sm_freeze: str = "hyperparameters",
-        keep_stage1_data: bool | None = None,
-        min_box_halfwidth: float | None = None,
-        stage2_reserve: float | None = None,
-        min_resolution: float | None = None,
-        tr_fe_units: str | None = None,
     ) -> None:
         super().__init__(space, budget=budget, seed=seed)
-        if mode not in _MODES:
-            raise ValueError(f"mode must be one of {list(_MODES)}, got {mode!r}")
-        if sm_freeze not in ("hyperparameters", "full"):
-            raise ValueError(f"sm_freeze must be 'hyperparameters' or 'full', got {sm_freeze!r}")
-        preset = _MODES[mode]
-        if max_af is None:
-            max_af = preset["max_af"]
-        for name, val in (("max_fe", max_fe), ("max_af", max_af)):
-            if name == "max_af" and val == "switch":
-                continue
-            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 1:
-                extra = " or 'switch'" if name == "max_af" else ""
-                raise ValueError(f"{name} must be a positive integer{extra}, got {val!r}")
-        if max_sm is None:
-            max_sm = max(1, self.budget - 2)
-        if not isinstance(max_sm, (int, np.integer)) or max_sm < 1:
-            raise ValueError(f"max_sm must be a positive integer, got {max_sm!r}")
-        if not 0.0 < alpha < 1.0:
-            raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
-        if not beta >= 0.0 or not tr_fe >= 0.0:
-            raise ValueError(f"beta and tr_fe must be >= 0, got {beta!r}, {tr_fe!r}")
-        self.mode = mode
-        self.keep_stage1_data = bool(
-            preset["keep_stage1_data"] if keep_stage1_data is None else keep_stage1_data
-        )
-        self.min_box_halfwidth = float(
-            preset["min_box_halfwidth"] if min_box_halfwidth is None else min_box_halfwidth
-        )
-        self.stage2_reserve = float(
-            preset["stage2_reserve"] if stage2_reserve is None else stage2_reserve
-        )
-        if not 0.0 <= self.min_box_halfwidth <= 0.5 or not 0.0 <= self.stage2_reserve < 1.0:
-            raise ValueError(
-                "min_box_halfwidth must be in [0, 0.5] and stage2_reserve in [0, 1); got "
-                f"{self.min_box_halfwidth!r}, {self.stage2_reserve!r}"
-            )
-        self.min_resolution = float(
-            preset["min_resolution"] if min_resolution is None else min_resolution
-        )
-        if not 0.0 <= self.min_resolution < 0.25:
-            raise ValueError(
-                f"min_resolution must be in [0, 0.25) (unit cube), got {self.min_resolution!r}"
-            )
-        self.tr_fe_units = str(preset["tr_fe_units"] if tr_fe_units is None else tr_fe_units)
-        if self.tr_fe_units not in _TR_FE_UNITS:
-            raise ValueError(
-                f"tr_fe_units must be one of {list(_TR_FE_UNITS)}, got {self.tr_fe_units!r}"
-            )
-        self.max_fe, self.max_sm = int(max_fe), int(max_sm)
-        self.max_af: int | None = None if max_af == "switch" else int(max_af)
-        self.beta, self.alpha, self.tr_fe = float(beta), float(alpha), float(tr_fe)
-        self.sm_freeze = sm_freeze
+        s = TSBOSettings() if settings is None else settings
+        if not isinstance(s, TSBOSettings):
+            raise TypeError(f"settings must be a TSBOSettings, got {type(s).__name__}")
+        s = s.with_preset()
+        s = replace(s, max_sm=max(1, self.budget - 2) if s.max_sm is None else s.max_sm)
+        self.settings = s
+        self.mode = s.mode
+        self.keep_stage1_data = bool(s.keep_stage1_data)
+        self.min_box_halfwidth = float(s.min_box_halfwidth or 0.0)
+        self.stage2_reserve = float(s.stage2_reserve or 0.0)
+        self.min_resolution = float(s.min_resolution or 0.0)
+        self.tr_fe_units = str(s.tr_fe_units)
+        self.max_fe, self.max_sm = int(s.max_fe), int(s.max_sm or 1)
+        self.max_af: int | None = None if s.max_af == "switch" else int(s.max_af or 0)
+        self.beta, self.alpha, self.tr_fe = float(s.beta), float(s.alpha), float(s.tr_fe)
+        self.sm_freeze = s.sm_freeze
+        surrogate = s.surrogate
         self.surrogate_name = surrogate if isinstance(surrogate, str) else _qualname(surrogate)
-        self.surrogate_options = dict(surrogate_options or {})
+        self.surrogate_options = dict(s.surrogate_options or {})
         self.method = f"tsbo-{self.surrogate_name}" if isinstance(surrogate, str) else "tsbo"
         surrogate_seed = int(self.seed_sequence.spawn(2)[1].generate_state(1)[0])
         if isinstance(surrogate, str):
@@ -379,10 +436,8 @@ class TSBO(Optimizer):
             self.surrogate = make_surrogate(
                 surrogate, seed=surrogate_seed, **self.surrogate_options
             )
-        elif callable(surrogate):
-            self.surrogate = surrogate(seed=surrogate_seed, **self.surrogate_options)
         else:
-            raise ValueError(f"surrogate must be a name or a factory, got {surrogate!r}")
+            self.surrogate = surrogate(seed=surrogate_seed, **self.surrogate_options)
 
         d = self.space.dim
         self.stage = 1
