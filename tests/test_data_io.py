@@ -90,13 +90,16 @@ def _edit_manifest(path: Path, edit) -> Path:
     [
         (lambda s: s.replace('file = "tr1.csv"', 'file = "nope.csv"'), "missing file 'nope.csv'"),
         (lambda s: s.replace('format = "kftune-dataset"', 'format = "other"'), "format"),
-        (lambda s: s.replace("format_version = 1", "format_version = 7"), "format_version 7"),
+        (
+            lambda s: s.replace("format_version = 1", "format_version = 7"),
+            "expected 1 (the version",
+        ),
         (lambda s: s.replace('split = "test"', 'split = "validation"', 1), "split"),
         (lambda s: s.replace('name = "tr1"', 'name = "tr0"'), "appears twice"),
         (lambda s: s.replace("dt = 0.01", "dt = -1.0"), "dt"),
         (lambda s: s.replace("m = 1093", "m = -1093"), "vehicle"),
         (lambda s: s.replace("[units]", "colour = 3\n[units]"), "unknown vehicle parameter"),
-        (lambda s: "extra_key = 1\n" + s, "unknown field"),
+        (lambda s: "extra_key = 1\n" + s, "field 'extra_key': unknown; expected some of"),
         (lambda s: s.replace('r = "rad/s"', 'r = "furlong/s"'), "unknown unit"),
         (lambda s: s.replace('r = "rad/s"', 'r = "m/s"'), "angular rate"),
         (lambda s: s.replace('vy_true = "m/s"\n', ""), "unknown column"),

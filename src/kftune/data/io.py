@@ -2,7 +2,7 @@
 
 **The kftune format** (:func:`load_dataset`, :func:`save_dataset`): a directory with
 ``manifest.toml`` (or ``manifest.json``, same keys) and one CSV per manoeuvre (optionally
-gzip-compressed, ``.csv.gz``); see "Data format" in the README and :data:`MANIFEST_KEYS`. A
+gzip-compressed, ``.csv.gz``); see "Data format" in the README and :class:`Manifest`. A
 dataset is validated completely before it is returned (:mod:`kftune.data.validate`), and
 every error names the file, the column and the row. Recordings in other layouts (CSV, MATLAB,
 MDF, a folder of one file per signal, …) become datasets through one path, a column mapping
@@ -23,6 +23,7 @@ import json
 import math
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -50,27 +51,54 @@ from kftune.data.validate import (
     validate_channels,
 )
 from kftune.errors import DataError, excerpt
+from kftune.settings import NUMBER, SettingError, each, rule, setting, validate
 from kftune.vehicle.params import VehicleParams, preset
 
 #: Identifies a kftune manifest.
 FORMAT_TAG = "kftune-dataset"
 FORMAT_VERSION = 1
 
-#: Keys of a manifest and of each of its ``[[manoeuvres]]`` entries (others are refused).
-MANIFEST_KEYS = {
-    "format": "must be 'kftune-dataset'",
-    "format_version": "integer, 1",
-    "name": "dataset name",
-    "description": "free text (optional)",
-    "dt": "sample time [s]",
-    "vehicle": "table of VehicleParams fields (SI) or a preset name (optional: data of "
-    "something other than a car have none)",
-    "units": "table column → unit (optional for the sideslip channels, SI assumed; required "
-    "for any other column)",
-    "meta": "free table: provenance (optional)",
-    "manoeuvres": "array of tables: name, kind, split, file, description (optional)",
-}
-MANOEUVRE_KEYS = ("name", "kind", "split", "file", "description")
+
+@dataclass(frozen=True)
+class ManifestEntry:
+    """One ``[[manoeuvres]]`` entry of a manifest: a manoeuvre and its CSV file."""
+
+    name: str = setting(kind=str, required=True)
+    kind: str = setting(kind=str, required=True)  # e.g. "j-turn", shown beside the name
+    split: str = setting(kind=str, choices=SPLITS, required=True)
+    file: str = setting(kind=str, required=True)  # relative to the manifest, inside its folder
+    description: str = setting("", kind=str)
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A dataset's manifest (``manifest.toml``); any other key is refused."""
+
+    format: str = setting(kind=str, choices=(FORMAT_TAG,), required=True)
+    format_version: int = setting(
+        kind=int,
+        choices=(FORMAT_VERSION,),
+        what=f"{FORMAT_VERSION} (the version this kftune reads)",
+        required=True,
+    )
+    name: str = setting(kind=str, required=True)
+    description: str = setting("", kind=str)
+    dt: float = setting(kind=NUMBER, low=0, strict=True, high=1, unit="s", required=True)
+    #: a preset name or a table of VehicleParams fields (SI); none: data of something other
+    #: than a car
+    vehicle: str | dict[str, Any] | None = field(
+        default=None,
+        metadata=rule((str, dict), what="a preset name or a table of VehicleParams fields"),
+    )
+    #: column → unit; optional for the sideslip channels (SI assumed), required for others
+    units: dict[str, str] = field(
+        default_factory=dict, metadata=rule(dict, each=each(str, what="a unit string"))
+    )
+    meta: dict[str, Any] = field(default_factory=dict, metadata=rule(dict))  # provenance
+    manoeuvres: list[ManifestEntry] = field(
+        default_factory=list, metadata=rule(list, each=each(ManifestEntry), required=True)
+    )
+
 
 #: Manifest file names looked for in a dataset directory, in this order.
 MANIFEST_NAMES = ("manifest.toml", "manifest.json")
@@ -274,27 +302,6 @@ def _read_manifest(path: Path) -> dict[str, Any]:
     return data
 
 
-def _field(
-    data: Mapping[str, Any],
-    key: str,
-    kind: type | tuple[type, ...],
-    where: str,
-    file: str,
-    required: bool = True,
-) -> Any:
-    """A manifest field of the expected type (bool is not accepted as a number)."""
-    if key not in data:
-        if required:
-            raise DataError(f"field '{where}{key}' is missing", file=file)
-        return None
-    value = data[key]
-    kinds = kind if isinstance(kind, tuple) else (kind,)
-    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
-        names = " or ".join(k.__name__ for k in kinds)
-        raise DataError(f"field '{where}{key}' must be {names}, got {excerpt(value)}", file=file)
-    return value
-
-
 def _find_manifest(path: Path) -> Path:
     if path.is_dir():
         for name in MANIFEST_NAMES:
@@ -377,104 +384,61 @@ def load_dataset(path: str | Path | None = None, *, limits: ReadLimits | None = 
         return default_dataset()
     manifest = _find_manifest(Path(path))
     mfile = str(manifest)
-    data = _read_manifest(manifest)
-    unknown = sorted(set(data) - set(MANIFEST_KEYS))
-    if unknown:
-        raise DataError(
-            f"unknown field(s) {unknown}; expected some of {list(MANIFEST_KEYS)}", file=mfile
-        )
-    if data.get("format") != FORMAT_TAG:
-        raise DataError(
-            f"field 'format' must be {FORMAT_TAG!r}, got {excerpt(data.get('format'))}", file=mfile
-        )
-    version = _field(data, "format_version", int, "", mfile)
-    if version != FORMAT_VERSION:
-        raise DataError(
-            f"format_version {version} is not supported (this is version {FORMAT_VERSION})",
-            file=mfile,
-        )
-    name = _field(data, "name", str, "", mfile)
-    description = _field(data, "description", str, "", mfile, required=False) or ""
-    dt = _field(data, "dt", (int, float), "", mfile)
-    if not 0.0 < dt <= 1.0:
-        raise DataError(f"field 'dt' must be in (0, 1] s, got {dt!r}", file=mfile)
-    vehicle = None if "vehicle" not in data else _vehicle_from(data["vehicle"], mfile)
-    units = _field(data, "units", dict, "", mfile, required=False) or {}
+    try:
+        man = validate(Manifest, _read_manifest(manifest))
+    except SettingError as exc:
+        raise DataError(exc.text("field"), file=mfile) from None
+    vehicle = None if man.vehicle is None else _vehicle_from(man.vehicle, mfile)
     factors: dict[str, float] = {}
     si_units: dict[str, str] = {}  # channels kftune does not know: their SI unit
-    for col, unit in units.items():
+    for col, unit in man.units.items():
         check_channel_name(col, file=mfile)
-        if not isinstance(unit, str):
-            raise DataError(
-                f"field 'units.{col}' must be a unit string, got {excerpt(unit)}", file=mfile
-            )
         factors[col] = unit_factor(unit, CHANNEL_DIMENSION.get(col), file=mfile, column=col)
         if col not in CHANNEL_DIMENSION:
             si_units[col] = SI_UNIT[UNITS[unit.strip()][0]]
     for col in SIDESLIP_CHANNELS:
         factors.setdefault(col, 1.0)
-    meta = _field(data, "meta", dict, "", mfile, required=False) or {}
-    entries = _field(data, "manoeuvres", list, "", mfile)
-    if not entries:
+    if not man.manoeuvres:
         raise DataError("field 'manoeuvres' is empty: a dataset needs at least one", file=mfile)
     manoeuvres = []
     seen: set[str] = set()
-    for i, entry in enumerate(entries):
-        where = f"manoeuvres[{i}]."
-        if not isinstance(entry, dict):
+    for i, entry in enumerate(man.manoeuvres):
+        if entry.name in seen:
             raise DataError(
-                f"field 'manoeuvres[{i}]' must be a table, got {excerpt(entry)}", file=mfile
+                f"manoeuvre name {excerpt(entry.name)} appears twice (manoeuvres[{i}])", file=mfile
             )
-        extra_keys = sorted(set(entry) - set(MANOEUVRE_KEYS))
-        if extra_keys:
-            raise DataError(
-                f"unknown field(s) {extra_keys} in manoeuvres[{i}]; expected some of "
-                f"{list(MANOEUVRE_KEYS)}",
-                file=mfile,
-            )
-        m_name = _field(entry, "name", str, where, mfile)
-        if m_name in seen:
-            raise DataError(
-                f"manoeuvre name {excerpt(m_name)} appears twice (manoeuvres[{i}])", file=mfile
-            )
-        seen.add(m_name)
-        kind = _field(entry, "kind", str, where, mfile)
-        split = _field(entry, "split", str, where, mfile)
-        if split not in SPLITS:
-            raise DataError(
-                f"field manoeuvres[{i}].split must be one of {list(SPLITS)}, got {excerpt(split)}",
-                file=mfile,
-            )
-        rel = _field(entry, "file", str, where, mfile)
-        m_desc = _field(entry, "description", str, where, mfile, required=False) or ""
-        csv_path = _member(manifest, rel, i)
+        seen.add(entry.name)
+        csv_path = _member(manifest, entry.file, i)
         if not csv_path.is_file():
             what = "a file that is not a regular file" if csv_path.exists() else "missing file"
             raise DataError(
-                f"manoeuvre {excerpt(m_name)} points at {what} {excerpt(rel)}", file=mfile
+                f"manoeuvre {excerpt(entry.name)} points at {what} {excerpt(entry.file)}",
+                file=mfile,
             )
         channels = read_csv(csv_path, factors, limits)
         validate_channels(channels, file=str(csv_path), row_offset=2)
         step = sample_time(channels["t"])
-        if abs(step - dt) > 0.01 * dt:
+        if abs(step - man.dt) > 0.01 * man.dt:
             raise DataError(
                 f"sample time {step:.4g} s (median step) differs from the manifest's dt = "
-                f"{dt:.4g} s by more than 1 %",
+                f"{man.dt:.4g} s by more than 1 %",
                 file=str(csv_path),
                 column="t",
             )
         manoeuvres.append(
             _manoeuvre(
                 channels,
-                name=m_name,
-                kind=kind,
-                split=split,
-                description=m_desc,
+                name=entry.name,
+                kind=entry.kind,
+                split=entry.split,
+                description=entry.description,
                 file=str(csv_path),
             )
         )
     try:
-        return Dataset(name, vehicle, float(dt), tuple(manoeuvres), description, meta, si_units)
+        return Dataset(
+            man.name, vehicle, float(man.dt), tuple(manoeuvres), man.description, man.meta, si_units
+        )
     except DataError as exc:
         raise DataError(str(exc), file=mfile) from None
 
