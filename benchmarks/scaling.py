@@ -89,8 +89,9 @@ def _hartmann3_target() -> tuple:
 def batch_sizes(seeds: int, budget: int, qs=(1, 2, 4, 8), problem: str = "ukf") -> dict:
     """Evaluations until the best value is within 1 % (see the module docstring), TR-BO with
     ``ask(q)``, the whole batch evaluated at once, then told in trial order (the loop of
-    ``minimize(batch=q)``). ``evals`` counts every evaluation of the rounds run, so a hit in
-    a batch's first point costs the whole batch; ``first`` is the hitting trial's number + 1."""
+    ``minimize(execution=Execution(batch=q))``). ``evals`` counts every evaluation of the
+    rounds run, so a hit in a batch's first point costs the whole batch; ``first`` is the
+    hitting trial's number + 1."""
     from kftune.optim import make_optimizer
     from kftune.space import Space
 

@@ -33,7 +33,7 @@ from conftest import HANG_GUARD, default_sigint, wait_until  # noqa: E402
 from kftune.data import default_dataset  # noqa: E402
 from kftune.errors import ConfigError  # noqa: E402
 from kftune.experiment import tune  # noqa: E402
-from kftune.optim import minimize  # noqa: E402
+from kftune.optim import Execution, minimize  # noqa: E402
 from kftune.optim.dask_engine import DaskEngine, SchedulerLostError  # noqa: E402
 from kftune.optim.result import COMPLETE, FAILED  # noqa: E402
 from kftune.tuning.problem import TuningProblem  # noqa: E402
@@ -102,10 +102,22 @@ def test_results_equal_the_sequential_run_bit_for_bit(cluster, problem):
         # a whole run: q = 2 on the cluster proposes and scores exactly what q = 2 in
         # process does, and q = 1 exactly what the sequential loop does
         on_dask = minimize(
-            problem, problem.space, "trbo", budget=4, batch=2, engine=engine, n_init=2
+            problem,
+            problem.space,
+            "trbo",
+            budget=4,
+            execution=Execution(batch=2, engine=engine),
+            n_init=2,
         )
-        _same(on_dask, minimize(problem, problem.space, "trbo", budget=4, batch=2, n_init=2))
-        one_by_one = minimize(problem, problem.space, "trbo", budget=3, batch=1, engine=engine)
+        _same(
+            on_dask,
+            minimize(
+                problem, problem.space, "trbo", budget=4, execution=Execution(batch=2), n_init=2
+            ),
+        )
+        one_by_one = minimize(
+            problem, problem.space, "trbo", budget=3, execution=Execution(batch=1, engine=engine)
+        )
         _same(one_by_one, minimize(problem, problem.space, "trbo", budget=3))
 
 
@@ -138,11 +150,13 @@ def test_a_worker_killed_mid_evaluation_loses_nothing(cluster, tmp_path):
 
         thread = threading.Thread(target=killer, daemon=True)
         thread.start()
-        result = minimize(fun, space, "random", budget=4, batch=2, engine=engine)
+        result = minimize(
+            fun, space, "random", budget=4, execution=Execution(batch=2, engine=engine)
+        )
         thread.join(HANG_GUARD)
     assert not errors and killed, errors
     assert result.n_failed == 0 and result.n_evals == 4
-    _same(result, minimize(fun, space, "random", budget=4, batch=2))
+    _same(result, minimize(fun, space, "random", budget=4, execution=Execution(batch=2)))
 
 
 @pytest.mark.slow
@@ -185,12 +199,17 @@ def test_a_run_killed_during_a_batch_resumes_exactly(cluster, problem, tmp_path)
             budget=6,
             storage=db,
             resume=True,
-            engine=engine,
-            batch=2,
+            execution=Execution(engine=engine, batch=2),
             progress=False,
             options={"n_init": 2},
         )
-    reference = tune(problem, budget=6, batch=2, progress=False, options={"n_init": 2})
+    reference = tune(
+        problem,
+        budget=6,
+        execution=Execution(batch=2),
+        progress=False,
+        options={"n_init": 2},
+    )
     _same(resumed, reference)
     for n, v in before.items():  # finished results were kept, not evaluated again
         assert resumed.history[n].value == v
@@ -482,7 +501,13 @@ def test_a_point_that_kills_every_worker_is_recorded_failed(cluster):
     points = [[0.2, 0.2], [0.9, 0.1], [0.3, 0.4]]
     space = [(0.0, 1.0), (0.0, 1.0)]
     with DaskEngine(_dies_above_half, scheduler=cluster.scheduler_address, retries=0) as e:
-        result = minimize(_dies_above_half, space, "manual", points=points, batch=3, engine=e)
+        result = minimize(
+            _dies_above_half,
+            space,
+            "manual",
+            points=points,
+            execution=Execution(batch=3, engine=e),
+        )
     assert [r.state for r in result.history] == [COMPLETE, FAILED, COMPLETE]
     assert "KilledWorker" in result.history[1].reason
     assert result.history[0].value == pytest.approx(0.08)

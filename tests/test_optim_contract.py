@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kftune.optim import METHODS, ExhaustedError, make_optimizer, minimize
+from kftune.optim import METHODS, Execution, ExhaustedError, make_optimizer, minimize
 from kftune.optim.base import coincides
 
 #: The contract runs every method on small budgets: the GA's "no generation" warning
@@ -152,7 +152,15 @@ def _sleepy(x):
 @pytest.mark.slow
 def test_timeouts_fail_the_evaluation_only(method):
     method = _method(method)
-    res = minimize(_sleepy, SPACE, method, budget=8, seed=2, timeout=0.5, **_options(method))
+    res = minimize(
+        _sleepy,
+        SPACE,
+        method,
+        budget=8,
+        seed=2,
+        execution=Execution(timeout=0.5),
+        **_options(method),
+    )
     assert res.n_evals == (2 if method == "manual" else 8)
     for r in res.history:
         if r.x[0] > 5.0:

@@ -5,8 +5,9 @@ study's record of the options (what a resume compares) is what it was."""
 
 from __future__ import annotations
 
+import inspect
 import json
-from dataclasses import FrozenInstanceError, fields
+from dataclasses import FrozenInstanceError, asdict, fields
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from kftune.errors import ConfigError
 from kftune.experiment import tune
 from kftune.optim import (
     TSBO,
+    Execution,
     TRBOSettings,
     TrustRegionBO,
     TSBOSettings,
@@ -112,6 +114,27 @@ def test_the_records_defaults_are_the_old_keyword_defaults(record, old):
     assert _defaults(record) == old
 
 
+def test_minimize_and_tune_keep_their_defaults_and_at_most_twelve_parameters():
+    def defaults(fn):
+        params = inspect.signature(fn).parameters
+        return {k: p.default for k, p in params.items() if p.default is not inspect.Parameter.empty}
+
+    # the evaluation settings moved into Execution, whose defaults are the old ones
+    assert asdict(Execution()) == {"timeout": None, "engine": None, "batch": None}
+    common = {"method": "trbo", "budget": None, "seed": 0, "storage": None, "resume": False}
+    assert defaults(minimize) == {**common, "callback": None, "objective": None, "execution": None}
+    assert defaults(tune) == {
+        **common,
+        "progress": None,
+        "options": None,
+        "widen_bounds": False,
+        "execution": None,
+        "dataset": None,
+    }
+    for fn in (minimize, tune, TrustRegionBO.__init__, TSBO.__init__):
+        assert len(inspect.signature(fn).parameters) <= 12 + 1  # (+ self)
+
+
 @pytest.mark.parametrize(("method", "kw", "stored"), OLD_STUDY_OPTIONS)
 def test_studies_record_the_options_they_recorded_before(method, kw, stored):
     opt = make_optimizer(method, SPACE, **kw)
@@ -182,3 +205,33 @@ def test_records_are_frozen_and_checked_once():
         TSBOSettings(alpha=1.0)
     with pytest.raises(TypeError, match="settings must be a TRBOSettings"):
         TrustRegionBO(SPACE, TSBOSettings())  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"timeout": 0}, "timeout must be a number of seconds"),
+        ({"timeout": "5"}, "timeout must be a number of seconds"),
+        ({"timeout": 2e6}, "timeout must be a number of seconds"),
+        ({"batch": 0}, "batch must be a positive integer"),
+        ({"batch": True}, "batch must be a positive integer"),
+        ({"timeout": 5.0, "batch": 2}, "cannot be combined with a batch or an engine"),
+    ],
+)
+def test_execution_refuses_bad_settings(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        Execution(**kw)
+
+
+def test_execution_batch_size():
+    class Four:
+        workers = 4
+
+    assert (Execution().q, Execution().batched) == (1, False)
+    assert (Execution(batch=3).q, Execution(engine=Four()).q) == (3, 4)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("name", ["timeout", "engine", "batch"])
+def test_minimize_points_a_former_keyword_to_execution(name):
+    with pytest.raises(ValueError, match=rf"{name}= is a setting .*execution=Execution\({name}="):
+        minimize(lambda x: 0.0, SPACE, "random", budget=1, **{name: 1})

@@ -19,6 +19,7 @@ import pytest
 from conftest import HANG_GUARD
 from kftune.errors import ConfigError
 from kftune.optim import (
+    Execution,
     OptimizationInterrupted,
     OptimizeResult,
     StudyError,
@@ -197,13 +198,14 @@ def test_study_in_use_gives_clear_error_and_lock_dies_with_process(tmp_path):
 
 _ORPHAN_SCRIPT = """
 import os, sys, time
-from kftune.optim import minimize
+from kftune.optim import Execution, minimize
 def fun(x):
     with open(sys.argv[2], "a") as fh:
         fh.write(f"{os.getpid()}\\n")
     time.sleep(600.0)  # hung: only the timeout (60 s) would end it
     return float(x[0])
-minimize(fun, {"a": (0.0, 1.0)}, "random", budget=5, seed=0, storage=sys.argv[1], timeout=60)
+minimize(fun, {"a": (0.0, 1.0)}, "random", budget=5, seed=0, storage=sys.argv[1],
+         execution=Execution(timeout=60))
 """
 
 
@@ -374,7 +376,7 @@ def _die(x):
 def test_timeout_and_dying_worker_fail_the_evaluation_only():
     # the limit counts only the evaluation (not a worker start-up), so a fast evaluation on
     # a loaded machine stays far below it
-    res = minimize(_slow, SPACE, "random", budget=8, seed=0, timeout=1.0)
+    res = minimize(_slow, SPACE, "random", budget=8, seed=0, execution=Execution(timeout=1.0))
     assert res.n_evals == 8
     for r in res.history:
         if r.x[0] > 2.5:
@@ -382,7 +384,7 @@ def test_timeout_and_dying_worker_fail_the_evaluation_only():
         else:
             assert r.state == "complete" and r.value == objective(np.array(r.x))
     assert any(r.state == "failed" for r in res.history)
-    res = minimize(_die, SPACE, "random", budget=6, seed=0, timeout=10)
+    res = minimize(_die, SPACE, "random", budget=6, seed=0, execution=Execution(timeout=10))
     assert res.n_evals == 6
     for r in res.history:
         assert (r.state == "failed") == (r.x[0] > 2.5)
@@ -456,7 +458,9 @@ def _starts_a_process(x):
 
 
 def test_timeout_worker_may_start_processes():
-    res = minimize(_starts_a_process, SPACE, "random", budget=3, seed=0, timeout=30)
+    res = minimize(
+        _starts_a_process, SPACE, "random", budget=3, seed=0, execution=Execution(timeout=30)
+    )
     assert res.n_failed == 0, [r.reason for r in res.history]
 
 

@@ -30,8 +30,8 @@ from kftune.models import StateSpaceModel
 from kftune.optim import (
     COMPARE_METHODS,
     DEFAULT_METHOD,
-    MAX_TIMEOUT,
     METHODS,
+    Execution,
     OptimizationInterrupted,
     OptimizeResult,
     is_study,
@@ -323,18 +323,20 @@ def tune(
     seed: int = 0,
     storage: str | Path | None = None,
     resume: bool = False,
-    timeout: float | None = None,
     progress: bool | None = None,
     options: Mapping[str, Any] | None = None,
     widen_bounds: bool = False,
-    engine: Engine | None = None,
-    batch: int | None = None,
+    execution: Execution | None = None,
     dataset: Mapping[str, Any] | None = None,
 ) -> OptimizeResult:
     """Tune the filter of ``problem`` with one method (``kftune tune``).
 
-    ``engine`` / ``batch``: evaluate q points at a time, e.g. on a Dask cluster
-    (:class:`kftune.optim.dask_engine.DaskEngine`); see :func:`kftune.minimize`.
+    ``execution``: how the cost is evaluated (:class:`kftune.optim.Execution`; see
+    :func:`kftune.minimize`): a per-evaluation ``timeout`` (only with ``problem.workers``
+    = 1: the worker process cannot share its limit with a pool), or an ``engine`` and a
+    ``batch`` to evaluate q points at a time, e.g. on a Dask cluster
+    (:class:`kftune.optim.dask_engine.DaskEngine`). Default: in this process, one point at
+    a time.
 
     ``method="manual"`` evaluates :func:`manual_point` unless ``options`` give ``points``;
     a user's points (and TR-BO's ``x0``) are read by :func:`complete_points`, which fills in
@@ -363,7 +365,8 @@ def tune(
     ``storage`` (``study.widen1.db`` …) and resume with it. The result merges the runs.
 
     Raises:
-        ConfigError: an unknown method or method option, or a bad budget/seed/timeout.
+        ConfigError: an unknown method or method option, a bad budget or seed, or a
+            timeout with ``problem.workers`` > 1.
         kftune.optim.OptimizationInterrupted: Ctrl-C (``.result`` holds the partial run).
     """
     if method not in METHODS:
@@ -381,22 +384,14 @@ def tune(
         total = make_optimizer(method, problem.space, budget=budget, seed=seed, **opts).budget
     except ValueError as exc:
         raise ConfigError(f"{method}: {exc}") from None
-    if timeout is not None and not 0 < timeout <= MAX_TIMEOUT:
-        raise ConfigError(
-            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}], got {timeout!r}"
-        )
-    if timeout is not None and (engine is not None or batch is not None):
-        raise ConfigError(
-            "a per-evaluation timeout runs every evaluation in one local worker process; it "
-            "cannot be combined with a batch or a Dask scheduler"
-        )
-    if timeout is not None and problem.workers > 1:
+    ex = Execution() if execution is None else execution  # its own values checked there
+    if ex.timeout is not None and problem.workers > 1:
         raise ConfigError(
             "a per-evaluation timeout runs every evaluation in one worker process; combine "
             "it with workers = 1 (the worker cannot share its time limit with a pool)"
         )
 
-    stages = staging(problem, method, budget, options=opts, engine=engine, storage=storage)
+    stages = staging(problem, method, budget, options=opts, engine=ex.engine, storage=storage)
     if stages is not None:
         from kftune.tuning.generalise import joint_point
 
@@ -416,10 +411,9 @@ def tune(
                     seed=seed,
                     storage=None if stages.noise_storage is None else str(stages.noise_storage),
                     resume=resume,
-                    timeout=timeout,
                     callback=bar,
                     objective=with_dataset(noise.fingerprint(), dataset),
-                    batch=batch,
+                    execution=ex,  # no engine: a Dask engine's tuning runs in one stage
                     **opts,
                 )
         except OptimizationInterrupted as stop:  # its best so far, as a point of the problem
@@ -443,11 +437,9 @@ def tune(
                 seed=seed,
                 storage=None if study is None else str(study),
                 resume=resume,
-                timeout=timeout,
                 callback=bar,
                 objective=with_dataset(problem.fingerprint(), dataset),
-                engine=engine,
-                batch=batch,
+                execution=ex,
                 **opts,
             )
 

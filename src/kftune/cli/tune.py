@@ -287,7 +287,7 @@ def run(args: argparse.Namespace) -> int:
     try:  # from here on a Ctrl-C says what was kept, also before the first evaluation
         from kftune.data import open_dataset
         from kftune.experiment import require_success, staging, tune
-        from kftune.optim import OptimizationInterrupted
+        from kftune.optim import Execution, OptimizationInterrupted
         from kftune.optim.engine import EngineLostError
         from kftune.tuning.problem import TuningProblem
         from kftune.tuning.runs import check_units, default_r0
@@ -335,12 +335,14 @@ def run(args: argparse.Namespace) -> int:
                     seed=pick(args, config, "seed", 0),
                     storage=args.storage,
                     resume=args.resume,
-                    timeout=pick(args, config, "timeout", None),
                     progress=False if (args.quiet or args.json) else None,
                     options=options,
                     widen_bounds=widen,
-                    engine=engine,
-                    batch=pick(args, config, "batch", None),
+                    execution=Execution(
+                        timeout=pick(args, config, "timeout", None),
+                        engine=engine,
+                        batch=pick(args, config, "batch", None),
+                    ),
                     dataset=dataset_record(dataset.name, pick(args, config, "dataset", None)),
                 )
             except OptimizationInterrupted as stop:

@@ -7,6 +7,7 @@ Knows nothing about vehicles or filters: it minimises a black box over a box.
   :data:`METHODS`, built with :func:`make_optimizer`; :data:`DEFAULT_METHOD` is
   :class:`TrustRegionBO` (``"trbo"``), the paper's TSBO is ``"tsbo-tsp"``;
 * :func:`minimize` — the loop on top, with failures, timeouts and SQLite studies;
+  :class:`Execution` says how it evaluates (a timeout, or an engine and batches);
 * :class:`TRBOSettings`, :class:`TSBOSettings` — TR-BO's and TSBO's settings as records
   (:func:`make_optimizer` builds them from options by name);
 * :class:`OptimizeResult`/:class:`EvalRecord` — what a run leaves behind;
@@ -23,6 +24,7 @@ from kftune.optim.minimize import (
     MAX_TIMEOUT,
     METHODS,
     PAPER_METHODS,
+    Execution,
     OptimizationInterrupted,
     make_optimizer,
     minimize,
@@ -51,6 +53,7 @@ __all__ = [
     "PAPER_METHODS",
     "TSBO",
     "EvalRecord",
+    "Execution",
     "ExhaustedError",
     "GeneticAlgorithm",
     "ManualPoints",

@@ -3,7 +3,7 @@
 ::
 
     with DaskEngine(problem, workers=4) as engine:            # a LocalCluster of processes
-        result = kftune.minimize(problem, problem.space, engine=engine)
+        result = kftune.minimize(problem, problem.space, execution=Execution(engine=engine))
     DaskEngine(problem, scheduler="tcp://10.0.0.5:8786")      # an existing cluster
 
 What travels where

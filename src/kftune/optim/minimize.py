@@ -2,10 +2,10 @@
 
 Evaluation and failures
     ``fun`` receives a ``(d,)`` array in natural units and returns a float. An exception
-    (any ``Exception``), a NaN/inf or non-numeric return value, or — when ``timeout`` is set
-    — a run longer than ``timeout`` seconds makes the evaluation *failed*: it is recorded
-    with its reason, the optimiser is told (TSBO imputes a pessimistic value and never
-    proposes the point again) and the run goes on.
+    (any ``Exception``), a NaN/inf or non-numeric return value, or — when a ``timeout`` is
+    set (:class:`Execution`) — a run longer than ``timeout`` seconds makes the evaluation
+    *failed*: it is recorded with its reason, the optimiser is told (TSBO imputes a
+    pessimistic value and never proposes the point again) and the run goes on.
 
 Timeouts
     Only when ``timeout`` is given, evaluations run in one persistent worker process
@@ -23,15 +23,15 @@ Studies and resume
     proposal that was in flight when the previous process stopped is evaluated again.
 
 Batches and engines
-    With ``batch=q`` (or an ``engine``, see :mod:`kftune.optim.engine`; then q defaults to
-    its number of workers) the loop asks for q points at a time (``ask(q)``), stores every
-    proposal of the batch in the study, sends them to the engine, stores each result the
-    moment it arrives (in arrival order) and, once the whole batch is back, tells the
-    optimiser the results in trial order before it asks for the next batch. The proposals
-    therefore depend only on the seed, the settings and q — never on which result came back
-    first, how many workers there are or which engine ran them: a run with q = 4 on a Dask
-    cluster proposes exactly what the same run in this process proposes, and with q = 1
-    exactly what the sequential loop proposes. The price is that a batch waits for its
+    With ``Execution(batch=q)`` (or an ``engine``, see :mod:`kftune.optim.engine`; then q
+    defaults to its number of workers) the loop asks for q points at a time (``ask(q)``),
+    stores every proposal of the batch in the study, sends them to the engine, stores each
+    result the moment it arrives (in arrival order) and, once the whole batch is back, tells
+    the optimiser the results in trial order before it asks for the next batch. The
+    proposals therefore depend only on the seed, the settings and q — never on which result
+    came back first, how many workers there are or which engine ran them: a run with q = 4
+    on a Dask cluster proposes exactly what the same run in this process proposes, and with
+    q = 1 exactly what the sequential loop proposes. The price is that a batch waits for its
     slowest point.
 
     Reproducible resume with pending points: a study of a batched run stores q (resuming
@@ -58,10 +58,12 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from kftune.errors import ConfigError
 from kftune.optim.base import ExhaustedError, Optimizer
 from kftune.optim.engine import Engine, EngineLostError, SerialEngine
 from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
@@ -168,6 +170,70 @@ class OptimizationInterrupted(KeyboardInterrupt):
         self.result = result
 
 
+@dataclass(frozen=True)
+class Execution:
+    """How :func:`minimize` (and :func:`kftune.experiment.tune`) evaluate the objective,
+    checked once: one point at a time in this process (the default), in a worker process
+    with a time limit, or in batches on an engine (module docstring, "Timeouts" and
+    "Batches and engines").
+
+    Attributes:
+        timeout: [s] per-evaluation time limit, in (0, :data:`MAX_TIMEOUT`]; runs ``fun``
+            in a worker process, one point at a time (not with ``engine`` or ``batch``).
+            Default None: no limit, ``fun`` runs in this process.
+        engine: who evaluates (see :mod:`kftune.optim.engine`; e.g. a
+            :class:`~kftune.optim.dask_engine.DaskEngine`); implies a batched run. Default
+            None: this process.
+        batch: evaluations per batch (``ask(q)``), ≥ 1. Default None: the engine's number
+            of workers, or the sequential loop without an engine.
+
+    Raises:
+        kftune.errors.ConfigError: (a ValueError) a value out of range, or a timeout with
+            a batch or an engine.
+    """
+
+    timeout: float | None = None
+    engine: Engine | None = None
+    batch: int | None = None
+
+    def __post_init__(self) -> None:
+        timeout, batch = self.timeout, self.batch
+        if timeout is not None and not (
+            isinstance(timeout, (int, float))
+            and not isinstance(timeout, bool)
+            and 0 < timeout <= MAX_TIMEOUT
+        ):
+            raise ConfigError(
+                f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}] or None, "
+                f"got {timeout!r}"
+            )
+        if batch is not None and (
+            isinstance(batch, bool) or not isinstance(batch, int) or batch < 1
+        ):
+            raise ConfigError(f"batch must be a positive integer, got {batch!r}")
+        if timeout is not None and self.batched:
+            raise ConfigError(
+                "a per-evaluation timeout runs every evaluation in one local worker process; it "
+                "cannot be combined with a batch or an engine (a Dask scheduler)"
+            )
+
+    @property
+    def batched(self) -> bool:
+        """Whether the points go out in batches (``ask(q)``): with an engine or a batch."""
+        return self.engine is not None or self.batch is not None
+
+    @property
+    def q(self) -> int:
+        """Points per batch: ``batch``, else the engine's workers, else 1."""
+        if self.batch is not None:
+            return self.batch
+        return max(1, int(self.engine.workers)) if self.engine is not None else 1
+
+
+#: :func:`minimize`'s former keywords that are :class:`Execution`'s settings now.
+_EXECUTION_KEYS = ("timeout", "engine", "batch")
+
+
 def minimize(
     fun: Callable[[np.ndarray], float],
     space: Any,
@@ -177,11 +243,9 @@ def minimize(
     seed: int = 0,
     storage: str | os.PathLike[str] | None = None,
     resume: bool = False,
-    timeout: float | None = None,
     callback: Callable[[EvalRecord], bool | None] | None = None,
     objective: dict[str, Any] | None = None,
-    engine: Engine | None = None,
-    batch: int | None = None,
+    execution: Execution | None = None,
     **method_options: Any,
 ) -> OptimizeResult:
     """Minimise a black-box function over a box.
@@ -198,18 +262,15 @@ def minimize(
         seed: drives all randomness; same seed, same run.
         storage: path of a SQLite study file, or ``None`` for no persistence.
         resume: continue the study in ``storage`` (see the module docstring).
-        timeout: [s] per-evaluation time limit, at most :data:`MAX_TIMEOUT` (runs ``fun``
-            in a worker process).
         callback: called with every finished :class:`EvalRecord`, in order — on resume the
             replayed ones first — e.g. to drive a progress bar; returning ``True`` after a new
             evaluation stops the run (status ``"stopped"``; ignored for replayed records).
         objective: JSON-serialisable description of ``fun`` (e.g. the dataset, cost and
             model of a tuning problem) stored in the study; resuming with a different one is
             refused, so a study never mixes values of two objectives.
-        engine: who evaluates (see :mod:`kftune.optim.engine`; e.g. a
-            :class:`~kftune.optim.dask_engine.DaskEngine`); implies a batched run.
-        batch: evaluations per batch (``ask(q)``); default: the engine's number of
-            workers, or the sequential loop without an engine. See "Batches and engines".
+        execution: how ``fun`` is evaluated (:class:`Execution`: a per-evaluation
+            timeout, or an engine and the batch size); default: in this process, one point
+            at a time.
         **method_options: passed to the optimiser (e.g. ``max_fe=10`` for TSBO,
             ``population_size=20`` for GA, ``points=[...]`` for manual).
 
@@ -226,19 +287,15 @@ def minimize(
     """
     if not callable(fun):
         raise ValueError(f"fun must be callable, got {type(fun).__name__}")
-    if timeout is not None and not (
-        isinstance(timeout, (int, float)) and 0 < timeout <= MAX_TIMEOUT
-    ):
+    moved = [k for k in _EXECUTION_KEYS if k in method_options]
+    if moved:
         raise ValueError(
-            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}] or None, got {timeout!r}"
+            f"{moved[0]}= is a setting of how the objective is evaluated: pass "
+            f"execution=Execution({moved[0]}=...) (kftune.optim.Execution)"
         )
     if resume and storage is None:
         raise ValueError("resume=True needs storage= (the study file to resume)")
-    if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int) or batch < 1):
-        raise ValueError(f"batch must be a positive integer, got {batch!r}")
-    batched = engine is not None or batch is not None
-    if batched and timeout is not None:
-        raise ValueError("timeout= applies to the sequential loop; not with engine= or batch=")
+    ex = Execution() if execution is None else execution
     sp = Space.coerce(space)
     opt = make_optimizer(method, sp, budget=budget, seed=seed, **method_options)
     settings: dict[str, Any] = {
@@ -249,22 +306,18 @@ def minimize(
         "options": opt.options(),
         "objective": objective,
     }
-    q = 1
-    if batch is not None:
-        q = batch
-    elif engine is not None:
-        q = max(1, int(engine.workers))
-    if batched:
+    q = ex.q
+    if ex.batched:
         settings["batch"] = q  # the proposals depend on q: a resume must use the same
     study = (
         Study.open(storage, settings, resume=resume, extendable=opt.budget_independent)
         if storage is not None
         else None
     )
-    if batched and engine is None:
-        engine = SerialEngine(fun)
-    batch_engine = engine if batched else None
-    evaluator = _Evaluator(fun, timeout)
+    batch_engine: Engine | None = None
+    if ex.batched:
+        batch_engine = ex.engine if ex.engine is not None else SerialEngine(fun)
+    evaluator = _Evaluator(fun, ex.timeout)
     history: list[EvalRecord] = []
     status = "completed"
 
