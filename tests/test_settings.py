@@ -13,13 +13,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from kftune.data import load_dataset, save_dataset
+from kftune.data import import_recordings, load_dataset, save_dataset
 from kftune.data.importer import open_dataset
 from kftune.errors import DataError
 from kftune.settings import NUMBER, SettingError, each, rule, setting, validate
-from test_data_helpers import synthetic_dataset
+from test_data_helpers import synthetic_channels, synthetic_dataset
 
 
 # ----------------------------------------------------------------- the generic validator
@@ -115,3 +116,66 @@ def test_a_manifest_constraint_violation_names_the_manifest_and_field(dataset, o
         assert info.value.file == str(manifest) and message in str(info.value), info.value
     if "unknown" in message:
         assert "'dt', 'vehicle', 'units', 'meta', 'manoeuvres']" in str(info.value)
+
+
+# ---------------------------------------------------------------------- import mapping
+@pytest.fixture
+def recording(tmp_path: Path) -> Path:
+    """A recording as a folder of one file per signal (SI units)."""
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    for name, values in synthetic_channels(n=600, seed=2).items():
+        np.savetxt(folder / f"{name}.txt", values)
+    return folder
+
+
+CHANNELS = "[channels]\n" + "".join(f'{c} = "{c}"\n' for c in synthetic_channels(n=2))
+
+
+@pytest.mark.parametrize(
+    ("top", "channels", "message"),
+    [  # type, range, a quantity's unit, choices, an element's rule, nested table, required
+        ("seed = 1.5", "", "key 'seed': expected an integer >= 0, got 1.5"),
+        ("steering_ratio = 0", "", "key 'steering_ratio': expected a number > 0, got 0"),
+        (
+            'min_speed = "5 furlongs"',
+            "",
+            "key 'min_speed': expected a number or '<number> <unit>' >= 0 [m/s], got '5 furl",
+        ),
+        ('sample_time = "2 s"', "", "key 'sample_time': expected a number or '<number> <un"),
+        ("", "ay = { column = 'ay', sign = 2 }", "key 'channels.ay.sign': expected one of [1, -1]"),
+        (
+            "",
+            "ay = { column = 'ay', scale = 0 }",
+            "key 'channels.ay.scale': expected a number other",
+        ),
+        ("", "ay = 3", "key 'channels.ay': expected a column name or a table, got 3"),
+        (
+            "[split]\ntrain_every = 0",
+            "",
+            "key 'split.train_every': expected an integer >= 1, got 0",
+        ),
+        ("[split]\nper = 'run'", "", "key 'split.per': expected one of ['all', 'file'], got 'run'"),
+        ("", "vx = { column = 'vx', nosie = 0.1 }", "key 'channels.vx.nosie': unknown; expected"),
+        ("smaple_time = 0.01", "", "key 'smaple_time': unknown; expected some of ['name', 'd"),
+    ],
+)
+def test_a_mapping_constraint_violation_names_the_mapping_and_key(
+    tmp_path, recording, top, channels, message
+):
+    mapping = tmp_path / "map.toml"
+    table = CHANNELS.replace('ay = "ay"\n', "") if channels.startswith("ay") else CHANNELS
+    table = table.replace('vx = "vx"\n', "") if channels.startswith("vx") else table
+    split = top.startswith("[")
+    body = f"{'' if split else top}\n{table}{channels}\n{top if split else ''}\n"
+    mapping.write_text('vehicle = "bmw-320i"\n' + body)
+    with pytest.raises(DataError) as info:
+        import_recordings([recording], mapping)
+    assert info.value.file == str(mapping) and message in str(info.value), info.value
+
+
+def test_a_mapping_without_channels_says_the_key_is_missing(tmp_path, recording):
+    mapping = tmp_path / "map.toml"
+    mapping.write_text('vehicle = "bmw-320i"\n')
+    with pytest.raises(DataError, match=r"map\.toml: key 'channels' is missing$"):
+        import_recordings([recording], mapping)

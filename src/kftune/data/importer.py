@@ -175,39 +175,19 @@ from kftune.data.validate import (
     with_article,
 )
 from kftune.errors import ConfigError, DataError, DataWarning, excerpt
+from kftune.settings import NUMBER, SettingError, check, each, rule, rules, setting, validate
 from kftune.vehicle.params import VehicleParams
 
 if TYPE_CHECKING:
     from kftune.models import StateSpaceModel
 
-#: Top-level keys of a mapping, and what each holds.
-MAPPING_KEYS = {
-    "name": "dataset name",
-    "description": "free text",
-    "vehicle": "preset name or table of VehicleParams fields",
-    "model": "model name: its channels must be mapped",
-    "sample_time": "[s] when there is no time column (MDF: the raster step)",
-    "min_speed": "[m/s] keep stretches with vx above it",
-    "min_duration": "[s] drop kept stretches shorter than it",
-    "split_at_gaps": "true: a gap in time ends a stretch instead of being refused",
-    "segment_length": "[s] cut stretches into segments",
-    "kind": 'the manoeuvres\' kind: one for all, or a table { "<glob>" = kind }',
-    "steering_ratio": "hand-wheel to road-wheel ratio for hand_wheel channels",
-    "source": f"reader options: {', '.join(READER_OPTIONS)}",
-    "split": "test = [globs] | train_every = k | test_fraction = f; per = 'all' | 'file'",
-    "channels": "kftune channel = source column, or a table (column, atan2 or expr)",
-    "seed": "seed of the generator of the channels' noise (default 0)",
-}
-#: Keys of one ``[channels]`` entry.
-CHANNEL_KEYS = (
-    *("column", "atan2", "expr", "unit", "scale", "offset", "sign", "hand_wheel", "noise"),
-)
-SPLIT_RULES = ("test", "train_every", "test_fraction")
 #: The kind of a manoeuvre cut from a recording by ``segment_length``, and of one imported
 #: whole (a recording, or a stretch of one that ``min_speed`` or a gap delimits), unless
 #: the mapping's ``kind`` names one; figures and ``dataset info`` show it beside the name.
 CUT_KIND = "segment"
 WHOLE_KIND = "recording"
+#: The rules of ``[split]``, one of which a mapping gives (:class:`SplitTable`).
+SPLIT_RULES = ("test", "train_every", "test_fraction")
 #: What ``[split] per`` takes: the segments counted over all recordings, or within each file.
 SPLIT_PER = ("all", "file")
 DEFAULT_TRAIN_EVERY = 3
@@ -219,6 +199,124 @@ GAP_OPTION = "split_at_gaps = true"
 SPEED_OPTION = "min_speed"
 #: Text that every ASCII-compatible encoding writes as ASCII (a CSV's separators, numbers).
 _ASCII_PROBE = "time,1.5;-2e+3\t|[m/s]\n"
+_QUANTITY = "a number or '<number> <unit>'"
+
+
+def _quantity(dimension: str) -> Callable[[Any], float]:
+    """A converter of a quantity (an SI number, or ``"5 km/h"``) to SI: a setting's
+    ``convert`` (a ValueError: not a quantity of ``dimension``)."""
+
+    def convert(value: Any) -> float:
+        if isinstance(value, str):
+            number, _, unit = value.strip().partition(" ")
+            factor = unit_factor(unit or SI_UNIT[dimension], dimension, file=None, column="")
+            return float(number) * factor
+        return float(value)
+
+    return convert
+
+
+def _pair(value: list[Any]) -> list[Any]:
+    """``atan2 = [vy, vx]``: two names."""
+    if len(value) != 2:
+        raise ValueError("not two names")
+    return value
+
+
+def _kinds(value: str | dict[str, Any]) -> dict[str, Any]:
+    """``kind``: one manoeuvre kind for all, or a table glob → kind; as glob → kind (each
+    kind then checked by the rule of a table's values)."""
+    if not (value.strip() if isinstance(value, str) else value):
+        raise ValueError("no kind")
+    return {"*": value} if isinstance(value, str) else value
+
+
+def _nonblank(value: str) -> str:
+    """A string with more than white space."""
+    if not value.strip():
+        raise ValueError("blank")
+    return value
+
+
+def _time(**constraints: Any) -> Any:
+    """A quantity of time [s] (``"5 ms"``, ``0.005``)."""
+    return setting(
+        kind=(*NUMBER, str), convert=_quantity("time"), unit="s", what=_QUANTITY, **constraints
+    )
+
+
+@dataclass(frozen=True)
+class ChannelTable:
+    """One ``[channels]`` entry given as a table (a name alone is ``{ column = name }``)."""
+
+    column: str | None = setting(kind=str)
+    atan2: list[str] | None = field(
+        default=None, metadata=rule(list, convert=_pair, each=each(str), what="[vy, vx], two names")
+    )
+    expr: str | None = setting(kind=str)
+    unit: str | None = setting(kind=str)
+    scale: float = setting(1.0, kind=NUMBER, nonzero=True)  # in the source's unit
+    offset: float = setting(0.0, kind=NUMBER)  # in the source's unit
+    sign: float = setting(1.0, kind=NUMBER, choices=(1, -1))
+    hand_wheel: bool = setting(False, kind=bool)  # ÷ the steering ratio
+    noise: float = setting(
+        0.0, kind=NUMBER, low=0, what="a standard deviation", unit="the channel's SI unit"
+    )
+
+
+@dataclass(frozen=True)
+class SplitTable:
+    """``[split]``: one rule (checked by :func:`_split_rule`) and how segments are counted."""
+
+    test: list[str] | None = field(
+        default=None, metadata=rule(list, each=each(str, what="a file-name glob"))
+    )
+    train_every: int | None = setting(kind=int, low=1)
+    test_fraction: float | None = setting(kind=NUMBER, low=0, strict=True, high=1, high_strict=True)
+    per: str = setting("all", kind=str, choices=SPLIT_PER)
+
+
+@dataclass(frozen=True)
+class MappingFile:
+    """An import mapping as written (see the module docstring); quantities in SI."""
+
+    name: str | None = setting(kind=str)  # the dataset's (default: the output folder's)
+    description: str = setting("", kind=str)
+    vehicle: str | dict[str, Any] | None = field(
+        default=None,
+        metadata=rule((str, dict), what="a preset name or a table of VehicleParams fields"),
+    )
+    model: str | None = setting(kind=str)  # its channels must be mapped
+    sample_time: float | None = _time(low=1e-4, high=1)  # no time column: t = k·sample_time
+    min_speed: float | None = setting(
+        kind=(*NUMBER, str), convert=_quantity("speed"), low=0, unit="m/s", what=_QUANTITY
+    )
+    min_duration: float | None = _time(low=0)  # drop kept stretches shorter than it
+    split_at_gaps: bool = setting(False, kind=bool)  # a gap ends a stretch, not refused
+    segment_length: float | None = _time(low=0, strict=True)  # cut stretches into segments
+    kind: dict[str, str] = field(
+        default_factory=dict,
+        metadata=rule(
+            (str, dict),
+            convert=_kinds,
+            each=each(str, convert=_nonblank, what="a non-empty string (a manoeuvre kind)"),
+            what='a manoeuvre kind ("skidpad") or a table { "<file or manoeuvre glob>" = '
+            '"<kind>" }',
+        ),
+    )
+    steering_ratio: float | None = setting(kind=NUMBER, low=0, strict=True)  # hand-wheel/road
+    source: dict[str, Any] = field(
+        default_factory=dict,
+        metadata=rule(dict, keys=READER_OPTIONS, what="a table of reader options"),
+    )
+    split: SplitTable | None = field(default=None, metadata=rule(SplitTable))
+    channels: dict[str, str | ChannelTable] = field(
+        default_factory=dict,
+        metadata=rule(
+            dict, each=each((str, ChannelTable), what="a column name or a table"), required=True
+        ),
+    )
+    seed: int = setting(0, kind=int, low=0)  # of the generator of the channels' noise
 
 
 @dataclass(frozen=True)
@@ -336,33 +434,11 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
     def bad(key: str, what: str) -> DataError:
         return DataError(f"key {key!r}: {what}", file=file)
 
-    unknown = sorted(set(data) - set(MAPPING_KEYS))
-    if unknown:
-        raise bad(unknown[0], f"unknown; expected some of {list(MAPPING_KEYS)}")
-
-    def quantity(key: str, value: Any, dimension: str) -> float | None:
-        if value is None:
-            return None
-        if isinstance(value, str):
-            number, _, unit = value.strip().partition(" ")
-            try:
-                factor = unit_factor(unit or SI_UNIT[dimension], dimension, file=file, column=key)
-                value = float(number) * factor
-            except ValueError:
-                raise bad(
-                    key, f"expected a number or '<number> <unit>', got {excerpt(value)}"
-                ) from None
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-            raise bad(key, f"expected a number >= 0 [{SI_UNIT[dimension]}], got {excerpt(value)}")
-        return float(value)
-
-    options = data.get("source", {})
-    if not isinstance(options, dict):
-        raise bad("source", f"expected a table of some of {list(READER_OPTIONS)}")
-    unknown = sorted(set(options) - set(READER_OPTIONS))
-    if unknown:
-        raise bad(f"source.{unknown[0]}", f"unknown; expected some of {list(READER_OPTIONS)}")
-    options = dict(options)
+    try:
+        mf = validate(MappingFile, data)
+    except SettingError as exc:
+        raise DataError(str(exc), file=file) from None
+    options = dict(mf.source)
     delimiter = options.get("delimiter")
     if delimiter is not None and (not isinstance(delimiter, str) or len(delimiter) != 1):
         raise bad("source.delimiter", f"expected one character, got {excerpt(delimiter)}")
@@ -394,10 +470,10 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
     raster_by_file: list[tuple[str, float]] = []
 
     def raster_quantity(key: str, value: Any) -> float:
-        step = quantity(key, value, "time") or 0.0
-        if not 1e-4 <= step <= 1.0:
-            raise bad(key, f"expected a step of 1e-4 to 1 s, got {step!r}")
-        return step
+        try:  # a step as sample_time takes
+            return float(check(rules(MappingFile)["sample_time"], value, key))
+        except SettingError as exc:
+            raise DataError(str(exc), file=file) from None
 
     if isinstance(raster, str) and not _starts_with_number(raster):
         pass  # an MDF signal's name
@@ -410,95 +486,55 @@ def read_mapping(mapping: str | Path | Mapping[str, Any]) -> Mapping_:
     elif raster is not None:
         raster_step = raster_quantity("source.raster", options.pop("raster"))
 
-    if isinstance(data.get("vehicle"), dict):
-        _check_vehicle_table(data["vehicle"], data.get("model"), file)
-    vehicle = _vehicle_from(data["vehicle"], file) if "vehicle" in data else None
-    sample_time = quantity("sample_time", data.get("sample_time"), "time")
-    if sample_time is not None and not 1e-4 <= sample_time <= 1.0:
-        raise bad("sample_time", f"expected 1e-4 to 1 s, got {sample_time!r}")
-    if raster is not None and sample_time is not None:
+    if isinstance(mf.vehicle, dict):
+        _check_vehicle_table(mf.vehicle, mf.model, file)
+    vehicle = None if mf.vehicle is None else _vehicle_from(mf.vehicle, file)
+    if raster is not None and mf.sample_time is not None:
         raise bad(
             "source.raster",
             "give raster or sample_time, not both (sample_time: no time column, or an MDF "
             "file's raster step)",
         )
-    steering_ratio = data.get("steering_ratio")
-    if steering_ratio is not None and (
-        isinstance(steering_ratio, bool)
-        or not isinstance(steering_ratio, (int, float))
-        or not steering_ratio > 0
-    ):
-        raise bad("steering_ratio", f"expected a number > 0, got {excerpt(steering_ratio)}")
-    split_at_gaps = data.get("split_at_gaps", False)
-    if not isinstance(split_at_gaps, bool):
-        raise bad("split_at_gaps", f"expected true or false, got {excerpt(split_at_gaps)}")
-    segment_length = quantity("segment_length", data.get("segment_length"), "time")
-    if segment_length == 0:
-        raise bad("segment_length", "expected a length > 0 s")
-
-    channels = _channel_specs(data.get("channels"), file)
+    channels = _channel_specs(mf.channels, file)
     needs_ratio = [c for c, s in channels.items() if s.hand_wheel]
-    if needs_ratio and steering_ratio is None:
+    if needs_ratio and mf.steering_ratio is None:
         key = f"channels.{needs_ratio[0]}.hand_wheel"
         if vehicle is None:
             raise bad(key, "needs steering_ratio (or a vehicle, whose steering_ratio is used)")
         if vehicle.steering_ratio is None:
-            where = (
-                f"vehicle {data['vehicle']!r}"
-                if isinstance(data["vehicle"], str)
-                else "the [vehicle] table"
-            )
+            named = isinstance(mf.vehicle, str)
             raise bad(
                 key,
-                f"{where} has no steering_ratio to divide the hand-wheel angle by: give "
-                "steering_ratio = <hand-wheel angle / road-wheel angle, e.g. 15.8> at the top "
-                "of the mapping"
-                + ("" if isinstance(data["vehicle"], str) else " or in the [vehicle] table"),
+                f"{f'vehicle {mf.vehicle!r}' if named else 'the [vehicle] table'} has no "
+                "steering_ratio to divide the hand-wheel angle by: give steering_ratio = "
+                "<hand-wheel angle / road-wheel angle, e.g. 15.8> at the top of the mapping"
+                + ("" if named else " or in the [vehicle] table"),
             )
-    model = data.get("model")
+    model = mf.model
     state_space = None if model is None else _check_model(model, channels, vehicle, file)
-    seed = data.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise bad("seed", f"expected an integer >= 0, got {excerpt(seed)}")
-    for key in ("name", "description"):
-        if key in data and not isinstance(data[key], str):
-            raise bad(key, f"expected a string, got {excerpt(data[key])}")
-    kinds = data.get("kind", {})
-    if isinstance(kinds, str):
-        kinds = {"*": kinds}
-    if not isinstance(kinds, dict) or ("kind" in data and not kinds):
-        raise bad(
-            "kind",
-            'expected a kind ("skidpad") or a table { "<file or manoeuvre glob>" = "<kind>" }, '
-            f"got {excerpt(data['kind'])}",
-        )
-    for glob, kind in kinds.items():
-        if not isinstance(kind, str) or not kind.strip():
-            key = "kind" if "kind" in data and isinstance(data["kind"], str) else f"kind.{glob}"
-            raise bad(key, f"expected a non-empty string (a manoeuvre kind), got {excerpt(kind)}")
     return Mapping_(
         file=file,
         channels=channels,
         options=options,
-        name=data.get("name"),
-        description=data.get("description", ""),
+        name=mf.name,
+        description=mf.description,
         vehicle=vehicle,
         model=model,
-        sample_time=sample_time,
-        min_speed=quantity("min_speed", data.get("min_speed"), "speed"),
-        min_duration=quantity("min_duration", data.get("min_duration"), "time") or 0.0,
-        segment_length=segment_length,
-        steering_ratio=None if steering_ratio is None else float(steering_ratio),
-        split=_split_rule(data.get("split"), file),
-        split_per=_split_per(data.get("split"), file),
-        split_at_gaps=split_at_gaps,
+        sample_time=mf.sample_time,
+        min_speed=mf.min_speed,
+        min_duration=mf.min_duration or 0.0,
+        segment_length=mf.segment_length,
+        steering_ratio=mf.steering_ratio,
+        split=_split_rule(mf.split, file),
+        split_per=_split_per(mf.split, file),
+        split_at_gaps=mf.split_at_gaps,
         format=fmt,
         raster_step=raster_step,
         raster_by_file=tuple(raster_by_file),
         given={k: data[k] for k in ("min_speed", "min_duration", "split") if k in data},
         state_space=state_space,
-        seed=seed,
-        kind_by_name=tuple(kinds.items()),
+        seed=mf.seed,
+        kind_by_name=tuple(mf.kind.items()),
     )
 
 
@@ -577,35 +613,26 @@ def _check_encoding(name: Any, bad: Callable[[str, str], DataError]) -> None:
         )
 
 
-def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
-    if not isinstance(table, dict) or not table:
+def _channel_specs(table: Mapping[str, str | ChannelTable], file: str) -> dict[str, ChannelSpec]:
+    """The ``[channels]`` entries (each checked against :class:`ChannelTable` already) as
+    specs, with the checks that relate an entry's keys to each other."""
+    if not table:
         raise DataError(
             "key 'channels': expected a table of kftune channel = source column", file=file
         )
     out = {}
-    for channel, spec in table.items():
+    for channel, given in table.items():
         check_channel_name(channel, file=file)
         key = f"channels.{channel}"
-        if isinstance(spec, str):
-            spec = {"column": spec}
-        if not isinstance(spec, dict):
-            raise DataError(f"key {key!r}: expected a column name or a table", file=file)
-        unknown = sorted(set(spec) - set(CHANNEL_KEYS))
-        if unknown:
-            raise DataError(
-                f"key '{key}.{unknown[0]}': unknown; expected some of {list(CHANNEL_KEYS)}",
-                file=file,
-            )
-        if sum(k in spec for k in ("column", "atan2", "expr")) != 1:
+        spec = ChannelTable(column=given) if isinstance(given, str) else given
+        if sum(v is not None for v in (spec.column, spec.atan2, spec.expr)) != 1:
             raise DataError(
                 f'key {key!r}: give one of column, atan2 = [vy, vx] or expr = "..."', file=file
             )
         expression = None
-        if "atan2" in spec:
-            sources = spec["atan2"]
-            if not (isinstance(sources, list) and len(sources) == 2):
-                raise DataError(f"key '{key}.atan2': expected [vy, vx], two names", file=file)
-            if "offset" in spec:
+        if spec.atan2 is not None:
+            sources = spec.atan2
+            if spec.offset:
                 raise DataError(
                     f"key '{key}.offset': an offset would shift both speeds before the angle, "
                     "not the angle; for an angle offset compute the channel: "
@@ -613,7 +640,7 @@ def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
                     'unit = "rad" }',
                     file=file,
                 )
-        elif "expr" in spec:
+        elif spec.expr is not None:
             if channel == "t":
                 raise DataError(
                     f"key '{key}.expr': the time t must be a column (or sample_time): "
@@ -621,51 +648,33 @@ def _channel_specs(table: Any, file: str) -> dict[str, ChannelSpec]:
                     file=file,
                 )
             try:
-                expression = parse(spec["expr"])
+                expression = parse(spec.expr)
             except ExprError as exc:
                 raise DataError(f"key '{key}.expr': {exc}", file=file) from None
             sources = list(expression.names)
         else:
-            sources = [spec["column"]]
-        if not all(isinstance(s, str) and s for s in sources):
+            sources = [spec.column or ""]
+        if not all(sources):
             raise DataError(f"key {key!r}: a source name must be a non-empty string", file=file)
-        unit = spec.get("unit")
-        dim = "speed" if "atan2" in spec else CHANNEL_DIMENSION.get(channel)
-        if unit is not None:
-            unit_factor(unit, dim, file=file, column=channel)
-        numbers = {}
-        for k, default in (("scale", 1.0), ("offset", 0.0), ("sign", 1.0)):
-            v = spec.get(k, default)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise DataError(f"key '{key}.{k}': expected a number, got {excerpt(v)}", file=file)
-            numbers[k] = float(v)
-        if numbers["sign"] not in (1.0, -1.0):
-            raise DataError(f"key '{key}.sign': expected 1 or -1", file=file)
-        if numbers["scale"] == 0.0:
-            raise DataError(f"key '{key}.scale': must not be 0", file=file)
-        noise = spec.get("noise", 0.0)
-        if (
-            isinstance(noise, bool)
-            or not isinstance(noise, (int, float))
-            or not (math.isfinite(noise) and noise >= 0)
-            or (noise and channel == "t")
-        ):
+        dim = "speed" if spec.atan2 is not None else CHANNEL_DIMENSION.get(channel)
+        if spec.unit is not None:
+            unit_factor(spec.unit, dim, file=file, column=channel)
+        if spec.noise and channel == "t":
             raise DataError(
-                f"key '{key}.noise': expected a standard deviation >= 0 (in the channel's SI "
-                f"unit; none for the time t), got {excerpt(noise)}",
+                f"key '{key}.noise': expected none for the time t (noise is added to "
+                f"measurements), got {excerpt(spec.noise)}",
                 file=file,
             )
-        hand_wheel = spec.get("hand_wheel", False)
-        if not isinstance(hand_wheel, bool):
-            raise DataError(f"key '{key}.hand_wheel': expected true or false", file=file)
         out[channel] = ChannelSpec(
             channel,
             tuple(sources),
-            unit,
-            hand_wheel=hand_wheel,
+            spec.unit,
+            scale=float(spec.scale),
+            offset=float(spec.offset),
+            sign=float(spec.sign),
+            hand_wheel=spec.hand_wheel,
             expression=expression,
-            noise=float(noise),
-            **numbers,
+            noise=float(spec.noise),
         )
     _computing_order(out, file)
     return out
@@ -697,53 +706,32 @@ def _computing_order(channels: Mapping[str, ChannelSpec], file: str) -> list[str
         ) from None
 
 
-def _split_per(table: Any, file: str) -> str:
+def _split_per(table: SplitTable | None, file: str) -> str:
     """``[split] per``: ``"all"`` (the default) or ``"file"``."""
-    if not isinstance(table, dict) or "per" not in table:
+    if table is None:
         return "all"
-    per = table["per"]
-    if per not in SPLIT_PER:
-        raise DataError(
-            f"key 'split.per': expected one of {list(SPLIT_PER)}, got {excerpt(per)}", file=file
-        )
-    if per == "file" and "test" in table:
+    if table.per == "file" and table.test is not None:
         raise DataError(
             "key 'split.per': per = \"file\" applies to train_every and test_fraction; test = "
             "[globs] names recordings or segments itself",
             file=file,
         )
-    return str(per)
+    return table.per
 
 
-def _split_rule(table: Any, file: str) -> tuple[str, Any]:
-    if table is None:
+def _split_rule(table: SplitTable | None, file: str) -> tuple[str, Any]:
+    """The one rule of ``[split]`` (each checked against :class:`SplitTable` already) as
+    (rule, value); none: every :data:`DEFAULT_TRAIN_EVERY`-th manoeuvre trains."""
+    given = [(r, getattr(table, r)) for r in SPLIT_RULES if getattr(table, r, None) is not None]
+    if not given:
         return ("train_every", DEFAULT_TRAIN_EVERY)
-    if isinstance(table, dict):
-        table = {k: v for k, v in table.items() if k != "per"}
-        if not table:
-            return ("train_every", DEFAULT_TRAIN_EVERY)
-    if not isinstance(table, dict) or len(table) != 1 or next(iter(table)) not in SPLIT_RULES:
+    if len(given) > 1:
         raise DataError(
             f"key 'split': expected one of {list(SPLIT_RULES)} (and optionally per = "
             f"{' or '.join(repr(p) for p in SPLIT_PER)})",
             file=file,
         )
-    rule, value = next(iter(table.items()))
-    ok = {
-        "test": isinstance(value, list) and all(isinstance(g, str) for g in value),
-        "train_every": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
-        "test_fraction": isinstance(value, (int, float))
-        and not isinstance(value, bool)
-        and 0 < value < 1,
-    }[rule]
-    if not ok:
-        expected = {
-            "test": "a list of file-name globs",
-            "train_every": "an integer >= 1",
-            "test_fraction": "a number between 0 and 1",
-        }[rule]
-        raise DataError(f"key 'split.{rule}': expected {expected}, got {excerpt(value)}", file=file)
-    return rule, value
+    return given[0]
 
 
 def _check_model(
@@ -1740,19 +1728,17 @@ def load_revs(
         DataError: a file of the folder is missing or unusable.
     """
     m = read_mapping(_BUILTIN_MAPPINGS / f"{REVS_MAPPING}.toml")
-    changes: dict[str, Any] = {}
+    changes: dict[str, Any] = {}  # checked as the mapping's keys are (a SettingError)
     if segment_length is not None:
-        if not segment_length > 0:
-            raise ValueError(f"segment_length must be > 0 s, got {segment_length!r}")
-        changes["segment_length"] = float(segment_length)
+        changes["segment_length"] = check(
+            rules(MappingFile)["segment_length"], segment_length, "segment_length"
+        )
     if train_every is not None:
-        if train_every < 1:
-            raise ValueError(f"train_every must be >= 1, got {train_every!r}")
-        changes["split"] = ("train_every", train_every)
+        rule_ = rules(SplitTable)["train_every"]
+        changes["split"] = ("train_every", check(rule_, train_every, "train_every"))
     if vx_noise is not None:
-        if not vx_noise >= 0:
-            raise ValueError(f"vx_noise must be >= 0 m/s, got {vx_noise!r}")
-        vx = dataclasses.replace(m.channels["vx"], noise=float(vx_noise))
+        noise = check(rules(ChannelTable)["noise"], vx_noise, "vx_noise")
+        vx = dataclasses.replace(m.channels["vx"], noise=float(noise))
         changes["channels"] = m.channels | {"vx": vx}
     if seed is not None:
         changes["seed"] = seed
