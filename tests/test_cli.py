@@ -155,7 +155,7 @@ def test_bad_files_exit_3_and_name_the_file(tmp_path):
     cfg.write_text("budget = 40\n[cost]\nweights = { yaw = 1.0 }\n")
     res = kftune("tune", "--config", str(cfg), "--quiet", cwd=tmp_path)
     assert res.returncode == 3 and "unknown cost channel" in res.stderr
-    assert "bad.toml [cost]" in res.stderr
+    assert "bad.toml, [cost] key 'weights'" in res.stderr
     bad_params = tmp_path / "tuned.json"
     bad_params.write_text('{"q": [1, 2]}')
     res = kftune("evaluate", "--params", str(bad_params))
@@ -239,17 +239,17 @@ def test_values_and_contradictions_that_argparse_cannot_see_exit_2(tmp_path, arg
 @pytest.mark.parametrize(
     ("command", "text", "expected"),
     [
-        ("tune", "q_bounds = [1e-3, 1]", "unknown key 'q_bounds'"),  # belongs in [parameters]
-        ("tune", "seed = -2", "seed must be >= 0"),
-        ("compare", "[budgets]\nga = 0", "ga must be >= 1"),
-        ("tune", "[budgets]\nga = 0", "ga must be >= 1"),  # another command's: still checked
+        ("tune", "q_bounds = [1e-3, 1]", "'q_bounds': unknown"),  # belongs in [parameters]
+        ("tune", "seed = -2", "key 'seed': expected an integer >= 0, got -2"),
+        ("compare", "[budgets]\nga = 0", "[budgets] key 'ga': expected an integer >= 1"),
+        ("tune", "[budgets]\nga = 0", "'ga': expected an int"),  # another command's: still checked
         ("evaluate", "[options.ga]\npopulation_size = 0", "population_size"),
         ("tune", "[options.tsbo-tsp]\nmax_fee = 3", "max_fee"),
-        ("tune", "[parameters]\nq_bounds = ['a', 1]", "q_bounds must be [low, high]"),
+        ("tune", "[parameters]\nq_bounds = ['a', 1]", "key 'q_bounds': expected [low, high]"),
         ("tune", "[parameters]\nq_bounds = [1, 1e-3]", "below"),
-        ("tune", "[cost]\nkind = 'mse'", "cost kind must be"),
+        ("tune", "[cost]\nkind = 'mse'", "[cost] key 'kind': expected one of ['nrmse'"),
         ("tune", "[cost]\nweights = { beta = -1.0 }", "beta"),
-        ("tune", "[cost]\nnormalise = 'run'", "cost normalise must be one of"),
+        ("tune", "[cost]\nnormalise = 'run'", "[cost] key 'normalise': expected one of"),
         ("tune", "[cost]\nkind = 'pem'\nnormalise = 'dataset'", "nrmse cost only"),
         ("compare", "[options.tsbo-gp]\nmode = 'fast'", "mode"),
         ("compare", "[ukf]\nalpha = -1.0", "alpha"),

@@ -432,10 +432,10 @@ DEEP_JSON = "[" * 100_000 + "]" * 100_000
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
-        ("timeout = inf", "timeout must be > 0 and <= 1e+06"),
-        ("timeout = nan", "timeout must be"),
-        ("timeout = 1e7", "timeout must be > 0 and <= 1e+06"),
-        ("burn_in = inf", "burn_in must be >= 0"),
+        ("timeout = inf", "key 'timeout': expected a number > 0 and <= 1e+06 [s]"),
+        ("timeout = nan", "key 'timeout': expected a number"),
+        ("timeout = 1e7", "key 'timeout': expected a number > 0 and <= 1e+06 [s]"),
+        ("burn_in = inf", "key 'burn_in': expected a number >= 0 [s]"),
         (DEEP_TOML, "nests arrays or tables too deeply"),
     ],
 )

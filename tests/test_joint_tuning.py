@@ -346,7 +346,10 @@ def test_bad_tune_model_options_are_refused_naming_the_parameter(small, tmp_path
     ("section", "says"),
     [
         ("tune_model = { mu = [0.4, 2.5] }", r"joint.toml \[parameters\]: .*'mu'.*\[0.05, 2\]"),
-        ("tune_model = { C_af = 20000.0 }", r"tune_model.C_af must be \[low, high\]"),
+        (
+            "tune_model = { C_af = 20000.0 }",
+            r"\[parameters\] key 'tune_model.C_af': expected \[low, high\]",
+        ),
         ('tune_model = { mu = [0.4, 1.6] }\nmodel_scale = { C_af = "linear" }', "model_scale"),
         ('tune_model = { mu = [0.4, 1.6] }\nmodel_scale = { mu = "ln" }', "model_scale.mu"),
     ],

@@ -10,16 +10,19 @@ the declarations they test.
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from kftune.cli import main
+from kftune.cli._common import cost_spec, pick
 from kftune.data import import_recordings, load_dataset, save_dataset
 from kftune.data.importer import open_dataset
-from kftune.errors import DataError
-from kftune.settings import NUMBER, SettingError, each, rule, setting, validate
+from kftune.errors import ConfigError, DataError, UsageError
+from kftune.settings import NUMBER, Layer, SettingError, each, merge, rule, setting, validate
 from test_data_helpers import synthetic_channels, synthetic_dataset
 
 
@@ -179,3 +182,109 @@ def test_a_mapping_without_channels_says_the_key_is_missing(tmp_path, recording)
     mapping.write_text('vehicle = "bmw-320i"\n')
     with pytest.raises(DataError, match=r"map\.toml: key 'channels' is missing$"):
         import_recordings([recording], mapping)
+
+
+# ------------------------------------------------------------ run configuration, merge
+def test_the_merge_takes_each_key_from_the_first_layer_that_gives_it():
+    """Command line over configuration file over tuned file over defaults, key by key."""
+    cli = Layer({"a": 1, "b": None, "c": None, "d": None}, lambda k: f"--{k}", "command line")
+    file = Layer({"b": 2, "c": None}, lambda k: f"file, key {k!r}", "file")
+    tuned = Layer({"b": 30, "c": 3}, lambda k: "the tuned file", "tuned")
+    default = Layer({"a": 40, "b": 40, "c": 40, "d": 4}, lambda k: f"the default {k}", "default")
+    rule_ = each(int, low=0)
+    chosen = merge(dict.fromkeys("abcd", rule_), [cli, file, tuned, default])
+    assert {k: (v, layer.name) for k, (v, layer) in chosen.items()} == {
+        "a": (1, "command line"),
+        "b": (2, "file"),
+        "c": (3, "tuned"),
+        "d": (4, "default"),
+    }
+    assert "e" not in merge({"e": rule_}, [cli, default])
+
+
+@pytest.mark.parametrize(
+    ("layer", "message"),
+    [
+        (Layer({"n": -1}, lambda k: f"--{k}"), "--n: expected an integer >= 0, got -1"),
+        (
+            Layer({"n": "x"}, lambda k: f"configuration file cfg.toml, key {k!r}"),
+            "configuration file cfg.toml, key 'n': expected an integer >= 0, got 'x'",
+        ),
+    ],
+)
+def test_a_bad_value_in_the_merge_names_its_source(layer, message):
+    fallback = Layer({"n": 1}, lambda k: "the default")
+    with pytest.raises(SettingError) as info:
+        merge({"n": each(int, low=0)}, [layer, fallback])
+    assert str(info.value) == message
+
+
+def _args(**given):
+    """The options of ``kftune evaluate`` that set the cost, as argparse gives them."""
+    names = ("cost", "weights", "estimate", "normalise", "model", "filter", "workers")
+    return argparse.Namespace(command="evaluate", **{**dict.fromkeys(names), **given})
+
+
+@pytest.mark.parametrize(
+    ("args", "section", "tuned", "estimate"),
+    [
+        ({"estimate": "prior"}, {"estimate": "posterior"}, {"estimate": "posterior"}, "prior"),
+        ({}, {"estimate": "prior"}, {"estimate": "posterior"}, "prior"),
+        ({}, {}, {"estimate": "prior"}, "prior"),
+        ({}, {}, {}, "posterior"),  # CostSpec's default
+    ],
+)
+def test_the_cost_comes_from_command_line_then_file_then_tuned_file_then_default(
+    args, section, tuned, estimate
+):
+    config = {"cost": section, "_file": "cfg.toml"}
+    assert cost_spec(_args(**args), config, tuned).estimate == estimate
+
+
+def test_a_cost_setting_that_does_not_apply_names_where_it_was_given(tmp_path):
+    with pytest.raises(UsageError, match=r"^--weights: the nis cost \(--cost nis\) weighs no"):
+        cost_spec(_args(cost="nis", weights={"beta": 1.0}), {})
+    config = {"cost": {"weights": {"beta": 1.0}}, "_file": "cfg.toml"}
+    with pytest.raises(ConfigError) as info:
+        cost_spec(_args(), config, {"kind": "nis", "weights": {}})
+    assert not isinstance(info.value, UsageError)
+    assert str(info.value).startswith(
+        "configuration file cfg.toml, [cost] key 'weights': the nis cost (the cost the "
+        "parameters were tuned with) weighs no channels"
+    )
+    assert pick(_args(workers=3), {"workers": 2}, "workers", 1) == 3
+    assert pick(_args(), {"workers": 2}, "workers", 1) == 2
+    assert pick(_args(), {}, "workers", 1) == 1
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [  # type, range, choices, an element's rule, a table's keys, nested table, unknown key
+        ('seed = "x"', "key 'seed': expected an integer >= 0, got 'x'"),
+        ("workers = 0", "key 'workers': expected an integer >= 1 and <= "),
+        ('filter = "pf"', "key 'filter': expected one of ['ukf', 'ekf'], got 'pf'"),
+        ('methods = ["ga", "gd"]', "key 'methods[1]': expected one of ['trbo', "),
+        ("budgets = { gd = 3 }", "[budgets] key 'gd': unknown; expected some of ['trbo', "),
+        ("[cost]\nweights = { beta = -1.0 }", "[cost] key 'weights.beta': expected a number >= 0"),
+        ("[ukf]\ngamma = 1.0", "[ukf] key 'gamma': unknown; expected some of ['alpha', 'beta',"),
+        ("budjet = 40", "key 'budjet': unknown; expected some of ['dataset', 'method', 'm"),
+    ],
+)
+def test_a_configuration_constraint_violation_names_the_file_and_key(
+    tmp_path, capsys, text, message
+):
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(text + "\n")
+    assert main(["evaluate", "--manual", "--config", str(cfg)]) == 3
+    err = capsys.readouterr().err
+    assert f"configuration file {cfg}, {message}" in err and "Traceback" not in err, err
+
+
+def test_an_option_is_checked_by_the_rule_of_its_configuration_key(capsys):
+    for argv, message in [
+        (["tune", "--budget", "0"], "expected an integer >= 1 and <= 100000, got '0'"),
+        (["evaluate", "--burn-in", "-1"], "expected a number >= 0 [s], got '-1'"),
+    ]:
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 2 and message in capsys.readouterr().err

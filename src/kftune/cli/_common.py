@@ -56,14 +56,30 @@ import dataclasses
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 from kftune.errors import ConfigError, DataError, UsageError, excerpt
 from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
+from kftune.settings import (
+    NUMBER,
+    Layer,
+    Rule,
+    SettingError,
+    check,
+    each,
+    given,
+    merge,
+    rule,
+    rules,
+    setting,
+    validate,
+)
 from kftune.tuning.calibrate import CRITERIA
 from kftune.tuning.cost import CHANNELS, COST_KINDS, NORMALISATIONS
+from kftune.tuning.parameterization import R_MODES
 
 if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a command runs
     from kftune.filters import UKFSettings
@@ -82,30 +98,104 @@ MAX_WORKERS = 4 * (os.cpu_count() or 1)
 #: Values of ``calibration`` (``tune --calibration``): a criterion of
 #: :data:`kftune.tuning.calibrate.CRITERIA`, or "none" (no calibration).
 CALIBRATIONS: tuple[str, ...] = (*CRITERIA, "none")
+#: Most cost evaluations a method's budget may be (``budget``, ``budgets``, ``-n``).
+_BUDGET: dict[str, Any] = {"kind": int, "low": 1, "high": MAX_BUDGET}
 
-#: Keys a configuration file may hold, with the TOML type expected.
-CONFIG_KEYS: dict[str, type | tuple[type, ...]] = {
-    "dataset": str,
-    "method": str,
-    "methods": list,
-    "budget": int,
-    "budgets": dict,
-    "seed": int,
-    "model": str,
-    "filter": str,
-    "r0": dict,
-    "workers": int,
-    "timeout": (int, float),
-    "widen_bounds": bool,
-    "calibration": str,
-    "scheduler": str,
-    "batch": int,
-    "burn_in": (int, float),
-    "cost": dict,
-    "parameters": dict,
-    "ukf": dict,
-    "options": dict,
-}
+
+def _box(value: list[Any]) -> list[float]:
+    """``[low, high]``: two numbers (a setting's converter; ValueError otherwise)."""
+    if len(value) != 2 or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+    ):
+        raise ValueError("not [low, high]")
+    return [float(v) for v in value]
+
+
+def _boxes(value: list[Any] | dict[str, Any]) -> Any:
+    """``q_bounds``: one ``[low, high]`` for all, or a table of one per parameter."""
+    return _box(value) if isinstance(value, list) else {k: _box(v) for k, v in value.items()}
+
+
+_BOX = each(list, convert=_box, what="[low, high] in the parameter's unit")
+
+
+@dataclass(frozen=True)
+class CostTable:
+    """``[cost]``: the cost (:class:`~kftune.tuning.cost.CostSpec`); None: not given."""
+
+    kind: str | None = setting(kind=str, choices=COST_KINDS)
+    weights: dict[str, float] | None = field(
+        default=None, metadata=rule(dict, each=each(NUMBER, low=0))
+    )
+    estimate: str | None = setting(kind=str, choices=("posterior", "prior"))
+    normalise: str | None = setting(kind=str, choices=NORMALISATIONS)
+
+
+@dataclass(frozen=True)
+class ParametersTable:
+    """``[parameters]``: what is tuned (:class:`~kftune.tuning.parameterization.
+    NoiseParameterization`); None: not given."""
+
+    q_bounds: list[float] | dict[str, list[float]] | None = field(
+        default=None,
+        metadata=rule(
+            (list, dict), convert=_boxes, what="[low, high] or a table { NAME = [low, high] }"
+        ),
+    )
+    tune_r: str | None = setting(kind=str, choices=R_MODES)
+    tune_r_scale: bool | None = setting(kind=bool)
+    tune_sigma_points: bool | None = setting(kind=bool)
+    r_scale_bounds: list[float] | None = field(
+        default=None, metadata=rule(list, convert=_box, what="[low, high]")
+    )
+    tune_model: dict[str, list[float]] | None = field(default=None, metadata=rule(dict, each=_BOX))
+    model_scale: dict[str, str] | None = field(
+        default=None, metadata=rule(dict, each=each(str, choices=("log10", "linear")))
+    )
+
+
+@dataclass(frozen=True)
+class UKFTable:
+    """``[ukf]``: the sigma-point parameters where they are not tuned."""
+
+    alpha: float | None = setting(kind=NUMBER)
+    beta: float | None = setting(kind=NUMBER)
+    kappa: float | None = setting(kind=NUMBER)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A configuration file (see the module docstring); None: not given, so that the
+    command line, a tuned file or the default decides (:func:`pick`)."""
+
+    dataset: str | None = setting(kind=str)
+    method: str | None = setting(kind=str, choices=METHODS)
+    methods: list[str] | None = field(
+        default=None, metadata=rule(list, each=each(str, choices=METHODS))
+    )
+    budget: int | None = setting(**_BUDGET)
+    budgets: dict[str, int] | None = field(
+        default=None, metadata=rule(dict, keys=METHODS, each=each(**_BUDGET))
+    )
+    seed: int | None = setting(kind=int, low=0)
+    model: str | None = setting(kind=str)
+    filter: str | None = setting(kind=str, choices=("ukf", "ekf"))
+    r0: dict[str, float] | None = field(default=None, metadata=rule(dict))
+    workers: int | None = setting(kind=int, low=1, high=MAX_WORKERS)
+    timeout: float | None = setting(kind=NUMBER, low=0, strict=True, high=MAX_TIMEOUT, unit="s")
+    widen_bounds: bool | None = setting(kind=bool)
+    calibration: str | None = setting(kind=str, choices=CALIBRATIONS)
+    scheduler: str | None = setting(kind=str)
+    batch: int | None = setting(kind=int, low=1, high=MAX_BUDGET)
+    burn_in: float | None = setting(kind=NUMBER, low=0, unit="s")
+    cost: CostTable | None = field(default=None, metadata=rule(CostTable))
+    parameters: ParametersTable | None = field(default=None, metadata=rule(ParametersTable))
+    ukf: UKFTable | None = field(default=None, metadata=rule(UKFTable))
+    options: dict[str, dict[str, Any]] | None = field(
+        default=None, metadata=rule(dict, keys=METHODS, each=each(dict))
+    )
+
+
 #: Keys that only some commands use (the others check them, then leave them out).
 USED_ONLY_BY: dict[str, set[str]] = {
     "method": {"tune"},
@@ -120,37 +210,15 @@ USED_ONLY_BY: dict[str, set[str]] = {
     "seed": {"tune", "compare"},
     "options": {"tune", "compare"},
 }
-#: Limits of numeric keys: (lower limit, strict, upper limit or None); every one finite.
-_LIMITS: dict[str, tuple[float, bool, float | None]] = {
-    "budget": (1, False, MAX_BUDGET),
-    "seed": (0, False, None),
-    "workers": (1, False, MAX_WORKERS),
-    "batch": (1, False, MAX_BUDGET),
-    "timeout": (0, True, MAX_TIMEOUT),
-    "burn_in": (0, False, None),
-}
-_SECTION_KEYS: dict[str, dict[str, Any]] = {
-    "cost": {"kind": str, "weights": dict, "estimate": str, "normalise": str},
-    "parameters": {
-        "q_bounds": (list, dict),
-        "tune_r": str,
-        "tune_r_scale": bool,
-        "tune_sigma_points": bool,
-        "r_scale_bounds": list,
-        "tune_model": dict,
-        "model_scale": dict,
-    },
-    "ukf": {"alpha": (int, float), "beta": (int, float), "kappa": (int, float)},
-}
-
-
 #: Method options that hold points of the tuned space, checked by the run (the space's
 #: dimension is not known when the configuration is read).
 _POINT_OPTIONS: frozenset[tuple[str, str]] = frozenset({("manual", "points"), ("trbo", "x0")})
 
 
 def load_config(path: str | Path | None, command: str | None = None) -> dict[str, Any]:
-    """Read and check a TOML configuration; ``None`` gives an empty one.
+    """Read a TOML configuration and check it against :class:`RunConfig`; ``None`` gives
+    an empty one. The result holds the keys the file gives, as tables (values converted:
+    ``[low, high]`` as floats).
 
     A relative ``dataset`` is resolved against the file's directory. With ``command``,
     keys that only another command uses (:data:`USED_ONLY_BY`) are checked like the others,
@@ -159,7 +227,7 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
 
     Raises:
         ConfigError: unreadable file, bad TOML, unknown key, wrong type or out-of-range
-            value (named).
+            value; names the file and the key.
     """
     if path is None:
         return {}
@@ -167,46 +235,13 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     from kftune.data.jsonfile import read_toml
 
     try:
-        data = read_toml(p)
+        data = given(validate(RunConfig, read_toml(p)))
     except DataError as exc:  # a configuration's errors are ConfigErrors (also exit 3)
         raise ConfigError(f"configuration {exc}") from None
-    _check_keys(data, CONFIG_KEYS, str(p))
-    for key, (low, strict, high) in _LIMITS.items():
-        value = data.get(key)
-        if value is not None and not (
-            math.isfinite(value)
-            and (value > low if strict else value >= low)
-            and (high is None or value <= high)
-        ):
-            upper = "" if high is None else f" and <= {high:g}"
-            raise ConfigError(
-                f"{p}: {key} must be {'>' if strict else '>='} {low}{upper}, got {value!r}"
-            )
-    for method, budget in data.get("budgets", {}).items():
-        if method not in METHODS or isinstance(budget, bool) or not isinstance(budget, int):
-            raise ConfigError(f"{p} [budgets]: expected METHOD = N, got {method} = {budget!r}")
-        if not 1 <= budget <= MAX_BUDGET:
-            raise ConfigError(
-                f"{p} [budgets]: {method} must be >= 1 and <= {MAX_BUDGET}, got {budget}"
-            )
-    for section, keys in _SECTION_KEYS.items():
-        if section in data:
-            _check_keys(data[section], keys, f"{p} [{section}]")
-    if "method" in data and data["method"] not in METHODS:
-        raise ConfigError(f"{p}: method {data['method']!r} is not one of {list(METHODS)}")
-    if "calibration" in data and data["calibration"] not in CALIBRATIONS:
-        raise ConfigError(
-            f"{p}: calibration {excerpt(data['calibration'])} is not one of {list(CALIBRATIONS)}"
-        )
-    unknown = [m for m in data.get("methods", []) if m not in METHODS]
-    if unknown:
-        raise ConfigError(f"{p}: methods {unknown} are not among {list(METHODS)}")
+    except SettingError as exc:
+        exc.where = _in_file(p, exc.key)
+        raise ConfigError(str(exc)) from None
     for method, opts in data.get("options", {}).items():
-        if method not in METHODS or not isinstance(opts, dict):
-            raise ConfigError(
-                f"{p} [options]: expected tables [options.METHOD] with METHOD one of "
-                f"{list(METHODS)}, got {method!r}"
-            )
         # names and values, on a one-parameter space, before anything runs (points — the
         # manual method's and TR-BO's start points — depend on the tuned space's
         # dimension: the run checks them)
@@ -220,7 +255,7 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
     if "dataset" in data and data["dataset"] != "default":
         ds = Path(data["dataset"])
         data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
-    if isinstance(data.get("model"), str):
+    if "model" in data:
         data["model"] = model_file_from(data["model"], p.parent)
     if command is not None:  # checked above; another command's settings
         for key, users in USED_ONLY_BY.items():
@@ -266,46 +301,61 @@ def model_file_for(spec: str, out: Path) -> str:
 _FILE = "_file"
 
 
-def _where(config: dict[str, Any], section: str) -> str:
+def _in_file(file: str | Path, key: str) -> str:
+    """``"configuration file run.toml, [cost] key 'weights.beta'"``: where a key of a
+    configuration lies, for messages."""
+    section, _, rest = key.partition(".")
+    where = f"[{section}] key {excerpt(rest)}" if rest else f"key {excerpt(key)}"
+    return f"configuration file {file}, {where}"
+
+
+def _where(config: Mapping[str, Any], section: str) -> str:
     """``"run.toml [cost]"`` — where a section's values came from, for error messages."""
     return f"{config[_FILE]} [{section}]" if _FILE in config else f"[{section}]"
 
 
-def _check_keys(data: dict[str, Any], allowed: dict[str, Any], where: str) -> None:
-    for key, value in data.items():
-        if key not in allowed:
-            raise ConfigError(f"{where}: unknown key {key!r}; allowed: {sorted(allowed)}")
-        expected = allowed[key]
-        if isinstance(value, bool) and expected is not bool and bool not in _tuple(expected):
-            raise ConfigError(f"{where}: {key} must be {_name(expected)}, got a boolean")
-        if not isinstance(value, expected):
-            raise ConfigError(
-                f"{where}: {key} must be {_name(expected)}, got {type(value).__name__} {value!r}"
+def layers(
+    args: argparse.Namespace | None,
+    config: Mapping[str, Any],
+    tuned: tuple[str, Mapping[str, Any]] | None = None,
+    defaults: Mapping[str, Any] | None = None,
+    section: str = "",
+    options: Mapping[str, str] | None = None,
+) -> list[Layer]:
+    """The sources of settings in precedence order: the command line (``args``: a key's
+    option is ``--key-name``, or ``options[key]``), the configuration file, a tuned file
+    (``tuned``: (what it is called, its settings)) and the defaults; ``section``: the
+    configuration's table (``"cost"``) that holds the keys."""
+    table = config.get(section, {}) if section else config
+    file = config.get(_FILE, "the configuration")
+    inner = f"{section}." if section else ""
+    opts = options or {}
+    out = []
+    if args is not None:
+        names = vars(args)
+        cli = {k: names.get(o.lstrip("-").replace("-", "_")) for k, o in opts.items()}
+        out.append(
+            Layer(
+                {**names, **cli} if not section else cli,
+                lambda k: opts.get(k, f"--{k.replace('_', '-')}"),
+                "command line",
             )
+        )
+    out.append(Layer(table, lambda k: _in_file(file, inner + k), "file"))
+    if tuned is not None:
+        out.append(Layer(tuned[1], lambda k: tuned[0], "tuned"))
+    out.append(Layer(defaults or {}, lambda k: f"the default {k}", "default"))
+    return out
 
 
-def _tuple(t: type | tuple[type, ...]) -> tuple[type, ...]:
-    return t if isinstance(t, tuple) else (t,)
-
-
-def _name(t: type | tuple[type, ...]) -> str:
-    names = {
-        int: "an integer",
-        float: "a number",
-        str: "a string",
-        list: "an array",
-        dict: "a table",
-        bool: "true or false",
-    }
-    return " or ".join(names.get(x, x.__name__) for x in _tuple(t))
-
-
-def pick(args: argparse.Namespace, config: dict[str, Any], key: str, default: Any) -> Any:
+def pick(args: argparse.Namespace, config: Mapping[str, Any], key: str, default: Any) -> Any:
     """The command-line value if given, else the configuration's, else ``default``."""
-    value = getattr(args, key, None)
-    if value is not None:
-        return value
-    return config.get(key, default)
+    chosen = merge({key: _ANY}, layers(args, config, defaults={key: default}))
+    return chosen[key][0] if key in chosen else None
+
+
+#: A rule that takes any value: for settings checked where they are read.
+_ANY = Rule((object,))
 
 
 def add_command(subparsers: Any, name: str, help: str, doc: str | None) -> argparse.ArgumentParser:
@@ -324,38 +374,28 @@ def _plain(text: str) -> bool:
     return "_" not in text and text.isascii()
 
 
-def _number(kind: type, low: float, strict: bool, high: float | None = None) -> Any:
-    """An argparse type: a number of ``kind`` above ``low`` and at most ``high`` (errors
-    exit with code 2)."""
+def arg_type(r: Rule) -> Callable[[str], Any]:
+    """An argparse type: a number that ``r`` accepts (the configuration's rule of the same
+    setting), else an error that says what ``r`` expects (exit code 2)."""
+    kind = int if r.kind == (int,) else float
 
     def parse(text: str) -> Any:
         try:
-            value = kind(text) if _plain(text) else None
-        except ValueError:
-            value = None
-        if (
-            value is None
-            or not math.isfinite(value)
-            or (value <= low if strict else value < low)
-            or (high is not None and value > high)
-        ):
+            return check(r, kind(text) if _plain(text) else None, "")
+        except (ValueError, SettingError):
             raise argparse.ArgumentTypeError(
-                f"expected {'an integer' if kind is int else 'a number'} "
-                f"{'>' if strict else '>='} {low:g}"
-                f"{'' if high is None else f' and <= {high:g}'}, got {excerpt(text)}"
-            )
-        return value
+                f"expected {r.describe()}, got {excerpt(text)}"
+            ) from None
 
     return parse
 
 
-POSITIVE_INT = _number(int, 1, strict=False)
-BUDGET = _number(int, 1, strict=False, high=MAX_BUDGET)
-WORKERS = _number(int, 1, strict=False, high=MAX_WORKERS)
-NON_NEGATIVE_INT = _number(int, 0, strict=False)
-POSITIVE_FLOAT = _number(float, 0.0, strict=True)
-NON_NEGATIVE_FLOAT = _number(float, 0.0, strict=False)
-TIMEOUT_SECONDS = _number(float, 0.0, strict=True, high=MAX_TIMEOUT)
+_RULES = rules(RunConfig)
+BUDGET = arg_type(_RULES["budget"])
+WORKERS = arg_type(_RULES["workers"])
+NON_NEGATIVE_INT = arg_type(_RULES["seed"])
+NON_NEGATIVE_FLOAT = arg_type(_RULES["burn_in"])
+TIMEOUT_SECONDS = arg_type(_RULES["timeout"])
 
 
 def add_common(parser: argparse.ArgumentParser, *, tuning: bool = True) -> None:
@@ -524,23 +564,16 @@ def _weights_arg(text: str) -> dict[str, float]:
 #: ``evaluate --manual`` keep the paper's Eq. 15 with Q alone.
 RECOMMENDED_NORMALISE: Final = "dataset"
 RECOMMENDED_TUNE_R = "diag"
-#: The cost's options (``--cost`` …) and their ``[cost]`` keys, any one of which makes
-#: tune's cost the user's, on the paper's defaults (Eq. 15, Q alone) as before.
-_COST_SETTINGS = {
-    "cost": "kind",
-    "weights": "weights",
-    "normalise": "normalise",
-    "estimate": "estimate",
-}
 
 
 def recommended(args: argparse.Namespace, config: dict[str, Any]) -> bool:
     """Whether ``kftune tune``'s recommended setting applies: the command is tune and no
-    option or ``[cost]`` key of :data:`_COST_SETTINGS` is given."""
+    option or ``[cost]`` key of :data:`_COST_OPTIONS` is given, any one of which makes
+    tune's cost the user's, on the paper's defaults (Eq. 15, Q alone) as before."""
     if getattr(args, "command", None) != "tune":
         return False
     section = config.get("cost", {})
-    return not any(getattr(args, o, None) or k in section for o, k in _COST_SETTINGS.items())
+    return not any(getattr(args, o[2:], None) or k in section for k, o in _COST_OPTIONS.items())
 
 
 def cost_spec(
@@ -553,7 +586,7 @@ def cost_spec(
     whose settings stand where neither gives one (and none of which carries over to
     another kind of cost); ``model`` (a StateSpaceModel): the channels weighed must be
     ones it can score, or the error names where the weights came from."""
-    spec = _cost_spec(args, config, tuned)
+    spec, chosen = _cost_spec(args, config, tuned)
     if recommended(args, config):
         spec = dataclasses.replace(spec, normalise=RECOMMENDED_NORMALISE)
     if model is not None:
@@ -562,10 +595,8 @@ def cost_spec(
         try:
             check_cost_channels(spec, model)
         except ConfigError as exc:
-            if args.weights:
-                raise UsageError(f"--weights: {exc}") from None
-            if "weights" in config.get("cost", {}):
-                raise ConfigError(f"{_where(config, 'cost')}: {exc}") from None
+            if "weights" in chosen and chosen["weights"][1].name != "tuned":
+                raise _refused(chosen["weights"][1], "weights", str(exc)) from None
             raise
     return spec
 
@@ -573,63 +604,68 @@ def cost_spec(
 #: The costs that weigh channels (``--weights``, ``[cost] weights``): the NRMSE, the scoring
 #: rules and the multi-step prediction (its channels); nis and pem take none.
 WEIGHTED_COSTS = "nrmse, nlpd, crps and msp"
+#: The cost's settings, each with its command-line option.
+_COST_OPTIONS = {
+    "kind": "--cost",
+    "weights": "--weights",
+    "estimate": "--estimate",
+    "normalise": "--normalise",
+}
+
+
+def _refused(layer: Layer, key: str, problem: str) -> ConfigError:
+    """The error of a setting ``key`` that ``layer`` gave: a usage error (exit 2) for the
+    command line, else a configuration error (exit 3), naming where it lies."""
+    error = UsageError if layer.name == "command line" else ConfigError
+    return error(f"{layer.where(key)}: {problem}")
 
 
 def _cost_spec(
     args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None
-) -> CostSpec:
+) -> tuple[CostSpec, dict[str, tuple[Any, Layer]]]:
+    """The cost, and where each of its settings came from (:func:`merge`: command line,
+    ``[cost]``, the tuned file's cost ``tuned`` when of the same kind)."""
     from kftune.tuning.cost import CostSpec
 
-    section = config.get("cost", {})
     base = dict(tuned or {})
-    kind = args.cost or section.get("kind", base.get("kind", "nrmse"))
-    if kind != base.get("kind", "nrmse"):
-        base = {}
-    kwargs: dict[str, Any] = {
-        "kind": kind,
-        "estimate": args.estimate or section.get("estimate", base.get("estimate", "posterior")),
-        "normalise": args.normalise or section.get("normalise", base.get("normalise", "manoeuvre")),
-    }
-    kind = kwargs["kind"]
-    if args.cost:
-        source = f"--cost {kind}"
-    elif "kind" in section:
-        source = f"kind = {kind!r} in {_where(config, 'cost')}"
-    else:
-        source = "the cost the parameters were tuned with"
-    if kind in ("nis", "pem"):  # weights would be ignored: say so instead
-        if args.weights:
-            raise UsageError(
-                f"--weights: the {kind.upper()} cost ({source}) weighs no channels; leave "
-                f"--weights out or use a cost that does ({WEIGHTED_COSTS})"
-            )
-        if "weights" in section:
-            raise ConfigError(
-                f"{_where(config, 'cost')}: weights apply to the {WEIGHTED_COSTS} costs, "
-                f"not to {kind}{' (from --cost)' if args.cost else ''} (nis and pem weigh no "
-                "channels); remove them or use one of those"
-            )
-    if kind != "nrmse":  # only the NRMSE is normalised: say so instead of ignoring it
-        if args.normalise:
-            raise UsageError(
-                f"--normalise: the {kind} cost ({source}) is not an NRMSE; leave "
-                "--normalise out or use the nrmse cost"
-            )
-        if "normalise" in section:
-            raise ConfigError(
-                f"{_where(config, 'cost')}: normalise applies to the nrmse cost only, but the "
-                f"cost is {kind}{' (from --cost)' if args.cost else ''}; remove it or use nrmse"
-            )
-    if args.weights:
-        kwargs["weights"] = args.weights
-    elif "weights" in section:
-        kwargs["weights"] = section["weights"]
-    elif "weights" in base:
-        kwargs["weights"] = base["weights"]
+
+    def chosen_from(base: Mapping[str, Any]) -> dict[str, tuple[Any, Layer]]:
+        was = ("the cost the parameters were tuned with", base)
+        found = layers(args, config, was, section="cost", options=_COST_OPTIONS)
+        return merge(dict.fromkeys(_COST_OPTIONS, _ANY), found)
+
+    chosen = chosen_from(base)
+    kind = chosen["kind"][0] if "kind" in chosen else CostSpec().kind
+    if kind != base.get("kind", CostSpec().kind):
+        chosen = chosen_from({})  # no setting of another kind of cost carries over
+    by = chosen["kind"][1] if "kind" in chosen else None
+    source = (
+        "the default"
+        if by is None
+        else f"--cost {kind}"
+        if by.name == "command line"
+        else by.where("kind") + ("" if by.name == "tuned" else f" = {kind!r}")
+    )
+    mine = {k: layer for k, (_, layer) in chosen.items() if layer.name != "tuned"}
+    if kind in ("nis", "pem") and "weights" in mine:  # they would be ignored: say so
+        raise _refused(
+            mine["weights"],
+            "weights",
+            f"the {kind} cost ({source}) weighs no channels: weights apply to the "
+            f"{WEIGHTED_COSTS} costs; leave them out or use one of those",
+        )
+    if kind != "nrmse" and "normalise" in mine:  # only the NRMSE is normalised: say so
+        raise _refused(
+            mine["normalise"],
+            "normalise",
+            f"the {kind} cost ({source}) is not an NRMSE: normalise applies to the nrmse cost "
+            "only; leave it out or use nrmse",
+        )
     try:
-        return CostSpec(**kwargs)
-    except ConfigError as exc:  # command-line values are checked by argparse already
-        raise ConfigError(f"{_where(config, 'cost')}: {exc}") from None
+        return CostSpec(**{k: v for k, (v, _) in chosen.items()}), chosen
+    except ConfigError as exc:  # e.g. no weight > 0
+        layer = chosen["weights"][1] if "weights" in chosen else chosen["kind"][1]
+        raise _refused(layer, "weights" if "weights" in chosen else "kind", str(exc)) from None
 
 
 def burn_in(args: argparse.Namespace, config: dict[str, Any]) -> float:
@@ -643,11 +679,16 @@ def model_choice(
     """(model spec, filter name) from the command line, else the configuration (a model file
     named there is relative to that file), else the tuned file ``tuned`` (the model it was
     tuned with), else the paper's single-track UKF."""
-    base = tuned or {}
-    return (
-        pick(args, config, "model", base.get("model", "single-track")),
-        pick(args, config, "filter", base.get("filter", "ukf")),
-    )
+    chosen = _model_layers(args, config, None if tuned is None else ("", tuned))
+    return chosen["model"][0], chosen["filter"][0]
+
+
+def _model_layers(
+    args: argparse.Namespace, config: Mapping[str, Any], tuned: tuple[str, Mapping[str, Any]] | None
+) -> dict[str, tuple[Any, Layer]]:
+    """The model and filter, each with the layer that gave it (:func:`merge`)."""
+    defaults = {"model": "single-track", "filter": "ukf"}
+    return merge(dict.fromkeys(defaults, _ANY), layers(args, config, tuned, defaults))
 
 
 def filter_spec_of(
@@ -662,20 +703,21 @@ def filter_spec_of(
     (path, document) bad input (exit 3)."""
     from kftune.tuning.runs import filter_spec
 
-    model, filt = model_choice(args, config, None if tuned is None else tuned[1])
+    was = None if tuned is None else (f"{tuned[0]}: the model it was tuned with", tuned[1])
+    chosen = _model_layers(args, config, was)
+    (model, by), (filt, filter_by) = chosen["model"], chosen["filter"]
     try:
         return filter_spec(model, filt, vehicle)
     except ConfigError as exc:
-        if getattr(args, "model", None) is not None:
-            if split_model_file(model) is None:
-                raise UsageError(f"--model: {exc}") from None
+        layer = by if by.name != "default" else filter_by
+        if layer.name == "command line" and split_model_file(model) is None:
+            raise UsageError(f"--model: {exc}") from None
+        if layer.name == "command line":
             raise ConfigError(f"--model: {exc}") from None
-        if "model" in config:
+        if layer.name == "file":
             raise ConfigError(f"{config.get(_FILE, 'the configuration')}: {exc}") from None
-        if tuned is not None and "model" in tuned[1]:
-            raise ConfigError(f"{tuned[0]}: the model it was tuned with: {exc}") from None
-        if "filter" in config:
-            raise ConfigError(f"{config.get(_FILE, 'the configuration')}: {exc}") from None
+        if layer.name == "tuned":
+            raise ConfigError(f"{layer.where('model')}: {exc}") from None
         raise
 
 
@@ -697,26 +739,10 @@ def parameterization(
     elif recommended(args, config) and pick(args, section, "tune_r_scale", None) is None:
         kwargs["tune_r"] = RECOMMENDED_TUNE_R  # unless R's tuning is given either way
 
-    def pair(key: str, bounds: Any) -> tuple[float, float]:
-        if (
-            not isinstance(bounds, list)
-            or len(bounds) != 2
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
-        ):
-            raise ConfigError(
-                f"{_where(config, 'parameters')}: {key} must be [low, high], got {bounds!r}"
-            )
-        return (float(bounds[0]), float(bounds[1]))
-
-    for key in ("q_bounds", "r_scale_bounds"):
+    for key in ("q_bounds", "r_scale_bounds"):  # [low, high], or one per parameter
         if key in section:
-            bounds = section[key]
-            if isinstance(bounds, dict):  # one box per parameter: { q_b_ay = [lo, hi] }
-                if key != "q_bounds":
-                    raise ConfigError(f"{_where(config, 'parameters')}: {key} must be [low, high]")
-                kwargs[key] = {name: pair(f"{key}.{name}", b) for name, b in bounds.items()}
-            else:
-                kwargs[key] = pair(key, bounds)
+            b = section[key]
+            kwargs[key] = {n: tuple(v) for n, v in b.items()} if isinstance(b, dict) else tuple(b)
     if model is not None:
         kwargs.update(states=model.state_names, measurements=model.measurement_names)
     given = _model_boxes(args, config, section)
@@ -756,32 +782,19 @@ def _model_boxes(
     where = _where(config, "parameters")
     out: dict[str, tuple[float, float, str | None, str]] = {}
     scales = section.get("model_scale", {})
-    for name, scale in scales.items():
+    for name in scales:
         if name not in section.get("tune_model", {}):
             raise ConfigError(
                 f"{where}: model_scale names {name!r}, which tune_model does not tune "
                 f"(tuned: {sorted(section.get('tune_model', {}))})"
             )
-        if scale not in ("log10", "linear"):
-            raise ConfigError(
-                f'{where}: model_scale.{name} must be "log10" or "linear", got {scale!r}'
-            )
-    for name, box in section.get("tune_model", {}).items():
-        if (
-            not isinstance(box, list)
-            or len(box) != 2
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box)
-        ):
-            raise ConfigError(
-                f"{where}: tune_model.{name} must be [low, high] in the parameter's unit, "
-                f"e.g. {name} = [20000.0, 400000.0], got {box!r}"
-            )
-        out[name] = (float(box[0]), float(box[1]), scales.get(name), f"tune_model.{name}")
-    given: set[str] = set()
+    for name, (low, high) in section.get("tune_model", {}).items():
+        out[name] = (float(low), float(high), scales.get(name), f"tune_model.{name}")
+    named: set[str] = set()
     for name, low, high, scale in getattr(args, "tune_model", None) or []:
-        if name in given:
+        if name in named:
             raise UsageError(f"--tune-model {name} is given twice; give each parameter once")
-        given.add(name)
+        named.add(name)
         out[name] = (low, high, scale or scales.get(name), f"--tune-model {name}")
     return out
 
