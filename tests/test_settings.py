@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from kftune.cli import main
-from kftune.cli._common import cost_spec, pick
+from kftune.cli._common import cost_spec, model_choice, pick
 from kftune.data import import_recordings, load_dataset, save_dataset
 from kftune.data.importer import open_dataset
 from kftune.errors import ConfigError, DataError, UsageError
@@ -288,3 +288,29 @@ def test_an_option_is_checked_by_the_rule_of_its_configuration_key(capsys):
         with pytest.raises(SystemExit) as info:
             main(argv)
         assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("given", "config", "tuned", "expected"),
+    [
+        ({"model": "cv"}, {"model": "ct"}, {"model": "ca"}, ("cv", "ekf")),
+        ({}, {"model": "ct"}, {"model": "ca"}, ("ct", "ekf")),
+        ({}, {}, {"model": "ca"}, ("ca", "ekf")),
+        ({}, {}, {}, ("single-track", "ekf")),
+    ],
+)
+def test_the_model_comes_from_command_line_then_file_then_tuned_file_then_default(
+    given, config, tuned, expected
+):
+    """The filter comes from the tuned file here, the model from the first that names one."""
+    args = _args(**given)
+    assert model_choice(args, config, {**tuned, "filter": "ekf"}) == expected
+
+
+def test_a_model_that_does_not_load_names_where_it_was_chosen(capsys, tmp_path):
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text('model = "unicycle"\n')
+    assert main(["evaluate", "--manual", "--config", str(cfg)]) == 3
+    assert f"configuration file {cfg}, key 'model': " in capsys.readouterr().err
+    assert main(["evaluate", "--manual", "--config", str(cfg), "--model", "unicycle2"]) == 2
+    assert "--model: " in capsys.readouterr().err

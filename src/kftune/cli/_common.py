@@ -705,20 +705,17 @@ def filter_spec_of(
 
     was = None if tuned is None else (f"{tuned[0]}: the model it was tuned with", tuned[1])
     chosen = _model_layers(args, config, was)
-    (model, by), (filt, filter_by) = chosen["model"], chosen["filter"]
+    model, filt = chosen["model"][0], chosen["filter"][0]
     try:
         return filter_spec(model, filt, vehicle)
     except ConfigError as exc:
-        layer = by if by.name != "default" else filter_by
-        if layer.name == "command line" and split_model_file(model) is None:
-            raise UsageError(f"--model: {exc}") from None
-        if layer.name == "command line":
-            raise ConfigError(f"--model: {exc}") from None
-        if layer.name == "file":
-            raise ConfigError(f"{config.get(_FILE, 'the configuration')}: {exc}") from None
-        if layer.name == "tuned":
-            raise ConfigError(f"{layer.where('model')}: {exc}") from None
-        raise
+        key = "model" if chosen["model"][1].name != "default" else "filter"
+        layer = chosen[key][1]
+        if layer.name == "default":
+            raise
+        named = key == "filter" or split_model_file(model) is None  # not a model file
+        usage = layer.name == "command line" and named
+        raise (UsageError if usage else ConfigError)(f"{layer.where(key)}: {exc}") from None
 
 
 def parameterization(
