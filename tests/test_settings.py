@@ -254,7 +254,8 @@ def test_a_cost_setting_that_does_not_apply_names_where_it_was_given(tmp_path):
     )
     assert pick(_args(workers=3), {"workers": 2}, "workers", 1) == 3
     assert pick(_args(), {"workers": 2}, "workers", 1) == 2
-    assert pick(_args(), {}, "workers", 1) == 1
+    assert pick(_args(), {}, "workers", 5) == 5
+    assert pick(_args(), {}, "workers") == 1 and pick(_args(), {}, "dataset") is None  # DEFAULTS
 
 
 @pytest.mark.parametrize(

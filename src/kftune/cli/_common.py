@@ -348,9 +348,26 @@ def layers(
     return out
 
 
-def pick(args: argparse.Namespace, config: Mapping[str, Any], key: str, default: Any) -> Any:
-    """The command-line value if given, else the configuration's, else ``default``."""
-    chosen = merge({key: _ANY}, layers(args, config, defaults={key: default}))
+#: Each setting's value where neither the command line, the configuration file nor a tuned
+#: file gives one: the last layer of the merge (:func:`pick`, :func:`model_choice`).
+DEFAULTS: Final[Mapping[str, Any]] = {
+    "seed": 0,
+    "workers": 1,
+    "burn_in": 0.0,
+    "widen_bounds": False,
+    "model": "single-track",
+    "filter": "ukf",
+}
+_DEFAULT: Any = object()  # pick's default: that of DEFAULTS
+
+
+def pick(
+    args: argparse.Namespace, config: Mapping[str, Any], key: str, default: Any = _DEFAULT
+) -> Any:
+    """The command-line value if given, else the configuration's, else ``default`` (where
+    not passed: :data:`DEFAULTS`' value of ``key``, or None)."""
+    fallback = DEFAULTS.get(key) if default is _DEFAULT else default
+    chosen = merge({key: _ANY}, layers(args, config, defaults={key: fallback}))
     return chosen[key][0] if key in chosen else None
 
 
@@ -670,7 +687,7 @@ def _cost_spec(
 
 def burn_in(args: argparse.Namespace, config: dict[str, Any]) -> float:
     """The burn-in [s] from the command line and configuration."""
-    return float(pick(args, config, "burn_in", 0.0))
+    return float(pick(args, config, "burn_in"))
 
 
 def model_choice(
@@ -687,8 +704,8 @@ def _model_layers(
     args: argparse.Namespace, config: Mapping[str, Any], tuned: tuple[str, Mapping[str, Any]] | None
 ) -> dict[str, tuple[Any, Layer]]:
     """The model and filter, each with the layer that gave it (:func:`merge`)."""
-    defaults = {"model": "single-track", "filter": "ukf"}
-    return merge(dict.fromkeys(defaults, _ANY), layers(args, config, tuned, defaults))
+    keys = dict.fromkeys(("model", "filter"), _ANY)
+    return merge(keys, layers(args, config, tuned, DEFAULTS))
 
 
 def filter_spec_of(

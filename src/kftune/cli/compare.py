@@ -140,11 +140,11 @@ def run(args: argparse.Namespace) -> int:
     chosen: dict[str, Any] = {"methods": tuple(methods)} if methods else {}
     settings = CompareSettings(
         **chosen,
-        seed=pick(args, config, "seed", 0),
+        seed=pick(args, config, "seed"),
         budgets={**config.get("budgets", {}), **dict(args.budget or [])},
         cost=cost_spec(args, config),
         parameterization=parameterization(args, config, fs.model),  # its tune_model names
-        workers=pick(args, config, "workers", 1),
+        workers=pick(args, config, "workers"),
         burn_in=burn_in(args, config),
         method_options=config.get("options", {}),
         model=model_choice(args, config)[0],

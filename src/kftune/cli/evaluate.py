@@ -490,7 +490,7 @@ def run(args: argparse.Namespace) -> int:
             r0,
             cost=cost,
             parameterization=par,
-            workers=pick(args, config, "workers", 1),
+            workers=pick(args, config, "workers"),
             burn_in=scored_after,
             model=fs.spec,
             filter=fs.filter,

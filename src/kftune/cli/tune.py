@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     output_file(args.out, "--out", command_inputs(args, config))
     if args.storage is not None:
         output_file(args.storage, "--storage", command_inputs(args, config, study=False))
-    widen = bool(pick(args, config, "widen_bounds", False))
+    widen = bool(pick(args, config, "widen_bounds"))
     if not args.calibrate and args.calibration not in (None, "none"):
         raise UsageError(f"--no-calibration contradicts --calibration {args.calibration}")
     criterion = "none" if not args.calibrate else pick(args, config, "calibration", None)
@@ -302,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
         fs = filter_spec_of(args, config, dataset.vehicle)
         check_units(fs.model, dataset)
         scheduler = pick(args, config, "scheduler", None)
-        workers = pick(args, config, "workers", 1)
+        workers = pick(args, config, "workers")
         problem = TuningProblem(
             dataset.train,
             dataset.vehicle,
@@ -332,7 +332,7 @@ def run(args: argparse.Namespace) -> int:
                     problem,
                     method,
                     budget=budget,
-                    seed=pick(args, config, "seed", 0),
+                    seed=pick(args, config, "seed"),
                     storage=args.storage,
                     resume=args.resume,
                     progress=False if (args.quiet or args.json) else None,
