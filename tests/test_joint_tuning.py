@@ -162,15 +162,15 @@ def test_covariance_scale_scales_an_ekfs_covariances_and_keeps_its_estimate(ds, 
     q, r = np.array([1e-5, 1e-3, 1e-5]), np.asarray(ds.r_default, float)
     from kftune.filters import UKFSettings
 
-    base = fs.run(m, ds.vehicle, q, r, UKFSettings())
-    scaled = fs.run(m, ds.vehicle, q, r, UKFSettings(), cov_scale=4.0)
+    base = fs.run(m, q, r, UKFSettings())
+    scaled = fs.run(m, q, r, UKFSettings(), cov_scale=4.0)
     np.testing.assert_allclose(scaled.x, base.x, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(scaled.P_diag, 4.0 * base.P_diag, rtol=1e-6)
     problem = TuningProblem(short, ds.vehicle, ds.r_default, filter="ekf")
     problem.cov_scale = 4.0
     np.testing.assert_allclose(problem.run(q, m).P_diag, scaled.P_diag, rtol=1e-12)
     with pytest.raises(ValueError, match="cov_scale"):
-        fs.run(m, ds.vehicle, q, r, UKFSettings(), cov_scale=0.0)
+        fs.run(m, q, r, UKFSettings(), cov_scale=0.0)
 
 
 def _noise_only_fingerprint(problem: TuningProblem) -> str:
@@ -292,7 +292,7 @@ def test_tuned_file_records_the_model_parameters_and_every_reader_runs_them(smal
     assert est.returncode == 0, est.stderr
     table = json.loads(est.stdout)["manoeuvres"][m.name]["file"]
     beta = np.genfromtxt(table, delimiter=",", names=True)["beta"]
-    np.testing.assert_allclose(beta, problem.run(x, m).beta, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(beta, problem.run(x, m).output("beta"), rtol=1e-12, atol=1e-15)
     value = rec["C_af"]["value"]
     exported = {}
     for fmt in ("json", "yaml", "c", "matlab"):

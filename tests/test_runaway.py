@@ -16,7 +16,7 @@ import pytest
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
 from kftune.data import default_dataset, load_revs
 from kftune.errors import FilterDivergedError
-from kftune.filters import UKFSettings, _kernel, run_ukf, run_ukf_batch
+from kftune.filters import UKFSettings
 from kftune.models import sideslip
 from kftune.report import ExperimentResults, MethodRun
 from kftune.report.tables import kpi_table, per_manoeuvre_table
@@ -25,6 +25,7 @@ from kftune.tuning.problem import TuningProblem, assess
 from kftune.vehicle import preset
 from kftune.vehicle.single_track import MAX_SIDESLIP
 from reference_ukf import run_ukf_reference
+from single_track import beta, run_ukf, run_ukf_batch
 from test_ukf import filterpy_run
 
 BMW = preset("bmw-320i")
@@ -76,13 +77,13 @@ def test_huge_process_noise_runs_away_beyond_60_degrees():
         assert res.diverged and res.diverged_cause == sideslip.STOP_SIDESLIP
         k = res.diverged_step
         assert k < 20
-        assert np.all(np.abs(res.beta[:k]) <= math.radians(60.0))
+        assert np.all(np.abs(beta(res)[:k]) <= math.radians(60.0))
     assert runs[0].diverged_step == runs[1].diverged_step
     # FilterPy on the same model, which has no such check, crosses 60° at that very step
     k = runs[0].diverged_step
     x = filterpy_run(man, q, UKFSettings(), n=k + 1)
-    beta = np.degrees(np.abs(np.arctan2(x[:, 1], x[:, 0])))
-    assert beta[k] > 60.0 and np.all(beta[:k] <= 60.0)
+    beta_deg = np.degrees(np.abs(np.arctan2(x[:, 1], x[:, 0])))
+    assert beta_deg[k] > 60.0 and np.all(beta_deg[:k] <= 60.0)
     np.testing.assert_allclose(runs[0].x[:k], x[:k], rtol=1e-6, atol=1e-6)
 
 
@@ -102,8 +103,8 @@ def test_sideslip_beyond_46_degrees_for_less_than_half_a_second_is_not_flagged()
     x0 = [30.0, 30.0 * math.tan(math.radians(52.0)), 0.5]
     for res in both(u, z, [0.0] * 3, R_IGNORE, x0=x0, P0=[1e-6] * 3):
         assert not res.diverged and res.diverged_cause == 0 and res.diverged_reason == ""
-        beyond = np.abs(res.beta) > MAX_SIDESLIP
-        assert 5 < beyond.sum() < _kernel.hold_steps(DT)
+        beyond = np.abs(beta(res)) > MAX_SIDESLIP
+        assert 5 < beyond.sum() < round(sideslip.RUNAWAY_HOLD / DT)  # 50 steps
 
 
 def test_estimated_speed_off_the_measurement_for_half_a_second_is_a_runaway():
@@ -151,7 +152,7 @@ def _max_abs_beta_deg(manoeuvres, vehicle, r, q) -> float:
     for m in manoeuvres:
         res = run_ukf(m.u, m.z, m.dt, vehicle, q, r)
         assert not res.diverged, (m.name, q, res.diverged_reason)
-        worst = max(worst, float(np.degrees(np.abs(res.beta).max())))
+        worst = max(worst, float(np.degrees(np.abs(beta(res)).max())))
     return worst
 
 

@@ -1,6 +1,9 @@
-"""The compiled UKF against independent references: FilterPy's UKF on the nonlinear
-single-track model, a linear Kalman filter on a linear model, closed-form unscented-transform
-moments, and the χ² statistics of the NIS on a consistent simulation."""
+"""The single-track model's compiled UKF loop (what :class:`kftune.filters.UKF` runs on
+:data:`kftune.models.SINGLE_TRACK`) against independent references: FilterPy's UKF on the
+nonlinear single-track model, the numpy reference filter (itself checked against a linear
+Kalman filter), closed-form unscented-transform moments and Cholesky factors, and the χ²
+statistics of the NIS on a consistent simulation. The generic UKF on linear models is
+checked against the Kalman filter in test_filters_generic.py."""
 
 from __future__ import annotations
 
@@ -12,19 +15,12 @@ from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 from filterpy.kalman import UnscentedKalmanFilter as FilterPyUKF
 
 from kftune.cli.demo import DEFAULT_Q, demo_inputs, demo_manoeuvre
-from kftune.filters import (
-    UKFSettings,
-    default_initial_state,
-    merwe_weights,
-    run_ukf,
-    run_ukf_batch,
-    run_ukf_linear,
-    sigma_points,
-    unscented_transform,
-)
-from kftune.filters._kernel import chol3, chol3_repair
+from kftune.filters import UKFSettings, merwe_weights, sigma_points, unscented_transform
+from kftune.models._sideslip_ukf import chol3, chol3_repair
 from kftune.vehicle import lateral_forces, measure, preset, simulate, slip_angles, step_rk4
 from reference_ukf import UnscentedKalmanFilter, run_ukf_reference
+from single_track import beta as beta_of
+from single_track import default_initial_state, run_ukf, run_ukf_batch
 
 BMW = preset("bmw-320i")
 
@@ -117,7 +113,8 @@ def test_kernel_equals_reference_path_in_every_output(manoeuvre):
     for name in ("x", "P_diag", "z_hat", "innovation"):
         assert max_rel_diff(getattr(res, name), getattr(ref, name)) <= 1e-9, name
     assert max_rel_diff(res.nis[:, None], ref.nis[:, None]) <= 1e-9
-    np.testing.assert_allclose(res.beta, np.arctan2(res.x[:, 1], res.x[:, 0]))
+    assert max_rel_diff(res.log_det_s[:, None], ref.log_det_s[:, None]) <= 1e-9
+    np.testing.assert_allclose(res.output("beta"), np.arctan2(res.x[:, 1], res.x[:, 0]))
     # z_hat is h(posterior, u_k), the estimated measurement the tuning cost uses
     np.testing.assert_allclose(res.z_hat, measure(res.x, manoeuvre.u, BMW), rtol=1e-12, atol=1e-12)
 
@@ -132,7 +129,7 @@ def test_nis_is_chi2_with_3_dof_when_model_and_noise_are_right():
     # E[NIS] = 3, Var = 6 per step; 2000 steps → standard error ≈ 0.055
     assert res.nis.mean() == pytest.approx(3.0, abs=0.2)
     beta_true = np.arctan2(x[:, 1], x[:, 0])
-    assert np.degrees(np.sqrt(np.mean((res.beta - beta_true) ** 2))) < 0.01
+    assert np.degrees(np.sqrt(np.mean((res.output("beta") - beta_true) ** 2))) < 0.01
 
 
 def test_batch_equals_single_runs(manoeuvre):
@@ -142,7 +139,9 @@ def test_batch_equals_single_runs(manoeuvre):
     args = (manoeuvre.u, manoeuvre.z, manoeuvre.dt, manoeuvre.params)
     for r_arg in (manoeuvre.r_var, r):
         batch = run_ukf_batch(*args, q, r_arg)
-        assert len(batch) == 5 and batch.x.shape == (5, 2000, 3) and batch.beta.shape == (5, 2000)
+        assert (
+            len(batch) == 5 and batch.x.shape == (5, 2000, 3) and beta_of(batch).shape == (5, 2000)
+        )
         for b in range(5):
             single = run_ukf(*args, q[b], r_arg if r_arg.ndim == 1 else r_arg[b])
             one = batch[b]
@@ -172,30 +171,6 @@ def linear_system(seed: int = 0, n: int = 300):
         x[k] = F @ x[k - 1] + G @ u[k - 1] + rng.normal(size=3) * np.sqrt(q)
     z = x @ H.T + u @ D.T + rng.normal(size=(n, 3)) * np.sqrt(r)
     return F, G, H, D, q, r, u, z
-
-
-@pytest.mark.parametrize(
-    "settings", [UKFSettings(), UKFSettings(0.3, 0.0, 2.0), UKFSettings(1e-3, 2.0, 0.0)]
-)
-def test_ukf_equals_linear_kalman_filter_on_linear_model(settings):
-    F, G, H, D, q, r, u, z = linear_system()
-    x0, P0 = np.array([0.5, -0.2, 0.1]), np.diag([2.0, 1.0, 0.5])
-    res = run_ukf_linear(u, z, F, G, H, D, q, r, x0, P0, settings=settings)
-
-    kf = KalmanFilter(dim_x=3, dim_z=3, dim_u=2)
-    kf.F, kf.B, kf.H, kf.Q, kf.R = F, G, H, np.diag(q), np.diag(r)
-    kf.x, kf.P = x0.copy(), P0.copy()
-    xs, ps, nis, innov = (np.empty((len(u), 3)) for _ in range(4))
-    for k in range(len(u)):
-        if k > 0:
-            kf.predict(u=u[k - 1])
-        kf.update(z[k] - D @ u[k])  # feedthrough D·u_k moved to the measurement
-        xs[k], ps[k], innov[k] = kf.x, np.diag(kf.P), kf.y
-        nis[k, 0] = kf.y @ np.linalg.solve(kf.S, kf.y)
-    assert max_rel_diff(res.x, xs) <= 1e-9
-    assert max_rel_diff(res.P_diag, ps) <= 1e-9
-    assert max_rel_diff(res.innovation, innov) <= 1e-9
-    assert max_rel_diff(res.nis[:, None], nis[:, :1]) <= 1e-9
 
 
 def test_reference_class_equals_linear_kalman_filter():

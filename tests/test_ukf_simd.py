@@ -1,4 +1,6 @@
-"""The vectorised batch kernel (``run_ukf_simd``) against the sequential one, set by set.
+"""The single-track model's vector-lane loop (``UKF().run_batch(SINGLE_TRACK, ...,
+lanes=True)``, :mod:`kftune.models._sideslip_lanes`) against its sequential 3×3 loop, set
+by set.
 
 Every set's result must equal ``run_ukf``'s for that set (≤ 1e-12 relative; the kernel
 does the same operations in the same order, so it is in fact bit for bit), including sets
@@ -17,17 +19,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import kftune.filters._soa_kernel as soa
+import kftune.models._sideslip_lanes as soa
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
-from kftune.filters import (
-    UKFResult,
-    UKFSettings,
-    _kernel,
-    merwe_weights,
-    run_ukf,
-    run_ukf_simd,
-)
+from kftune.filters import FilterResult, UKFSettings, merwe_weights
+from kftune.models import SINGLE_TRACK
+from kftune.models._sideslip_ukf import run_kernel
+from kftune.models.kernel_io import KernelData, KernelOutputs, SigmaWeights
 from reference_ukf import run_ukf_reference
+from single_track import run_ukf, run_ukf_simd
 
 FIELDS = ("x", "P_diag", "z_hat", "innovation", "nis")
 
@@ -37,7 +36,7 @@ def man():
     return demo_manoeuvre(seed=0)
 
 
-def assert_same(one: UKFResult, ref: UKFResult) -> None:
+def assert_same(one: FilterResult, ref: FilterResult) -> None:
     """Equal to 1e-12 relative (NaN where the reference has NaN), same divergence."""
     for name in FIELDS:
         np.testing.assert_allclose(
@@ -57,6 +56,8 @@ def check_against_run_ukf(man, q, r, **kw) -> None:
     q = np.asarray(q, dtype=float)
     r = np.asarray(r, dtype=float)
     assert len(batch) == q.shape[0]
+    # the lanes (B > 1) compute no log det S; B = 1 runs the 3×3 loop, which does
+    assert (batch.log_det_s is None) == (q.shape[0] > 1)
     for b in range(q.shape[0]):
         assert_same(batch[b], run_ukf(*args, q[b], r if r.ndim == 1 else r[b], **kw))
     return batch
@@ -134,29 +135,38 @@ def test_against_the_numpy_reference_filter(man):
         np.testing.assert_allclose(batch.x[b, :k], ref.x[:k], rtol=1e-9, atol=1e-12)
 
 
+def _result(out: KernelOutputs, div: int, rep: int, why: int) -> FilterResult:
+    return FilterResult(
+        out.x, out.P_diag, out.z_hat, out.innovation, out.nis, div >= 0, div, rep, why,
+        SINGLE_TRACK, "ukf",
+    )  # fmt: skip
+
+
 def _raw(man, P_init: np.ndarray, n: int = 200):
-    """Both kernels with priors run_ukf would refuse (singular, indefinite, NaN)."""
+    """Both loops with priors the UKF would refuse (singular, indefinite, NaN)."""
     wm, wc = merwe_weights(3, UKFSettings())
-    w = (wm[0], wc[0], wm[1], math.sqrt(3.0))
+    w = SigmaWeights(wm[0], wc[0], wm[1], math.sqrt(3.0))
     n_sets = P_init.shape[0]
-    q = np.tile(DEFAULT_Q, (n_sets, 1))
-    r = np.tile(man.r_var, (n_sets, 1))
-    x = np.tile(man.z[0] * [1, 0, 1], (n_sets, 1))
-    outs = [np.empty((n_sets, n, 3)) for _ in range(4)] + [np.empty((n_sets, n))]
+    p = man.params.to_array()
+    data = KernelData(
+        SINGLE_TRACK.prepared_inputs(man.u[:n], p), man.z[:n], p, man.dt,
+        np.tile(DEFAULT_Q, (n_sets, 1)), np.tile(man.r_var, (n_sets, 1)),
+        np.tile(man.z[0] * [1, 0, 1], (n_sets, 1)), P_init, max(1, int(0.5 / man.dt + 0.5)),
+        np.array(SINGLE_TRACK.held_causes, np.int64),
+    )  # fmt: skip
+    outs = KernelOutputs.empty(n, 3, 3, batch=n_sets)
     ints = [np.empty(n_sets, dtype=np.int64) for _ in range(3)]
     ints[1][:] = 0
     soa.ensure_compiled()
-    soa.run_kernel_soa(
-        man.params.to_array(), man.u[:n], man.z[:n], man.dt, q, r, x, P_init, *w, *outs, *ints
-    )
+    soa.run_kernel_soa(data, w, outs, *ints)
     for b in range(n_sets):
-        one = [np.empty((n, 3)) for _ in range(4)] + [np.empty(n)]
-        div, rep, why = _kernel.run_kernel(
-            _kernel.MODEL_SINGLE_TRACK, man.params.to_array(), man.u[:n], man.z[:n], man.dt,
-            q[b], r[b], x[b], P_init[b], *w, *one, np.empty(n),  # (log det S: not compared)
-        )  # fmt: skip
-        got = UKFResult(*(o[b] for o in outs), ints[0][b] >= 0, ints[0][b], ints[1][b], ints[2][b])
-        assert_same(got, UKFResult(*one, div >= 0, div, rep, why))
+        one_data = data._replace(
+            q=data.q[b], r=data.r[b], x_init=data.x_init[b], P_init=data.P_init[b]
+        )
+        one = KernelOutputs.empty(n, 3, 3)  # (log det S: not compared, the lanes have none)
+        div, rep, why = run_kernel(one_data, w, one)
+        got = _result(outs.at(b), int(ints[0][b]), int(ints[1][b]), int(ints[2][b]))
+        assert_same(got, _result(one, div, rep, why))
     return ints
 
 
