@@ -55,7 +55,8 @@ import numpy as np
 import kftune
 from kftune.data import open_dataset
 from kftune.experiment import tune
-from kftune.filters import run_ukf
+from kftune.filters import UKF
+from kftune.models import SINGLE_TRACK
 from kftune.models.sideslip import single_track_prior
 from kftune.tuning.calibrate import CRITERIA, calibrate
 from kftune.tuning.cost import CostSpec
@@ -101,8 +102,8 @@ class Rerun(TuningProblem):
         q, r, settings = self.decode(x)
         m = manoeuvre
         x0, p0 = single_track_prior(m.z[0], r, np.zeros(0))
-        return run_ukf(
-            m.u, m.z, m.dt, self.vehicle, c * q, c * r, x0=x0, P0=c * p0, settings=settings
+        return UKF(settings).run(
+            SINGLE_TRACK, m.u, m.z, m.dt, c * q, c * r, params=self.vehicle, x0=x0, P0=c * p0
         )
 
 

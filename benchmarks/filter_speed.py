@@ -4,8 +4,10 @@ Measures, side by side in one process (medians of interleaved repeats, after com
 filter steps per second on the demo's 2,000-step sine steer (``kftune.cli.demo``, deep in the
 Dugoff saturation), input checks included:
 
-* ``kernel3_steps_per_s`` — today's hand-written 3×3 UKF, :func:`kftune.filters.run_ukf`;
-* ``ukf_steps_per_s`` — the generic UKF, ``UKF().run("single-track", …)``;
+* ``kernel3_steps_per_s`` — the single-track model's hand-written 3×3 UKF loop, which
+  ``UKF().run(SINGLE_TRACK, …)`` runs (:class:`kftune.models.ModelKernels`);
+* ``ukf_steps_per_s`` — the generic UKF loop on the same model (``UKF().run`` on
+  ``dataclasses.replace(SINGLE_TRACK, ukf_kernels=None)``, a model that supplies no loop);
 * ``ekf_steps_per_s`` — the EKF on the same model with its analytic Jacobians, and
   ``ekf_fd_steps_per_s`` with central differences instead;
 * ``filterpy_steps_per_s`` — FilterPy's ``UnscentedKalmanFilter`` given the compiled scalar
@@ -14,7 +16,7 @@ Dugoff saturation), input checks included:
   ``single-track-biases`` model (13 sigma points instead of 7; same manoeuvre, biased
   sensors);
 * ``batch16_1thread_*`` — 16 noise settings per call on one thread, per set: the 3×3
-  kernel's ``run_ukf_batch`` and the generic ``UKF().run_batch``;
+  loop's and the generic loop's ``UKF().run_batch`` (in threads, not the vector lanes);
 * ratios: ``ukf_slowdown_vs_kernel3`` (target ≤ 1.5), ``ekf_vs_ukf`` (target ≥ 1),
   ``ukf_vs_filterpy`` and ``ekf_vs_filterpy`` (targets ≥ 100);
 * ``max_rel_diff_ukf_vs_kernel3`` — the generic UKF's states against the 3×3 kernel's;
@@ -32,6 +34,7 @@ Usage: ``.venv/bin/python benchmarks/filter_speed.py [--repeats 21] [--filterpy-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -43,13 +46,16 @@ import numba
 import numpy as np
 
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
-from kftune.filters import EKF, UKF, run_ukf, run_ukf_batch
+from kftune.filters import EKF, UKF
 from kftune.models import SINGLE_TRACK, SINGLE_TRACK_BIASES
 from ukf_speed import compiled_model, filterpy_run, max_rel_diff, timed
 
 #: Sensor biases of the 6-state runs [m/s, m/s², rad/s] and their random-walk variances.
 BIASES = np.array([0.1, 0.3, 0.005])
 Q_BIASES = np.array([1e-7, 1e-6, 1e-9])
+
+#: The single-track model without its own loops: the UKF runs the generic loop on it.
+GENERIC_SINGLE_TRACK = dataclasses.replace(SINGLE_TRACK, ukf_kernels=None)
 
 
 def main() -> None:
@@ -68,6 +74,7 @@ def main() -> None:
     q6 = np.r_[q, Q_BIASES]
     common = (man.u, man.z, man.dt)
     ukf, ekf, ekf_fd = UKF(), EKF(), EKF(numerical_jacobians=True)
+    p = man.params  # the demo's vehicle (the model's default, given as the 3x3 runs always were)
 
     def block(run_one: Callable[[int], object]) -> Callable[[], None]:
         def run16() -> None:
@@ -77,17 +84,19 @@ def main() -> None:
         return run16
 
     cases: dict[str, Callable[[], object]] = {
-        "kernel3": block(lambda b: run_ukf(*common, man.params, q16[b], man.r_var)),
-        "ukf": block(lambda b: ukf.run(SINGLE_TRACK, *common, q16[b], man.r_var)),
+        "kernel3": block(lambda b: ukf.run(SINGLE_TRACK, *common, q16[b], man.r_var, params=p)),
+        "ukf": block(lambda b: ukf.run(GENERIC_SINGLE_TRACK, *common, q16[b], man.r_var)),
         "ekf": block(lambda b: ekf.run(SINGLE_TRACK, *common, q16[b], man.r_var)),
         "ekf_fd": block(lambda b: ekf_fd.run(SINGLE_TRACK, *common, q16[b], man.r_var)),
         "ukf6": block(lambda b: ukf.run(SINGLE_TRACK_BIASES, man.u, z6, man.dt, q6, man.r_var)),
         "ekf6": block(lambda b: ekf.run(SINGLE_TRACK_BIASES, man.u, z6, man.dt, q6, man.r_var)),
-        "batch16_1thread_kernel3": lambda: run_ukf_batch(*common, man.params, q16, man.r_var),
-        "batch16_1thread_ukf": lambda: ukf.run_batch(SINGLE_TRACK, *common, q16, man.r_var),
+        "batch16_1thread_kernel3": lambda: ukf.run_batch(
+            SINGLE_TRACK, *common, q16, man.r_var, params=p
+        ),
+        "batch16_1thread_ukf": lambda: ukf.run_batch(GENERIC_SINGLE_TRACK, *common, q16, man.r_var),
     }
     compile_s = {
-        "ukf": timed(lambda: ukf.run(SINGLE_TRACK, *common, q, man.r_var)),
+        "ukf": timed(lambda: ukf.run(GENERIC_SINGLE_TRACK, *common, q, man.r_var)),
         "ekf": timed(lambda: ekf.run(SINGLE_TRACK, *common, q, man.r_var)),
         "ukf6": timed(lambda: ukf.run(SINGLE_TRACK_BIASES, man.u, z6, man.dt, q6, man.r_var)),
     }
@@ -95,8 +104,8 @@ def main() -> None:
     numba.set_num_threads(1)  # the batches on one thread: per-set cost, not parallelism
     for fn in cases.values():
         fn()
-    res3 = run_ukf(*common, man.params, q, man.r_var)
-    res = ukf.run(SINGLE_TRACK, *common, q, man.r_var)
+    res3 = ukf.run(SINGLE_TRACK, *common, q, man.r_var, params=p)
+    res = ukf.run(GENERIC_SINGLE_TRACK, *common, q, man.r_var)
     rel = max_rel_diff(res.x, res3.x)
     fx, hx = compiled_model(man.params.to_array())
 
@@ -142,7 +151,7 @@ def main() -> None:
     }
     print(f"manoeuvre: {n} steps (demo sine steer, seed {args.seed}); steps/s, one thread")
     rows = [
-        ("3x3 kernel (run_ukf)", "kernel3"),
+        ("3x3 loop (single-track's own)", "kernel3"),
         ("generic UKF, single-track", "ukf"),
         ("EKF, single-track (analytic J)", "ekf"),
         ("EKF, single-track (central diff.)", "ekf_fd"),

@@ -1,23 +1,25 @@
-"""UKF speed: the compiled kernel against FilterPy on the same manoeuvre and model.
+"""UKF speed: the single-track model's compiled 3×3 UKF loop against FilterPy on the same
+manoeuvre and model.
 
 Measures, side by side in one process (medians of interleaved repeats, after compilation):
 
-* ``steps_per_s`` — filter steps per second of single :func:`kftune.filters.run_ukf` calls
-  (the kernel is single-threaded), input checks included, timed as 16 calls back to back
-  (the 16 noise settings of the batch) so that single and batch timings span similar
-  wall times — on a machine shared with other jobs a 1 ms call otherwise escapes the
-  scheduler's sharing that a 30 ms one sees;
+* ``steps_per_s`` — filter steps per second of single ``UKF().run(SINGLE_TRACK, …)`` calls
+  (:class:`kftune.filters.UKF`, which runs the model's own single-threaded 3×3 loop),
+  input checks included, timed as 16 calls back to back (the 16 noise settings of the
+  batch) so that single and batch timings span similar wall times — on a machine
+  shared with other jobs a 1 ms call otherwise escapes the scheduler's sharing that a
+  30 ms one sees;
 * ``filterpy_steps_per_s`` — FilterPy's ``UnscentedKalmanFilter`` with
   ``MerweScaledSigmaPoints``, given the *compiled* scalar model as f and h, so that the
   ratio measures the filter machinery, not the model code (the faster, fairer of the two
   FilterPy variants); ``filterpy_numpy_model_steps_per_s`` gives FilterPy the readable
   numpy model instead;
 * ``speedup`` = steps_per_s / filterpy_steps_per_s;
-* ``batch16_steps_per_s`` — filter steps per second of :func:`run_ukf_batch` with B = 16
+* ``batch16_steps_per_s`` — filter steps per second of ``UKF().run_batch`` with B = 16
   noise settings (16·N steps per call, numba threads over B), and the same with one thread;
 * ``max_rel_diff`` — max over the three states of max_k |x_kernel − x_FilterPy| /
   max_k |x_FilterPy|, over both FilterPy variants;
-* ``cost8_ms`` — wall time of eight ``run_ukf`` calls of 2,500 steps (20,000 steps, the
+* ``cost8_ms`` — wall time of eight single-run calls of 2,500 steps (20,000 steps, the
   size of one tuning-cost evaluation), input checks included.
 
 The manoeuvre is the demo's 2,000-step sine steer (``kftune.cli.demo.demo_manoeuvre``),
@@ -41,17 +43,19 @@ import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
-from kftune.filters import UKFSettings, default_initial_state, run_ukf, run_ukf_batch
+from kftune.filters import UKF, UKFSettings
+from kftune.models import SINGLE_TRACK
+from kftune.models.sideslip import single_track_prior
 from kftune.vehicle import measure, step_rk4
 from kftune.vehicle.single_track import measure_scalar, rk4_scalar, step_context_scalar
 
 
 def filterpy_run(man, q, fx: Callable, hx: Callable) -> np.ndarray:
-    """FilterPy with the time convention of run_ukf (see tests/test_ukf.py)."""
+    """FilterPy with the time convention of kftune's filters (see tests/test_ukf.py)."""
     s = UKFSettings()
     points = MerweScaledSigmaPoints(3, alpha=s.alpha, beta=s.beta, kappa=s.kappa)
     ukf = UnscentedKalmanFilter(dim_x=3, dim_z=3, dt=man.dt, fx=fx, hx=hx, points=points)
-    x0, P0 = default_initial_state(man.z, man.r_var)
+    x0, P0 = single_track_prior(man.z[0], man.r_var, np.empty(0))  # the UKF's default prior
     ukf.x, ukf.P, ukf.Q, ukf.R = x0.copy(), P0.copy(), np.diag(q), np.diag(man.r_var)
     ukf.sigmas_f = points.sigma_points(ukf.x, ukf.P)
     xs = np.empty((man.u.shape[0], 3))
@@ -106,20 +110,24 @@ def main() -> None:
     q16 = q * 10.0 ** rng.uniform(-2, 2, size=(16, 3))
     cost_u = [np.tile(man.u, (2, 1))[:2500]] * 8  # 8 × 2,500 = 20,000 steps
     cost_z = [np.tile(man.z, (2, 1))[:2500]] * 8
+    ukf = UKF()
+
+    def run(u, z, q_b):  # one run of the model's 3×3 loop
+        return ukf.run(SINGLE_TRACK, u, z, man.dt, q_b, man.r_var, params=man.params)
 
     def single():
-        return run_ukf(man.u, man.z, man.dt, man.params, q, man.r_var)
+        return run(man.u, man.z, q)
 
     def singles16():  # 16 single runs back to back: a block as long as the batch's
         for b in range(16):
-            run_ukf(man.u, man.z, man.dt, man.params, q16[b], man.r_var)
+            run(man.u, man.z, q16[b])
 
-    def batch():
-        return run_ukf_batch(man.u, man.z, man.dt, man.params, q16, man.r_var)
+    def batch():  # the 3×3 loop in numba threads over the 16 settings
+        return ukf.run_batch(SINGLE_TRACK, man.u, man.z, man.dt, q16, man.r_var, params=man.params)
 
     def cost8():
         for u, z in zip(cost_u, cost_z):
-            run_ukf(u, z, man.dt, man.params, q, man.r_var)
+            run(u, z, q)
 
     # compile / load caches, and the accuracy check
     res = single()
