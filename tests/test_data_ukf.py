@@ -1,4 +1,4 @@
-"""The data and the filter agree on conventions: the untuned UKF (kftune.filters.run_ukf,
+"""The data and the filter agree on conventions: the untuned UKF (the single-track UKF,
 hand-set Q, R from the data) tracks the reference sideslip of generated manoeuvres."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kftune.data import default_dataset
-from kftune.filters import run_ukf
+from single_track import run_ukf
 
 #: A hand-set, untuned process noise [(m/s)², (m/s)², (rad/s)²] per 10 ms step.
 Q_UNTUNED = np.array([1e-4, 1e-4, 1e-5])
@@ -30,10 +30,10 @@ def test_untuned_ukf_tracks_beta(name, rmse_deg, ratio):
     m = ds[name]
     res = run_ukf(m.u, m.z, m.dt, ds.vehicle, Q_UNTUNED, ds.r_default)
     assert not res.diverged
-    err = np.degrees(res.beta - m.beta_ref)
+    err = np.degrees(res.output("beta") - m.beta_ref)
     assert np.sqrt(np.mean(err**2)) < rmse_deg
     # same sign convention: strongly positively correlated with the reference
-    assert np.corrcoef(res.beta, m.beta_ref)[0, 1] > 0.9
+    assert np.corrcoef(res.output("beta"), m.beta_ref)[0, 1] > 0.9
     # and the estimate is informative: far better than assuming β = 0
     assert np.sqrt(np.mean(err**2)) < ratio * np.degrees(np.sqrt(np.mean(m.beta_ref**2)))
 
@@ -48,5 +48,5 @@ def test_beta_signs_agree_between_plant_sensors_and_filter():
     assert np.all(m.r[hold] > 0) and np.all(m.ay[hold] > 0) and np.all(m.delta[hold] > 0)
     assert np.all(m.extra["beta_true"][hold] < 0)
     assert np.mean(m.beta_ref[hold]) < 0
-    assert np.all(res.beta[hold] < 0)
+    assert np.all(res.output("beta")[hold] < 0)
     assert np.all(res.x[hold, 1] < 0)  # Vy, positive to the left

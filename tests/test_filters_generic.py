@@ -6,6 +6,7 @@ input behave as for ``run_ukf``."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -24,8 +25,6 @@ from kftune.filters import (
     UKFSettings,
     filter_names,
     get_filter,
-    run_ukf,
-    run_ukf_batch,
 )
 from kftune.filters import _generic_kernel as gk
 from kftune.models import (
@@ -38,8 +37,14 @@ from kftune.models import (
     measurement_jacobian,
     process_jacobian,
 )
+from kftune.models.kernel_io import KernelData, KernelOutputs
 from kftune.models.sideslip import STOP_REVERSE, STOP_SIDESLIP
 from kftune.vehicle import measure, step_rk4
+from single_track import run_ukf, run_ukf_batch
+
+#: The single-track model without its own loops (ModelKernels): the generic UKF loop on it,
+#: to compare with the model's 3×3 loop, which ``run_ukf`` (and SINGLE_TRACK) runs.
+GENERIC_SINGLE_TRACK = dataclasses.replace(SINGLE_TRACK, ukf_kernels=None)
 
 OUTPUTS = ("x", "P_diag", "z_hat", "innovation", "nis")
 
@@ -160,6 +165,7 @@ _EXTRA = pytest.mark.skipif(
 )
 CASES = (
     "single-track",
+    "single-track (generic loop)",
     "ctrv",
     "linear",
     pytest.param("single-track-ay-bias", marks=_EXTRA),
@@ -171,6 +177,7 @@ CASES = (
 def cases(man):
     return {
         "single-track": vehicle_case(man, SINGLE_TRACK, [], []),
+        "single-track (generic loop)": vehicle_case(man, GENERIC_SINGLE_TRACK, [], []),
         "single-track-ay-bias": vehicle_case(man, SINGLE_TRACK_AY_BIAS, [0.3], [1e-6]),
         "single-track-biases": vehicle_case(
             man, SINGLE_TRACK_BIASES, [0.1, 0.3, 0.005], [1e-7, 1e-6, 1e-9]
@@ -303,7 +310,7 @@ def test_ekf_with_central_differences_equals_filterpy_given_them_too(cases):
 def test_generic_ukf_reproduces_run_ukf_on_the_sideslip_model(man):
     args = (man.u, man.z, man.dt)
     ref = run_ukf(*args, man.params, DEFAULT_Q, man.r_var)
-    res = UKF().run("single-track", *args, DEFAULT_Q, man.r_var, params=man.params)
+    res = UKF().run(GENERIC_SINGLE_TRACK, *args, DEFAULT_Q, man.r_var, params=man.params)
     for name in OUTPUTS:
         assert max_rel_diff(getattr(res, name), getattr(ref, name)) <= 1e-12, name
     assert (res.diverged, res.n_repairs) == (ref.diverged, ref.n_repairs)
@@ -321,7 +328,7 @@ def test_generic_ukf_diverges_where_and_why_run_ukf_does(man, q, r, P0, cause):
     u[100, 1] = -1e4  # an impossible braking input
     r = man.r_var if r is None else r
     ref = run_ukf(u, z, man.dt, man.params, q, r, P0=P0)
-    res = UKF().run(SINGLE_TRACK, u, z, man.dt, q, r, params=man.params, P0=P0)
+    res = UKF().run(GENERIC_SINGLE_TRACK, u, z, man.dt, q, r, params=man.params, P0=P0)
     assert ref.diverged and ref.diverged_cause == cause
     assert (res.diverged_step, res.diverged_cause) == (ref.diverged_step, ref.diverged_cause)
     assert res.diverged_reason == ref.diverged_reason
@@ -339,7 +346,7 @@ def test_held_runaways_stop_where_they_began_as_in_run_ukf(man):
     z[200:, 0] *= 3.0  # a wheel-speed sensor gone wrong: the filter trusts the model
     r = [1e2, 0.01, 1e-5]
     ref = run_ukf(u, z, man.dt, man.params, DEFAULT_Q, r)
-    res = UKF().run(SINGLE_TRACK, u, z, man.dt, DEFAULT_Q, r, params=man.params)
+    res = UKF().run(GENERIC_SINGLE_TRACK, u, z, man.dt, DEFAULT_Q, r, params=man.params)
     assert ref.diverged and ref.diverged_cause == 5
     assert (res.diverged_step, res.diverged_cause) == (ref.diverged_step, ref.diverged_cause)
     assert res.diverged_step == 200
@@ -354,10 +361,10 @@ def test_batches_equal_single_runs_and_run_ukf_batch(man):
     u, z = man.u[:600], man.z[:600]
     ref = run_ukf_batch(u, z, man.dt, man.params, q, r)
     for filt in (UKF(), EKF()):
-        batch = filt.run_batch(SINGLE_TRACK, u, z, man.dt, q, r, params=man.params)
+        batch = filt.run_batch(GENERIC_SINGLE_TRACK, u, z, man.dt, q, r, params=man.params)
         assert len(batch) == 5 and batch.x.shape == (5, 600, 3)
         for b in range(5):
-            one = filt.run(SINGLE_TRACK, u, z, man.dt, q[b], r[b], params=man.params)
+            one = filt.run(GENERIC_SINGLE_TRACK, u, z, man.dt, q[b], r[b], params=man.params)
             for name in OUTPUTS:
                 np.testing.assert_array_equal(getattr(batch[b], name), getattr(one, name))
             assert (batch[b].diverged_step, batch[b].diverged_cause) == (
@@ -559,17 +566,18 @@ def test_unrepairable_prior_is_divergence_at_step_0_and_singular_is_repaired(cas
     x0, P0 = case.prior()
 
     def kernel(P_init):
-        outs = [np.empty((steps, 5)), np.empty((steps, 5)), np.empty((steps, 2))]
-        outs += [np.empty((steps, 2)), np.empty(steps), np.empty(steps)]
-        head = (
-            model.f, model.h, None, case.u[:steps], case.z[:steps], case.p, case.dt,
-            case.q, case.r, x0, P_init, 1, np.zeros(0, dtype=np.int64), (0.0,) * 5, (0.0,) * 2,
+        outs = KernelOutputs.empty(steps, 5, 2)
+        data = KernelData(
+            case.u[:steps], case.z[:steps], case.p, case.dt, case.q, case.r, x0, P_init, 1,
+            np.zeros(0, dtype=np.int64),
         )  # fmt: skip
+        tokens = ((0.0,) * 5, (0.0,) * 2)
         if run_kernel == "ukf":
-            stop, rep, cause = gk.ukf_run(*head, *UKF()._options(model), *outs)
+            (w,) = UKF()._options(model)
+            stop, rep, cause = gk.ukf_run(model.f, model.h, None, data, w, outs, *tokens)
         else:
             ways = (gk.given_process_jacobian, model.F, gk.given_measurement_jacobian, model.H)
-            stop, rep, cause = gk.ekf_run(*head, *ways, *outs)
+            stop, rep, cause = gk.ekf_run(model.f, model.h, None, data, outs, *tokens, *ways)
         return stop, rep, cause, outs
 
     for bad in (np.diag([1.0, 1.0, -1.0, 1.0, 1.0]), np.diag([1.0, math.nan, 1.0, 1.0, 1.0])):
@@ -582,7 +590,7 @@ def test_unrepairable_prior_is_divergence_at_step_0_and_singular_is_repaired(cas
 
 
 def test_kernel_cholesky_matches_the_3x3_one_and_repairs_alike():
-    from kftune.filters._kernel import chol3, chol3_repair
+    from kftune.models._sideslip_ukf import chol3, chol3_repair
 
     rng = np.random.default_rng(9)
     L = np.empty((3, 3))

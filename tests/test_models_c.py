@@ -468,7 +468,7 @@ def test_single_track_c_check_at_and_beyond_the_runaway_bounds(
     """The stop causes and held flags of check, C against Python, exactly at each bound
     and one rounding either side: |β| at 60° and at 0.8 rad, |Vx − z_Vx| at 50 % of z_Vx,
     Vx at 0, NaN."""
-    from kftune.models.sideslip import _TAN_MAX_SIDESLIP, _TAN_RUNAWAY_BETA
+    from kftune.models._runaway import _TAN_MAX_SIDESLIP, _TAN_RUNAWAY_BETA
 
     c = c_model(model)
     p = model.default_params()

@@ -13,12 +13,13 @@ from filterpy.kalman import UnscentedKalmanFilter as FilterPyUKF
 from scipy.optimize import minimize_scalar
 
 from kftune.data import default_dataset
-from kftune.filters import default_initial_state, get_filter, run_ukf_linear
+from kftune.filters import get_filter
 from kftune.models.linear import linear_model
 from kftune.tuning.cost import CostSpec, innovation_nll
 from kftune.tuning.parameterization import NoiseParameterization
 from kftune.tuning.problem import TuningProblem
 from kftune.vehicle import measure, step_rk4
+from single_track import default_initial_state
 
 Q = np.array([1e-5, 1e-4, 1e-5])
 
@@ -85,29 +86,23 @@ def _simulate(q_true: float, r_true: float, a: float, n: int, seed: int):
 @pytest.mark.slow
 def test_minimising_the_likelihood_recovers_the_true_process_noise():
     """Monte Carlo: AR(1) states seen in white noise; the ML estimate of a scalar q (Q = q·I,
-    R known) lands near the true q, with both the 3×3 kernel and the generic one."""
+    R known) lands near the true q."""
     q_true, r_true, a, n = 0.04, 0.25, 0.95, 6000
     F, H = a * np.eye(3), np.eye(3)
-    zeros = np.zeros((3, 2))
+    model = linear_model(F, H)
     r = np.full(3, r_true)
     estimates = []
     for seed in range(3):
         z = _simulate(q_true, r_true, a, n, seed)
-        u = np.zeros((n, 2))
 
-        def nll_3x3(log_q: float, u: np.ndarray = u, z: np.ndarray = z) -> float:
-            res = run_ukf_linear(
-                u, z, F, zeros, H, zeros, np.full(3, 10**log_q), r, np.zeros(3), np.eye(3)
+        def nll(log_q: float, z: np.ndarray = z) -> float:
+            res = get_filter("ukf").run(
+                model, None, z, 1.0, np.full(3, 10**log_q), r, x0=np.zeros(3), P0=np.eye(3)
             )
             return innovation_nll([res.log_det_s], [res.nis], 3)
 
-        best = minimize_scalar(nll_3x3, bounds=(-4, 0), method="bounded", options={"xatol": 1e-4})
+        best = minimize_scalar(nll, bounds=(-4, 0), method="bounded", options={"xatol": 1e-4})
         estimates.append(10**best.x)
-        # the generic kernel gives the same likelihood
-        model = linear_model(F, H)
-        gen = get_filter("ukf").run(model, None, z, 1.0, np.full(3, 10**best.x), r,
-                                    x0=np.zeros(3), P0=np.eye(3))  # fmt: skip
-        assert innovation_nll([gen.log_det_s], [gen.nis], 3) == pytest.approx(best.fun, rel=1e-9)
     assert np.median(estimates) == pytest.approx(q_true, rel=0.15)
     assert all(abs(math.log(e / q_true)) < math.log(1.5) for e in estimates)
 

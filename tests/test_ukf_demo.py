@@ -12,7 +12,7 @@ import pytest
 
 from kftune.cli import main
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
-from kftune.filters import run_ukf
+from single_track import run_ukf
 
 
 def test_demo_json_reports_the_kpis_of_the_filter_run(capsys):
@@ -20,7 +20,7 @@ def test_demo_json_reports_the_kpis_of_the_filter_run(capsys):
     out = json.loads(capsys.readouterr().out)
     man = demo_manoeuvre(4)
     res = run_ukf(man.u, man.z, man.dt, man.params, DEFAULT_Q, man.r_var)
-    err = np.degrees(res.beta - man.beta_true)
+    err = np.degrees(res.output("beta") - man.beta_true)
     non = np.abs(man.z[:, 1]) >= 4.0
     assert out["kpis_deg"]["rmse"] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-12)
     assert out["kpis_deg"]["mae"] == pytest.approx(np.max(np.abs(err)), rel=1e-12)

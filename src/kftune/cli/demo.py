@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kftune.filters import UKFResult, run_ukf
+from kftune.filters import UKF, FilterResult
+from kftune.models import SINGLE_TRACK
 from kftune.tuning.kpi import sideslip_kpis
 from kftune.vehicle import VehicleParams, measure, preset, simulate
 
@@ -157,7 +158,9 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         man = demo_manoeuvre(args.seed, stiffness_error=args.stiffness_error)
-        res: UKFResult = run_ukf(man.u, man.z, man.dt, man.params, args.q, man.r_var)
+        res: FilterResult = UKF().run(
+            SINGLE_TRACK, man.u, man.z, man.dt, args.q, man.r_var, params=man.params
+        )
     except ValueError as exc:
         print(f"kftune demo: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -177,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         "diverged_reason": res.diverged_reason,
     }
     if not res.diverged:
-        kpis = sideslip_kpis(res.beta, man.beta_true, man.z[:, 1])
+        kpis = sideslip_kpis(res.output("beta"), man.beta_true, man.z[:, 1])
         out["kpis_deg"] = {k: kpis[k] for k in ("rmse", "mae", "rmse_non", "mae_non")}
         out["n_non"] = kpis["n_non"]
     if args.json:

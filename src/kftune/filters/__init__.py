@@ -1,5 +1,7 @@
-"""Kalman filters: UKF and EKF over any state-space model (one interface, one result type),
-the hand-written 3×3 single-track UKF (``run_ukf``, the fast path) and its SIMD lanes."""
+"""Kalman filters: the UKF and the EKF over any state-space model, one interface and one
+result type. What is special about a model comes from the model: a model may supply its
+own compiled loops (the single-track model's 3×3 loop and vector lanes), which the UKF
+runs behind the same interface (:class:`~kftune.models.ModelKernels`)."""
 
 from kftune.filters.generic import (
     EKF,
@@ -16,15 +18,6 @@ from kftune.filters.sigma_points import (
     sigma_points,
     unscented_transform,
 )
-from kftune.filters.ukf import (
-    UKFBatchResult,
-    UKFResult,
-    default_initial_state,
-    run_ukf,
-    run_ukf_batch,
-    run_ukf_linear,
-    run_ukf_simd,
-)
 
 __all__ = [
     "EKF",
@@ -32,17 +25,10 @@ __all__ = [
     "FilterBatchResult",
     "FilterResult",
     "ModelFilter",
-    "UKFBatchResult",
-    "UKFResult",
     "UKFSettings",
-    "default_initial_state",
     "filter_names",
     "get_filter",
     "merwe_weights",
-    "run_ukf",
-    "run_ukf_batch",
-    "run_ukf_linear",
-    "run_ukf_simd",
     "sigma_points",
     "unscented_transform",
 ]

@@ -33,35 +33,124 @@ a condition held ``n_hold`` steps, at the step it began). Rows from the stop ste
 The kernels never raise.
 
 How it is compiled. The model's functions are first-class arguments of the kernels
-(:func:`ukf_run`, :func:`ekf_run` and their batches): numba compiles the kernels once per
-model, calling the model's f and h directly. Every kernel that takes a function is inlined
+(:func:`ukf_run`, :func:`ekf_run`): numba compiles the kernels once per model, calling
+the model's f and h directly. Every kernel that takes a function is inlined
 (``inline="always"``) into the wrappers of a module generated per model
 (:mod:`kftune.filters._compiled`), which name the model's functions as globals: numba can
 cache those wrappers on disk, as it cannot cache a function that receives a function
-value. The linear algebra lives in a few helpers without
-function arguments, which are cached, with their own small helpers inlined into them
+value. The linear algebra lives in a few helpers without function arguments, which are
+cached, with their own small helpers inlined into them
 (``inline="always"``: a call costs about 30 ns, a tenth of a filter step's arithmetic at
 n = 3). The sizes are compile-time constants: kernels and helpers take the state and
 measurement sizes as tuples of n and m zeros (``n_token``, ``m_token``), whose lengths are
 part of their numba types, so that LLVM unrolls the small loops and resolves every index
 (for n = 3 the UKF is 1.6 times faster than with run-time sizes).
+
+Arguments travel as records, numba-compiled as structs: a run's data, the sigma-point
+weights and the output buffers as :mod:`kftune.models.kernel_io`'s
+:class:`~kftune.models.kernel_io.KernelData`, :class:`~kftune.models.kernel_io.SigmaWeights`
+and :class:`~kftune.models.kernel_io.KernelOutputs` (the interface a model's own loops
+share), the work arrays as :class:`Work` and :class:`UpdateWork`. A batch calls the model's
+compiled single run per setting (:func:`ukf_batch`) rather than inlining it.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
 from numba.core.dispatcher import Dispatcher
 
-from kftune.filters._kernel import JITTER_MAX, JITTER_START
 from kftune.models.base import STOP_NONE, STOP_NUMERICAL
 from kftune.models.jacobians import fd_measurement_jacobian, fd_process_jacobian
+from kftune.models.kernel_io import (
+    JITTER_MAX,
+    JITTER_START,
+    KernelData,
+    KernelOutputs,
+    SigmaWeights,
+)
 
 _NAN = math.nan
 
 Token = tuple[float, ...]
+
+#: A measurement update's outcome: (status of S, NIS, log det S, status of P⁺, P⁺'s jitter),
+#: the statuses as :func:`chol_repair`'s.
+UpdateStatus = tuple[int, float, float, int, float]
+
+
+class UpdateWork(NamedTuple):
+    """The measurement update's work arrays (n states, m measurements).
+
+    Attributes:
+        zb: (m,) ẑ, the predicted measurement. S: (m, m) innovation covariance (with R).
+        Pxz: (n, m) cross covariance P_xz. Ls: (m, m) L_S, S's lower Cholesky factor, and
+        A: (m, m) L_S⁻¹, both allocated zeroed (their upper triangles stay 0).
+        W: (m, n) A·P_xzᵀ. y: (m,) innovation z_k − ẑ. v: (m,) A·y.
+    """
+
+    zb: np.ndarray
+    S: np.ndarray
+    Pxz: np.ndarray
+    Ls: np.ndarray
+    A: np.ndarray
+    W: np.ndarray
+    y: np.ndarray
+    v: np.ndarray
+
+
+class Hold(NamedTuple):
+    """The held stop conditions of a run (:attr:`~kftune.models.StateSpaceModel.held_causes`).
+
+    Attributes:
+        held: (n_held,) bool, which conditions the model's check found at this step (it
+            writes them). held_for: (n_held,) int64, the steps each has lasted (from 0).
+        n_hold: the steps a condition must last to stop the run (≥ 1).
+        causes: (n_held,) int64 their causes.
+    """
+
+    held: np.ndarray
+    held_for: np.ndarray
+    n_hold: int
+    causes: np.ndarray
+
+
+class Work(NamedTuple):
+    """A run's work arrays (:func:`workspace`), both filters' (each uses its own).
+
+    Attributes:
+        x: (n,) the state. P: (n, n) its covariance. L: (n, n) P's lower Cholesky factor.
+        X, D, Y: (2n+1, n) the UKF's sigma points, their deviations and the points through
+            f. Z: (2n+1, m) the points through h. zh: (m,) h(x⁺_k, u_k).
+        T: (n, n) the EKF's F·P. Fm: (n, n) F. Hm: (m, n) H. xw, fp, fm: (n,) and hp, hm:
+            (m,) f(x̄) and the finite differences' work.
+        upd: the measurement update's arrays. hold: the held conditions' state.
+
+    The kernels read the fields into locals once, before the steps: a record handed to an
+    inlined function costs numba a reference count per array and call.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    L: np.ndarray
+    X: np.ndarray
+    D: np.ndarray
+    Y: np.ndarray
+    Z: np.ndarray
+    zh: np.ndarray
+    T: np.ndarray
+    Fm: np.ndarray
+    Hm: np.ndarray
+    xw: np.ndarray
+    fp: np.ndarray
+    fm: np.ndarray
+    hp: np.ndarray
+    hm: np.ndarray
+    upd: UpdateWork
+    hold: Hold
 
 
 # --------------------------------------------------------------------------------------
@@ -197,17 +286,17 @@ def unscented_moments(
     mean: np.ndarray,
     cov: np.ndarray,
     noise: np.ndarray,
-    wm0: float,
-    wc0: float,
-    wi: float,
+    w: SigmaWeights,
     n_token: Token,
     k_token: Token,
 ) -> None:
     """mean = Σ W^m_i·Y_i; Y_i −= mean in place; cov = Σ W^c_i·d_i·d_iᵀ + diag(noise).
 
     Y: (2n+1, k) transformed sigma points (n = len(n_token), k = len(k_token)); mean: (k,);
-    cov: (k, k) symmetric; noise: (k,) variances (Simon 2006 eqs. 14.59–14.60, 14.63–14.64).
+    cov: (k, k) symmetric; noise: (k,) variances; w: the weights W^m_0, W^c_0, W_i
+    (Simon 2006 eqs. 14.59–14.60, 14.63–14.64).
     """
+    wm0, wc0, wi = w.wm0, w.wc0, w.wi
     ns = 2 * len(n_token) + 1
     k = len(k_token)
     for j in range(k):
@@ -293,30 +382,23 @@ def linearised_moments(
 
 @njit(cache=True, inline="always", error_model="numpy")
 def kalman_update(
-    x: np.ndarray,
-    P: np.ndarray,
-    zb: np.ndarray,
-    S: np.ndarray,
-    Pxz: np.ndarray,
-    zk: np.ndarray,
-    Ls: np.ndarray,
-    A: np.ndarray,
-    W: np.ndarray,
-    y: np.ndarray,
-    v: np.ndarray,
-    n_token: Token,
-    m_token: Token,
-) -> tuple[int, float]:
-    """Kalman update of (x, P) in place from ẑ (zb), S (with R), P_xz and z_k.
+    x: np.ndarray, P: np.ndarray, zk: np.ndarray, wu: UpdateWork, n_token: Token, m_token: Token
+) -> tuple[int, float, float]:
+    """Kalman update of (x, P) in place from ẑ, S (with R) and P_xz in ``wu`` and z_k.
 
     Returns:
-        (status of S's factorisation as :func:`chol_repair`, NIS); on status 2 (x, P) are
+        (status of S's factorisation as :func:`chol_repair`, NIS, log det S = 2·Σ log
+        diag(L_S), with the NIS the innovation likelihood); on status 2 (x, P) are
         untouched.
     """
     n, m = len(n_token), len(m_token)
+    zb, S, Pxz, Ls, A, W, y, v = wu.zb, wu.S, wu.Pxz, wu.Ls, wu.A, wu.W, wu.y, wu.v
     st, _ = chol_repair(S, Ls, m_token)
     if st == 2:
-        return st, _NAN
+        return st, _NAN, _NAN
+    ldet = 0.0
+    for i in range(m):
+        ldet += 2.0 * math.log(Ls[i, i])
     # A = L_S⁻¹ by forward substitution: A[i, i] = 1/L[i, i],
     # A[i, j] = −(Σ_{j≤k<i} L[i, k]·A[k, j])·A[i, i]
     for i in range(m):
@@ -356,7 +438,7 @@ def kalman_update(
                 s += W[i, a] * W[i, b]
             P[a, b] -= s
             P[b, a] = P[a, b]
-    return st, nis
+    return st, nis, ldet
 
 
 @njit(cache=True, error_model="numpy")
@@ -366,14 +448,12 @@ def predicted_moments(
     P: np.ndarray,
     L: np.ndarray,
     q: np.ndarray,
-    wm0: float,
-    wc0: float,
-    wi: float,
+    w: SigmaWeights,
     n_token: Token,
 ) -> int:
     """The UKF's prediction from the points through f, Y: x̄, P̄ = UT(Y) + Q, factorised
     into L and repaired (jitter kept in P̄). Returns the status of :func:`chol_repair`."""
-    unscented_moments(Y, x, P, q, wm0, wc0, wi, n_token, n_token)
+    unscented_moments(Y, x, P, q, w, n_token, n_token)
     st, jit = chol_repair(P, L, n_token)
     if st == 1:
         for j in range(len(n_token)):
@@ -390,34 +470,24 @@ def unscented_update(
     x: np.ndarray,
     P: np.ndarray,
     L: np.ndarray,
-    zb: np.ndarray,
-    S: np.ndarray,
-    Pxz: np.ndarray,
-    Ls: np.ndarray,
-    A: np.ndarray,
-    W: np.ndarray,
-    y: np.ndarray,
-    v: np.ndarray,
-    wm0: float,
-    wc0: float,
-    wi: float,
+    wu: UpdateWork,
+    w: SigmaWeights,
     n_token: Token,
     m_token: Token,
-) -> tuple[int, float, int, float]:
+) -> UpdateStatus:
     """The UKF's update from the points through h, Z, and their state deviations D: ẑ, S,
-    P_xz, then :func:`kalman_update` and the factorisation of P⁺ into L.
+    P_xz (into ``wu``), then :func:`kalman_update` and the factorisation of P⁺ into L.
 
     Returns:
-        (status of S, NIS, status of P⁺, its jitter), statuses as :func:`chol_repair`; P⁺ is
-        not factorised (status 2) when S is not.
+        :data:`UpdateStatus`; P⁺ is not factorised (status 2) when S is not.
     """
-    unscented_moments(Z, zb, S, r, wm0, wc0, wi, n_token, m_token)
-    cross_covariance(D, Z, Pxz, wi, n_token, m_token)
-    st_s, nis = kalman_update(x, P, zb, S, Pxz, zk, Ls, A, W, y, v, n_token, m_token)
+    unscented_moments(Z, wu.zb, wu.S, r, w, n_token, m_token)
+    cross_covariance(D, Z, wu.Pxz, w.wi, n_token, m_token)
+    st_s, nis, ldet = kalman_update(x, P, zk, wu, n_token, m_token)
     if st_s == 2:
-        return st_s, nis, 2, 0.0
+        return st_s, nis, ldet, 2, 0.0
     st, jit = chol_repair(P, L, n_token)
-    return st_s, nis, st, jit
+    return st_s, nis, ldet, st, jit
 
 
 @njit(cache=True, error_model="numpy")
@@ -428,25 +498,18 @@ def linearised_update(
     x: np.ndarray,
     P: np.ndarray,
     L: np.ndarray,
-    zb: np.ndarray,
-    S: np.ndarray,
-    Pxz: np.ndarray,
-    Ls: np.ndarray,
-    A: np.ndarray,
-    W: np.ndarray,
-    y: np.ndarray,
-    v: np.ndarray,
+    wu: UpdateWork,
     n_token: Token,
     m_token: Token,
-) -> tuple[int, float, int, float]:
-    """The EKF's update with H and ẑ = h(x̄) (zb): :func:`linearised_moments`, then as
-    :func:`unscented_update`."""
-    linearised_moments(P, Hm, Pxz, S, r, n_token, m_token)
-    st_s, nis = kalman_update(x, P, zb, S, Pxz, zk, Ls, A, W, y, v, n_token, m_token)
+) -> UpdateStatus:
+    """The EKF's update with H and ẑ = h(x̄) (already in ``wu.zb``):
+    :func:`linearised_moments`, then as :func:`unscented_update`."""
+    linearised_moments(P, Hm, wu.Pxz, wu.S, r, n_token, m_token)
+    st_s, nis, ldet = kalman_update(x, P, zk, wu, n_token, m_token)
     if st_s == 2:
-        return st_s, nis, 2, 0.0
+        return st_s, nis, ldet, 2, 0.0
     st, jit = chol_repair(P, L, n_token)
-    return st_s, nis, st, jit
+    return st_s, nis, ldet, st, jit
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -461,99 +524,89 @@ def all_finite(x: np.ndarray, zh: np.ndarray, nis: float, n_token: Token, m_toke
 
 
 @njit(cache=True, error_model="numpy")
-def fill_nan(
-    k0: int,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
-) -> None:
+def fill_nan(k0: int, out: KernelOutputs) -> None:
     """Rows k0… of every output are NaN."""
-    for k in range(k0, out_x.shape[0]):
-        out_x[k, :] = _NAN
-        out_p[k, :] = _NAN
-        out_zhat[k, :] = _NAN
-        out_innov[k, :] = _NAN
-        out_nis[k] = _NAN
-        out_ldet[k] = _NAN
+    ox, op, oz, oi, on, ol = out.x, out.P_diag, out.z_hat, out.innovation, out.nis, out.log_det_s
+    for k in range(k0, ox.shape[0]):
+        ox[k, :] = _NAN
+        op[k, :] = _NAN
+        oz[k, :] = _NAN
+        oi[k, :] = _NAN
+        on[k] = _NAN
+        ol[k] = _NAN
+
+
+@njit(cache=True, error_model="numpy")
+def workspace(n_token: Token, m_token: Token, held_causes: np.ndarray, n_hold: int) -> Work:
+    """The work arrays of a run (:class:`Work`), allocated here (cached) rather than in the
+    kernels (whose every allocation would cost each process a compilation)."""
+    n, m = len(n_token), len(m_token)
+    ns = 2 * n + 1
+    n_held = held_causes.shape[0]
+    upd = UpdateWork(
+        np.empty(m), np.empty((m, m)), np.empty((n, m)), np.zeros((m, m)), np.zeros((m, m)),
+        np.empty((m, n)), np.empty(m), np.empty(m),
+    )  # fmt: skip
+    hold = Hold(
+        np.zeros(n_held, dtype=np.bool_), np.zeros(n_held, dtype=np.int64), n_hold, held_causes
+    )
+    return Work(
+        np.empty(n), np.empty((n, n)), np.empty((n, n)),
+        np.empty((ns, n)), np.empty((ns, n)), np.empty((ns, n)), np.empty((ns, m)), np.empty(m),
+        np.empty((n, n)), np.empty((n, n)), np.empty((m, n)),
+        np.empty(n), np.empty(n), np.empty(n), np.empty(m), np.empty(m), upd, hold,
+    )  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def commit(
+def conclude_step(
     k: int,
-    st: int,
-    jit: float,
+    status: UpdateStatus,
+    cause: int,
     x: np.ndarray,
     P: np.ndarray,
-    y: np.ndarray,
     zh: np.ndarray,
-    nis: float,
-    ldet: float,
-    held: np.ndarray,
-    count: np.ndarray,
-    n_hold: int,
-    held_causes: np.ndarray,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
+    y: np.ndarray,
+    hold: Hold,
+    out: KernelOutputs,
     n_token: Token,
     m_token: Token,
-) -> tuple[int, int]:
-    """Count the held conditions of step k, then store its outputs (P⁺ repaired by ``jit``
-    when ``st`` = 1).
+) -> tuple[int, int, int]:
+    """End step k of either filter: stop with ``cause`` (:func:`step_cause`), or count the
+    held conditions, then store x⁺, diag P⁺ (repaired by its jitter when its status is 1),
+    ẑ = h(x⁺) (zh), the innovation y, the NIS and log det S.
 
     Returns:
-        (stop_step, cause): (−1, STOP_NONE) to go on; otherwise the rows from stop_step (the
-        step where the held condition began) are NaN.
+        (stop_step, cause, repairs): stop_step = −1 to go on, else the rows from stop_step
+        (for a held condition the step where it began) are NaN; ``repairs`` counts the
+        jittered factorisations of this step that count (as in the 3×3 kernel: P⁺'s only
+        when the step is stored).
     """
+    st_s, nis, ldet, st, jit = status
+    if cause != STOP_NONE:
+        fill_nan(k, out)
+        return k, cause, 0 if st_s == 2 else st_s
+    held, count, n_hold = hold.held, hold.held_for, hold.n_hold
     for j in range(count.shape[0]):
         count[j] = count[j] + 1 if held[j] else 0
     for j in range(count.shape[0]):
         if count[j] >= n_hold:
             k0 = k + 1 - n_hold
-            fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-            return k0, held_causes[j]
+            fill_nan(k0, out)
+            return k0, hold.causes[j], st_s
     n, m = len(n_token), len(m_token)
     if st == 1:
         for j in range(n):
             P[j, j] += jit
-    for j in range(n):
-        out_x[k, j] = x[j]
-        out_p[k, j] = P[j, j]
+    for j in range(n):  # (the fields read where they are used: numba then counts no reference)
+        out.x[k, j] = x[j]
+        out.P_diag[k, j] = P[j, j]
     for j in range(m):
-        out_innov[k, j] = y[j]
-        out_zhat[k, j] = zh[j]
-    out_nis[k] = nis
-    out_ldet[k] = ldet
-    return -1, STOP_NONE
-
-
-@njit(cache=True, error_model="numpy")
-def workspace(n_token: Token, m_token: Token, n_held: int) -> tuple[np.ndarray, ...]:
-    """The work arrays of a run, allocated here (cached) rather than in the kernels (whose
-    every allocation would cost each process a compilation).
-
-    Returns:
-        x (n,), P, L (n, n), X, D, Y (2n+1, n), Z (2n+1, m), zb (m,), S (m, m), P_xz (n, m),
-        L_S, A (m, m) zeroed, W (m, n), y, v, zh (m,), T, F (n, n), H (m, n), xw, fp, fm (n,),
-        hp, hm (m,), held (n_held,) bool and count (n_held,) int64, both zeroed.
-    """
-    n, m = len(n_token), len(m_token)
-    ns = 2 * n + 1
-    return (
-        np.empty(n), np.empty((n, n)), np.empty((n, n)),
-        np.empty((ns, n)), np.empty((ns, n)), np.empty((ns, n)), np.empty((ns, m)),
-        np.empty(m), np.empty((m, m)), np.empty((n, m)), np.zeros((m, m)), np.zeros((m, m)),
-        np.empty((m, n)), np.empty(m), np.empty(m), np.empty(m),
-        np.empty((n, n)), np.empty((n, n)), np.empty((m, n)),
-        np.empty(n), np.empty(n), np.empty(n), np.empty(m), np.empty(m),
-        np.zeros(n_held, dtype=np.bool_), np.zeros(n_held, dtype=np.int64),
-    )  # fmt: skip
+        out.innovation[k, j] = y[j]
+        out.z_hat[k, j] = zh[j]
+    out.nis[k] = nis
+    out.log_det_s[k] = ldet
+    return -1, STOP_NONE, st_s + st
 
 
 # --------------------------------------------------------------------------------------
@@ -562,65 +615,30 @@ def workspace(n_token: Token, m_token: Token, n_held: int) -> tuple[np.ndarray, 
 
 
 @njit(error_model="numpy", inline="always")
-def conclude_step(
-    k: int,
+def step_cause(
     h: Dispatcher,
     check: Dispatcher | None,
-    st_s: int,
-    nis: float,
-    Ls: np.ndarray,
-    st: int,
-    jit: float,
+    status: UpdateStatus,
     x: np.ndarray,
-    P: np.ndarray,
-    y: np.ndarray,
     zh: np.ndarray,
     uk: np.ndarray,
-    z: np.ndarray,
+    zk: np.ndarray,
     p: np.ndarray,
     held: np.ndarray,
-    count: np.ndarray,
-    n_hold: int,
-    held_causes: np.ndarray,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
     n_token: Token,
     m_token: Token,
-) -> tuple[int, int, int]:
-    """End step k of either filter after its update: the numerical checks (S and P⁺
-    factorised with statuses st_s and st, finite x⁺, h(x⁺) and NIS), the model's check,
-    the held conditions, then the outputs (:func:`commit`).
-
-    Returns:
-        (stop_step, cause, repairs): stop_step = −1 to go on; ``repairs`` counts the
-        jittered factorisations of this step that count (as in the 3×3 kernel: P⁺'s only
-        when the step is stored).
-    """
+) -> int:
+    """h(x⁺_k, u_k) into zh, and why the run stops at step k after its update:
+    STOP_NUMERICAL where S or P⁺ was not factorised (statuses in ``status``) or x⁺, h(x⁺)
+    or the NIS is not finite, else the model's check's cause (which also fills ``held``);
+    STOP_NONE to go on."""
+    st_s, nis, _, st, _ = status
     if st_s == 2:
-        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-        return k, STOP_NUMERICAL, 0
+        return STOP_NUMERICAL
     h(x, uk, p, zh)
     if st == 2 or not all_finite(x, zh, nis, n_token, m_token):
-        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-        return k, STOP_NUMERICAL, st_s
-    cause = STOP_NONE if check is None else check(x, z[k], uk, p, held)
-    if cause != STOP_NONE:
-        fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-        return k, cause, st_s
-    ldet = 0.0  # log det S = 2·Σ log diag(L_S), with the NIS the innovation likelihood
-    for i in range(len(m_token)):
-        ldet += 2.0 * math.log(Ls[i, i])
-    stop, cause = commit(
-        k, st, jit, x, P, y, zh, nis, ldet, held, count, n_hold, held_causes,
-        out_x, out_p, out_zhat, out_innov, out_nis, out_ldet, n_token, m_token,
-    )  # fmt: skip
-    if stop >= 0:
-        return stop, cause, st_s
-    return -1, STOP_NONE, st_s + st
+        return STOP_NUMERICAL
+    return STOP_NONE if check is None else check(x, zk, uk, p, held)
 
 
 @njit(error_model="numpy", inline="always")
@@ -628,85 +646,63 @@ def ukf_run(
     f: Dispatcher,
     h: Dispatcher,
     check: Dispatcher | None,
-    u: np.ndarray,
-    z: np.ndarray,
-    p: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    n_hold: int,
-    held_causes: np.ndarray,
+    data: KernelData,
+    w: SigmaWeights,
+    out: KernelOutputs,
     n_token: Token,
     m_token: Token,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
 ) -> tuple[int, int, int]:
     """Run the UKF over a whole manoeuvre (inputs already validated).
 
     Args:
         f, h, check: the model's compiled functions (:mod:`kftune.models.base`); check may
             be None (no model-specific validity).
-        u: (N, n_w) prepared inputs; z: (N, m) measurements; p: (n_p,) parameters;
-        dt: sample time [s].
-        q: (n,) diagonal of Q; r: (m,) diagonal of R.
-        x_init: (n,) prior mean at step 0; P_init: (n, n) prior covariance at step 0.
-        n_hold: steps a held condition must last; held_causes: (n_held,) their causes.
+        data: the run's data (:class:`~kftune.models.kernel_io.KernelData`, one setting:
+            q (n,), r (m,), x_init (n,), P_init (n, n)).
+        w: the sigma-point weights (:class:`~kftune.models.kernel_io.SigmaWeights`).
+        out: (N, …) buffers the run fills (:class:`~kftune.models.kernel_io.KernelOutputs`).
         n_token, m_token: tuples of n and m zeros (module docstring).
-        wm0, wc0, wi: sigma-point weights W_0^m, W_0^c, W_i; c: √(n + λ).
-        out_x, out_p: (N, n) posterior state and diag P⁺; out_zhat, out_innov: (N, m)
-            h(x⁺_k, u_k) and z_k − ẑ_k; out_nis, out_ldet: (N,) NIS and log det S.
 
     Returns:
         (stop_step, n_repairs, cause): stop_step = −1 and cause = STOP_NONE when the run
         completed; otherwise the first invalid step and its cause.
     """
+    u, z, p, dt, q, r = data.u, data.z, data.p, data.dt, data.q, data.r
     n = len(n_token)
     ns = 2 * n + 1
-    (x, P, L, X, D, Y, Z, zb, S, Pxz, Ls, A, W, y, v, zh, _, _, _, _, _, _, _, _, held,
-     count) = workspace(n_token, m_token, held_causes.shape[0])  # fmt: skip
+    wk = workspace(n_token, m_token, data.held_causes, data.n_hold)
+    x, P, L, X, D, Y, Z = wk.x, wk.P, wk.L, wk.X, wk.D, wk.Y, wk.Z
+    zh, upd, hold = wk.zh, wk.upd, wk.hold
+    y, held = upd.y, hold.held
 
     # the prior at step 0 is (x_init, P_init): factorised for the first sigma points
-    st = prior(x_init, P_init, x, P, L, n_token)
+    st = prior(data.x_init, data.P_init, x, P, L, n_token)
     if st == 2:
-        fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
+        fill_nan(0, out)
         return 0, 0, STOP_NUMERICAL
     n_rep = st
     for k in range(u.shape[0]):
         if k > 0:
             # ---- predict k−1 → k with u[k−1]: x̄ = Σ W^m χ_i, P̄ = Σ W^c dχ dχᵀ + Q ----
-            sigma_points(x, L, c, X, D, False, n_token)
+            sigma_points(x, L, w.c, X, D, False, n_token)
             uk = u[k - 1]
             for i in range(ns):
                 f(X[i], uk, p, dt, Y[i])
-            st = predicted_moments(Y, x, P, L, q, wm0, wc0, wi, n_token)
+            st = predicted_moments(Y, x, P, L, q, w, n_token)
             if st == 2:
-                fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
+                fill_nan(k, out)
                 return k, n_rep, STOP_NUMERICAL
             n_rep += st
         # ---- update with z[k], h(·, u[k]); sigma points redrawn from (x̄, P̄); P⁺ is
         # factorised at once: repaired (or the run stopped) before it is stored, and the
         # factor is the next prediction's ----
-        sigma_points(x, L, c, X, D, True, n_token)
+        sigma_points(x, L, w.c, X, D, True, n_token)
         uk = u[k]
         for i in range(ns):
             h(X[i], uk, p, Z[i])
-        st_s, nis, st, jit = unscented_update(
-            Z, D, z[k], r, x, P, L, zb, S, Pxz, Ls, A, W, y, v, wm0, wc0, wi, n_token, m_token
-        )
-        stop, cause, rep = conclude_step(
-            k, h, check, st_s, nis, Ls, st, jit, x, P, y, zh, uk, z, p, held, count, n_hold,
-            held_causes, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet, n_token, m_token,
-        )  # fmt: skip
+        status = unscented_update(Z, D, z[k], r, x, P, L, upd, w, n_token, m_token)
+        cause = step_cause(h, check, status, x, zh, uk, z[k], p, held, n_token, m_token)
+        stop, cause, rep = conclude_step(k, status, cause, x, P, zh, y, hold, out, n_token, m_token)
         n_rep += rep
         if stop >= 0:
             return stop, n_rep, cause
@@ -718,28 +714,14 @@ def ekf_run(
     f: Dispatcher,
     h: Dispatcher,
     check: Dispatcher | None,
-    u: np.ndarray,
-    z: np.ndarray,
-    p: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    n_hold: int,
-    held_causes: np.ndarray,
+    data: KernelData,
+    out: KernelOutputs,
     n_token: Token,
     m_token: Token,
     F_way: Dispatcher,
     F_jac: Dispatcher,
     H_way: Dispatcher,
     H_jac: Dispatcher,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
 ) -> tuple[int, int, int]:
     """Run the EKF over a whole manoeuvre (inputs already validated).
 
@@ -749,13 +731,17 @@ def ekf_run(
         H_way, H_jac: the same for H. (Passing the way as a function, rather than a flag,
             makes numba compile only the way a run takes.)
     """
+    u, z, p, dt, q, r = data.u, data.z, data.p, data.dt, data.q, data.r
     n = len(n_token)
-    (x, P, L, _, _, _, _, zb, S, Pxz, Ls, A, W, y, v, zh, T, Fm, Hm, xw, fp, fm, hp, hm, held,
-     count) = workspace(n_token, m_token, held_causes.shape[0])  # fmt: skip
+    wk = workspace(n_token, m_token, data.held_causes, data.n_hold)
+    x, P, L, T, Fm, Hm = wk.x, wk.P, wk.L, wk.T, wk.Fm, wk.Hm
+    xw, fp, fm, hp, hm = wk.xw, wk.fp, wk.fm, wk.hp, wk.hm
+    zh, upd, hold = wk.zh, wk.upd, wk.hold
+    zb, y, held = upd.zb, upd.y, hold.held
 
-    st = prior(x_init, P_init, x, P, L, n_token)
+    st = prior(data.x_init, data.P_init, x, P, L, n_token)
     if st == 2:
-        fill_nan(0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
+        fill_nan(0, out)
         return 0, 0, STOP_NUMERICAL
     n_rep = st
     for k in range(u.shape[0]):
@@ -771,13 +757,9 @@ def ekf_run(
         uk = u[k]
         H_way(H_jac, h, x, uk, p, Hm, xw, hp, hm)
         h(x, uk, p, zb)
-        st_s, nis, st, jit = linearised_update(
-            Hm, z[k], r, x, P, L, zb, S, Pxz, Ls, A, W, y, v, n_token, m_token
-        )
-        stop, cause, rep = conclude_step(
-            k, h, check, st_s, nis, Ls, st, jit, x, P, y, zh, uk, z, p, held, count, n_hold,
-            held_causes, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet, n_token, m_token,
-        )  # fmt: skip
+        status = linearised_update(Hm, z[k], r, x, P, L, upd, n_token, m_token)
+        cause = step_cause(h, check, status, x, zh, uk, z[k], p, held, n_token, m_token)
+        stop, cause, rep = conclude_step(k, status, cause, x, P, zh, y, hold, out, n_token, m_token)
         n_rep += rep
         if stop >= 0:
             return stop, n_rep, cause
@@ -789,85 +771,59 @@ def ekf_run(
 # --------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def setting(data: KernelData, b: int) -> KernelData:
+    """Setting b's data of a batch's (q, r, x_init, P_init with a leading axis B; views)."""
+    return KernelData(
+        data.u, data.z, data.p, data.dt, data.q[b], data.r[b], data.x_init[b], data.P_init[b],
+        data.n_hold, data.held_causes,
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def outputs_at(out: KernelOutputs, b: int) -> KernelOutputs:
+    """Setting b's buffers of a batch's (views; as :meth:`KernelOutputs.at`)."""
+    return KernelOutputs(
+        out.x[b], out.P_diag[b], out.z_hat[b], out.innovation[b], out.nis[b], out.log_det_s[b]
+    )
+
+
 @njit(parallel=True, error_model="numpy", inline="always")
 def ukf_batch(
-    f: Dispatcher,
-    h: Dispatcher,
-    check: Dispatcher | None,
-    u: np.ndarray,
-    z: np.ndarray,
-    p: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    n_hold: int,
-    held_causes: np.ndarray,
-    n_token: Token,
-    m_token: Token,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
-    out_stop: np.ndarray,
-    out_rep: np.ndarray,
-    out_cause: np.ndarray,
+    single: Dispatcher,
+    data: KernelData,
+    w: SigmaWeights,
+    out: KernelOutputs,
+    stop: np.ndarray,
+    rep: np.ndarray,
+    cause: np.ndarray,
 ) -> None:
-    """:func:`ukf_run` for B noise settings: q (B, n), r (B, m), x_init (B, n), P_init
-    (B, n, n); outputs with a leading B axis; out_stop, out_rep, out_cause (B,) int64."""
-    for b in prange(q.shape[0]):
-        out_stop[b], out_rep[b], out_cause[b] = ukf_run(
-            f, h, check, u, z, p, dt, q[b], r[b], x_init[b], P_init[b], n_hold, held_causes,
-            n_token, m_token, wm0, wc0, wi, c,
-            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b], out_ldet[b],
-        )  # fmt: skip
+    """``single`` (a model's compiled :func:`ukf_run`, ``(data, w, out) -> (stop_step,
+    n_repairs, cause)``) for B noise settings: data's q (B, n), r (B, m), x_init (B, n) and
+    P_init (B, n, n) and every buffer of ``out`` carry a leading axis B; stop, rep and cause
+    (B,) int64 get each run's results.
+
+    ``single`` is called, not inlined: numba's parallel loop does not see that a record's
+    array aliases the batch's buffers, and drops the writes of an inlined run into them as
+    dead code (numba 0.68).
+    """
+    for b in prange(data.q.shape[0]):
+        stop[b], rep[b], cause[b] = single(setting(data, b), w, outputs_at(out, b))
 
 
 @njit(parallel=True, error_model="numpy", inline="always")
 def ekf_batch(
-    f: Dispatcher,
-    h: Dispatcher,
-    check: Dispatcher | None,
-    u: np.ndarray,
-    z: np.ndarray,
-    p: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    n_hold: int,
-    held_causes: np.ndarray,
-    n_token: Token,
-    m_token: Token,
-    F_way: Dispatcher,
-    F_jac: Dispatcher,
-    H_way: Dispatcher,
-    H_jac: Dispatcher,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
-    out_stop: np.ndarray,
-    out_rep: np.ndarray,
-    out_cause: np.ndarray,
+    single: Dispatcher,
+    data: KernelData,
+    out: KernelOutputs,
+    stop: np.ndarray,
+    rep: np.ndarray,
+    cause: np.ndarray,
 ) -> None:
-    """:func:`ekf_run` for B noise settings (shapes as :func:`ukf_batch`)."""
-    for b in prange(q.shape[0]):
-        out_stop[b], out_rep[b], out_cause[b] = ekf_run(
-            f, h, check, u, z, p, dt, q[b], r[b], x_init[b], P_init[b], n_hold, held_causes,
-            n_token, m_token, F_way, F_jac, H_way, H_jac,
-            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b], out_ldet[b],
-        )  # fmt: skip
+    """``single`` (a model's compiled :func:`ekf_run`, ``(data, out)``) for B noise settings
+    (shapes as :func:`ukf_batch`)."""
+    for b in prange(data.q.shape[0]):
+        stop[b], rep[b], cause[b] = single(setting(data, b), outputs_at(out, b))
 
 
 # --------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ A filter is a small frozen object (its options: the UKF's sigma-point settings);
 ``prange``). Both return :class:`FilterResult` / :class:`FilterBatchResult` whatever the
 filter, as dynamax's EKF and UKF return one posterior type.
 
-Time convention (that of :func:`kftune.filters.run_ukf`): sample k carries u[k] and z[k];
+Time convention (every loop's, the C export's too): sample k carries u[k] and z[k];
 step 0 updates the prior (x0, P0) with z[0]; step k ≥ 1 predicts from k−1 to k with u[k−1]
 held, then updates with z[k] through h(·, u[k]). Q = diag(q) and R = diag(r) are the
 variances of the additive process noise per step and of the measurement noise, in the
@@ -34,7 +34,7 @@ import functools
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 import numba
 import numpy as np
@@ -44,6 +44,7 @@ from kftune.filters._checks import check_covariance, check_dt, check_noise, chec
 from kftune.filters._compiled import kernel_module
 from kftune.filters.sigma_points import UKFSettings, merwe_weights
 from kftune.models.base import STOP_NONE, StateSpaceModel
+from kftune.models.kernel_io import KernelData, KernelOutputs, SigmaWeights
 from kftune.models.registry import resolve_model
 
 __all__ = [
@@ -106,6 +107,14 @@ class FilterResult:
         """(N,) posterior estimate of the state called ``name``."""
         return self.x[:, _index(self.model.state_names, name, "state")]
 
+    def output(self, name: str) -> np.ndarray:
+        """(N,) a derived output of the model from the posterior states (its
+        :attr:`~kftune.models.StateSpaceModel.outputs`, e.g. the single-track models'
+        sideslip ``"beta"`` [rad])."""
+        if name not in self.model.outputs:
+            raise ValueError(f"no output {name!r}; the model's are {list(self.model.outputs)}")
+        return np.asarray(self.model.outputs[name](self.x), dtype=float)
+
 
 @dataclass(frozen=True, eq=False)
 class FilterBatchResult:
@@ -162,21 +171,6 @@ def _index(names: tuple[str, ...], name: str, what: str) -> int:
 # --------------------------------------------------------------------------------------
 
 
-class _Buffers(NamedTuple):
-    """A kernel's output buffers, in its argument order (B the settings, N the steps)."""
-
-    x: np.ndarray  # (B, N, n)
-    P_diag: np.ndarray  # (B, N, n)
-    z_hat: np.ndarray  # (B, N, m)
-    innovation: np.ndarray  # (B, N, m)
-    nis: np.ndarray  # (B, N)
-    log_det_s: np.ndarray  # (B, N)
-
-    def at(self, b: int) -> _Buffers:
-        """Setting b's buffers (views): (N, n), …, (N,)."""
-        return _Buffers(*(a[b] for a in self))
-
-
 @dataclass(frozen=True, eq=False)
 class _Run:
     """Everything a kernel needs, checked: prepared inputs, z, p, dt, q, r, priors."""
@@ -193,22 +187,15 @@ class _Run:
     n_hold: int
     held_causes: np.ndarray  # (n_held,) int64
 
-    def outputs(self) -> _Buffers:
-        b, n_steps = self.q.shape[0], self.z.shape[0]
+    def outputs(self) -> KernelOutputs:
+        """The B runs' output buffers, (B, N, …)."""
         n, m = self.model.n_states, self.model.n_measurements
-        return _Buffers(
-            np.empty((b, n_steps, n)),
-            np.empty((b, n_steps, n)),
-            np.empty((b, n_steps, m)),
-            np.empty((b, n_steps, m)),
-            np.empty((b, n_steps)),
-            np.empty((b, n_steps)),
-        )
+        return KernelOutputs.empty(self.z.shape[0], n, m, batch=self.q.shape[0])
 
-    def head(self, b: int | None) -> tuple[Any, ...]:
-        """The data arguments of a bound kernel for setting b (None: all B, for the batch)."""
+    def head(self, b: int | None) -> KernelData:
+        """The data of a bound kernel for setting b (None: all B, for the batch)."""
         sl = slice(None) if b is None else b
-        return (
+        return KernelData(
             self.u, self.z, self.p, self.dt, self.q[sl], self.r[sl], self.x_init[sl],
             self.P_init[sl], self.n_hold, self.held_causes,
         )  # fmt: skip
@@ -243,7 +230,7 @@ def _check_run(
     *,
     batch: bool,
 ) -> _Run:
-    """All checks of a run, in the order of :func:`kftune.filters.run_ukf`'s."""
+    """All checks of a run, before any loop runs."""
     model = resolve_model(model)
     n, m = model.n_states, model.n_measurements
     u_units, z_units, q_units, r_units = _unit_texts(model)
@@ -323,7 +310,8 @@ class ModelFilter(ABC):
 
     @abstractmethod
     def _options(self, model: StateSpaceModel) -> tuple[Any, ...]:
-        """The numeric kernel arguments after the data (the UKF's sigma-point weights)."""
+        """The kernel arguments between the data and the outputs: the UKF's
+        (:class:`~kftune.models.kernel_io.SigmaWeights`,), the EKF's ()."""
 
     @abstractmethod
     def _bound(self, model: StateSpaceModel) -> tuple[Any, Any]:
@@ -365,7 +353,7 @@ class ModelFilter(ABC):
         run = _check_run(model, u, z, dt, q, r, params, x0, P0, batch=False)
         outs = run.outputs().at(0)
         single, _ = self._bound(run.model)
-        stop, rep, cause = single(*run.head(0), *self._options(run.model), *outs)
+        stop, rep, cause = single(run.head(0), *self._options(run.model), outs)
         return FilterResult(
             outs.x, outs.P_diag, outs.z_hat, outs.innovation, outs.nis, stop >= 0, int(stop),
             int(rep), int(cause), run.model, self.name, outs.log_det_s,
@@ -383,6 +371,7 @@ class ModelFilter(ABC):
         params: Any = None,
         x0: ArrayLike | None = None,
         P0: ArrayLike | None = None,
+        lanes: bool = False,
     ) -> FilterBatchResult:
         """Filter one manoeuvre with B noise settings, in parallel over B.
 
@@ -391,6 +380,11 @@ class ModelFilter(ABC):
                 P0 uses each run's own r).
             q: (B, n) process-noise variances.
             r: (m,) or (B, m) measurement-noise variances.
+            lanes: run the B settings across one core's vector lanes where the model
+                supplies such a loop for this filter (:class:`~kftune.models.ModelKernels`,
+                the single-track UKF's: 3–4× the throughput of one core's sequential runs,
+                BENCHMARKS.md "Vectorised batch kernel"), without log det S
+                (``log_det_s`` None); else, and by default, in parallel threads.
 
         Returns:
             :class:`FilterBatchResult`; ``result[b]`` equals ``run(..., q[b], r[b])``.
@@ -402,20 +396,28 @@ class ModelFilter(ABC):
         rep = np.empty(n_sets, dtype=np.int64)
         cause = np.empty(n_sets, dtype=np.int64)
         single, batch = self._bound(run.model)
+        vector = self._lanes(run.model) if lanes and n_sets > 1 else None
         opts = self._options(run.model)
-        if n_sets == 1:  # no thread start-up for a single set
-            stop[0], rep[0], cause[0] = single(*run.head(0), *opts, *outs.at(0))
+        if vector is not None:  # one core, the sets across its vector lanes
+            vector(run.head(None), *opts, outs, stop, rep, cause)
+        elif n_sets == 1:  # no thread start-up for a single set
+            stop[0], rep[0], cause[0] = single(run.head(0), *opts, outs.at(0))
         else:
-            # one set per chunk, handed out dynamically (as run_ukf_batch)
+            # one set per chunk, handed out dynamically: a thread whose core is busy with
+            # another process then does fewer sets instead of holding up a static half
             previous = numba.set_parallel_chunksize(1)
             try:
-                batch(*run.head(None), *opts, *outs, stop, rep, cause)
+                batch(run.head(None), *opts, outs, stop, rep, cause)
             finally:
                 numba.set_parallel_chunksize(previous)
         return FilterBatchResult(
             outs.x, outs.P_diag, outs.z_hat, outs.innovation, outs.nis, stop >= 0, stop, rep,
-            cause, run.model, self.name, outs.log_det_s,
+            cause, run.model, self.name, None if vector is not None else outs.log_det_s,
         )  # fmt: skip
+
+    def _lanes(self, model: StateSpaceModel) -> Any | None:
+        """The model's vector-lane loop for this filter, or None (the default: none)."""
+        return None
 
 
 @dataclass(frozen=True)
@@ -436,10 +438,17 @@ class UKF(ModelFilter):
     def _options(self, model: StateSpaceModel) -> tuple[Any, ...]:
         n = model.n_states
         wm, wc = merwe_weights(n, self.settings)
-        return float(wm[0]), float(wc[0]), float(wm[1]), math.sqrt(n + self.settings.lam(n))
+        c = math.sqrt(n + self.settings.lam(n))
+        return (SigmaWeights(float(wm[0]), float(wc[0]), float(wm[1]), c),)
 
     def _bound(self, model: StateSpaceModel) -> tuple[Any, Any]:
+        if model.ukf_kernels is not None:  # the model's own loops (ModelKernels)
+            own = model.ukf_kernels()
+            return own.single, own.batch
         return _bound_ukf(model)
+
+    def _lanes(self, model: StateSpaceModel) -> Any | None:
+        return None if model.ukf_kernels is None else model.ukf_kernels().lanes
 
 
 @dataclass(frozen=True)

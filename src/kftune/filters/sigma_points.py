@@ -10,7 +10,8 @@ conventions of FilterPy's ``MerweScaledSigmaPoints``:
     W_0^m    = λ/(n+λ),   W_0^c = λ/(n+λ) + 1 − α² + β,   W_i^m = W_i^c = 1/(2(n+λ))
 
 with [√A]_i the i-th column of the lower Cholesky factor of A (= row i of FilterPy's upper
-factor). The compiled kernel (:mod:`kftune.filters._kernel`) implements the same maths
+factor). The compiled loops (:mod:`kftune.filters._generic_kernel`, and the single-track
+model's own :mod:`kftune.models._sideslip_ukf`) implement the same maths; the latter
 written out for n = 3.
 """
 

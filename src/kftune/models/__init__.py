@@ -10,6 +10,7 @@ from kftune.models.base import (
     STOP_NONE,
     STOP_NUMERICAL,
     DataRefused,
+    ModelKernels,
     StateSpaceModel,
     prepare_inputs,
 )
@@ -33,6 +34,7 @@ __all__ = [
     "STOP_NONE",
     "STOP_NUMERICAL",
     "DataRefused",
+    "ModelKernels",
     "StateSpaceModel",
     "get_model",
     "linear_model",

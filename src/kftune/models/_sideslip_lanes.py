@@ -1,6 +1,7 @@
-"""Vectorised batch UKF kernel: B noise settings over one manoeuvre, SIMD across the sets.
+"""The single-track model's vector-lane UKF loop: B noise settings over one manoeuvre, SIMD
+across the sets.
 
-The maths is that of :func:`kftune.filters._kernel.run_kernel` (the 3×3 single-track UKF
+The maths is that of :func:`kftune.models._sideslip_ukf.run_kernel` (the 3×3 single-track UKF
 with closed-form Cholesky and covariance repair) with the same floating-point operations
 in the same order for every set, so each set's result equals ``run_kernel``'s bit for bit
 (the tests ask ≤ 1e-12 relative; no fast-math, so the compiler may not reorder).
@@ -14,11 +15,11 @@ register (8 into one AVX-512 register):
 
 1. predict (k ≥ 1): 7 sigma points from (x⁺, L⁺), one RK4 step each, the unscented
    transform x̄ = Σ Wᵐ χ_i, P̄ = Σ Wᶜ (χ_i − x̄)(χ_i − x̄)ᵀ + Q, and the plain Cholesky of P̄
-   (:func:`~kftune.filters._kernel.chol3`) with a per-lane success flag;
+   (:func:`~kftune.models._sideslip_ukf.chol3`) with a per-lane success flag;
 2. the lanes whose P̄ did not factorise go through
-   :func:`~kftune.filters._kernel.chol3_repair` one by one (jitter escalation; rare);
+   :func:`~kftune.models._sideslip_ukf.chol3_repair` one by one (jitter escalation; rare);
 3. update: the sigma points redrawn from (x̄, L̄), h at each, S, P_xz, chol(S), the
-   update x⁺ = x̄ + Wᵀv, P⁺ = P̄ − WᵀW (W = L_S⁻¹P_xzᵀ, v = L_S⁻¹y; see ``_kernel``) and
+   update x⁺ = x̄ + Wᵀv, P⁺ = P̄ − WᵀW (W = L_S⁻¹P_xzᵀ, v = L_S⁻¹y; see ``_sideslip_ukf``) and
    chol(P⁺), with success flags;
 4. per lane (scalar, cheap): a lane whose S or P⁺ did not factorise redoes its update with
    the repairing factorisation; then the divergence and runaway checks of ``run_kernel``
@@ -38,7 +39,8 @@ so the loops keep running over active sets only and a diverged set's NaN or inf 
 no other set (lanes never mix; the swap moves whole columns). Its output rows from the
 diverged step on are NaN, as in ``run_kernel``. The kernel never raises.
 
-Only the single-track model (``_kernel.MODEL_SINGLE_TRACK``) has this kernel.
+The single-track model supplies it for batches
+(:func:`kftune.models.sideslip.single_track_kernels`).
 """
 
 from __future__ import annotations
@@ -48,9 +50,10 @@ import math
 import numpy as np
 from numba import njit
 
-from kftune.filters._kernel import chol3, chol3_repair, hold_steps
+from kftune.models._runaway import STOP_SIDESLIP_HELD, STOP_SPEED, runaway
+from kftune.models._sideslip_ukf import chol3, chol3_repair
 from kftune.models.base import STOP_NONE, STOP_NUMERICAL
-from kftune.models.sideslip import STOP_SIDESLIP_HELD, STOP_SPEED, runaway
+from kftune.models.kernel_io import KernelData, KernelOutputs, SigmaWeights
 from kftune.vehicle.single_track import (
     measure_scalar,
     rk4_scalar,
@@ -61,6 +64,15 @@ from kftune.vehicle.single_track import (
 #: AVX2 registers or one AVX-512 register); rows a constant LANES apart need no run-time
 #: overlap checks, and a multiple of the vector width leaves no scalar remainder.
 LANES = 8
+
+#: Small fixed-size groups of scalars passed between the compiled helpers as tuples (numba
+#: keeps them in registers): a 3-vector, the upper triangle of a symmetric 3×3 matrix
+#: (00, 01, 02, 11, 12, 22) or its Cholesky factor's lower one (00, 10, 11, 20, 21, 22), a
+#: full 3×3 matrix by rows, and a step's input-only quantities (tan δ, cos δ, Fz_f, Fz_r).
+Vec3 = tuple[float, float, float]
+Sym3 = tuple[float, float, float, float, float, float]
+Mat3 = tuple[float, float, float, float, float, float, float, float, float]
+Context = tuple[float, float, float, float]
 
 
 def _rows(first: int, count: int) -> tuple[int, ...]:
@@ -114,22 +126,17 @@ def _predict_lanes(
     n_blocks: int,
     mp: np.ndarray,
     dt: float,
-    e0: float,
-    e1: float,
-    e2: float,
-    e3: float,
+    ctx: Context,
     ax: float,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
+    w: SigmaWeights,
 ) -> None:
     """Step 1 for the lanes of blocks [0, n_blocks): (x⁺, L⁺) → (x̄, P̄, chol P̄, ok).
 
     Simon 2006, Eq. 14.59–14.60. ``lanes``: the flat lane array (see the module docstring).
-
-    e0..e3: (tan δ, cos δ, Fz_f, Fz_r) of u[k−1]; ax: u[k−1, 1] [m/s²].
+    ctx: (tan δ, cos δ, Fz_f, Fz_r) of u[k−1]; ax: u[k−1, 1] [m/s²].
     """
+    e0, e1, e2, e3 = ctx
+    wm0, wc0, wi, c = w
     for blk in range(n_blocks):
         s = lanes[blk * BLOCK : (blk + 1) * BLOCK]
         for j in range(s.size // NROWS):  # LANES, but unknown to LLVM: it must not unroll
@@ -144,8 +151,8 @@ def _predict_lanes(
             f60, f61, f62 = rk4_scalar(x0, x1, x2 - d2, e0, e1, ax, e2, e3, mp, dt)
             # x̄ = W0ᵐ χ0 + Σ_{i≥1} Wᵢ χi, summed in run_kernel's order
             m0, m1, m2 = _mean7(
-                wm0, wi, f00, f01, f02, f10, f11, f12, f20, f21, f22, f30, f31, f32,
-                f40, f41, f42, f50, f51, f52, f60, f61, f62,
+                wm0, wi, (f00, f01, f02), (f10, f11, f12), (f20, f21, f22), (f30, f31, f32),
+                (f40, f41, f42), (f50, f51, f52), (f60, f61, f62),
             )  # fmt: skip
             # P̄ = W0ᶜ d0 d0ᵀ + Σ Wᵢ dᵢ dᵢᵀ + Q
             d0 = f00 - m0
@@ -194,37 +201,14 @@ def _predict_lanes(
 
 @njit(cache=True, error_model="numpy")
 def _mean7(
-    wm0: float,
-    wi: float,
-    a0: float,
-    a1: float,
-    a2: float,
-    b0: float,
-    b1: float,
-    b2: float,
-    c0: float,
-    c1: float,
-    c2: float,
-    d0: float,
-    d1: float,
-    d2: float,
-    e0: float,
-    e1: float,
-    e2: float,
-    f0: float,
-    f1: float,
-    f2: float,
-    g0: float,
-    g1: float,
-    g2: float,
+    wm0: float, wi: float, a: Vec3, b: Vec3, c: Vec3, d: Vec3, e: Vec3, f: Vec3, g: Vec3
 ) -> tuple[float, float, float]:
     """W0ᵐ·a + Wᵢ·(b + c + … + g) of seven 3-vectors, summed in run_kernel's order (the
     unscented mean of the sigma points a, …, g; Simon 2006, Eq. 14.59 and 14.61)."""
-    m0 = wm0 * a0
-    m1 = wm0 * a1
-    m2 = wm0 * a2
-    for v0, v1, v2 in ((b0, b1, b2), (c0, c1, c2), (d0, d1, d2), (e0, e1, e2),
-                       (f0, f1, f2), (g0, g1, g2)):  # fmt: skip
+    m0 = wm0 * a[0]
+    m1 = wm0 * a[1]
+    m2 = wm0 * a[2]
+    for v0, v1, v2 in (b, c, d, e, f, g):
         m0 += wi * v0
         m1 += wi * v1
         m2 += wi * v2
@@ -265,28 +249,17 @@ def _acc_outer(
 
 @njit(cache=True, error_model="numpy")
 def _innovation_stats(
-    s: np.ndarray,
-    j: int,
-    mp: np.ndarray,
-    e0: float,
-    e1: float,
-    e2: float,
-    e3: float,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
-) -> tuple[
-    float, float, float, float, float, float, float, float, float,
-    float, float, float, float, float, float, float, float, float,
-]:  # fmt: skip
+    s: np.ndarray, j: int, mp: np.ndarray, ctx: Context, w: SigmaWeights
+) -> tuple[Vec3, Sym3, Mat3]:
     """Sigma points of (x̄, L̄) through h: (ẑ⁻, S − R, P_xz) of lane j, run_kernel's order.
 
     Returns:
-        (z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20,
-        c21, c22) with S = Σ Wᶜ (Zᵢ − ẑ)(Zᵢ − ẑ)ᵀ (R not yet added) and
+        (ẑ⁻ (z0, z1, z2), S − R (s00, s01, s02, s11, s12, s22), P_xz (c00, c01, c02, c10,
+        c11, c12, c20, c21, c22)) with S = Σ Wᶜ (Zᵢ − ẑ)(Zᵢ − ẑ)ᵀ (R not yet added) and
         P_xz[i][m] = c_im = Σ Wᶜ (χᵢ − x̄)(Zᵢ − ẑ)ᵀ (Simon 2006, Eq. 14.61–14.63).
     """
+    e0, e1, e2, e3 = ctx
+    wm0, wc0, wi, c = w
     x0, x1, x2, a0, a1, a2, b1, b2, d2 = _centre_and_spread(s, j, XB0, LB00, c)
     g00, g01, g02 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
     g10, g11, g12 = measure_scalar(x0 + a0, x1 + a1, x2 + a2, e0, e1, e2, e3, mp)
@@ -296,59 +269,37 @@ def _innovation_stats(
     g50, g51, g52 = measure_scalar(x0 + -0.0, x1 + -b1, x2 + -b2, e0, e1, e2, e3, mp)
     g60, g61, g62 = measure_scalar(x0 + -0.0, x1 + -0.0, x2 + -d2, e0, e1, e2, e3, mp)
     z0, z1, z2 = _mean7(
-        wm0, wi, g00, g01, g02, g10, g11, g12, g20, g21, g22, g30, g31, g32,
-        g40, g41, g42, g50, g51, g52, g60, g61, g62,
+        wm0, wi, (g00, g01, g02), (g10, g11, g12), (g20, g21, g22), (g30, g31, g32),
+        (g40, g41, g42), (g50, g51, g52), (g60, g61, g62),
     )  # fmt: skip
     f0 = g00 - z0
     f1 = g01 - z1
     f2 = g02 - z2
-    s00, s01, s02, s11, s12, s22 = _outer(wc0, f0, f1, f2)
+    sz = _outer(wc0, f0, f1, f2)
     # P_xz: the deviations χᵢ − x̄ are the columns of ±c·L̄ (zero for i = 0)
-    c00 = c01 = c02 = c10 = c11 = c12 = c20 = c21 = c22 = 0.0
-    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
-        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        wi, a0, a1, a2, g10 - z0, g11 - z1, g12 - z2,
-    )  # fmt: skip
-    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
-        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        wi, 0.0, b1, b2, g20 - z0, g21 - z1, g22 - z2,
-    )  # fmt: skip
-    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
-        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        wi, 0.0, 0.0, d2, g30 - z0, g31 - z1, g32 - z2,
-    )  # fmt: skip
-    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
-        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        wi, -a0, -a1, -a2, g40 - z0, g41 - z1, g42 - z2,
-    )  # fmt: skip
-    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
-        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        wi, -0.0, -b1, -b2, g50 - z0, g51 - z1, g52 - z2,
-    )  # fmt: skip
-    s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = _acc_cross(
-        s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22,
-        wi, -0.0, -0.0, -d2, g60 - z0, g61 - z1, g62 - z2,
-    )  # fmt: skip
-    return z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22
+    cxz = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    sz, cxz = _acc_cross(sz, cxz, wi, (a0, a1, a2), (g10 - z0, g11 - z1, g12 - z2))
+    sz, cxz = _acc_cross(sz, cxz, wi, (0.0, b1, b2), (g20 - z0, g21 - z1, g22 - z2))
+    sz, cxz = _acc_cross(sz, cxz, wi, (0.0, 0.0, d2), (g30 - z0, g31 - z1, g32 - z2))
+    sz, cxz = _acc_cross(sz, cxz, wi, (-a0, -a1, -a2), (g40 - z0, g41 - z1, g42 - z2))
+    sz, cxz = _acc_cross(sz, cxz, wi, (-0.0, -b1, -b2), (g50 - z0, g51 - z1, g52 - z2))
+    sz, cxz = _acc_cross(sz, cxz, wi, (-0.0, -0.0, -d2), (g60 - z0, g61 - z1, g62 - z2))
+    return (z0, z1, z2), sz, cxz
 
 
 @njit(cache=True, error_model="numpy")
-def _acc_cross(
-    s00: float, s01: float, s02: float, s11: float, s12: float, s22: float,
-    c00: float, c01: float, c02: float, c10: float, c11: float, c12: float,
-    c20: float, c21: float, c22: float,
-    w: float, dx0: float, dx1: float, dx2: float, f0: float, f1: float, f2: float,
-) -> tuple[
-    float, float, float, float, float, float, float, float,
-    float, float, float, float, float, float, float,
-]:  # fmt: skip
+def _acc_cross(sz: Sym3, cxz: Mat3, w: float, dx: Vec3, f: Vec3) -> tuple[Sym3, Mat3]:
     """S += w·f·fᵀ (upper triangle) and P_xz += (w·dx)·fᵀ, as run_kernel accumulates."""
-    g0 = w * dx0
-    g1 = w * dx1
-    g2 = w * dx2
+    s00, s01, s02, s11, s12, s22 = sz
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = cxz
+    f0, f1, f2 = f
+    g0 = w * dx[0]
+    g1 = w * dx[1]
+    g2 = w * dx[2]
     return (
         s00 + w * f0 * f0, s01 + w * f0 * f1, s02 + w * f0 * f2,
         s11 + w * f1 * f1, s12 + w * f1 * f2, s22 + w * f2 * f2,
+    ), (
         c00 + g0 * f0, c01 + g0 * f1, c02 + g0 * f2,
         c10 + g1 * f0, c11 + g1 * f1, c12 + g1 * f2,
         c20 + g2 * f0, c21 + g2 * f1, c22 + g2 * f2,
@@ -357,35 +308,18 @@ def _acc_cross(
 
 @njit(cache=True, error_model="numpy")
 def _apply_update(
-    s: np.ndarray,
-    j: int,
-    zk0: float,
-    zk1: float,
-    zk2: float,
-    z0: float,
-    z1: float,
-    z2: float,
-    m00: float,
-    m10: float,
-    m11: float,
-    m20: float,
-    m21: float,
-    m22: float,
-    c00: float,
-    c01: float,
-    c02: float,
-    c10: float,
-    c11: float,
-    c12: float,
-    c20: float,
-    c21: float,
-    c22: float,
-) -> tuple[float, ...]:
+    s: np.ndarray, j: int, zk: Vec3, zb: Vec3, ls: Sym3, cxz: Mat3
+) -> tuple[Vec3, Sym3, Vec3, float]:
     """x⁺ = x̄ + Wᵀv, P⁺ = P̄ − WᵀW with W = L_S⁻¹P_xzᵀ, v = L_S⁻¹y (``_kernel`` docstring).
 
+    zk: the measurement z_k; zb: its prediction ẑ⁻; ls: L_S (m00, m10, m11, m20, m21, m22);
+    cxz: P_xz (c00, …, c22).
+
     Returns:
-        (x⁺0, x⁺1, x⁺2, P⁺00, P⁺01, P⁺02, P⁺11, P⁺12, P⁺22, y0, y1, y2, NIS).
+        (x⁺, P⁺ (00, 01, 02, 11, 12, 22), y, NIS).
     """
+    m00, m10, m11, m20, m21, m22 = ls
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = cxz
     i00 = 1.0 / m00
     i11 = 1.0 / m11
     i22 = 1.0 / m22
@@ -401,9 +335,9 @@ def _apply_update(
     w20 = i20 * c00 + i21 * c01 + i22 * c02
     w21 = i20 * c10 + i21 * c11 + i22 * c12
     w22 = i20 * c20 + i21 * c21 + i22 * c22
-    y0 = zk0 - z0
-    y1 = zk1 - z1
-    y2 = zk2 - z2
+    y0 = zk[0] - zb[0]
+    y1 = zk[1] - zb[1]
+    y2 = zk[2] - zb[2]
     v0 = i00 * y0
     v1 = i10 * y0 + i11 * y1
     v2 = i20 * y0 + i21 * y1 + i22 * y2
@@ -416,7 +350,8 @@ def _apply_update(
     p11 = s[PB11 + j] - (w01 * w01 + w11 * w11 + w21 * w21)
     p12 = s[PB12 + j] - (w01 * w02 + w11 * w12 + w21 * w22)
     p22 = s[PB22 + j] - (w02 * w02 + w12 * w12 + w22 * w22)
-    return x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, v0 * v0 + v1 * v1 + v2 * v2
+    nis = v0 * v0 + v1 * v1 + v2 * v2
+    return (x0, x1, x2), (p00, p01, p02, p11, p12, p22), (y0, y1, y2), nis
 
 
 @njit(cache=True, error_model="numpy")
@@ -424,26 +359,14 @@ def _store_update(
     s: np.ndarray,
     j: int,
     mp: np.ndarray,
-    e0: float,
-    e1: float,
-    e2: float,
-    e3: float,
-    x0: float,
-    x1: float,
-    x2: float,
-    p00: float,
-    p01: float,
-    p02: float,
-    p11: float,
-    p12: float,
-    p22: float,
-    y0: float,
-    y1: float,
-    y2: float,
-    nis: float,
+    ctx: Context,
+    update: tuple[Vec3, Sym3, Vec3, float],
     ok_s: bool,
 ) -> None:
-    """Store x⁺, P⁺, its plain Cholesky, y, NIS, h(x⁺, u) and the flags of lane j."""
+    """Store x⁺, P⁺, its plain Cholesky, y, NIS (``update``, :func:`_apply_update`'s),
+    h(x⁺, u) and the flags of lane j."""
+    (x0, x1, x2), (p00, p01, p02, p11, p12, p22), (y0, y1, y2), nis = update
+    e0, e1, e2, e3 = ctx
     ok, l00, l10, l11, l20, l21, l22 = chol3(p00, p01, p02, p11, p12, p22)
     h0, h1, h2 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
     s[X0 + j] = x0
@@ -474,58 +397,24 @@ def _store_update(
 
 @njit(cache=True, error_model="numpy")
 def _update_lanes(
-    lanes: np.ndarray,
-    n_blocks: int,
-    mp: np.ndarray,
-    zk0: float,
-    zk1: float,
-    zk2: float,
-    e0: float,
-    e1: float,
-    e2: float,
-    e3: float,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
+    lanes: np.ndarray, n_blocks: int, mp: np.ndarray, zk: Vec3, ctx: Context, w: SigmaWeights
 ) -> None:
     """Step 3 for the lanes of blocks [0, n_blocks), with the plain Cholesky of S (a failure
     is flagged)."""
     for blk in range(n_blocks):
         s = lanes[blk * BLOCK : (blk + 1) * BLOCK]
         for j in range(s.size // NROWS):  # LANES, but unknown to LLVM: it must not unroll
-            stats = _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
-            z0, z1, z2, s00, s01, s02, s11, s12, s22 = stats[:9]
-            c00, c01, c02, c10, c11, c12, c20, c21, c22 = stats[9:]
+            zb, (s00, s01, s02, s11, s12, s22), cxz = _innovation_stats(s, j, mp, ctx, w)
             ok_s, m00, m10, m11, m20, m21, m22 = chol3(
                 s00 + s[R0 + j], s01, s02, s11 + s[R1 + j], s12, s22 + s[R2 + j]
             )
-            x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, nis = _apply_update(
-                s, j, zk0, zk1, zk2, z0, z1, z2, m00, m10, m11, m20, m21, m22,
-                c00, c01, c02, c10, c11, c12, c20, c21, c22,
-            )  # fmt: skip
-            _store_update(
-                s, j, mp, e0, e1, e2, e3, x0, x1, x2, p00, p01, p02, p11, p12, p22,
-                y0, y1, y2, nis, ok_s,
-            )  # fmt: skip
+            update = _apply_update(s, j, zk, zb, (m00, m10, m11, m20, m21, m22), cxz)
+            _store_update(s, j, mp, ctx, update, ok_s)
 
 
 @njit(cache=True, error_model="numpy")
 def _update_lane_repaired(
-    s: np.ndarray,
-    j: int,
-    mp: np.ndarray,
-    zk0: float,
-    zk1: float,
-    zk2: float,
-    e0: float,
-    e1: float,
-    e2: float,
-    e3: float,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
+    s: np.ndarray, j: int, mp: np.ndarray, zk: Vec3, ctx: Context, w: SigmaWeights
 ) -> tuple[int, int]:
     """Step 3 for one lane with the repairing Cholesky of S.
 
@@ -533,22 +422,14 @@ def _update_lane_repaired(
         (status, repairs): status 2 when S cannot be repaired (the lane diverged), else 0;
         repairs 1 when S needed jitter.
     """
-    z0, z1, z2, s00, s01, s02, s11, s12, s22, c00, c01, c02, c10, c11, c12, c20, c21, c22 = (
-        _innovation_stats(s, j, mp, e0, e1, e2, e3, wm0, wc0, wi, c)
-    )
+    zb, (s00, s01, s02, s11, s12, s22), cxz = _innovation_stats(s, j, mp, ctx, w)
     st, m00, m10, m11, m20, m21, m22, _ = chol3_repair(
         s00 + s[R0 + j], s01, s02, s11 + s[R1 + j], s12, s22 + s[R2 + j]
     )
     if st == 2:
         return 2, 0
-    x0, x1, x2, p00, p01, p02, p11, p12, p22, y0, y1, y2, nis = _apply_update(
-        s, j, zk0, zk1, zk2, z0, z1, z2, m00, m10, m11, m20, m21, m22,
-        c00, c01, c02, c10, c11, c12, c20, c21, c22,
-    )  # fmt: skip
-    _store_update(
-        s, j, mp, e0, e1, e2, e3, x0, x1, x2, p00, p01, p02, p11, p12, p22,
-        y0, y1, y2, nis, True,
-    )  # fmt: skip
+    update = _apply_update(s, j, zk, zb, (m00, m10, m11, m20, m21, m22), cxz)
+    _store_update(s, j, mp, ctx, update, True)
     return 0, st
 
 
@@ -591,41 +472,36 @@ def _retire(
 
 @njit(cache=True, error_model="numpy")
 def run_kernel_soa(
-    mp: np.ndarray,
-    u: np.ndarray,
-    z: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
+    data: KernelData,
+    w: SigmaWeights,
+    out: KernelOutputs,
     out_div: np.ndarray,
     out_rep: np.ndarray,
     out_cause: np.ndarray,
 ) -> None:
     """The single-track UKF for B noise settings over one manoeuvre, SIMD across the sets.
 
-    Arguments and outputs are those of :func:`kftune.filters._kernel.run_kernel_batch`
-    (without ``model``): q, r, x_init (B, 3); P_init (B, 3, 3); out_x, out_p, out_zhat,
-    out_innov (B, N, 3); out_nis (B, N); out_div, out_rep, out_cause (B,) int64. Set b's
-    outputs equal ``run_kernel``'s for (q[b], r[b], x_init[b], P_init[b]) bit for bit.
+    Arguments and outputs are those of :func:`kftune.models._sideslip_ukf.run_kernel_batch`:
+    data's q, r, x_init (B, 3) and P_init (B, 3, 3); out's x, P_diag, z_hat, innovation
+    (B, N, 3) and nis (B, N) — its log_det_s is not written (the lanes do not compute log
+    det S); out_div, out_rep, out_cause (B,) int64. Set b's outputs equal ``run_kernel``'s
+    for (q[b], r[b], x_init[b], P_init[b]) bit for bit.
     """
+    mp, u, z, dt, q, r = data.p, data.u, data.z, data.dt, data.q, data.r
+    x_init, P_init, n_hold = data.x_init, data.P_init, data.n_hold
+    out_x, out_p, out_zhat, out_innov, out_nis = (
+        out.x,
+        out.P_diag,
+        out.z_hat,
+        out.innovation,
+        out.nis,
+    )
     n_sets = q.shape[0]
     n_steps = u.shape[0]
     n_blocks = (n_sets + LANES - 1) // LANES
     bp = n_blocks * LANES
     s = np.zeros(n_blocks * BLOCK)
     ints = np.zeros((4, bp), dtype=np.int64)  # set id, repairs, held β, held Vx
-    n_hold = hold_steps(dt)
     n_active = 0
     for b in range(n_sets):
         out_div[b] = -1
@@ -680,8 +556,8 @@ def run_kernel_soa(
             break
         n_vec_blocks = (n_active + LANES - 1) // LANES
         if k > 0:
-            e0, e1, e2, e3 = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
-            _predict_lanes(s, n_vec_blocks, mp, dt, e0, e1, e2, e3, u[k - 1, 1], wm0, wc0, wi, c)
+            ctx = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
+            _predict_lanes(s, n_vec_blocks, mp, dt, ctx, u[k - 1, 1], w)
             j = 0
             while j < n_active:
                 f = _flat(j)
@@ -706,18 +582,14 @@ def run_kernel_soa(
                     s[LB22 + f] = l22
                 j += 1
             n_vec_blocks = (n_active + LANES - 1) // LANES
-        e0, e1, e2, e3 = step_context_scalar(u[k, 0], u[k, 1], mp)
-        zk0 = z[k, 0]
-        zk1 = z[k, 1]
-        zk2 = z[k, 2]
-        _update_lanes(s, n_vec_blocks, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c)
+        ctx = step_context_scalar(u[k, 0], u[k, 1], mp)
+        zk = (z[k, 0], z[k, 1], z[k, 2])
+        _update_lanes(s, n_vec_blocks, mp, zk, ctx, w)
         j = 0
         while j < n_active:
             f = _flat(j)
             if s[OK_S + f] == 0.0:
-                st, rep = _update_lane_repaired(
-                    s, f, mp, zk0, zk1, zk2, e0, e1, e2, e3, wm0, wc0, wi, c
-                )
+                st, rep = _update_lane_repaired(s, f, mp, zk, ctx, w)
                 if st == 2:
                     n_active = _retire(
                         s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
@@ -743,7 +615,7 @@ def run_kernel_soa(
                     s, ints, j, n_active, k, STOP_NUMERICAL, out_div, out_rep, out_cause
                 )
                 continue
-            cause, beyond, off = runaway(x0, x1, zk0)
+            cause, beyond, off = runaway(x0, x1, zk[0])
             if cause != 0:
                 n_active = _retire(s, ints, j, n_active, k, cause, out_div, out_rep, out_cause)
                 continue
@@ -820,16 +692,14 @@ def ensure_compiled() -> None:
     try:
         mp = np.array([1500.0, 2500.0, 1.2, 1.4, 0.5, 8e4, 9e4, 1e5, 1.0])
         q = np.full((1, 3), 1e-4)
-        x = np.array([[20.0, 0.0, 0.0]])
-        P = np.eye(3)[None]
-        u = np.zeros((2, 2))
-        z = np.tile([20.0, 0.0, 0.0], (2, 1))
-        x_out, p_out, zh_out, inn_out = (np.empty((1, 2, 3)) for _ in range(4))
+        data = KernelData(
+            np.zeros((2, 6)), np.tile([20.0, 0.0, 0.0], (2, 1)), mp, 0.01, q, q,
+            np.array([[20.0, 0.0, 0.0]]), np.eye(3)[None], 50, np.array([0, 0], np.int64),
+        )  # fmt: skip
         div, rep, why = (np.empty(1, dtype=np.int64) for _ in range(3))
         run_kernel_soa(
-            mp, u, z, 0.01, q, q, x, P, 0.5, 0.5, 0.1, 1.0,
-            x_out, p_out, zh_out, inn_out, np.empty((1, 2)), div, rep, why,
-        )  # fmt: skip
+            data, SigmaWeights(0.5, 0.5, 0.1, 1.0), KernelOutputs.empty(2, 3, 3, 1), div, rep, why
+        )
     finally:
         for name, _, default in _LLVM_OPTIONS:
             llvm.set_option("", f"{name}={default}")

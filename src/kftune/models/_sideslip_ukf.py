@@ -1,6 +1,6 @@
-"""Compiled UKF kernel for three states and three measurements (numba).
+"""The single-track model's own UKF loop: three states and three measurements (numba).
 
-The maths is that of :mod:`kftune.filters.ukf` (the readable reference path), written out
+The maths is that of the generic UKF (:mod:`kftune.filters._generic_kernel`), written out
 for n = 3 with scalars so that the step loop allocates nothing:
 
 * covariances are kept as their six upper-triangle entries (symmetric by construction —
@@ -24,32 +24,16 @@ finite, or (single-track model) the estimated Vx is not > 0, the run has diverge
 kernel returns that step and a cause (``STOP_*``), and fills the remaining output rows with
 NaN. It never raises.
 
-Runaway (single-track model): a filter can stay finite and positive-definite while its
-estimate leaves physics behind — with a large Vy process noise the sideslip random-walks
-to ±90° and the cost merely grows. These estimates are divergence too, at the step where
-they start:
+Runaway: the single-track model's rule (:func:`kftune.models._runaway.runaway`, the one
+place it is written), counted over ``n_hold`` steps as the generic filters count the
+model's held conditions. On the bundled data and revs-250lm no manual or tuned filter
+comes near its bounds (|β⁺| ≤ 10°, Vx⁺ within 10 % of the measurement), while
+Q = diag(1e9, 1e9, 1e9) trips the 60° bound at the first prediction.
 
-* |β⁺| > 60° (``RUNAWAY_BETA``) at any step: the car would move more sideways than
-  forwards (|Vy| > 1.7·Vx), which no cornering car does and the model (slip angles of a
-  rolling tyre) does not describe;
-* |β⁺| > 46° (:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`, the bound the loader puts
-  on a reference sideslip) held for 0.5 s (``RUNAWAY_HOLD``): a sustained spin;
-* |Vx⁺ − Vx_measured| > 50 % of the measured Vx (``RUNAWAY_VX``) held for 0.5 s: a
-  speed sensor (wheel speeds, GNSS/INS) errs by the wheel slip at most, |κ| ≲ 0.2 outside
-  lock-up and spin; holding it for 0.5 s keeps a single glitch of the measurement from
-  counting.
-
-They are tested as |Vy| > tan(bound)·Vx (Vx > 0 is checked first), so no atan2 per step.
-On the bundled data and revs-250lm no manual or tuned filter comes near them (|β⁺| ≤ 10°,
-Vx⁺ within 10 % of the measurement), while Q = diag(1e9, 1e9, 1e9) trips the 60° bound at
-the first prediction. The
-normalised innovation squared is *not* used: filters with Q near 1e-10 are overconfident
-(NIS above 1000 held for seconds) yet estimate β within 1°, and runaway filters with a huge
-Vy noise have NIS below 25, because their innovation covariance is as inflated as their
-estimate.
-
-Process/measurement models are selected by an integer so that the same loop also runs a
-linear-Gaussian model — the test of the kernel against a linear Kalman filter.
+This is the loop the single-track model supplies for itself
+(:func:`kftune.models.sideslip.single_track_kernels`): the generic UKF
+(:class:`kftune.filters.UKF`) runs it behind its own interface for that model, and its
+results equal the generic loop's (tests/test_model_kernels.py).
 """
 
 from __future__ import annotations
@@ -59,12 +43,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from kftune.models._runaway import STOP_SIDESLIP_HELD, STOP_SPEED, runaway
 from kftune.models.base import STOP_NONE, STOP_NUMERICAL
-from kftune.models.sideslip import (
-    RUNAWAY_HOLD,
-    STOP_SIDESLIP_HELD,
-    STOP_SPEED,
-    runaway,
+from kftune.models.kernel_io import (
+    JITTER_MAX,
+    JITTER_START,
+    KernelData,
+    KernelOutputs,
+    SigmaWeights,
 )
 from kftune.vehicle.single_track import (
     measure_scalar,
@@ -72,25 +58,10 @@ from kftune.vehicle.single_track import (
     step_context_scalar,
 )
 
-#: Model ids.
-MODEL_SINGLE_TRACK = 0
-MODEL_LINEAR = 1
-
-#: Jitter escalation of the covariance repair, relative to the largest diagonal entry.
-JITTER_START = 1e-12
-JITTER_MAX = 1e-6
-
 # Why a run stopped (the third value :func:`run_kernel` returns), STOP_*: the generic causes
-# (kftune.models.base) and the single-track model's (kftune.models.sideslip, where its
-# runaway bounds RUNAWAY_* are defined), imported above.
+# (kftune.models.base) and the single-track model's (kftune.models._runaway), imported above.
 
 _NAN = math.nan
-
-
-@njit(cache=True)
-def hold_steps(dt: float) -> int:
-    """Steps a held runaway must last: RUNAWAY_HOLD at sample time dt [s], at least 1."""
-    return max(1, int(RUNAWAY_HOLD / dt + 0.5))
 
 
 @njit(cache=True, error_model="numpy")
@@ -154,73 +125,6 @@ def chol3_repair(
 
 
 @njit(cache=True, error_model="numpy")
-def _context(
-    model: int, mp: np.ndarray, u0: float, u1: float
-) -> tuple[float, float, float, float, float, float]:
-    """Input-only quantities of one sample, shared by all sigma points."""
-    if model == MODEL_SINGLE_TRACK:
-        tan_d, cos_d, fzf, fzr = step_context_scalar(u0, u1, mp)
-        return tan_d, cos_d, fzf, fzr, u1, 0.0
-    # linear: G·u (process) and D·u (measurement); mp = [F(9), G(6), H(9), D(6)] row-major
-    return (
-        mp[9] * u0 + mp[10] * u1,
-        mp[11] * u0 + mp[12] * u1,
-        mp[13] * u0 + mp[14] * u1,
-        mp[24] * u0 + mp[25] * u1,
-        mp[26] * u0 + mp[27] * u1,
-        mp[28] * u0 + mp[29] * u1,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def _fx(
-    model: int,
-    mp: np.ndarray,
-    dt: float,
-    x0: float,
-    x1: float,
-    x2: float,
-    c0: float,
-    c1: float,
-    c2: float,
-    c3: float,
-    c4: float,
-) -> tuple[float, float, float]:
-    """Discrete process model x_k = f(x_{k−1}, u_{k−1})."""
-    if model == MODEL_SINGLE_TRACK:
-        return rk4_scalar(x0, x1, x2, c0, c1, c4, c2, c3, mp, dt)
-    return (
-        mp[0] * x0 + mp[1] * x1 + mp[2] * x2 + c0,
-        mp[3] * x0 + mp[4] * x1 + mp[5] * x2 + c1,
-        mp[6] * x0 + mp[7] * x1 + mp[8] * x2 + c2,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def _hx(
-    model: int,
-    mp: np.ndarray,
-    x0: float,
-    x1: float,
-    x2: float,
-    c0: float,
-    c1: float,
-    c2: float,
-    c3: float,
-    c4: float,
-    c5: float,
-) -> tuple[float, float, float]:
-    """Measurement model z_k = h(x_k, u_k)."""
-    if model == MODEL_SINGLE_TRACK:
-        return measure_scalar(x0, x1, x2, c0, c1, c2, c3, mp)
-    return (
-        mp[15] * x0 + mp[16] * x1 + mp[17] * x2 + c3,
-        mp[18] * x0 + mp[19] * x1 + mp[20] * x2 + c4,
-        mp[21] * x0 + mp[22] * x1 + mp[23] * x2 + c5,
-    )
-
-
-@njit(cache=True, error_model="numpy")
 def _fill_nan(
     k0: int,
     out_x: np.ndarray,
@@ -241,54 +145,33 @@ def _fill_nan(
 
 
 @njit(cache=True, error_model="numpy")
-def run_kernel(
-    model: int,
-    mp: np.ndarray,
-    u: np.ndarray,
-    z: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
-) -> tuple[int, int, int]:
-    """Run the UKF over a whole manoeuvre (inputs already validated).
+def run_kernel(data: KernelData, w: SigmaWeights, out: KernelOutputs) -> tuple[int, int, int]:
+    """Run the UKF over a whole manoeuvre (inputs already validated by the filter).
 
-    Time convention (see :func:`kftune.filters.ukf.run_ukf`): step 0 updates the prior
+    Time convention (:mod:`kftune.filters.generic`): step 0 updates the prior
     (x_init, P_init) with z[0]; step k ≥ 1 predicts from k−1 to k with u[k−1] held, then
     updates with z[k] using h(·, u[k]).
 
     Args:
-        model: MODEL_SINGLE_TRACK or MODEL_LINEAR.
-        mp: model parameters — the packed (9,) vehicle array, or (30,) [F, G, H, D].
-        u: (N, 2) inputs; z: (N, 3) measurements; dt: sample time [s].
-        q, r: (3,) diagonals of Q and R.
-        x_init: (3,) prior mean at step 0; P_init: (3, 3) prior covariance at step 0.
-        wm0, wc0, wi: sigma-point weights W_0^m, W_0^c, W_i; c: √(n + λ).
-        out_x, out_p, out_zhat, out_innov: (N, 3) outputs (posterior state, diag P⁺,
-            h(x⁺, u), innovation z − ẑ⁻); out_nis, out_ldet: (N,) outputs (NIS and
-            log det S of the innovation covariance, for the innovation likelihood).
+        data: the run (:class:`~kftune.models.kernel_io.KernelData`): u (N, ≥ 2) with
+            [δ rad, ax m/s²] in its first two columns (the single-track model's prepared
+            rows), z (N, 3) [Vx, ay, r], p the packed (9,) vehicle array, q and r (3,),
+            x_init (3,), P_init (3, 3), n_hold the steps a runaway must be held.
+        w: the sigma-point weights. out: (N, 3) and (N,) output buffers.
 
     Returns:
         (diverged_step, n_repairs, cause): diverged_step = −1 and cause = STOP_NONE when
         the run completed; otherwise the first invalid step and a ``STOP_*`` code.
     """
+    u, z, mp, dt, q, r = data.u, data.z, data.p, data.dt, data.q, data.r
+    x_init, P_init, n_hold = data.x_init, data.P_init, data.n_hold
+    wm0, wc0, wi, c = w.wm0, w.wc0, w.wi, w.c
+    out_x, out_p, out_zhat, out_innov = out.x, out.P_diag, out.z_hat, out.innovation
+    out_nis, out_ldet = out.nis, out.log_det_s
     n_steps = u.shape[0]
     sx = np.empty((7, 3))  # sigma points (state)
     sz = np.empty((7, 3))  # sigma points (measurement)
     n_rep = 0
-    check_vx = model == MODEL_SINGLE_TRACK
-    n_hold = hold_steps(dt)
     held_beta = 0  # consecutive steps with |β⁺| > MAX_SIDESLIP
     held_vx = 0  # consecutive steps with Vx⁺ off the measurement by > RUNAWAY_VX
 
@@ -315,7 +198,8 @@ def run_kernel(
     for k in range(n_steps):
         if k > 0:
             # ---- predict k−1 → k with u[k−1] (sigma points of the posterior at k−1) ----
-            e0, e1, e2, e3, e4, e5 = _context(model, mp, u[k - 1, 0], u[k - 1, 1])
+            e0, e1, e2, e3 = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
+            ax = u[k - 1, 1]
             a0 = c * l00
             a1 = c * l10
             a2 = c * l20
@@ -323,21 +207,21 @@ def run_kernel(
             b2 = c * l21
             d2 = c * l22
             # columns of c·L: (a0, a1, a2), (0, b1, b2), (0, 0, d2)
-            sx[0, 0], sx[0, 1], sx[0, 2] = _fx(model, mp, dt, x0, x1, x2, e0, e1, e2, e3, e4)
-            sx[1, 0], sx[1, 1], sx[1, 2] = _fx(
-                model, mp, dt, x0 + a0, x1 + a1, x2 + a2, e0, e1, e2, e3, e4
+            sx[0, 0], sx[0, 1], sx[0, 2] = rk4_scalar(x0, x1, x2, e0, e1, ax, e2, e3, mp, dt)
+            sx[1, 0], sx[1, 1], sx[1, 2] = rk4_scalar(
+                x0 + a0, x1 + a1, x2 + a2, e0, e1, ax, e2, e3, mp, dt
             )
-            sx[2, 0], sx[2, 1], sx[2, 2] = _fx(
-                model, mp, dt, x0, x1 + b1, x2 + b2, e0, e1, e2, e3, e4
+            sx[2, 0], sx[2, 1], sx[2, 2] = rk4_scalar(
+                x0, x1 + b1, x2 + b2, e0, e1, ax, e2, e3, mp, dt
             )
-            sx[3, 0], sx[3, 1], sx[3, 2] = _fx(model, mp, dt, x0, x1, x2 + d2, e0, e1, e2, e3, e4)
-            sx[4, 0], sx[4, 1], sx[4, 2] = _fx(
-                model, mp, dt, x0 - a0, x1 - a1, x2 - a2, e0, e1, e2, e3, e4
+            sx[3, 0], sx[3, 1], sx[3, 2] = rk4_scalar(x0, x1, x2 + d2, e0, e1, ax, e2, e3, mp, dt)
+            sx[4, 0], sx[4, 1], sx[4, 2] = rk4_scalar(
+                x0 - a0, x1 - a1, x2 - a2, e0, e1, ax, e2, e3, mp, dt
             )
-            sx[5, 0], sx[5, 1], sx[5, 2] = _fx(
-                model, mp, dt, x0, x1 - b1, x2 - b2, e0, e1, e2, e3, e4
+            sx[5, 0], sx[5, 1], sx[5, 2] = rk4_scalar(
+                x0, x1 - b1, x2 - b2, e0, e1, ax, e2, e3, mp, dt
             )
-            sx[6, 0], sx[6, 1], sx[6, 2] = _fx(model, mp, dt, x0, x1, x2 - d2, e0, e1, e2, e3, e4)
+            sx[6, 0], sx[6, 1], sx[6, 2] = rk4_scalar(x0, x1, x2 - d2, e0, e1, ax, e2, e3, mp, dt)
             # unscented transform: x̄ = Σ W^m χ_i,  P̄ = Σ W^c (χ_i − x̄)(χ_i − x̄)ᵀ + Q
             x0 = wm0 * sx[0, 0]
             x1 = wm0 * sx[0, 1]
@@ -379,7 +263,7 @@ def run_kernel(
                 p22 += jit
 
         # ---- update with z[k], h(·, u[k]); sigma points redrawn from (x̄, P̄) ----
-        e0, e1, e2, e3, e4, e5 = _context(model, mp, u[k, 0], u[k, 1])
+        e0, e1, e2, e3 = step_context_scalar(u[k, 0], u[k, 1], mp)
         a0 = c * l00
         a1 = c * l10
         a2 = c * l20
@@ -395,8 +279,8 @@ def run_kernel(
             sx[i + 3, 1] = -sx[i, 1]
             sx[i + 3, 2] = -sx[i, 2]
         for i in range(7):
-            sz[i, 0], sz[i, 1], sz[i, 2] = _hx(
-                model, mp, x0 + sx[i, 0], x1 + sx[i, 1], x2 + sx[i, 2], e0, e1, e2, e3, e4, e5
+            sz[i, 0], sz[i, 1], sz[i, 2] = measure_scalar(
+                x0 + sx[i, 0], x1 + sx[i, 1], x2 + sx[i, 2], e0, e1, e2, e3, mp
             )
         z0 = wm0 * sz[0, 0]
         z1 = wm0 * sz[0, 1]
@@ -483,7 +367,7 @@ def run_kernel(
         # stored, and the factor is reused by the next prediction.
         st, l00, l10, l11, l20, l21, l22, jit = chol3_repair(p00, p01, p02, p11, p12, p22)
         nis = v0 * v0 + v1 * v1 + v2 * v2
-        h0, h1, h2 = _hx(model, mp, x0, x1, x2, e0, e1, e2, e3, e4, e5)
+        h0, h1, h2 = measure_scalar(x0, x1, x2, e0, e1, e2, e3, mp)
         if (
             st == 2
             or not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2))
@@ -491,17 +375,16 @@ def run_kernel(
         ):
             _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
             return k, n_rep, STOP_NUMERICAL
-        if check_vx:
-            cause, beyond, off = runaway(x0, x1, z[k, 0])
-            if cause != 0:
-                _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-                return k, n_rep, cause
-            held_beta = held_beta + 1 if beyond else 0
-            held_vx = held_vx + 1 if off else 0
-            if held_beta >= n_hold or held_vx >= n_hold:
-                k0 = k + 1 - n_hold  # the runaway started there
-                _fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
-                return k0, n_rep, STOP_SIDESLIP_HELD if held_beta >= n_hold else STOP_SPEED
+        cause, beyond, off = runaway(x0, x1, z[k, 0])
+        if cause != 0:
+            _fill_nan(k, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
+            return k, n_rep, cause
+        held_beta = held_beta + 1 if beyond else 0
+        held_vx = held_vx + 1 if off else 0
+        if held_beta >= n_hold or held_vx >= n_hold:
+            k0 = k + 1 - n_hold  # the runaway started there
+            _fill_nan(k0, out_x, out_p, out_zhat, out_innov, out_nis, out_ldet)
+            return k0, n_rep, STOP_SIDESLIP_HELD if held_beta >= n_hold else STOP_SPEED
         if st == 1:
             n_rep += 1
             p00 += jit
@@ -526,39 +409,28 @@ def run_kernel(
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def run_kernel_batch(
-    model: int,
-    mp: np.ndarray,
-    u: np.ndarray,
-    z: np.ndarray,
-    dt: float,
-    q: np.ndarray,
-    r: np.ndarray,
-    x_init: np.ndarray,
-    P_init: np.ndarray,
-    wm0: float,
-    wc0: float,
-    wi: float,
-    c: float,
-    out_x: np.ndarray,
-    out_p: np.ndarray,
-    out_zhat: np.ndarray,
-    out_innov: np.ndarray,
-    out_nis: np.ndarray,
-    out_ldet: np.ndarray,
+    data: KernelData,
+    w: SigmaWeights,
+    out: KernelOutputs,
     out_div: np.ndarray,
     out_rep: np.ndarray,
     out_cause: np.ndarray,
 ) -> None:
     """:func:`run_kernel` for B noise settings in parallel (numba prange over B).
 
-    q, r, x_init: (B, 3); P_init: (B, 3, 3); outputs carry a leading B axis;
-    out_div, out_rep, out_cause: (B,) int64.
+    data's q, r, x_init (B, 3) and P_init (B, 3, 3) and every buffer of ``out`` carry a
+    leading B axis; out_div, out_rep, out_cause: (B,) int64.
     """
-    for b in prange(q.shape[0]):
-        d, nr, why = run_kernel(
-            model, mp, u, z, dt, q[b], r[b], x_init[b], P_init[b], wm0, wc0, wi, c,
-            out_x[b], out_p[b], out_zhat[b], out_innov[b], out_nis[b], out_ldet[b],
+    for b in prange(data.q.shape[0]):
+        one = KernelData(
+            data.u, data.z, data.p, data.dt, data.q[b], data.r[b], data.x_init[b],
+            data.P_init[b], data.n_hold, data.held_causes,
         )  # fmt: skip
+        buffers = KernelOutputs(
+            out.x[b], out.P_diag[b], out.z_hat[b], out.innovation[b], out.nis[b],
+            out.log_det_s[b],
+        )  # fmt: skip
+        d, nr, why = run_kernel(one, w, buffers)
         out_div[b] = d
         out_rep[b] = nr
         out_cause[b] = why

@@ -45,7 +45,7 @@ import math
 import types
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -110,6 +110,29 @@ class DataRefused(KftuneError, ValueError):
 
 PriorRule = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 #: ``(runs: [(dt, {channel: (N,) array})], p: (n_p,)) -> {parameter: sentence}``.
+
+
+class ModelKernels(NamedTuple):
+    """Compiled UKF loops a model supplies for itself, run by the generic UKF
+    (:class:`kftune.filters.UKF`) behind its own interface instead of its generic loops:
+    what is special about a model comes from the model. Each takes the records of
+    :mod:`kftune.models.kernel_io` and must give the generic loop's result for the model
+    (a test of the model's, against the generic UKF and FilterPy).
+
+    Attributes:
+        single: ``single(data, w, out) -> (stop_step, n_repairs, cause)``, one run.
+        batch: ``batch(data, w, out, stop, rep, cause)``, B runs in parallel threads
+            (data's q, r, x_init, P_init and the buffers with a leading axis B; stop, rep,
+            cause (B,) int64).
+        lanes: as ``batch`` on one core, the B runs across its vector lanes, or None;
+            it may leave ``out.log_det_s`` unwritten (the result then has none).
+    """
+
+    single: Callable[..., tuple[int, int, int]]
+    batch: Callable[..., None]
+    lanes: Callable[..., None] | None = None
+
+
 ParamHints = Callable[
     [Sequence[tuple[float, Mapping[str, np.ndarray]]], np.ndarray], Mapping[str, str]
 ]
@@ -188,6 +211,9 @@ class StateSpaceModel:
             ``kf_f``, ``kf_h`` and the other hooks the model has, written against the
             contract of :mod:`kftune.models.c_contract` — or None: the model cannot be
             exported as a running filter (the export says so and writes nothing).
+        ukf_kernels: loads the model's own compiled UKF loops (:class:`ModelKernels`) on
+            first use, or None: the UKF runs its generic loops for the model (the EKF
+            always does).
     """
 
     name: str
@@ -219,6 +245,7 @@ class StateSpaceModel:
     param_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     param_hints: ParamHints | None = None
     c_code: str | None = None
+    ukf_kernels: Callable[[], ModelKernels] | None = None
 
     def __post_init__(self) -> None:
         name = self.name

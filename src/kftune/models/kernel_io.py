@@ -18,7 +18,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["KernelData", "KernelOutputs", "SigmaWeights"]
+__all__ = ["JITTER_MAX", "JITTER_START", "KernelData", "KernelOutputs", "SigmaWeights"]
+
+#: The covariance repair every loop applies (and the C export): a covariance whose Cholesky
+#: factorisation fails gets a jitter of JITTER_START·max(diag) on its diagonal, ten times
+#: more per try, up to JITTER_MAX·max(diag) (and kept); beyond that the run has diverged.
+JITTER_START = 1e-12
+JITTER_MAX = 1e-6
 
 
 class KernelData(NamedTuple):

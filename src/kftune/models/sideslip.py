@@ -19,8 +19,8 @@ error, accelerometer bias and bank, gyro bias).
 Jacobians (all three): analytic, the exact derivative of the RK4 step and of h
 (:mod:`kftune.models._single_track_jacobians`), so that the EKF needs no finite differences.
 
-Validity (all three): Vx > 0 and the runaway rules of the 3×3 kernel
-(:mod:`kftune.filters._kernel`): |β⁺| > 60° stops the run at once; |β⁺| > 46°
+Validity (all three): Vx > 0 and the runaway rules
+(:mod:`kftune.models._runaway`): |β⁺| > 60° stops the run at once; |β⁺| > 46°
 (:data:`~kftune.vehicle.single_track.MAX_SIDESLIP`) or |Vx⁺ − Vx_measured| > 50 % of the
 measured Vx held for 0.5 s stops it where it began. The measured Vx is z[0], which for
 ``single-track-biases`` includes the wheel-speed bias.
@@ -33,20 +33,33 @@ model's header (:mod:`kftune.models.c_contract`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from numba import njit
 from numba.core.dispatcher import Dispatcher
 from scipy.ndimage import uniform_filter1d
 
+from kftune.models._runaway import (
+    RUNAWAY_BETA,
+    RUNAWAY_HOLD,
+    RUNAWAY_VX,
+    STOP_REASONS,
+    STOP_REVERSE,
+    STOP_SIDESLIP,
+    STOP_SIDESLIP_HELD,
+    STOP_SPEED,
+    runaway,
+)
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
-from kftune.models.base import FIRST_MODEL_STOP, DataRefused, PriorRule, StateSpaceModel
+from kftune.models.base import DataRefused, ModelKernels, PriorRule, StateSpaceModel
 from kftune.models.c_contract import builtin_c_code
+from kftune.models.kernel_io import KernelData
 from kftune.vehicle.params import PARAM_INDEX, PLAUSIBLE_RANGES, PRESETS, G
 from kftune.vehicle.single_track import (
-    MAX_SIDESLIP,
     measure_scalar,
     pack_params,
     rk4_scalar,
@@ -74,27 +87,6 @@ __all__ = [
     "single_track_prior",
 ]
 
-#: Stop causes of the single-track models (the codes of the 3×3 kernel).
-STOP_REVERSE = FIRST_MODEL_STOP  # estimated Vx ≤ 0
-STOP_SIDESLIP = FIRST_MODEL_STOP + 1  # |β⁺| > RUNAWAY_BETA
-STOP_SIDESLIP_HELD = FIRST_MODEL_STOP + 2  # |β⁺| > MAX_SIDESLIP for RUNAWAY_HOLD
-STOP_SPEED = FIRST_MODEL_STOP + 3  # |Vx⁺ − Vx measured| > RUNAWAY_VX·Vx measured, held
-
-#: Runaway bounds (module docstring; the reasons in :mod:`kftune.filters._kernel`).
-RUNAWAY_BETA = math.radians(60.0)  # [rad]
-RUNAWAY_VX = 0.5  # [-] relative to the measured Vx
-RUNAWAY_HOLD = 0.5  # [s]
-
-STOP_REASONS: dict[int, str] = {
-    STOP_REVERSE: "the estimated Vx fell to 0 m/s or below",
-    STOP_SIDESLIP: "runaway: the estimated sideslip went beyond "
-    f"±{math.degrees(RUNAWAY_BETA):.0f}°",
-    STOP_SIDESLIP_HELD: "runaway: the estimated sideslip stayed beyond "
-    f"±{math.degrees(MAX_SIDESLIP):.0f}° for {RUNAWAY_HOLD:g} s",
-    STOP_SPEED: "runaway: the estimated Vx stayed more than "
-    f"{RUNAWAY_VX:.0%} away from the measured Vx for {RUNAWAY_HOLD:g} s",
-}
-
 #: Default prior standard deviation of Vy as a fraction of the first measured Vx [-].
 P0_VY_SPEED_FRACTION = 0.05
 #: Prior standard deviation of the lateral-accelerometer bias [m/s²] (a 3° bank).
@@ -105,9 +97,6 @@ R_BIAS_PRIOR_STD = math.radians(0.5)
 
 #: The vehicle whose parameters are the models' defaults.
 DEFAULT_VEHICLE = "bmw-320i"
-
-_TAN_RUNAWAY_BETA = math.tan(RUNAWAY_BETA)
-_TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
 
 _INPUTS = (("delta", "rad"), ("ax", "m/s^2"))
 _MEASUREMENTS = (("vx", "m/s"), ("ay", "m/s^2"), ("r", "rad/s"))
@@ -180,31 +169,6 @@ def measurement_biases(x: np.ndarray, u: np.ndarray, p: np.ndarray, out: np.ndar
     out[0] += x[3]
     out[1] += x[4]
     out[2] += x[5]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def runaway(vx: float, vy: float, vx_measured: float) -> tuple[int, bool, bool]:
-    """The single-track runaway rules (module docstring) on a posterior estimate, the one
-    place they are written: every kernel that runs the model calls this (the generic
-    filters through :func:`check`, the hand-written 3×3 and SIMD kernels directly).
-    |Vy| > tan(bound)·Vx instead of atan2.
-
-    Args:
-        vx, vy: [m/s] the posterior Vx⁺ and Vy⁺. vx_measured: [m/s] the measured Vx.
-
-    Returns:
-        (cause, beyond_sideslip, off_speed): cause STOP_REVERSE (Vx⁺ ≤ 0) or STOP_SIDESLIP
-        (|β⁺| > RUNAWAY_BETA) to stop now, else 0; and whether the held conditions hold at
-        this step: |β⁺| > MAX_SIDESLIP, |Vx⁺ − Vx measured| > RUNAWAY_VX·Vx measured (their
-        counting over RUNAWAY_HOLD is the kernel's).
-    """
-    if not vx > 0.0:
-        return STOP_REVERSE, False, False
-    if abs(vy) > _TAN_RUNAWAY_BETA * vx:
-        return STOP_SIDESLIP, False, False
-    beyond = abs(vy) > _TAN_MAX_SIDESLIP * vx
-    off = abs(vx - vx_measured) > RUNAWAY_VX * vx_measured
-    return 0, beyond, off
 
 
 @njit(cache=True, error_model="numpy")
@@ -360,6 +324,27 @@ def param_hints(
     return {name: text for name, text in found.items() if text is not None}
 
 
+@functools.cache
+def single_track_kernels() -> ModelKernels:
+    """The single-track model's own UKF loops, which the generic UKF runs for it: the
+    hand-written 3×3 loop (:mod:`kftune.models._sideslip_ukf`; about 1.2–1.9× faster than
+    the generic loop, BENCHMARKS.md "Filters over any model") for one run and threads,
+    and the vector-lane loop (:mod:`kftune.models._sideslip_lanes`) for batches. Imported
+    on first use (they compile, or load from numba's cache, when first called)."""
+    from kftune.models._sideslip_lanes import ensure_compiled, run_kernel_soa
+    from kftune.models._sideslip_ukf import run_kernel, run_kernel_batch
+
+    def lanes(data: KernelData, *rest: Any) -> None:
+        ensure_compiled()  # with vectorisation on (see there), for C-ordered writable arrays:
+        # an array of another layout would compile a second, unvectorised version
+        arrays = (
+            np.require(a, requirements=("C", "W")) if isinstance(a, np.ndarray) else a for a in data
+        )
+        run_kernel_soa(KernelData(*arrays), *rest)
+
+    return ModelKernels(run_kernel, run_kernel_batch, lanes)
+
+
 def sideslip_angle(x: np.ndarray) -> np.ndarray:
     """(N,) the sideslip angle atan2(Vy, Vx) [rad] of posterior states x (N, n ≥ 2)."""
     return np.arctan2(x[:, 1], x[:, 0])
@@ -372,6 +357,7 @@ def _model(
     h: Dispatcher,
     prior: PriorRule,
     description: str,
+    kernels: Callable[[], ModelKernels] | None = None,
 ) -> StateSpaceModel:
     return StateSpaceModel(
         name=name,
@@ -403,6 +389,7 @@ def _model(
         param_ranges={k: PLAUSIBLE_RANGES[k][:2] for k in PARAM_INDEX},
         param_hints=param_hints,
         c_code=builtin_c_code("single_track"),
+        ukf_kernels=kernels,
     )
 
 
@@ -414,6 +401,7 @@ SINGLE_TRACK = _model(
     measurement,
     single_track_prior,
     "single-track vehicle with Dugoff axle forces, states [Vx, Vy, r] (the paper's model)",
+    single_track_kernels,
 )
 
 #: The single-track model with a lateral-accelerometer bias state (4 states).

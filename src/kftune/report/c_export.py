@@ -49,10 +49,10 @@ from typing import Any
 import numpy as np
 
 from kftune.data.validate import TIME_NOISE_SPACINGS
-from kftune.filters._kernel import JITTER_MAX, JITTER_START
 from kftune.filters.sigma_points import UKFSettings, merwe_weights
 from kftune.models.base import GENERIC_STOP_REASONS, STOP_NUMERICAL, StateSpaceModel
 from kftune.models.jacobians import FD_REL_STEP
+from kftune.models.kernel_io import JITTER_MAX, JITTER_START
 from kftune.report.export import _c_comment, c_macros, provenance
 from kftune.tuning.deploy import DT_TOLERANCE
 

@@ -24,12 +24,12 @@ import numpy as np
 
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.errors import DataError, excerpt
-from kftune.filters import UKFSettings
+from kftune.filters import FilterResult, UKFSettings
 from kftune.models import StateSpaceModel, get_model, model_names
 from kftune.models.user import model_file_sha256
 from kftune.tuning.parameterization import NoiseParameterization
 from kftune.tuning.problem import TuningProblem
-from kftune.tuning.runs import RunResult, beta_std, filter_spec, first_scored, model_output
+from kftune.tuning.runs import beta_std, filter_spec, first_scored, model_output
 from kftune.vehicle.params import VehicleParams
 
 if TYPE_CHECKING:  # imported where used: consistency imports this module's neighbours
@@ -557,7 +557,7 @@ class Estimates:
 
     columns: dict[str, np.ndarray]
     units: dict[str, str]
-    result: RunResult
+    result: FilterResult
 
 
 def reference(m: Manoeuvre, channel: str = "beta_ref") -> np.ndarray | None:
@@ -587,13 +587,11 @@ def estimate(
     params = tuned.params_of(model, fs.params)  # a vehicle model's: already in vehicle
     if probe:
         fs.probe([m], tuned.r, tuned.q, tuned.settings)
-    res = fs.run(
-        m, vehicle, tuned.q, tuned.r, tuned.settings, params=params, cov_scale=tuned.cov_scale
-    )
+    res = fs.run(m, tuned.q, tuned.r, tuned.settings, params=params, cov_scale=tuned.cov_scale)
     return estimates_of(model, res, m)
 
 
-def estimates_of(model: StateSpaceModel, res: RunResult, m: Manoeuvre) -> Estimates:
+def estimates_of(model: StateSpaceModel, res: FilterResult, m: Manoeuvre) -> Estimates:
     """The named columns of a run ``res`` of a filter of ``model`` over ``m``
     (:class:`Estimates`): what ``estimate`` writes and ``evaluate`` measures."""
     cols: dict[str, np.ndarray] = {"t": m.t}
@@ -642,7 +640,7 @@ RELIABILITY_LEVELS: tuple[float, ...] = (
 def consistency_docs(
     problem: TuningProblem,
     manoeuvres: Sequence[Manoeuvre],
-    results: Mapping[str, RunResult],
+    results: Mapping[str, FilterResult],
     levels: Sequence[float] = (),
 ) -> tuple[dict[str, dict[str, Any] | None], dict[str, Any] | None]:
     """Whether the filter's standard deviations can be trusted on ``manoeuvres``, from its

@@ -32,13 +32,12 @@ def init_worker(
 ) -> None:  # pragma: no cover - runs in the pool's workers
     watch_parent(parent_pid)  # exit with a killed parent; Ctrl-C stops the parent only
     _WORKER["manoeuvres"] = manoeuvres
-    _WORKER["vehicle"] = vehicle
     fs = filter_spec(model, filter, vehicle)  # a model file is loaded again here
     _WORKER["filter"] = fs
     # compile / load the kernel now, so no evaluation's timing includes it
     m = manoeuvres[0]
     n, k = fs.model.n_states, fs.model.n_measurements
-    fs.run(m, vehicle, np.full(n, 1e-4), np.full(k, 1e-2), UKFSettings())
+    fs.run(m, np.full(n, 1e-4), np.full(k, 1e-2), UKFSettings())
 
 
 def score_chunk(
@@ -48,13 +47,12 @@ def score_chunk(
     settings: UKFSettings,
     spec: CostSpec,
     burn_in: float,
-    vehicle: VehicleParams | None,
     params: np.ndarray | None,
     cov_scale: float,
 ) -> list[ManoeuvreScore]:
     ms, fs = _WORKER["manoeuvres"], _WORKER["filter"]
     return [
-        score_manoeuvre(ms[i], vehicle, fs, q, r, settings, spec, burn_in, params, cov_scale)
+        score_manoeuvre(ms[i], fs, q, r, settings, spec, burn_in, params, cov_scale)
         for i in indices
     ]
 

@@ -1,11 +1,11 @@
 """The black-box tuning problem: a parameter vector → UKF runs over manoeuvres → a cost.
 
     x (natural units) ──NoiseParameterization──▶ (Q diag, R diag, sigma-point settings)
-                       ──run_ukf per manoeuvre──▶ estimates
+                       ──the filter per manoeuvre──▶ estimates
                        ──cost (paper Eq. 14–15, NIS or innovation likelihood)──▶ J
 
 The optimiser sees only ``problem(x) -> J`` and ``problem.space``; a diverged filter (also one
-that ran away to an impossible sideslip or speed, see :mod:`kftune.filters._kernel`) raises
+that ran away to an impossible sideslip or speed, see :mod:`kftune.models._runaway`) raises
 :class:`FilterDivergedError`, which :func:`kftune.minimize` records as a failed evaluation.
 
 The parts it composes, one module each: what is searched and how a point maps onto the
@@ -32,7 +32,7 @@ import numpy as np
 
 from kftune.data.manoeuvre import Manoeuvre
 from kftune.errors import ConfigError, DataError, FilterDivergedError
-from kftune.filters import UKFSettings, run_ukf_simd
+from kftune.filters import FilterResult, UKFSettings
 from kftune.models import DataRefused, StateSpaceModel
 from kftune.models.user import model_file_sha256
 from kftune.processes import sigint_blocked
@@ -54,7 +54,6 @@ from kftune.tuning.parameterization import (
 )
 from kftune.tuning.pool import balanced_chunks, init_worker, score_chunk
 from kftune.tuning.runs import (
-    RunResult,
     channel_estimate,
     check_cost_channels,
     filter_spec,
@@ -273,13 +272,13 @@ class TuningProblem:
 
     def _point(
         self, x: Sequence[float] | np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, UKFSettings, VehicleParams | None, np.ndarray | None]:
-        """(q, r, settings, vehicle, params) of a point; params None when no model
-        parameter is tuned (the filter runs the recorded model)."""
+    ) -> tuple[np.ndarray, np.ndarray, UKFSettings, np.ndarray | None]:
+        """(q, r, settings, params) of a point; params None when no model parameter is
+        tuned (the filter runs the recorded model)."""
         q, r, settings = self.decode(x)
         if not self.parameterization.model_names:
-            return q, r, settings, self.vehicle, None
-        return q, r, settings, self.vehicle_at(x), self.params_at(x)
+            return q, r, settings, None
+        return q, r, settings, self.params_at(x)
 
     def __call__(self, x: Sequence[float] | np.ndarray) -> float:
         return self.evaluate(x).cost
@@ -291,9 +290,7 @@ class TuningProblem:
         if self._evaluated:
             return None
         what = f"compiling the filter for model {self.model.name!r} ({self.filter})"
-        if self._fs.fast:  # numba keeps the paper's kernel on disk
-            return f"{what}, or loading it from an earlier run's cache…"
-        return f"{what} (at the first evaluation of each run; it cannot be cached)…"
+        return f"{what}, or loading it from an earlier run's cache…"
 
     def evaluate(self, x: Sequence[float] | np.ndarray) -> Evaluation:
         """Run the filter on every manoeuvre and compute the cost.
@@ -301,21 +298,19 @@ class TuningProblem:
         Raises:
             FilterDivergedError: the filter diverged on a manoeuvre.
         """
-        q, r, settings, vehicle, params = self._point(x)
+        q, r, settings, params = self._point(x)
         spec, c = self.cost_spec, self.cov_scale
         self._evaluated = True  # the filter compiles now, also for a point that diverges
         if self.workers == 1:
             scores = [
-                score_manoeuvre(m, vehicle, self._fs, q, r, settings, spec, self.burn_in, params, c)
+                score_manoeuvre(m, self._fs, q, r, settings, spec, self.burn_in, params, c)
                 for m in self.manoeuvres
             ]
         else:
             pool = self._get_pool()
             with sigint_blocked():  # workers started by a submit inherit it (see there)
                 futures = [
-                    pool.submit(
-                        score_chunk, chunk, q, r, settings, spec, self.burn_in, vehicle, params, c
-                    )
+                    pool.submit(score_chunk, chunk, q, r, settings, spec, self.burn_in, params, c)
                     for chunk in self._chunks
                 ]
             by_index: dict[int, ManoeuvreScore] = {}
@@ -330,12 +325,10 @@ class TuningProblem:
         """The scores of a point on the manoeuvres ``indices`` (a share of :meth:`evaluate`
         for a distributed engine; pooled by :meth:`_pool_scores` in manoeuvre order, they
         give :meth:`evaluate`'s cost bit for bit)."""
-        q, r, settings, vehicle, params = self._point(x)
+        q, r, settings, params = self._point(x)
         fs, spec, c = self._fs, self.cost_spec, self.cov_scale
         return [
-            score_manoeuvre(
-                self.manoeuvres[i], vehicle, fs, q, r, settings, spec, self.burn_in, params, c
-            )
+            score_manoeuvre(self.manoeuvres[i], fs, q, r, settings, spec, self.burn_in, params, c)
             for i in indices
         ]
 
@@ -388,10 +381,11 @@ class TuningProblem:
     ) -> list[Evaluation | FilterDivergedError]:
         """Evaluate B points; a point whose filter diverged gets its error, not a raise.
 
-        On the paper's pair (single-track UKF) in this process (``workers == 1``) every
-        manoeuvre runs all points that share sigma-point settings and tuned model parameters
-        in one call of the vectorised batch kernel (:func:`~kftune.filters.run_ukf_simd`,
-        the sets across the CPU's vector lanes, one vehicle for all); otherwise the points
+        Where the model supplies vector lanes for its filter (the single-track UKF,
+        :attr:`FilterSpec.has_lanes`) and in this process (``workers == 1``) every manoeuvre
+        runs all points that share sigma-point settings and tuned model parameters in one
+        call of the lanes (``UKF.run_batch(..., lanes=True)``, the sets across the CPU's
+        vector lanes, one parameter vector for all); otherwise the points
         are evaluated one after another (a point whose model parameters no other point
         shares is a group of one, which runs the sequential kernel). Either way each result
         equals :meth:`evaluate`'s for that point exactly.
@@ -407,9 +401,9 @@ class TuningProblem:
             DataError: a channel that cannot be scored (as :meth:`evaluate`).
         """
         points = [np.asarray(x, dtype=float) for x in X]
-        # the vector kernel computes neither log det S (pem) nor predictions (msp)
+        # the vector lanes compute neither log det S (pem) nor predictions (msp)
         vector = self.cost_spec.kind in ("nrmse", "nis", *SCORING_RULES) and self.cov_scale == 1.0
-        if not (vector and self._fs.fast and self.workers == 1 and len(points) > 1):
+        if not (vector and self._fs.has_lanes and self.workers == 1 and len(points) > 1):
             out: list[Evaluation | FilterDivergedError] = []
             for x in points:
                 try:
@@ -429,11 +423,9 @@ class TuningProblem:
         for (settings, _), idx in groups.items():
             q = np.array([decoded[i][0] for i in idx])
             r = np.array([decoded[i][1] for i in idx])
-            vehicle = self.vehicle_at(points[idx[0]])
-            if vehicle is None:  # fast (the paper's kernel) comes with a vehicle
-                raise ValueError("the single-track kernel needs a vehicle")
+            params = self._point(points[idx[0]])[3]  # shared by the group
             for m in self.manoeuvres:
-                batch = run_ukf_simd(m.u, m.z, m.dt, vehicle, q, r, settings=settings)
+                batch = self._fs.run_lanes(m, q, r, settings, params=params)
                 for b, i in enumerate(idx):
                     try:
                         results[i].append(
@@ -443,7 +435,7 @@ class TuningProblem:
                                 self.cost_spec,
                                 self.burn_in,
                                 self._fs,
-                                run_params(self._fs, vehicle, None),
+                                run_params(self._fs, params),
                             )
                         )
                     except FilterDivergedError as exc:
@@ -477,7 +469,7 @@ class TuningProblem:
         if spec.normalise != "manoeuvre":  # the paper's Eq. 15 keeps earlier fingerprints
             described["cost"]["normalise"] = spec.normalise
         file_sha = model_file_sha256(self._fs.spec)
-        if not self._fs.fast:  # the paper's pair keeps the fingerprints of earlier studies
+        if not self._fs.paper_pair:  # it keeps the fingerprints of earlier studies
             described["model"] = {"name": self._fs.model.name, "filter": self._fs.filter}
             if file_sha is not None:  # an edited model file is another objective
                 described["model"]["file_sha256"] = file_sha
@@ -517,13 +509,11 @@ class TuningProblem:
             out += [np.frombuffer(c.encode(), dtype=np.uint8), m.channel(c)]
         return out
 
-    def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> RunResult:
+    def run(self, x: Sequence[float] | np.ndarray, manoeuvre: Manoeuvre) -> FilterResult:
         """The filter's full output on one manoeuvre for a point (its model parameters,
         with :attr:`cov_scale`)."""
-        q, r, settings, vehicle, params = self._point(x)
-        return self._fs.run(
-            manoeuvre, vehicle, q, r, settings, params=params, cov_scale=self.cov_scale
-        )
+        q, r, settings, params = self._point(x)
+        return self._fs.run(manoeuvre, q, r, settings, params=params, cov_scale=self.cov_scale)
 
     def noise_only(self) -> TuningProblem:
         """This problem with no model parameter tuned: the same manoeuvres, recorded model,
@@ -588,7 +578,7 @@ def assess(
     x: Sequence[float] | np.ndarray,
     manoeuvres: Sequence[Manoeuvre],
     channels: Sequence[str] | None = None,
-) -> tuple[dict[str, dict[str, float]], dict[str, RunResult]]:
+) -> tuple[dict[str, dict[str, float]], dict[str, FilterResult]]:
     """KPIs and channel errors of a tuned filter on manoeuvres (for tables and figures).
 
     Scored like the problem's cost: after its burn-in, with its measured-channel estimate
@@ -608,7 +598,7 @@ def assess(
         ``diverged`` (0/1).
     """
     metrics: dict[str, dict[str, float]] = {}
-    results: dict[str, RunResult] = {}
+    results: dict[str, FilterResult] = {}
     estimate = problem.cost_spec.estimate
     model = problem.model
     sideslip = (

@@ -14,8 +14,7 @@ import numpy as np
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT, UNITS
 from kftune.errors import ConfigError
-from kftune.filters import UKFResult, UKFSettings, run_ukf
-from kftune.filters.generic import FilterResult, ModelFilter, get_filter
+from kftune.filters import FilterBatchResult, FilterResult, ModelFilter, UKFSettings, get_filter
 from kftune.models import StateSpaceModel, model_names
 from kftune.models.user import is_model_file, load_model
 from kftune.tuning.cost import (
@@ -25,9 +24,6 @@ from kftune.tuning.cost import (
 from kftune.tuning.hookcheck import check_model_file
 from kftune.tuning.parameterization import SIDESLIP_MEASUREMENTS
 from kftune.vehicle.params import VehicleParams
-
-#: A filter run's output: the paper's 3×3 kernel or the generic filters.
-RunResult = UKFResult | FilterResult
 
 
 def output_names(model: StateSpaceModel) -> tuple[str, ...]:
@@ -97,15 +93,11 @@ def check_cost_channels(spec: CostSpec, model: StateSpaceModel) -> None:
             )
 
 
-def model_output(res: RunResult, name: str) -> np.ndarray:
+def model_output(res: FilterResult, name: str) -> np.ndarray:
     """(N,) an output of the run's model (:func:`output_names`) from the posterior states,
     e.g. ``"beta"`` [rad] (the sideslip atan2(Vy, Vx) of the single-track models) or a
     state by name (in its unit)."""
-    from kftune.models import SINGLE_TRACK
-
-    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
-    if isinstance(res, UKFResult) and name == "beta":
-        return res.beta
+    model = res.model
     if name in model.outputs:
         return np.asarray(model.outputs[name](res.x), dtype=float)
     if name in output_names(model):
@@ -139,7 +131,7 @@ def std_outputs(model: StateSpaceModel) -> tuple[str, ...]:
     return tuple(c for c in output_names(model) if (c == "beta" and beta) or c in model.state_names)
 
 
-def output_std(res: RunResult, name: str) -> np.ndarray:
+def output_std(res: FilterResult, name: str) -> np.ndarray:
     """(N,) the standard deviation of :func:`model_output` ``name`` from the posterior
     covariance's diagonal: β [rad] by the delta method (:func:`beta_std`), a state's
     √P_ii in its unit.
@@ -147,9 +139,7 @@ def output_std(res: RunResult, name: str) -> np.ndarray:
     Raises:
         KeyError: an output whose σ the filter does not give (:func:`std_outputs`).
     """
-    from kftune.models import SINGLE_TRACK
-
-    model = SINGLE_TRACK if isinstance(res, UKFResult) else res.model
+    model = res.model
     if name not in std_outputs(model):
         raise KeyError(
             f"model {model.name!r} gives no standard deviation of {name!r}; it gives one of "
@@ -161,7 +151,7 @@ def output_std(res: RunResult, name: str) -> np.ndarray:
 
 
 def channel_estimate(
-    m: Manoeuvre, res: RunResult, channel: str, estimate: str = "posterior"
+    m: Manoeuvre, res: FilterResult, channel: str, estimate: str = "posterior"
 ) -> tuple[np.ndarray, np.ndarray]:
     """(estimate, reference) of a cost channel over the whole manoeuvre.
 
@@ -172,7 +162,7 @@ def channel_estimate(
     measured, :func:`output_names`) against the reference channel ``<channel>_ref`` of the
     data (``beta_ref``); see :class:`~kftune.tuning.cost.CostSpec`.
     """
-    names = SIDESLIP_MEASUREMENTS if isinstance(res, UKFResult) else res.model.measurement_names
+    names = res.model.measurement_names
     if channel not in names:
         return model_output(res, channel), m.channel(f"{channel}_ref")
     column = names.index(channel)
@@ -201,7 +191,7 @@ def failure_kinds(reasons: Iterable[str | None]) -> list[tuple[str, int]]:
     return kinds.most_common()
 
 
-def where_diverged(m: Manoeuvre, res: RunResult) -> str:
+def where_diverged(m: Manoeuvre, res: FilterResult) -> str:
     """``"manoeuvre 'x' at step k (t = … s): <cause>"`` for a run that diverged on ``m``."""
     return (
         f"manoeuvre {m.name!r} at step {res.diverged_step} "
@@ -214,7 +204,7 @@ def first_scored(m: Manoeuvre, burn_in: float) -> int:
     return int(np.searchsorted(m.t - m.t[0], burn_in - 1e-9 * m.dt))
 
 
-def scaled_covariances(res: RunResult, c: float) -> RunResult:
+def scaled_covariances(res: FilterResult, c: float) -> FilterResult:
     """A run's result with its covariances c times larger and its estimate as it is: P_diag·c,
     NIS/c (S·c), log det S + m·ln c — the run with c·Q, c·R and c·P0 of a Kalman filter or
     EKF (:meth:`FilterSpec.run`'s ``cov_scale``)."""
@@ -230,8 +220,8 @@ def scaled_covariances(res: RunResult, c: float) -> RunResult:
 
 @dataclass(frozen=True)
 class FilterSpec:
-    """Which filter runs which model: the paper's pair (single-track UKF) runs on the
-    hand-written 3×3 kernel, every other pair on the generic kernels.
+    """Which filter runs which model (the generic filters; a model that supplies its own
+    loops, as the single-track model does, has them run behind the same interface).
 
     Attributes:
         model: the state-space model. spec: how to load it again (a registered name or a
@@ -245,16 +235,16 @@ class FilterSpec:
     params: np.ndarray
 
     @property
-    def fast(self) -> bool:
-        """Whether the 3×3 kernel runs it (the paper's model and filter)."""
+    def paper_pair(self) -> bool:
+        """Whether this is the paper's model and filter (single-track UKF), whose study
+        fingerprints name neither (they keep the fingerprints of studies made before
+        other models existed)."""
         from kftune.models import SINGLE_TRACK
 
         return self.model is SINGLE_TRACK and self.filter == "ukf"
 
     def inputs(self, m: Manoeuvre) -> tuple[np.ndarray | None, np.ndarray]:
         """(u (N, n_u) or None, z (N, m)) of a manoeuvre, by the model's channel names."""
-        if self.fast:
-            return m.u, m.z
         names = self.model.input_names
         u = np.column_stack([m.channel(c) for c in names]) if names else None
         return u, np.column_stack([m.channel(c) for c in self.model.measurement_names])
@@ -275,12 +265,12 @@ class FilterSpec:
         :class:`~kftune.filters.UKFSettings`, so that the check visits the states the
         filter it protects visits):
         :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models are not
-        probed in a child (nor the paper's kernel at all).
+        probed in a child.
 
         Raises:
             ConfigError: naming the model (its file), the manoeuvre and the hook.
         """
-        if self.fast or not manoeuvres:
+        if not manoeuvres:
             return
         if is_model_file(self.spec):
             runs = [(m.name, *self.inputs(m), m.dt) for m in manoeuvres]
@@ -308,21 +298,19 @@ class FilterSpec:
     def run(
         self,
         m: Manoeuvre,
-        vehicle: VehicleParams | None,
         q: np.ndarray,
         r: np.ndarray,
         settings: UKFSettings,
         *,
         params: np.ndarray | None = None,
         cov_scale: float = 1.0,
-    ) -> RunResult:
+    ) -> FilterResult:
         """The filter's run over one manoeuvre.
 
         Args:
-            m: the manoeuvre. vehicle: the vehicle of the paper's kernel (single-track UKF).
-            q: (n,) and r: (m,) the noise variances. settings: the UKF's sigma points.
-            params: (n_p,) the model's parameter vector for this run (None: :attr:`params`,
-                or for the paper's kernel ``vehicle``).
+            m: the manoeuvre. q: (n,) and r: (m,) the noise variances. settings: the UKF's
+                sigma points.
+            params: (n_p,) the model's parameter vector for this run (None: :attr:`params`).
             cov_scale: c > 0: the calibration (:mod:`kftune.tuning.calibrate`): the filter
                 runs with Q, R and its default prior as given, and reports every covariance
                 c times larger (P_diag·c, NIS/c, log det S + m·ln c). For a Kalman filter and
@@ -335,17 +323,35 @@ class FilterSpec:
         c = float(cov_scale)
         if not (math.isfinite(c) and c > 0):
             raise ValueError(f"cov_scale must be a positive finite number, got {cov_scale!r}")
-        res: RunResult
-        if self.fast:
-            p = vehicle if params is None else params
-            if p is None:  # filter_spec gives the paper's kernel a vehicle
-                raise ValueError("the single-track kernel needs a vehicle or its parameters")
-            res = run_ukf(m.u, m.z, m.dt, p, q, r, settings=settings)
-        else:
-            u, z = self.inputs(m)
-            p = self.params if params is None else np.asarray(params, dtype=float)
-            res = self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=p)
+        u, z = self.inputs(m)
+        p = self.params if params is None else np.asarray(params, dtype=float)
+        res = self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=p)
         return res if c == 1.0 else scaled_covariances(res, c)
+
+    @property
+    def has_lanes(self) -> bool:
+        """Whether the model supplies vector lanes for this filter
+        (:class:`~kftune.models.base.ModelKernels`, the single-track UKF's), which
+        :meth:`run_lanes` runs B noise settings in at once."""
+        return self.filter == "ukf" and self.model.ukf_kernels is not None
+
+    def run_lanes(
+        self,
+        m: Manoeuvre,
+        q: np.ndarray,
+        r: np.ndarray,
+        settings: UKFSettings,
+        *,
+        params: np.ndarray | None = None,
+    ) -> FilterBatchResult:
+        """B runs over one manoeuvre, q (B, n) and r (B, m), in the model's vector lanes
+        where it has them (:attr:`has_lanes`; else the batch in threads); ``result[b]``
+        equals :meth:`run` with (q[b], r[b]). No log det S where the lanes ran."""
+        u, z = self.inputs(m)
+        p = self.params if params is None else np.asarray(params, dtype=float)
+        return self.filter_object(settings).run_batch(
+            self.model, u, z, m.dt, q, r, params=p, lanes=True
+        )
 
     def filter_object(self, settings: UKFSettings) -> ModelFilter:
         """The generic filter (the UKF with these sigma-point settings)."""

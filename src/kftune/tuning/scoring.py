@@ -9,7 +9,7 @@ import numpy as np
 
 from kftune.data.manoeuvre import Manoeuvre
 from kftune.errors import DataError, FilterDivergedError
-from kftune.filters import UKFSettings
+from kftune.filters import FilterResult, UKFSettings
 from kftune.models import StateSpaceModel
 from kftune.tuning.cost import (
     MSP_HORIZON,
@@ -22,13 +22,11 @@ from kftune.tuning.cost import (
 )
 from kftune.tuning.runs import (
     FilterSpec,
-    RunResult,
     channel_estimate,
     first_scored,
     output_std,
     where_diverged,
 )
-from kftune.vehicle.params import VehicleParams
 
 
 @dataclass(frozen=True)
@@ -79,7 +77,6 @@ class Evaluation:
 
 def score_manoeuvre(
     m: Manoeuvre,
-    vehicle: VehicleParams | None,
     fs: FilterSpec,
     q: np.ndarray,
     r: np.ndarray,
@@ -89,24 +86,18 @@ def score_manoeuvre(
     params: np.ndarray | None = None,
     cov_scale: float = 1.0,
 ) -> ManoeuvreScore:
-    """One manoeuvre's score of one point: ``vehicle`` and ``params`` are the point's model
-    (:meth:`TuningProblem.vehicle_at`, :meth:`TuningProblem.params_at`)."""
-    res = fs.run(m, vehicle, q, r, settings, params=params, cov_scale=cov_scale)
-    return score_result(m, res, spec, burn_in, fs, run_params(fs, vehicle, params))
+    """One manoeuvre's score of one point: ``params`` (n_p,) are the point's model
+    parameters (:meth:`TuningProblem.params_at`; None: the recorded model's)."""
+    res = fs.run(m, q, r, settings, params=params, cov_scale=cov_scale)
+    return score_result(m, res, spec, burn_in, fs, run_params(fs, params))
 
 
-def run_params(
-    fs: FilterSpec, vehicle: VehicleParams | None, params: np.ndarray | None
-) -> np.ndarray:
+def run_params(fs: FilterSpec, params: np.ndarray | None) -> np.ndarray:
     """(n_p,) the model's parameter vector a run of ``fs`` used (:meth:`FilterSpec.run`)."""
-    if params is not None:
-        return np.asarray(params, dtype=float)
-    if fs.fast and vehicle is not None:
-        return fs.model.params_vector(vehicle)
-    return fs.params
+    return fs.params if params is None else np.asarray(params, dtype=float)
 
 
-def log_det_s_sum(res: RunResult, k0: int) -> float:
+def log_det_s_sum(res: FilterResult, k0: int) -> float:
     """Σ log det S from step k0 on (the pem cost's); the vector kernel does not compute it."""
     if res.log_det_s is None:
         raise ValueError("the pem cost needs log det S, which this run did not compute")
@@ -115,7 +106,7 @@ def log_det_s_sum(res: RunResult, k0: int) -> float:
 
 def score_result(
     m: Manoeuvre,
-    res: RunResult,
+    res: FilterResult,
     spec: CostSpec,
     burn_in: float,
     fs: FilterSpec,
@@ -171,7 +162,7 @@ def msp_channels(spec: CostSpec, model: StateSpaceModel) -> list[int]:
 
 
 def multistep_errors(
-    m: Manoeuvre, res: RunResult, fs: FilterSpec, params: np.ndarray, spec: CostSpec, k0: int
+    m: Manoeuvre, res: FilterResult, fs: FilterSpec, params: np.ndarray, spec: CostSpec, k0: int
 ) -> tuple[tuple[float, ...], int]:
     """Sums of squared h-step open-loop prediction errors from x⁺_k through the model's own
     f and h (:meth:`~kftune.models.StateSpaceModel.predict_open_loop`), any model."""
