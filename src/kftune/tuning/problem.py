@@ -65,7 +65,6 @@ from kftune.tuning.scoring import (
     Evaluation,
     ManoeuvreScore,
     msp_channels,
-    run_params,
     score_manoeuvre,
     score_result,
 )
@@ -435,7 +434,7 @@ class TuningProblem:
                                 self.cost_spec,
                                 self.burn_in,
                                 self._fs,
-                                run_params(self._fs, params),
+                                self._fs.params_or(params),
                             )
                         )
                     except FilterDivergedError as exc:

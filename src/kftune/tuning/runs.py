@@ -324,9 +324,14 @@ class FilterSpec:
         if not (math.isfinite(c) and c > 0):
             raise ValueError(f"cov_scale must be a positive finite number, got {cov_scale!r}")
         u, z = self.inputs(m)
-        p = self.params if params is None else np.asarray(params, dtype=float)
-        res = self.filter_object(settings).run(self.model, u, z, m.dt, q, r, params=p)
+        res = self.filter_object(settings).run(
+            self.model, u, z, m.dt, q, r, params=self.params_or(params)
+        )
         return res if c == 1.0 else scaled_covariances(res, c)
+
+    def params_or(self, params: np.ndarray | None) -> np.ndarray:
+        """(n_p,) a run's parameter vector: ``params``, or None: :attr:`params`."""
+        return self.params if params is None else np.asarray(params, dtype=float)
 
     @property
     def has_lanes(self) -> bool:
@@ -348,9 +353,8 @@ class FilterSpec:
         where it has them (:attr:`has_lanes`; else the batch in threads); ``result[b]``
         equals :meth:`run` with (q[b], r[b]). No log det S where the lanes ran."""
         u, z = self.inputs(m)
-        p = self.params if params is None else np.asarray(params, dtype=float)
         return self.filter_object(settings).run_batch(
-            self.model, u, z, m.dt, q, r, params=p, lanes=True
+            self.model, u, z, m.dt, q, r, params=self.params_or(params), lanes=True
         )
 
     def filter_object(self, settings: UKFSettings) -> ModelFilter:

@@ -89,12 +89,7 @@ def score_manoeuvre(
     """One manoeuvre's score of one point: ``params`` (n_p,) are the point's model
     parameters (:meth:`TuningProblem.params_at`; None: the recorded model's)."""
     res = fs.run(m, q, r, settings, params=params, cov_scale=cov_scale)
-    return score_result(m, res, spec, burn_in, fs, run_params(fs, params))
-
-
-def run_params(fs: FilterSpec, params: np.ndarray | None) -> np.ndarray:
-    """(n_p,) the model's parameter vector a run of ``fs`` used (:meth:`FilterSpec.run`)."""
-    return fs.params if params is None else np.asarray(params, dtype=float)
+    return score_result(m, res, spec, burn_in, fs, fs.params_or(params))
 
 
 def log_det_s_sum(res: FilterResult, k0: int) -> float:
