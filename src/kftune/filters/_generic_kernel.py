@@ -50,8 +50,9 @@ Arguments travel as records, numba-compiled as structs: a run's data, the sigma-
 weights and the output buffers as :mod:`kftune.models.kernel_io`'s
 :class:`~kftune.models.kernel_io.KernelData`, :class:`~kftune.models.kernel_io.SigmaWeights`
 and :class:`~kftune.models.kernel_io.KernelOutputs` (the interface a model's own loops
-share), the work arrays as :class:`Work` and :class:`UpdateWork`. A batch calls the model's
-compiled single run per setting (:func:`ukf_batch`) rather than inlining it.
+share), the work arrays as :class:`Work` (with :class:`UpdateWork` and :class:`Hold`); the
+kernels read the records into locals once, before the steps (:class:`Work`). A batch calls
+the model's compiled single run per setting (:func:`ukf_batch`) rather than inlining it.
 """
 
 from __future__ import annotations
@@ -76,6 +77,12 @@ from kftune.models.kernel_io import (
 _NAN = math.nan
 
 Token = tuple[float, ...]
+
+#: The unscented transform's weights (W^m_0, W^c_0, W_i) as the helpers take them: a plain
+#: tuple, not the whole :class:`~kftune.models.kernel_io.SigmaWeights` record, with which
+#: numba's code for the n = 3 UKF runs measurably slower (BENCHMARKS.md, "Records instead of
+#: argument lists").
+MomentWeights = tuple[float, float, float]
 
 #: A measurement update's outcome: (status of S, NIS, log det S, status of P⁺, P⁺'s jitter),
 #: the statuses as :func:`chol_repair`'s.
@@ -286,17 +293,17 @@ def unscented_moments(
     mean: np.ndarray,
     cov: np.ndarray,
     noise: np.ndarray,
-    w: SigmaWeights,
+    wts: MomentWeights,
     n_token: Token,
     k_token: Token,
 ) -> None:
     """mean = Σ W^m_i·Y_i; Y_i −= mean in place; cov = Σ W^c_i·d_i·d_iᵀ + diag(noise).
 
     Y: (2n+1, k) transformed sigma points (n = len(n_token), k = len(k_token)); mean: (k,);
-    cov: (k, k) symmetric; noise: (k,) variances; w: the weights W^m_0, W^c_0, W_i
+    cov: (k, k) symmetric; noise: (k,) variances; wts: the weights W^m_0, W^c_0, W_i
     (Simon 2006 eqs. 14.59–14.60, 14.63–14.64).
     """
-    wm0, wc0, wi = w.wm0, w.wc0, w.wi
+    wm0, wc0, wi = wts
     ns = 2 * len(n_token) + 1
     k = len(k_token)
     for j in range(k):
@@ -448,12 +455,12 @@ def predicted_moments(
     P: np.ndarray,
     L: np.ndarray,
     q: np.ndarray,
-    w: SigmaWeights,
+    wts: MomentWeights,
     n_token: Token,
 ) -> int:
     """The UKF's prediction from the points through f, Y: x̄, P̄ = UT(Y) + Q, factorised
     into L and repaired (jitter kept in P̄). Returns the status of :func:`chol_repair`."""
-    unscented_moments(Y, x, P, q, w, n_token, n_token)
+    unscented_moments(Y, x, P, q, wts, n_token, n_token)
     st, jit = chol_repair(P, L, n_token)
     if st == 1:
         for j in range(len(n_token)):
@@ -471,7 +478,7 @@ def unscented_update(
     P: np.ndarray,
     L: np.ndarray,
     wu: UpdateWork,
-    w: SigmaWeights,
+    wts: MomentWeights,
     n_token: Token,
     m_token: Token,
 ) -> UpdateStatus:
@@ -481,8 +488,8 @@ def unscented_update(
     Returns:
         :data:`UpdateStatus`; P⁺ is not factorised (status 2) when S is not.
     """
-    unscented_moments(Z, wu.zb, wu.S, r, w, n_token, m_token)
-    cross_covariance(D, Z, wu.Pxz, w.wi, n_token, m_token)
+    unscented_moments(Z, wu.zb, wu.S, r, wts, n_token, m_token)
+    cross_covariance(D, Z, wu.Pxz, wts[2], n_token, m_token)
     st_s, nis, ldet = kalman_update(x, P, zk, wu, n_token, m_token)
     if st_s == 2:
         return st_s, nis, ldet, 2, 0.0
@@ -598,7 +605,7 @@ def conclude_step(
     if st == 1:
         for j in range(n):
             P[j, j] += jit
-    for j in range(n):  # (the fields read where they are used: numba then counts no reference)
+    for j in range(n):  # out's fields read at each use, not into locals: fewer refcounts
         out.x[k, j] = x[j]
         out.P_diag[k, j] = P[j, j]
     for j in range(m):
@@ -674,6 +681,7 @@ def ukf_run(
     x, P, L, X, D, Y, Z = wk.x, wk.P, wk.L, wk.X, wk.D, wk.Y, wk.Z
     zh, upd, hold = wk.zh, wk.upd, wk.hold
     y, held = upd.y, hold.held
+    wts, c = (w.wm0, w.wc0, w.wi), w.c
 
     # the prior at step 0 is (x_init, P_init): factorised for the first sigma points
     st = prior(data.x_init, data.P_init, x, P, L, n_token)
@@ -684,11 +692,11 @@ def ukf_run(
     for k in range(u.shape[0]):
         if k > 0:
             # ---- predict k−1 → k with u[k−1]: x̄ = Σ W^m χ_i, P̄ = Σ W^c dχ dχᵀ + Q ----
-            sigma_points(x, L, w.c, X, D, False, n_token)
+            sigma_points(x, L, c, X, D, False, n_token)
             uk = u[k - 1]
             for i in range(ns):
                 f(X[i], uk, p, dt, Y[i])
-            st = predicted_moments(Y, x, P, L, q, w, n_token)
+            st = predicted_moments(Y, x, P, L, q, wts, n_token)
             if st == 2:
                 fill_nan(k, out)
                 return k, n_rep, STOP_NUMERICAL
@@ -696,11 +704,11 @@ def ukf_run(
         # ---- update with z[k], h(·, u[k]); sigma points redrawn from (x̄, P̄); P⁺ is
         # factorised at once: repaired (or the run stopped) before it is stored, and the
         # factor is the next prediction's ----
-        sigma_points(x, L, w.c, X, D, True, n_token)
+        sigma_points(x, L, c, X, D, True, n_token)
         uk = u[k]
         for i in range(ns):
             h(X[i], uk, p, Z[i])
-        status = unscented_update(Z, D, z[k], r, x, P, L, upd, w, n_token, m_token)
+        status = unscented_update(Z, D, z[k], r, x, P, L, upd, wts, n_token, m_token)
         cause = step_cause(h, check, status, x, zh, uk, z[k], p, held, n_token, m_token)
         stop, cause, rep = conclude_step(k, status, cause, x, P, zh, y, hold, out, n_token, m_token)
         n_rep += rep
