@@ -15,7 +15,7 @@ from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT, UNITS
 from kftune.errors import ConfigError
 from kftune.filters import FilterBatchResult, FilterResult, ModelFilter, UKFSettings, get_filter
-from kftune.models import StateSpaceModel, model_names
+from kftune.models import BUILTIN_MODELS, StateSpaceModel, model_names
 from kftune.models.user import is_model_file, load_model
 from kftune.tuning.cost import (
     SCORING_RULES,
@@ -264,13 +264,15 @@ class FilterSpec:
         variances ``q``, default 1e-4 each; the UKF's sigma-point ``settings``, default
         :class:`~kftune.filters.UKFSettings`, so that the check visits the states the
         filter it protects visits):
-        :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models are not
-        probed in a child.
+        :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models
+        (:data:`~kftune.models.BUILTIN_MODELS`) are not probed: their hooks are tested
+        with kftune, and probing the single-track model's Jacobians would compile them for
+        a UKF that never calls them (2 s of a first ``make run``).
 
         Raises:
             ConfigError: naming the model (its file), the manoeuvre and the hook.
         """
-        if not manoeuvres:
+        if not manoeuvres or self.model in BUILTIN_MODELS:
             return
         if is_model_file(self.spec):
             runs = [(m.name, *self.inputs(m), m.dt) for m in manoeuvres]
