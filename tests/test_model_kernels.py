@@ -83,3 +83,27 @@ def test_a_model_without_its_own_loops_runs_the_generic_one_and_both_agree(man):
         assert np.all(np.abs(a - b) <= 1e-12 * np.where(scale > 0, scale, 1.0)), name
         np.testing.assert_array_equal(getattr(lanes, name), getattr(own, name))
     np.testing.assert_array_equal(lanes.diverged_step, own.diverged_step)
+
+
+def test_the_lanes_compile_once_for_the_data_the_filter_hands_them():
+    """A read-only z or an F-ordered r would make numba compile a second version of the
+    lanes outside ``ensure_compiled``'s raised inlining threshold: unvectorised, 3–4×
+    slower. In a fresh process, after a filter run on a dataset's manoeuvre, the lanes
+    loop has one compiled signature."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from kftune.data import open_dataset\n"
+        "from kftune.filters import UKF\n"
+        "from kftune.models import SINGLE_TRACK\n"
+        "from kftune.models._sideslip_lanes import run_kernel_soa\n"
+        "ds = open_dataset('default'); m = ds.train[0]\n"
+        "m.z.flags.writeable = False\n"
+        "UKF().run_batch(SINGLE_TRACK, m.u, m.z, m.dt, np.full((3, 3), 1e-4), ds.r_default,\n"
+        "                params=ds.vehicle, lanes=True)\n"
+        "print(len(run_kernel_soa.signatures))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split()[-1] == "1", out.stdout + out.stderr
