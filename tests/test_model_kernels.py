@@ -13,11 +13,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+from numba import njit
 
 from kftune.cli.demo import DEFAULT_Q, demo_manoeuvre
 from kftune.filters import EKF, UKF
 from kftune.models import SINGLE_TRACK, ModelKernels, StateSpaceModel
-from kftune.models.sideslip import single_track_kernels
+from kftune.models.sideslip import measurement, single_track_kernels
 
 OUTPUTS = ("x", "P_diag", "z_hat", "innovation", "nis")
 
@@ -41,9 +42,17 @@ def spied(calls: list[str]) -> StateSpaceModel:
 
     assert own.lanes is not None
     kernels = ModelKernels(
-        spy("single", own.single), spy("batch", own.batch), spy("lanes", own.lanes)
-    )
+        spy("single", own.single), spy("batch", own.batch), spy("lanes", own.lanes),
+        own.implements,
+    )  # fmt: skip
     return dataclasses.replace(SINGLE_TRACK, ukf_kernels=lambda: kernels)
+
+
+@njit(cache=True)
+def half_ay(x: np.ndarray, u: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """The single-track measurement with half the lateral acceleration."""
+    measurement(x, u, p, out)
+    out[1] *= 0.5
 
 
 def test_the_ukf_runs_the_models_own_loop_and_the_ekf_does_not(man):
@@ -107,3 +116,20 @@ def test_the_lanes_compile_once_for_the_data_the_filter_hands_them():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split()[-1] == "1", out.stdout + out.stderr
+
+
+def test_a_copy_of_the_model_with_other_hooks_runs_the_generic_loop(man):
+    """The model's own loops implement its f, h and check: a copy with another h (a
+    user's variant of the single-track model) must not run the 3×3 physics."""
+    u, z, dt, p, r = man
+    calls: list[str] = []
+    variant = dataclasses.replace(spied(calls), name="half-ay", h=half_ay)
+    res = UKF().run(variant, u, z, dt, DEFAULT_Q, r, params=p)
+    assert calls == []
+    generic = UKF().run(
+        dataclasses.replace(variant, ukf_kernels=None), u, z, dt, DEFAULT_Q, r, params=p
+    )
+    np.testing.assert_array_equal(res.x, generic.x)
+    own = UKF().run(SINGLE_TRACK, u, z, dt, DEFAULT_Q, r, params=p)
+    assert not np.allclose(res.x, own.x)  # the 3×3 physics would have given own.x
+    assert calls == []

@@ -442,13 +442,14 @@ class UKF(ModelFilter):
         return (SigmaWeights(float(wm[0]), float(wc[0]), float(wm[1]), c),)
 
     def _bound(self, model: StateSpaceModel) -> tuple[Any, Any]:
-        if model.ukf_kernels is not None:  # the model's own loops (ModelKernels)
-            own = model.ukf_kernels()
+        own = model.own_ukf_kernels()
+        if own is not None:  # the model's own loops (ModelKernels)
             return own.single, own.batch
         return _bound_ukf(model)
 
     def _lanes(self, model: StateSpaceModel) -> Any | None:
-        return None if model.ukf_kernels is None else model.ukf_kernels().lanes
+        own = model.own_ukf_kernels()
+        return None if own is None else own.lanes
 
 
 @dataclass(frozen=True)

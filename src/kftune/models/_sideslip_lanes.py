@@ -57,7 +57,6 @@ from kftune.models.kernel_io import KernelData, KernelOutputs, SigmaWeights
 from kftune.vehicle.single_track import (
     measure_scalar,
     rk4_scalar,
-    step_context_scalar,
 )
 
 #: Lanes per block: the vector loops run over blocks of this many sets (8 doubles: two
@@ -556,7 +555,7 @@ def run_kernel_soa(
             break
         n_vec_blocks = (n_active + LANES - 1) // LANES
         if k > 0:
-            ctx = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
+            ctx = (u[k - 1, 2], u[k - 1, 3], u[k - 1, 4], u[k - 1, 5])  # prepared row
             _predict_lanes(s, n_vec_blocks, mp, dt, ctx, u[k - 1, 1], w)
             j = 0
             while j < n_active:
@@ -582,7 +581,7 @@ def run_kernel_soa(
                     s[LB22 + f] = l22
                 j += 1
             n_vec_blocks = (n_active + LANES - 1) // LANES
-        ctx = step_context_scalar(u[k, 0], u[k, 1], mp)
+        ctx = (u[k, 2], u[k, 3], u[k, 4], u[k, 5])
         zk = (z[k, 0], z[k, 1], z[k, 2])
         _update_lanes(s, n_vec_blocks, mp, zk, ctx, w)
         j = 0

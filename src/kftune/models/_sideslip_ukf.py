@@ -55,7 +55,6 @@ from kftune.models.kernel_io import (
 from kftune.vehicle.single_track import (
     measure_scalar,
     rk4_scalar,
-    step_context_scalar,
 )
 
 # Why a run stopped (the third value :func:`run_kernel` returns), STOP_*: the generic causes
@@ -153,10 +152,11 @@ def run_kernel(data: KernelData, w: SigmaWeights, out: KernelOutputs) -> tuple[i
     updates with z[k] using h(·, u[k]).
 
     Args:
-        data: the run (:class:`~kftune.models.kernel_io.KernelData`): u (N, ≥ 2) with
-            [δ rad, ax m/s²] in its first two columns (the single-track model's prepared
-            rows), z (N, 3) [Vx, ay, r], p the packed (9,) vehicle array, q and r (3,),
-            x_init (3,), P_init (3, 3), n_hold the steps a runaway must be held.
+        data: the run (:class:`~kftune.models.kernel_io.KernelData`): u (N, 6) the
+            single-track model's prepared rows [δ rad, ax m/s², tan δ, cos δ, Fz_f N,
+            Fz_r N] (:func:`kftune.models.sideslip.prepare`), z (N, 3) [Vx, ay, r], p the
+            packed (9,) vehicle array, q and r (3,), x_init (3,), P_init (3, 3), n_hold
+            the steps a runaway must be held.
         w: the sigma-point weights. out: (N, 3) and (N,) output buffers.
 
     Returns:
@@ -198,7 +198,7 @@ def run_kernel(data: KernelData, w: SigmaWeights, out: KernelOutputs) -> tuple[i
     for k in range(n_steps):
         if k > 0:
             # ---- predict k−1 → k with u[k−1] (sigma points of the posterior at k−1) ----
-            e0, e1, e2, e3 = step_context_scalar(u[k - 1, 0], u[k - 1, 1], mp)
+            e0, e1, e2, e3 = u[k - 1, 2], u[k - 1, 3], u[k - 1, 4], u[k - 1, 5]
             ax = u[k - 1, 1]
             a0 = c * l00
             a1 = c * l10
@@ -263,7 +263,7 @@ def run_kernel(data: KernelData, w: SigmaWeights, out: KernelOutputs) -> tuple[i
                 p22 += jit
 
         # ---- update with z[k], h(·, u[k]); sigma points redrawn from (x̄, P̄) ----
-        e0, e1, e2, e3 = step_context_scalar(u[k, 0], u[k, 1], mp)
+        e0, e1, e2, e3 = u[k, 2], u[k, 3], u[k, 4], u[k, 5]
         a0 = c * l00
         a1 = c * l10
         a2 = c * l20

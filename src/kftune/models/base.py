@@ -125,12 +125,17 @@ class ModelKernels(NamedTuple):
             (data's q, r, x_init, P_init and the buffers with a leading axis B; stop, rep,
             cause (B,) int64).
         lanes: as ``batch`` on one core, the B runs across its vector lanes, or None;
-            it may leave ``out.log_det_s`` unwritten (the result then has none).
+            it may leave ``out.log_det_s`` unwritten (the result then has none: a log per
+            set and step would cost the single-track lanes about a third of their time).
+        implements: the model's hooks (f, h, check) the loops are written for: a model
+            whose hooks are others (a copy of the model with another h, say) runs the
+            generic loops (:meth:`StateSpaceModel.own_ukf_kernels`).
     """
 
     single: Callable[..., tuple[int, int, int]]
     batch: Callable[..., None]
-    lanes: Callable[..., None] | None = None
+    lanes: Callable[..., None] | None
+    implements: tuple[Dispatcher | None, ...]
 
 
 ParamHints = Callable[
@@ -246,6 +251,14 @@ class StateSpaceModel:
     param_hints: ParamHints | None = None
     c_code: str | None = None
     ukf_kernels: Callable[[], ModelKernels] | None = None
+
+    def own_ukf_kernels(self) -> ModelKernels | None:
+        """The model's own UKF loops (:attr:`ukf_kernels`), where they implement this
+        model's f, h and check; None: the generic loops run it."""
+        if self.ukf_kernels is None:
+            return None
+        own = self.ukf_kernels()
+        return own if own.implements == (self.f, self.h, self.check) else None
 
     def __post_init__(self) -> None:
         name = self.name

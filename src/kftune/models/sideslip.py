@@ -337,12 +337,14 @@ def single_track_kernels() -> ModelKernels:
     def lanes(data: KernelData, *rest: Any) -> None:
         ensure_compiled()  # with vectorisation on (see there), for C-ordered writable arrays:
         # an array of another layout would compile a second, unvectorised version
-        arrays = (
-            np.require(a, requirements=("C", "W")) if isinstance(a, np.ndarray) else a for a in data
-        )
-        run_kernel_soa(KernelData(*arrays), *rest)
+        arrays: dict[str, Any] = {
+            k: np.require(v, requirements=("C", "W"))
+            for k, v in data._asdict().items()
+            if isinstance(v, np.ndarray)
+        }
+        run_kernel_soa(data._replace(**arrays), *rest)
 
-    return ModelKernels(run_kernel, run_kernel_batch, lanes)
+    return ModelKernels(run_kernel, run_kernel_batch, lanes, (process, measurement, check))
 
 
 def sideslip_angle(x: np.ndarray) -> np.ndarray:

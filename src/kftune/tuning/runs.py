@@ -340,7 +340,8 @@ class FilterSpec:
         """Whether the model supplies vector lanes for this filter
         (:class:`~kftune.models.base.ModelKernels`, the single-track UKF's), which
         :meth:`run_lanes` runs B noise settings in at once."""
-        return self.filter == "ukf" and self.model.ukf_kernels is not None
+        own = self.model.own_ukf_kernels()
+        return self.filter == "ukf" and own is not None and own.lanes is not None
 
     def run_lanes(
         self,
