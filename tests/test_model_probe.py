@@ -169,3 +169,32 @@ def test_measurement_units_must_be_the_datas():
     with pytest.raises(ConfigError, match=r"measurement 'pos' is in 'km', but the dataset 'track'"):
         check_units(km, data)
     check_units(km, SimpleNamespace(name="other", units={}))  # a unit the data do not say
+
+
+@njit
+def f_hold(x, u, p, dt, out):
+    out[0] = x[0]
+
+
+@njit
+def F_unwritten(x, u, p, dt, out):  # a Jacobian that forgets its only entry
+    pass
+
+
+def test_the_probe_runs_the_hooks_the_filter_calls():
+    """The EKF calls the Jacobians, the UKF never: a broken F is named before an EKF runs
+    and left alone before a UKF (probing it would compile it for nothing)."""
+    model = StateSpaceModel(
+        name="vx-bad-F", state_names=("vx",), state_units=("m/s",), input_names=(),
+        input_units=(), measurement_names=("vx",), measurement_units=("m/s",), f=f_hold,
+        h=h_vx, F=F_unwritten, initial_state=lambda z0, r, p: (np.array([z0[0]]), np.diag(r)),
+    )  # fmt: skip
+    z, r = np.array([[20.0], [20.1]]), np.array([0.01])
+    with pytest.raises(ValueError, match=r"F\(x, u, p, dt, out\) left unwritten out\[0\]"):
+        model.probe(None, z, r, np.empty(0), 0.1)
+    model.probe(None, z, r, np.empty(0), 0.1, jacobians=False)
+    m = default_dataset().train[0]
+    spec = {"cost": CostSpec(kind="nis"), "model": model}
+    with pytest.raises(ConfigError, match=r"F\(x, u, p, dt, out\)"):
+        TuningProblem([m], None, r, filter="ekf", **spec)
+    TuningProblem([m], None, r, filter="ukf", **spec)

@@ -20,20 +20,11 @@ from kftune.models.registry import get_model, model_names, register_model, resol
 from kftune.models.sideslip import SINGLE_TRACK, SINGLE_TRACK_AY_BIAS, SINGLE_TRACK_BIASES
 from kftune.models.tracking import CTRV
 
-#: kftune's own models (registered on import; their hooks are tested with kftune, so a
-#: filter need not probe them before it runs).
-BUILTIN_MODELS: tuple[StateSpaceModel, ...] = (
-    SINGLE_TRACK,
-    SINGLE_TRACK_AY_BIAS,
-    SINGLE_TRACK_BIASES,
-    CTRV,
-)
-for _model in BUILTIN_MODELS:
+for _model in (SINGLE_TRACK, SINGLE_TRACK_AY_BIAS, SINGLE_TRACK_BIASES, CTRV):
     register_model(_model)
 del _model
 
 __all__ = [
-    "BUILTIN_MODELS",
     "CTRV",
     "FD_REL_STEP",
     "FIRST_MODEL_STOP",

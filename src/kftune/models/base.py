@@ -419,7 +419,14 @@ class StateSpaceModel:
         return arr
 
     def probe(
-        self, u: np.ndarray | None, z: np.ndarray, r: np.ndarray, p: np.ndarray, dt: float
+        self,
+        u: np.ndarray | None,
+        z: np.ndarray,
+        r: np.ndarray,
+        p: np.ndarray,
+        dt: float,
+        *,
+        jacobians: bool = True,
     ) -> None:
         """Run every hook once on the first sample of some data, before a filter relies on
         them: the prior rule (from z[0] and r), ``prepare``, ``f``, ``h``, the Jacobians
@@ -431,6 +438,8 @@ class StateSpaceModel:
         Args:
             u: (N, n_u) raw inputs or None; z: (N, m) measurements; r: (m,) measurement
                 variances; p: (n_p,) parameters; dt: [s] the sample time.
+            jacobians: probe F and H too (False for a filter that never calls them, the
+                UKF: probing compiles them, seconds for the single-track model's).
 
         Raises:
             ValueError: naming the hook, what it did and what was expected.
@@ -463,9 +472,9 @@ class StateSpaceModel:
                          None, finite)  # fmt: skip
         _filled("f(x, u, p, dt, out)", self.f, (x0, w0, p, float(dt)), n, self.state_names, finite)
         _filled("h(x, u, p, out)", self.h, (x0, w0, p), m, self.measurement_names, finite)
-        if self.F is not None:
+        if self.F is not None and jacobians:
             _filled("F(x, u, p, dt, out)", self.F, (x0, w0, p, float(dt)), (n, n), None, finite)
-        if self.H is not None:
+        if self.H is not None and jacobians:
             _filled("H(x, u, p, out)", self.H, (x0, w0, p), (m, n), None, finite)
         for key, g in self.outputs.items():
             value = np.asarray(_call(f"output {key!r}(x)", g, x0[None, :]), dtype=np.float64)

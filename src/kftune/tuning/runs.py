@@ -13,9 +13,9 @@ import numpy as np
 
 from kftune.data.manoeuvre import Dataset, Manoeuvre
 from kftune.data.validate import CHANNEL_DIMENSION, SI_UNIT, UNITS
-from kftune.errors import ConfigError
+from kftune.errors import ConfigError, ModelChoiceError
 from kftune.filters import FilterBatchResult, FilterResult, ModelFilter, UKFSettings, get_filter
-from kftune.models import BUILTIN_MODELS, StateSpaceModel, model_names
+from kftune.models import StateSpaceModel, model_names
 from kftune.models.user import is_model_file, load_model
 from kftune.tuning.cost import (
     SCORING_RULES,
@@ -264,15 +264,14 @@ class FilterSpec:
         variances ``q``, default 1e-4 each; the UKF's sigma-point ``settings``, default
         :class:`~kftune.filters.UKFSettings`, so that the check visits the states the
         filter it protects visits):
-        :func:`~kftune.tuning.hookcheck.check_model_file`. kftune's own models
-        (:data:`~kftune.models.BUILTIN_MODELS`) are not probed: their hooks are tested
-        with kftune, and probing the single-track model's Jacobians would compile them for
-        a UKF that never calls them (2 s of a first ``make run``).
+        :func:`~kftune.tuning.hookcheck.check_model_file`. Only the hooks the filter calls
+        are probed: the UKF's probe leaves the Jacobians alone (compiling the single-track
+        model's for a UKF that never calls them took 2 s of a first ``make run``).
 
         Raises:
             ConfigError: naming the model (its file), the manoeuvre and the hook.
         """
-        if not manoeuvres or self.model in BUILTIN_MODELS:
+        if not manoeuvres:
             return
         if is_model_file(self.spec):
             runs = [(m.name, *self.inputs(m), m.dt) for m in manoeuvres]
@@ -293,7 +292,7 @@ class FilterSpec:
         for m in manoeuvres:
             u, z = self.inputs(m)
             try:
-                self.model.probe(u, z, r, self.params, m.dt)
+                self.model.probe(u, z, r, self.params, m.dt, jacobians=self.filter == "ekf")
             except ValueError as exc:
                 raise ConfigError(f"model {self.spec}, on manoeuvre {m.name!r}: {exc}") from None
 
@@ -372,24 +371,36 @@ def filter_spec(
     vehicle model's parameters come from ``vehicle``, another model's are its defaults.
 
     Raises:
-        ConfigError: unknown model or filter, a model file that cannot be loaded, or a
-            model that needs a vehicle (the single-track models) without one.
+        ModelChoiceError: (a ConfigError) unknown model (``key`` "model") or filter
+            (``key`` "filter"), a model file that cannot be loaded ("model"), or a model
+            that needs a vehicle (the single-track models) without one or whose parameters
+            the vehicle lacks (``key`` None: the data, not a setting, lack them).
     """
-    mod = load_model(model)
+    try:
+        mod = load_model(model)
+    except ModelChoiceError:
+        raise
+    except ConfigError as exc:
+        raise ModelChoiceError(str(exc), "model") from None
     if filter not in ("ukf", "ekf"):
-        raise ConfigError(f"filter must be 'ukf' or 'ekf', got {filter!r}")
+        raise ModelChoiceError(f"filter must be 'ukf' or 'ekf', got {filter!r}", "filter")
     if mod.needs_vehicle and vehicle is None:
-        raise ConfigError(
+        raise ModelChoiceError(
             f"model {mod.name!r} needs the vehicle's parameters, but the dataset has no vehicle "
             "(a manifest's 'vehicle' table or preset name); for data of something else choose "
-            f"a model that fits them (--model; built-in: {', '.join(model_names())})"
+            f"a model that fits them (--model; built-in: {', '.join(model_names())})",
+            None,
         )
     spec = model if isinstance(model, str) else mod.name
     if vehicle is not None and mod.pack_params is not None:
         try:
             params = mod.pack_params(vehicle)
-        except (TypeError, ValueError, AttributeError):
-            params = np.asarray(mod.param_defaults, dtype=float)
+        except (TypeError, ValueError, AttributeError) as exc:  # not another vehicle's preset
+            raise ModelChoiceError(
+                f"model {mod.name!r} cannot read its parameters from the dataset's vehicle: "
+                f"{exc}",
+                None,
+            ) from None
     else:
         params = np.asarray(mod.param_defaults, dtype=float)
     return FilterSpec(mod, spec, filter, np.asarray(params, dtype=float))
