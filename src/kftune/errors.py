@@ -88,6 +88,19 @@ class ConfigError(KftuneError, ValueError):
     """An option or configuration value is invalid; the message names it."""
 
 
+class ModelChoiceError(ConfigError):
+    """A model and filter that cannot run. ``key``: the setting at fault — ``"model"`` (no
+    such model, a model file that does not load), ``"filter"`` (no such filter) — so that a
+    caller names where that setting came from (an option, a configuration key); None where
+    no setting is wrong but the pair of model and data (a vehicle model on a dataset without
+    a vehicle, or whose vehicle lacks a parameter the model reads): the message then says
+    what the data lack, and no option or key is blamed."""
+
+    def __init__(self, message: str, key: str | None) -> None:
+        super().__init__(message)
+        self.key = key
+
+
 class ObjectiveMismatchError(ConfigError):
     """A stored study was created for another objective (data, cost, model) than the run
     that resumes it; a caller that chose the objective's defaults can say how to match.
