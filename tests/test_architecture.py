@@ -286,6 +286,21 @@ def test_no_module_imports_itself_through_others() -> None:
     assert cycle is None, f"import cycle: {' -> '.join(cycle)}"
 
 
+def test_the_vehicle_parameter_record_comes_without_the_physics() -> None:
+    """``tuning`` may import the vehicle's parameter record (``vehicle.params``) but not its
+    physics: importing the record (which runs the package's ``__init__``) must not load
+    the single-track model or the tyres. In a fresh process, as a layer would."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, kftune.vehicle.params\n"
+        "print(sorted(m for m in sys.modules if m.startswith('kftune.vehicle.')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "['kftune.vehicle.params']", out.stdout + out.stderr
+
+
 def test_the_graph_sees_kftunes_own_hard_cases() -> None:
     """Lazy imports in functions, importlib with an f-string, and the root's lazy names."""
     graph = import_graph(SRC)
@@ -376,16 +391,16 @@ def test_an_injected_upward_import_is_refused(tmp_path: Path) -> None:
     src = _tree(
         tmp_path,
         {
-            "__init__.py": "_LAZY = {'run_ukf': 'kftune.filters.ukf'}\n",
+            "__init__.py": "_LAZY = {'UKF': 'kftune.filters.generic'}\n",
             "vehicle/tyre.py": "def f():\n    import kftune.optim.tsbo as t\n    return t\n",
-            "optim/tsbo.py": "from kftune import run_ukf\n",
-            "filters/ukf.py": "from kftune.models import base\n",
+            "optim/tsbo.py": "from kftune import UKF\n",
+            "filters/generic.py": "from kftune.models import base\n",
             "models/base.py": "from kftune.errors import KftuneError\n",
             "errors.py": "class KftuneError(Exception): ...\n",
         },
     )
     assert layer_violations(import_graph(src, typing_imports=True), ALLOWED) == [
-        "kftune.optim.tsbo imports kftune.filters.ukf (layer filters)",
+        "kftune.optim.tsbo imports kftune.filters.generic (layer filters)",
         "kftune.vehicle.tyre imports kftune.optim.tsbo (layer optim)",
     ]
 

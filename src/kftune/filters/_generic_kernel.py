@@ -1,9 +1,9 @@
 """Compiled UKF and EKF kernels for any state-space model (numba).
 
-Both filters share the time convention of :func:`kftune.filters.ukf.run_ukf` (step 0 updates
+Both filters share the time convention of :mod:`kftune.filters.generic` (step 0 updates
 the prior with z[0]; step k ≥ 1 predicts with u[k−1] held, then updates with z[k] and
-h(·, u[k])), the covariance repair, the stop causes and the NaN fill of
-:mod:`kftune.filters._kernel`, and the measurement update, written with the Cholesky factor
+h(·, u[k])), the covariance repair, the stop causes and the NaN fill of the single-track
+model's own 3×3 loop (:mod:`kftune.models._sideslip_ukf`), and the measurement update, written with the Cholesky factor
 of the innovation covariance S = L_S·L_Sᵀ instead of S⁻¹ (Simon, *Optimal State Estimation*,
 2006, eqs. 13.48 and 14.80; Särkkä, *Bayesian Filtering and Smoothing*, 2013, Algs. 5.4 and
 5.14, rearranged): with A = L_S⁻¹, W = A·P_xzᵀ and v = A·y,
@@ -19,7 +19,7 @@ They differ in the moments they hand to that update:
   Jacobian at x⁺; ẑ = h(x̄), P_xz = P̄·Hᵀ, S = H·P_xz + R with H the Jacobian at x̄. Jacobians are
   the model's own or central finite differences (:mod:`kftune.models.jacobians`).
 
-The arithmetic of the UKF follows the 3×3 kernel operation by operation (the same Cholesky,
+The arithmetic of the UKF follows that 3×3 loop operation by operation (the same Cholesky,
 sums in the same order, the same triangular inverse), so that for the single-track model the
 two give the same numbers. Covariances are kept as full symmetric arrays: every routine
 computes the upper triangle and mirrors it, and reads only that.

@@ -70,8 +70,9 @@ _TAN_MAX_SIDESLIP = math.tan(MAX_SIDESLIP)
 @njit(cache=True, error_model="numpy", inline="always")
 def runaway(vx: float, vy: float, vx_measured: float) -> tuple[int, bool, bool]:
     """The single-track runaway rules (module docstring) on a posterior estimate, the one
-    place they are written: every kernel that runs the model calls this (the generic
-    filters through :func:`check`, the hand-written 3×3 and SIMD kernels directly).
+    place they are written: every loop that runs the model calls this (the generic
+    filters through the model's :func:`kftune.models.sideslip.check`, its own 3×3 loop and
+    vector lanes directly).
     |Vy| > tan(bound)·Vx instead of atan2.
 
     Args:

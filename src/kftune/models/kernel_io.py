@@ -1,6 +1,6 @@
 """The records a compiled filter loop takes and fills: the contract between the filters
 (:mod:`kftune.filters`) and the loops that run them — the generic kernels, and the fast
-loops a model may supply for itself (:attr:`~kftune.models.StateSpaceModel.kernels`).
+loops a model may supply for itself (:attr:`~kftune.models.StateSpaceModel.ukf_kernels`).
 
 They live beside the model type so that a model can supply a loop without importing the
 filters (the layers import downwards only, ``tests/test_architecture.py``). All three are

@@ -99,9 +99,9 @@ def model_output(res: FilterResult, name: str) -> np.ndarray:
     state by name (in its unit)."""
     model = res.model
     if name in model.outputs:
-        return np.asarray(model.outputs[name](res.x), dtype=float)
+        return res.output(name)
     if name in output_names(model):
-        return np.asarray(res.x[:, model.state_names.index(name)], dtype=float)
+        return np.asarray(res.state(name), dtype=float)
     raise KeyError(
         f"model {model.name!r} has no output {name!r}; it has {list(output_names(model))}"
     )
@@ -238,7 +238,8 @@ class FilterSpec:
     def paper_pair(self) -> bool:
         """Whether this is the paper's model and filter (single-track UKF), whose study
         fingerprints name neither (they keep the fingerprints of studies made before
-        other models existed)."""
+        other models existed). The one place the tuning asks which model it runs: which
+        loop runs a model is the filter's business (:class:`~kftune.models.ModelKernels`)."""
         from kftune.models import SINGLE_TRACK
 
         return self.model is SINGLE_TRACK and self.filter == "ukf"
