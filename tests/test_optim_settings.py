@@ -24,6 +24,7 @@ from kftune.optim import (
     minimize,
 )
 from kftune.optim.settings import option_names, settings_from
+from kftune.settings import SettingError
 
 #: The defaults of ``TrustRegionBO.__init__``'s keyword arguments before they became
 #: :class:`TRBOSettings` (written down from that signature, not computed from the record).
@@ -197,12 +198,15 @@ def test_tsbo_settings_fill_the_modes_presets():
 def test_records_are_frozen_and_checked_once():
     with pytest.raises(FrozenInstanceError):
         TRBOSettings().n_init = 3  # type: ignore[misc]
-    with pytest.raises(ValueError, match="warp must be one of"):
+    # a SettingError (a KftuneError: the CLI words it with the file and table) naming the key
+    with pytest.raises(SettingError, match=r"^key 'warp': expected one of \['none', "):
         TRBOSettings(warp="sqrt")
-    with pytest.raises(ValueError, match="n_init must be an integer >= 1"):
+    with pytest.raises(SettingError, match=r"^key 'n_init': expected an integer >= 1, got 0$"):
         TRBOSettings(n_init=0)
-    with pytest.raises(ValueError, match="alpha must be in"):
+    with pytest.raises(SettingError, match=r"^key 'alpha': expected a number > 0 and < 1, got"):
         TSBOSettings(alpha=1.0)
+    with pytest.raises(SettingError, match=r"^key 'stage2_reserve': expected a number >= 0 and"):
+        TSBOSettings(stage2_reserve=1.0)
     with pytest.raises(TypeError, match="settings must be a TRBOSettings"):
         TrustRegionBO(SPACE, TSBOSettings())  # type: ignore[arg-type]
 
@@ -213,8 +217,10 @@ def test_records_are_frozen_and_checked_once():
         ({"timeout": 0}, "timeout must be a number of seconds"),
         ({"timeout": "5"}, "timeout must be a number of seconds"),
         ({"timeout": 2e6}, "timeout must be a number of seconds"),
-        ({"batch": 0}, "batch must be a positive integer"),
-        ({"batch": True}, "batch must be a positive integer"),
+        ({"batch": 0}, r"^key 'batch': expected an integer >= 1 and <= 100000, got 0$"),
+        ({"batch": True}, "key 'batch': expected an integer >= 1 and <= 100000, got a boolean"),
+        # one rule with the configuration's batch (RunConfig): bounded by MAX_BUDGET too
+        ({"batch": 100_001}, "key 'batch': expected an integer >= 1 and <= 100000, got 100001"),
         ({"timeout": 5.0, "batch": 2}, "cannot be combined with a batch or an engine"),
     ],
 )

@@ -444,19 +444,24 @@ def test_records_carry_stage_acquisition_and_hyperparameters():
 
 
 def test_bad_options():
-    with pytest.raises(ValueError, match="mode must be"):
+    with pytest.raises(ValueError, match="key 'mode': expected one of"):
         tsbo(BRANIN_SPACE, surrogate=CountingGP, mode="fast")
-    with pytest.raises(ValueError, match="alpha must be in"):
+    with pytest.raises(ValueError, match="key 'alpha': expected a number > 0 and < 1"):
         tsbo(BRANIN_SPACE, surrogate=CountingGP, alpha=1.5)
     with pytest.raises(ValueError, match="sm_freeze"):
         tsbo(BRANIN_SPACE, surrogate=CountingGP, sm_freeze="some")
     with pytest.raises(ValueError, match="unknown surrogate"):
         tsbo(BRANIN_SPACE, surrogate="svm")
-    with pytest.raises(ValueError, match="min_resolution must be in"):
+    with pytest.raises(
+        ValueError, match=r"key 'min_resolution': expected a number >= 0 and < 0\.25"
+    ):
         tsbo(BRANIN_SPACE, surrogate=CountingGP, min_resolution=0.3)
-    with pytest.raises(ValueError, match="tr_fe_units must be one of"):
+    with pytest.raises(ValueError, match="key 'tr_fe_units': expected one of"):
         tsbo(BRANIN_SPACE, surrogate=CountingGP, tr_fe_units="natural-log")
-    with pytest.raises(ValueError, match="max_af must be a positive integer or 'switch'"):
+    with pytest.raises(
+        ValueError,
+        match=r"key 'max_af': expected an integer >= 1 or 'switch', got a string \('always'\)",
+    ):
         tsbo(BRANIN_SPACE, surrogate=CountingGP, max_af="always")
 
 

@@ -60,16 +60,18 @@ def test_a_valid_table_becomes_the_record_with_defaults_for_the_absent_keys():
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ({"n": "3"}, "key 'n': expected an integer >= 1 and <= 10, got '3'"),
-        ({"n": True}, "key 'n': expected an integer >= 1 and <= 10, got True"),
+        ({"n": "3"}, "key 'n': expected an integer >= 1 and <= 10, got a string ('3')"),
+        ({"n": True}, "key 'n': expected an integer >= 1 and <= 10, got a boolean (true)"),
         ({"n": 11}, "key 'n': expected an integer >= 1 and <= 10, got 11"),
+        ({"n": 10.0}, "key 'n': expected an integer >= 1 and <= 10, got a float (10.0)"),
+        ({"table": {"r": 1, "p": 0, "s": 2}}, "keys 'table.r', 'table.s': unknown; expected"),
         ({"mode": "c"}, "key 'mode': expected one of ['a', 'b'], got 'c'"),
-        ({"flag": 1}, "key 'flag': expected true or false, got 1"),
+        ({"flag": 1}, "key 'flag': expected true or false, got an integer (1)"),
         ({"sign": 2}, "key 'sign': expected one of [1, -1], got 2"),
         ({"scale": 0.0}, "key 'scale': expected a number other than 0, got 0.0"),
         ({"scale": float("nan")}, "key 'scale': expected a number other than 0, got nan"),
         ({"inner": {"x": 1.0}}, "key 'inner.x': expected a number > 0 and < 1, got 1.0"),
-        ({"inner": 3}, "key 'inner': expected a table, got 3"),
+        ({"inner": 3}, "key 'inner': expected a table, got an integer (3)"),
         ({"table": {"p": -1}}, "key 'table.p': expected an integer >= 0, got -1"),
         ({"table": {"r": 1}}, "key 'table.r': unknown; expected some of ['p', 'q']"),
         ({"items": [{}, {"y": 1}]}, "key 'items[1].y': unknown; expected some of ['x']"),
@@ -100,10 +102,10 @@ def dataset(tmp_path: Path) -> Path:
 @pytest.mark.parametrize(
     ("old", "new", "message"),
     [  # type, range, choices, an element's rule, required, unknown key
-        ('name = "', "name = 5\n#", "field 'name': expected a string, got 5"),
+        ('name = "', "name = 5\n#", "field 'name': expected a string, got an integer (5)"),
         ("dt = 0.01", "dt = 2.0", "field 'dt': expected a number > 0 and <= 1 [s], got 2.0"),
         ('split = "test"', 'split = "dev"', "field 'manoeuvres[2].split': expected one of"),
-        ('r = "rad/s"', "r = 3", "field 'units.r': expected a unit string, got 3"),
+        ('r = "rad/s"', "r = 3", "field 'units.r': expected a unit string, got an integer (3)"),
         ('format = "kftune-dataset"\n', "", "field 'format' is missing"),
         ("dt = 0.01", "dt = 0.01\nsample_rate = 100", "field 'sample_rate': unknown; expected"),
     ],
@@ -138,21 +140,27 @@ CHANNELS = "[channels]\n" + "".join(f'{c} = "{c}"\n' for c in synthetic_channels
 @pytest.mark.parametrize(
     ("top", "channels", "message"),
     [  # type, range, a quantity's unit, choices, an element's rule, nested table, required
-        ("seed = 1.5", "", "key 'seed': expected an integer >= 0, got 1.5"),
+        ("seed = 1.5", "", "key 'seed': expected an integer >= 0, got a float (1.5)"),
         ("steering_ratio = 0", "", "key 'steering_ratio': expected a number > 0, got 0"),
         (
             'min_speed = "5 furlongs"',
             "",
-            "key 'min_speed': expected a number or '<number> <unit>' >= 0 [m/s], got '5 furl",
+            "key 'min_speed': expected a number or '<number> <unit>' whose value in m/s is >= 0, "
+            "got '5 furl",
         ),
-        ('sample_time = "2 s"', "", "key 'sample_time': expected a number or '<number> <un"),
+        (  # the range reads with the value, not after the unit alternative
+            'sample_time = "2 s"',
+            "",
+            "key 'sample_time': expected a number or '<number> <unit>' whose value in s is "
+            ">= 0.0001 and <= 1, got '2 s'",
+        ),
         ("", "ay = { column = 'ay', sign = 2 }", "key 'channels.ay.sign': expected one of [1, -1]"),
         (
             "",
             "ay = { column = 'ay', scale = 0 }",
             "key 'channels.ay.scale': expected a number other",
         ),
-        ("", "ay = 3", "key 'channels.ay': expected a column name or a table, got 3"),
+        ("", "ay = 3", "key 'channels.ay': expected a column name or a table, got an integer (3)"),
         (
             "[split]\ntrain_every = 0",
             "",
@@ -187,8 +195,8 @@ def test_a_mapping_without_channels_says_the_key_is_missing(tmp_path, recording)
 # ------------------------------------------------------------ run configuration, merge
 def test_the_merge_takes_each_key_from_the_first_layer_that_gives_it():
     """Command line over configuration file over tuned file over defaults, key by key."""
-    cli = Layer({"a": 1, "b": None, "c": None, "d": None}, lambda k: f"--{k}", "command line")
-    file = Layer({"b": 2, "c": None}, lambda k: f"file, key {k!r}", "file")
+    cli = Layer({"a": 1}, lambda k: f"--{k}", "command line")  # a key absent: not given
+    file = Layer({"b": 2}, lambda k: f"file, key {k!r}", "file")
     tuned = Layer({"b": 30, "c": 3}, lambda k: "the tuned file", "tuned")
     default = Layer({"a": 40, "b": 40, "c": 40, "d": 4}, lambda k: f"the default {k}", "default")
     rule_ = each(int, low=0)
@@ -202,13 +210,23 @@ def test_the_merge_takes_each_key_from_the_first_layer_that_gives_it():
     assert "e" not in merge({"e": rule_}, [cli, default])
 
 
+def test_a_null_in_a_layer_is_refused_naming_it_not_taken_for_absent():
+    """A JSON ``null`` (None) is a value no setting takes: it must not fall back to the
+    next layer (a tuned file's ``"filter": null`` would silently become the default)."""
+    tuned = Layer({"filter": None}, lambda k: f"tuned.json, key {k!r}", "tuned")
+    default = Layer({"filter": "ukf"}, lambda k: "the default", "default")
+    with pytest.raises(SettingError) as info:
+        merge({"filter": each(object)}, [tuned, default])
+    assert str(info.value) == "tuned.json, key 'filter': expected a value, got null"
+
+
 @pytest.mark.parametrize(
     ("layer", "message"),
     [
         (Layer({"n": -1}, lambda k: f"--{k}"), "--n: expected an integer >= 0, got -1"),
         (
             Layer({"n": "x"}, lambda k: f"configuration file cfg.toml, key {k!r}"),
-            "configuration file cfg.toml, key 'n': expected an integer >= 0, got 'x'",
+            "configuration file cfg.toml, key 'n': expected an integer >= 0, got a string ('x')",
         ),
     ],
 )
@@ -261,7 +279,7 @@ def test_a_cost_setting_that_does_not_apply_names_where_it_was_given(tmp_path):
 @pytest.mark.parametrize(
     ("text", "message"),
     [  # type, range, choices, an element's rule, a table's keys, nested table, unknown key
-        ('seed = "x"', "key 'seed': expected an integer >= 0, got 'x'"),
+        ('seed = "x"', "key 'seed': expected an integer >= 0, got a string ('x')"),
         ("workers = 0", "key 'workers': expected an integer >= 1 and <= "),
         ('filter = "pf"', "key 'filter': expected one of ['ukf', 'ekf'], got 'pf'"),
         ('methods = ["ga", "gd"]', "key 'methods[1]': expected one of ['trbo', "),
@@ -269,6 +287,15 @@ def test_a_cost_setting_that_does_not_apply_names_where_it_was_given(tmp_path):
         ("[cost]\nweights = { beta = -1.0 }", "[cost] key 'weights.beta': expected a number >= 0"),
         ("[ukf]\ngamma = 1.0", "[ukf] key 'gamma': unknown; expected some of ['alpha', 'beta',"),
         ("budjet = 40", "key 'budjet': unknown; expected some of ['dataset', 'method', 'm"),
+        ("budjet = 40\nsede = 1", "key 'budjet' (and 'sede'): unknown; expected some of"),
+        ("budget = 10.0", "key 'budget': expected an integer >= 1 and <= 100000, got a float"),
+        ("budget = true", "key 'budget': expected an integer >= 1 and <= 100000, got a boolean"),
+        ("batch = 100001", "key 'batch': expected an integer >= 1 and <= 100000, got 100001"),
+        ("r0 = { ay = -1 }", "[r0] key 'ay': expected a number > 0, got -1"),
+        ("[ukf]\nalpha = 0", "[ukf] key 'alpha': expected a number > 0, got 0"),
+        ("[ukf]\nbeta = -1", "[ukf] key 'beta': expected a number >= 0, got -1"),
+        ('[options.tsbo-gp]\nmode = "fast"', "[options.tsbo-gp] key 'mode': expected one of ["),
+        ("[options.trbo]\nn_init = 0", "[options.trbo] key 'n_init': expected an integer >= 1"),
     ],
 )
 def test_a_configuration_constraint_violation_names_the_file_and_key(
@@ -315,3 +342,124 @@ def test_a_model_that_does_not_load_names_where_it_was_chosen(capsys, tmp_path):
     assert f"configuration file {cfg}, key 'model': " in capsys.readouterr().err
     assert main(["evaluate", "--manual", "--config", str(cfg), "--model", "unicycle2"]) == 2
     assert "--model: " in capsys.readouterr().err
+
+
+# ------------------------------------------------------- the model, the filter, the data
+@pytest.fixture
+def no_vehicle(tmp_path: Path) -> Path:
+    """The synthetic dataset saved without its vehicle (as data of something else are)."""
+    import dataclasses
+
+    folder = tmp_path / "novehicle"
+    save_dataset(dataclasses.replace(synthetic_dataset(), vehicle=None), folder, compress=False)
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("argv", "config"),
+    [
+        (["--filter", "ekf"], ""),  # the filter is fine: the data lack the vehicle
+        ([], 'filter = "ekf"\n'),
+        ([], ""),
+    ],
+)
+def test_a_vehicle_model_on_data_without_a_vehicle_blames_the_dataset_not_a_setting(
+    no_vehicle, tmp_path, capsys, argv, config
+):
+    cfg = tmp_path / "d.toml"
+    cfg.write_text("seed = 1\n" + config)
+    code = main(["tune", str(no_vehicle), "--config", str(cfg), "-n", "1", *argv])
+    err = capsys.readouterr().err
+    assert code == 3 and "Traceback" not in err, err
+    assert "model 'single-track' needs the vehicle's parameters" in err
+    assert "dataset 'synthetic': model 'single-track' needs" in err
+    assert "--filter" not in err and "key 'filter'" not in err and "d.toml" not in err, err
+
+
+def test_an_unknown_filter_or_model_is_still_blamed_on_where_it_was_given(tmp_path, capsys):
+    cfg = tmp_path / "m.toml"
+    cfg.write_text('model = "no-such-model"\n')
+    assert main(["evaluate", "--manual", "--config", str(cfg)]) == 3
+    err = capsys.readouterr().err
+    assert f"configuration file {cfg}, key 'model': " in err and "no-such-model" in err, err
+    with pytest.raises(SystemExit) as info:  # argparse refuses an unknown --filter itself
+        main(["evaluate", "--manual", "--filter", "pf"])
+    assert info.value.code == 2
+
+
+def test_a_vehicle_that_lacks_the_models_parameters_is_refused_not_replaced_by_a_preset():
+    """The model's parameters come from the dataset's vehicle; one it cannot read them from
+    is an error naming the model, not a silent fall back to the BMW preset."""
+    from kftune.errors import ModelChoiceError
+    from kftune.tuning.runs import filter_spec
+
+    class Partial:  # a vehicle record without the tyre stiffnesses
+        m = 1500.0
+
+    with pytest.raises(ModelChoiceError) as info:
+        filter_spec("single-track", "ukf", Partial())
+    text = str(info.value)
+    assert info.value.key is None and isinstance(info.value, ConfigError)
+    assert text.startswith("model 'single-track' cannot read its parameters from the dataset's")
+
+
+# ------------------------------------------- settings merged from every source, and nulls
+def test_compare_budgets_merge_method_by_method_and_a_bad_one_names_its_source():
+    from kftune.cli._common import budgets
+
+    config = {"budgets": {"ga": 5, "trbo": 9}, "_file": "c.toml"}
+    assert budgets([("ga", 7)], config) == {"ga": 7, "trbo": 9}
+    assert budgets(None, {}) == {}
+    with pytest.raises(SettingError) as info:
+        budgets(None, {"budgets": {"ga": 0}, "_file": "c.toml"})
+    assert str(info.value) == (
+        "configuration file c.toml, [budgets] key 'ga': expected an integer >= 1 and <= 100000, "
+        "got 0"
+    )
+
+
+def test_a_tuned_files_burn_in_is_merged_below_the_configuration_and_checked():
+    from kftune.cli._common import pick_tuned
+
+    tuned = (Path("t.json"), {"burn_in": 2.0})
+    assert pick_tuned(_args(burn_in=None), {}, "burn_in", tuned) == 2.0
+    assert pick_tuned(_args(burn_in=None), {"burn_in": 1.0}, "burn_in", tuned) == 1.0
+    assert pick_tuned(_args(burn_in=0.5), {"burn_in": 1.0}, "burn_in", tuned) == 0.5
+    assert pick_tuned(_args(burn_in=None), {}, "burn_in", None) == 0.0  # the default
+    for bad, got in [(None, "null"), (-1.0, "-1.0"), ("2 s", "a string ('2 s')")]:
+        with pytest.raises(SettingError) as info:
+            pick_tuned(_args(burn_in=None), {}, "burn_in", (Path("t.json"), {"burn_in": bad}))
+        assert str(info.value) == (
+            f"tuned file t.json, key 'burn_in': expected a number >= 0 [s], got {got}"
+        )
+
+
+def test_a_null_filter_in_a_tuned_file_is_refused_naming_the_file_not_the_default(tmp_path):
+    """A JSON ``"filter": null`` used to read as "not given": the default UKF ran, unsaid."""
+    from kftune.cli._common import filter_spec_of
+
+    tuned = (tmp_path / "t.json", {"model": "ctrv", "filter": None})
+    with pytest.raises(ConfigError) as info:
+        filter_spec_of(_args(), {}, None, tuned)
+    assert str(info.value) == (
+        f"{tmp_path / 't.json'}: the filter it was tuned with: expected a value, got null"
+    )
+    fs = filter_spec_of(_args(), {}, None, (tmp_path / "t.json", {"model": "ctrv"}))
+    assert fs.filter == "ukf"  # absent: the default
+
+
+def test_compare_methods_and_r0_come_through_the_merge():
+    config = {"methods": ["ga"], "r0": {"ay": 0.5}, "_file": "c.toml"}
+    assert pick(_args(methods=None), config, "methods", None) == ["ga"]
+    assert pick(_args(methods=["trbo"]), config, "methods", None) == ["trbo"]
+    assert pick(_args(), config, "r0", {}) == {"ay": 0.5} and pick(_args(), {}, "r0", {}) == {}
+
+
+def test_a_bad_tune_model_box_shows_an_example(tmp_path, capsys):
+    cfg = tmp_path / "b.toml"
+    cfg.write_text("[parameters]\ntune_model = { cf = [1] }\n")
+    assert main(["evaluate", "--manual", "--config", str(cfg)]) == 3
+    assert (
+        f"configuration file {cfg}, [parameters] key 'tune_model.cf': expected [low, high] in "
+        "the parameter's unit, e.g. C_af = [20000.0, 400000.0], got [1]"
+    ) in capsys.readouterr().err

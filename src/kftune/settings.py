@@ -30,6 +30,7 @@ T = TypeVar("T")
 #: The TOML types of a number (a boolean, although an ``int`` in Python, is not one).
 NUMBER: tuple[type, ...] = (int, float)
 _TYPE_NAMES = {
+    object: "a value",
     bool: "true or false",
     int: "an integer",
     float: "a number",
@@ -37,6 +38,18 @@ _TYPE_NAMES = {
     list: "an array",
     dict: "a table",
 }
+#: How a value of the wrong type is named in a message (TOML's and JSON's words).
+_GOT_TYPES = {
+    bool: "a boolean",
+    int: "an integer",
+    float: "a float",
+    str: "a string",
+    list: "an array",
+    dict: "a table",
+}
+#: The value of a key that a source does not give (:func:`merge`); None is a value (a JSON
+#: ``null``), refused where a setting needs one.
+ABSENT: Any = object()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,10 +72,15 @@ class Rule:
 
     def describe(self) -> str:
         """``"an integer >= 1 and <= 100000"``, ``"a number > 0 and <= 1 [s]"``,
-        ``"one of ['train', 'test']"``: what the rule accepts, for messages."""
+        ``"one of ['train', 'test']"``, ``"a number or '<number> <unit>' whose value in s is
+        >= 0.0001 and <= 1"``: what the rule accepts, for messages."""
+        bounds = self.bounds()
         if self.what:
-            text = self.what
-        elif self.choices is not None:
+            if not bounds:
+                return f"{self.what} [{self.unit}]" if self.unit else self.what
+            unit = f" in {self.unit}" if self.unit else ""
+            return f"{self.what} whose value{unit} is {bounds}"
+        if self.choices is not None:
             text = (
                 repr(self.choices[0]) if len(self.choices) == 1 else f"one of {list(self.choices)}"
             )
@@ -72,14 +90,21 @@ class Rule:
                 "a table" if dataclasses.is_dataclass(k) else _TYPE_NAMES.get(k, k.__name__)
                 for k in kinds
             )
-        if self.low is not None:
-            text += f" {'>' if self.strict else '>='} {self.low:g}"
-        if self.high is not None:
-            text += f"{' and' if self.low is not None else ''} "
-            text += f"{'<' if self.high_strict else '<='} {self.high:g}"
-        if self.nonzero:
-            text += " other than 0"
+        text += f" {bounds}" if bounds else ""
         return f"{text} [{self.unit}]" if self.unit else text
+
+    def bounds(self) -> str:
+        """``">= 1 and <= 100000"``, ``"other than 0"``: the range part of :meth:`describe`
+        ("" without one)."""
+        parts = []
+        if self.low is not None:
+            parts.append(f"{'>' if self.strict else '>='} {self.low:g}")
+        if self.high is not None:
+            parts.append(f"{'<' if self.high_strict else '<='} {self.high:g}")
+        text = " and ".join(parts)
+        if self.nonzero:
+            text += " other than 0" if text else "other than 0"
+        return text
 
 
 def rule(kind: type | tuple[type, ...], **constraints: Any) -> dict[str, Rule]:
@@ -104,7 +129,10 @@ def each(kind: type | tuple[type, ...], **rule: Any) -> Rule:
 class SettingError(KftuneError, ValueError):
     """A key that is unknown, missing or holds a bad value; ``str()`` is the whole message.
     ``where``: where the key lies, when a caller words it (``"--budget"``, a file and a
-    table); else the key's dotted path is named."""
+    table); else the key's dotted path is named. ``unknown``: every unknown key of the
+    table (``key`` is the first), all of them named. ``wrong_type``: the value's type is
+    what is wrong (a boolean or a float where an integer belongs), so the message names
+    it."""
 
     def __init__(
         self,
@@ -114,20 +142,43 @@ class SettingError(KftuneError, ValueError):
         *,
         allowed: Sequence[str] | None = None,
         missing: bool = False,
+        unknown: Sequence[str] = (),
+        wrong_type: bool = False,
     ) -> None:
         self.key, self.expected, self.value = key, expected, value
         self.allowed, self.missing = allowed, missing
+        self.unknown = list(unknown) or [key]
+        self.wrong_type = wrong_type
         self.where: str | None = None
         super().__init__(key)
 
     def text(self, noun: str = "key") -> str:
         """The message, the key called a ``noun`` (a manifest's "field")."""
-        where = self.where or f"{noun} {excerpt(self.key)}"
         if self.allowed is not None:
+            if len(self.unknown) > 1 and self.where is None:
+                names = ", ".join(excerpt(k) for k in self.unknown)
+                return f"{noun}s {names}: unknown; expected some of {list(self.allowed)}"
+            where = self.where or f"{noun} {excerpt(self.key)}"
+            if len(self.unknown) > 1:  # the caller named the first: name the others too
+                others = ", ".join(excerpt(k.rpartition(".")[2]) for k in self.unknown[1:])
+                where += f" (and {others})"
             return f"{where}: unknown; expected some of {list(self.allowed)}"
+        where = self.where or f"{noun} {excerpt(self.key)}"
         if self.missing:
             return f"{where} is missing"
-        return f"{where}: expected {self.expected}, got {excerpt(self.value)}"
+        return f"{where}: expected {self.expected}, got {self.got()}"
+
+    def got(self) -> str:
+        """The value as a message shows it: ``null`` for None (a JSON null), ``a boolean
+        (true)``, ``a float (10.0)`` where the type is wrong, else an excerpt."""
+        if self.value is None:
+            return "null"
+        if isinstance(self.value, bool):
+            return f"a boolean ({str(self.value).lower()})"
+        name = _GOT_TYPES.get(type(self.value))
+        if self.wrong_type and name is not None:
+            return f"{name} ({excerpt(self.value)})"
+        return excerpt(self.value)
 
     def __str__(self) -> str:
         return self.text()
@@ -145,8 +196,9 @@ def check(rule: Rule, value: Any, key: str) -> Any:
     if record is not None and isinstance(value, dict):
         return validate(record, value, key)
     boolean = isinstance(value, bool) and not any(k in (bool, object) for k in rule.kind)
-    if boolean or not isinstance(value, rule.kind):  # True is an int, but not a number
-        raise bad
+    # True is an int, but not a number; None (a JSON null) is no setting's value
+    if boolean or value is None or not isinstance(value, rule.kind):
+        raise SettingError(key, rule.describe(), value, wrong_type=True)
     if rule.convert is not None:
         try:
             value = rule.convert(value)
@@ -165,9 +217,9 @@ def check(rule: Rule, value: Any, key: str) -> Any:
         raise bad
     if isinstance(value, dict):
         if rule.keys is not None:
-            unknown = [k for k in value if k not in rule.keys]
+            unknown = [f"{key}.{k}" for k in value if k not in rule.keys]
             if unknown:
-                raise SettingError(f"{key}.{unknown[0]}", allowed=rule.keys)
+                raise SettingError(unknown[0], allowed=rule.keys, unknown=unknown)
         if rule.each is not None:
             return {k: check(rule.each, v, f"{key}.{k}") for k, v in value.items()}
     if isinstance(value, list) and rule.each is not None:
@@ -193,9 +245,9 @@ def validate(cls: type[T], data: Any, path: str = "", **extra: Any) -> T:
     if not isinstance(data, dict):
         raise SettingError(path, "a table", data)
     prefix = f"{path}." if path else ""
-    for key in data:
-        if key not in declared:
-            raise SettingError(f"{prefix}{key}", allowed=list(declared))
+    unknown = [f"{prefix}{key}" for key in data if key not in declared]
+    if unknown:
+        raise SettingError(unknown[0], allowed=list(declared), unknown=unknown)
     values = {}
     for key, rule in declared.items():
         if key in data:
@@ -226,7 +278,8 @@ def given(record: Any) -> dict[str, Any]:
 
 @dataclasses.dataclass(frozen=True)
 class Layer:
-    """One source of settings: ``values`` by key (None: not given); ``where`` says where a
+    """One source of settings: ``values`` by key (a key it does not hold: not given; None,
+    a JSON null, is refused where a setting needs a value); ``where`` says where a
     key's value lies (``"--budget"``, ``"configuration file run.toml, [cost] kind"``);
     ``name``: what the source is (``"command line"``), for a caller to choose its error."""
 
@@ -240,7 +293,9 @@ def merge(
 ) -> dict[str, tuple[Any, Layer]]:
     """Each key's value from the first layer that gives it (``layers`` in precedence order,
     e.g. command line, configuration file, tuned file, defaults), checked against its rule,
-    with the layer it came from: key → (value, layer). A key no layer gives is left out.
+    with the layer it came from: key → (value, layer). A key no layer gives is left out;
+    a layer that gives None (a JSON ``null``) gives a bad value, not none (a ``"filter":
+    null`` would otherwise fall back to the default unsaid).
 
     Raises:
         SettingError: a bad value, its ``where`` naming the layer and key that gave it.
@@ -248,8 +303,8 @@ def merge(
     out: dict[str, tuple[Any, Layer]] = {}
     for key, rule in rules_by_key.items():
         for layer in layers:
-            value = layer.values.get(key)
-            if value is None:
+            value = layer.values.get(key, ABSENT)
+            if value is ABSENT:
                 continue
             try:
                 out[key] = (check(rule, value, key), layer)

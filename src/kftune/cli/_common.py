@@ -62,7 +62,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 from kftune.errors import ConfigError, DataError, UsageError, excerpt
-from kftune.optim import MAX_TIMEOUT, METHODS, PeerUnavailableError, make_optimizer
+from kftune.optim import (
+    BATCH_RULE,
+    MAX_BUDGET,
+    MAX_TIMEOUT,
+    METHODS,
+    PeerUnavailableError,
+    make_optimizer,
+)
 from kftune.settings import (
     NUMBER,
     Layer,
@@ -86,10 +93,6 @@ if TYPE_CHECKING:  # the filter and data layers load numba/scipy: only when a co
     from kftune.tuning.cost import CostSpec
     from kftune.tuning.parameterization import NoiseParameterization
 
-#: Most cost evaluations a run may be given (``-n``, ``budget``, ``budgets``): far beyond
-#: any tuning that ends — the Bayesian methods' step grows as n³ — while a typing slip
-#: (``-n 1000000000000``) would run until killed.
-MAX_BUDGET = 100_000
 #: Most worker processes (``--workers``): four per CPU of this machine. More only share the
 #: same CPUs, each holding its own copy of the data (``--workers 100000`` would start a
 #: hundred thousand processes).
@@ -116,7 +119,12 @@ def _boxes(value: list[Any] | dict[str, Any]) -> Any:
     return _box(value) if isinstance(value, list) else {k: _box(v) for k, v in value.items()}
 
 
-_BOX = each(list, convert=_box, what="[low, high] in the parameter's unit")
+#: A tuned model parameter's box; the example is the single-track front cornering
+#: stiffness's plausible range [N/rad] (the model, and so the parameter's own range, is not
+#: known when the configuration is read: the run checks the box against it).
+_BOX = each(
+    list, convert=_box, what="[low, high] in the parameter's unit, e.g. C_af = [20000.0, 400000.0]"
+)
 
 
 @dataclass(frozen=True)
@@ -158,9 +166,9 @@ class ParametersTable:
 class UKFTable:
     """``[ukf]``: the sigma-point parameters where they are not tuned."""
 
-    alpha: float | None = setting(kind=NUMBER)
-    beta: float | None = setting(kind=NUMBER)
-    kappa: float | None = setting(kind=NUMBER)
+    alpha: float | None = setting(kind=NUMBER, low=0, strict=True)
+    beta: float | None = setting(kind=NUMBER, low=0)
+    kappa: float | None = setting(kind=NUMBER)  # n + kappa > 0: checked for the model's n
 
 
 @dataclass(frozen=True)
@@ -180,13 +188,15 @@ class RunConfig:
     seed: int | None = setting(kind=int, low=0)
     model: str | None = setting(kind=str)
     filter: str | None = setting(kind=str, choices=("ukf", "ekf"))
-    r0: dict[str, float] | None = field(default=None, metadata=rule(dict))
+    r0: dict[str, float] | None = field(
+        default=None, metadata=rule(dict, each=each(NUMBER, low=0, strict=True))
+    )
     workers: int | None = setting(kind=int, low=1, high=MAX_WORKERS)
     timeout: float | None = setting(kind=NUMBER, low=0, strict=True, high=MAX_TIMEOUT, unit="s")
     widen_bounds: bool | None = setting(kind=bool)
     calibration: str | None = setting(kind=str, choices=CALIBRATIONS)
     scheduler: str | None = setting(kind=str)
-    batch: int | None = setting(kind=int, low=1, high=MAX_BUDGET)
+    batch: int | None = field(default=None, metadata={"rule": BATCH_RULE})
     burn_in: float | None = setting(kind=NUMBER, low=0, unit="s")
     cost: CostTable | None = field(default=None, metadata=rule(CostTable))
     parameters: ParametersTable | None = field(default=None, metadata=rule(ParametersTable))
@@ -250,8 +260,11 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
             make_optimizer(method, {"x": (0.0, 1.0)}, seed=0, **checkable)
         except PeerUnavailableError:
             pass  # the run itself says which package is missing
+        except SettingError as exc:  # a value the method's settings record refuses
+            exc.where = f"configuration file {p}, [options.{method}] key {excerpt(exc.key)}"
+            raise ConfigError(str(exc)) from None
         except (ValueError, TypeError) as exc:
-            raise ConfigError(f"{p} [options.{method}]: {exc}") from None
+            raise ConfigError(f"configuration file {p}, [options.{method}]: {exc}") from None
     if "dataset" in data and data["dataset"] != "default":
         ds = Path(data["dataset"])
         data["dataset"] = str(ds if ds.is_absolute() else (p.parent / ds))
@@ -317,15 +330,16 @@ def _where(config: Mapping[str, Any], section: str) -> str:
 def layers(
     args: argparse.Namespace | None,
     config: Mapping[str, Any],
-    tuned: tuple[str, Mapping[str, Any]] | None = None,
+    tuned: tuple[str | Callable[[str], str], Mapping[str, Any]] | None = None,
     defaults: Mapping[str, Any] | None = None,
     section: str = "",
     options: Mapping[str, str] | None = None,
 ) -> list[Layer]:
     """The sources of settings in precedence order: the command line (``args``: a key's
     option is ``--key-name``, or ``options[key]``), the configuration file, a tuned file
-    (``tuned``: (what it is called, its settings)) and the defaults; ``section``: the
-    configuration's table (``"cost"``) that holds the keys."""
+    (``tuned``: (what it is called, or a function of the key saying where that key lies;
+    its settings)) and the defaults; ``section``: the configuration's table (``"cost"``)
+    that holds the keys."""
     table = config.get(section, {}) if section else config
     file = config.get(_FILE, "the configuration")
     inner = f"{section}." if section else ""
@@ -334,17 +348,21 @@ def layers(
     if args is not None:
         names = vars(args)
         cli = {k: names.get(o.lstrip("-").replace("-", "_")) for k, o in opts.items()}
+        given = {**names, **cli} if not section else cli
         out.append(
             Layer(
-                {**names, **cli} if not section else cli,
+                {k: v for k, v in given.items() if v is not None},  # argparse's None: not given
                 lambda k: opts.get(k, f"--{k.replace('_', '-')}"),
                 "command line",
             )
         )
     out.append(Layer(table, lambda k: _in_file(file, inner + k), "file"))
     if tuned is not None:
-        out.append(Layer(tuned[1], lambda k: tuned[0], "tuned"))
-    out.append(Layer(defaults or {}, lambda k: f"the default {k}", "default"))
+        named = tuned[0]
+        where = named if callable(named) else lambda k: str(named)
+        out.append(Layer(tuned[1], where, "tuned"))
+    fallback = {k: v for k, v in (defaults or {}).items() if v is not None}  # None: no default
+    out.append(Layer(fallback, lambda k: f"the default {k}", "default"))
     return out
 
 
@@ -365,10 +383,39 @@ def pick(
     args: argparse.Namespace, config: Mapping[str, Any], key: str, default: Any = _DEFAULT
 ) -> Any:
     """The command-line value if given, else the configuration's, else ``default`` (where
-    not passed: :data:`DEFAULTS`' value of ``key``, or None)."""
+    not passed: :data:`DEFAULTS`' value of ``key``, or None); checked against the
+    configuration's rule of ``key`` (:class:`RunConfig`), so that a bad value names its
+    source."""
     fallback = DEFAULTS.get(key) if default is _DEFAULT else default
-    chosen = merge({key: _ANY}, layers(args, config, defaults={key: fallback}))
+    chosen = merge({key: _RULES.get(key, _ANY)}, layers(args, config, defaults={key: fallback}))
     return chosen[key][0] if key in chosen else None
+
+
+def pick_tuned(
+    args: argparse.Namespace, config: Mapping[str, Any], key: str, tuned: tuple[Path, Any] | None
+) -> Any:
+    """:func:`pick` with a tuned file ``tuned`` (path, document) between the configuration
+    and the defaults: the value the file was tuned with where neither the command line nor
+    the configuration gives one (e.g. the burn-in it was scored with)."""
+    was = None if tuned is None else (lambda k: f"tuned file {tuned[0]}, key {k!r}", tuned[1])
+    found = layers(args, config, was, defaults={key: DEFAULTS.get(key)})
+    chosen = merge({key: _RULES.get(key, _ANY)}, found)
+    return chosen[key][0] if key in chosen else None
+
+
+def budgets(
+    args_budgets: list[tuple[str, int]] | None, config: Mapping[str, Any]
+) -> dict[str, int]:
+    """The evaluations per method (``compare``): ``--budget METHOD=N`` over the
+    configuration's ``budgets`` table, method by method, each checked by the rule of a
+    budget (:func:`merge`; a bad one names the option or the file and key)."""
+    file = config.get(_FILE, "the configuration")
+    found = [
+        Layer(dict(args_budgets or []), lambda m: f"--budget {m}=…", "command line"),
+        Layer(config.get("budgets", {}), lambda m: _in_file(file, f"budgets.{m}"), "file"),
+    ]
+    chosen = merge(dict.fromkeys(METHODS, _RULES["budget"]), found)
+    return {m: v for m, (v, _) in chosen.items()}
 
 
 #: A rule that takes any value: for settings checked where they are read.
@@ -409,6 +456,7 @@ def arg_type(r: Rule) -> Callable[[str], Any]:
 
 _RULES = rules(RunConfig)
 BUDGET = arg_type(_RULES["budget"])
+BATCH = arg_type(BATCH_RULE)  # the rule Execution checks
 WORKERS = arg_type(_RULES["workers"])
 NON_NEGATIVE_INT = arg_type(_RULES["seed"])
 NON_NEGATIVE_FLOAT = arg_type(_RULES["burn_in"])
@@ -701,11 +749,16 @@ def model_choice(
 
 
 def _model_layers(
-    args: argparse.Namespace, config: Mapping[str, Any], tuned: tuple[str, Mapping[str, Any]] | None
+    args: argparse.Namespace,
+    config: Mapping[str, Any],
+    tuned: tuple[str | Callable[[str], str], Mapping[str, Any]] | None,
 ) -> dict[str, tuple[Any, Layer]]:
     """The model and filter, each with the layer that gave it (:func:`merge`)."""
-    keys = dict.fromkeys(("model", "filter"), _ANY)
-    return merge(keys, layers(args, config, tuned, DEFAULTS))
+    keys = dict.fromkeys(("model", "filter"), _ANY)  # what they name: filter_spec checks
+    try:
+        return merge(keys, layers(args, config, tuned, DEFAULTS))
+    except SettingError as exc:  # a tuned file's null
+        raise ConfigError(str(exc)) from None
 
 
 def filter_spec_of(
@@ -713,26 +766,35 @@ def filter_spec_of(
     config: dict[str, Any],
     vehicle: Any,
     tuned: tuple[Path, Mapping[str, Any]] | None = None,
+    dataset: str | None = None,
 ) -> Any:
     """The :class:`~kftune.tuning.runs.FilterSpec` of :func:`model_choice` (loads a model
-    file). An unusable model says where it was named: an unknown ``--model`` name is a
-    usage error (exit 2); a model file, the configuration or the tuned file ``tuned``
-    (path, document) bad input (exit 3)."""
+    file). An unusable model or filter says where that setting was named: an unknown
+    ``--model`` name or ``--filter`` is a usage error (exit 2); a model file, the
+    configuration or the tuned file ``tuned`` (path, document) bad input (exit 3). A model
+    the data do not fit (a vehicle model on the dataset ``dataset`` (its name) without a
+    vehicle) blames no setting: it names the dataset (exit 3)."""
+    from kftune.errors import ModelChoiceError
     from kftune.tuning.runs import filter_spec
 
-    was = None if tuned is None else (f"{tuned[0]}: the model it was tuned with", tuned[1])
+    path = None if tuned is None else tuned[0]
+    was = None if tuned is None else (lambda k: f"{path}: the {k} it was tuned with", tuned[1])
     chosen = _model_layers(args, config, was)
     model, filt = chosen["model"][0], chosen["filter"][0]
     try:
         return filter_spec(model, filt, vehicle)
-    except ConfigError as exc:
-        key = "model" if chosen["model"][1].name != "default" else "filter"
-        layer = chosen[key][1]
+    except ModelChoiceError as exc:
+        if exc.key is None:  # the data lack what the model needs: no setting is wrong
+            if dataset is None:
+                raise
+            raise ModelChoiceError(f"dataset {dataset!r}: {exc}", None) from None
+        layer = chosen[exc.key][1]
         if layer.name == "default":
             raise
-        named = key == "filter" or split_model_file(model) is None  # not a model file
+        named = exc.key == "filter" or split_model_file(model) is None  # not a model file
         usage = layer.name == "command line" and named
-        raise (UsageError if usage else ConfigError)(f"{layer.where(key)}: {exc}") from None
+        error = UsageError if usage else ConfigError
+        raise error(f"{layer.where(exc.key)}: {exc}") from None
 
 
 def parameterization(
@@ -746,7 +808,7 @@ def parameterization(
     kwargs: dict[str, Any] = {
         "tune_r_scale": bool(pick(args, section, "tune_r_scale", False)),
         "tune_sigma_points": bool(pick(args, section, "tune_sigma_points", False)),
-        "default_settings": _ukf_settings(config),
+        "default_settings": _ukf_settings(config, 3 if model is None else model.n_states),
     }
     if "tune_r" in section:
         kwargs["tune_r"] = section["tune_r"]
@@ -813,14 +875,19 @@ def _model_boxes(
     return out
 
 
-def _ukf_settings(config: dict[str, Any]) -> UKFSettings:
+def _ukf_settings(config: dict[str, Any], n: int = 3) -> UKFSettings:
+    """The ``[ukf]`` sigma-point parameters (ranges checked by :class:`UKFTable`) for an
+    ``n``-state filter, whose ``kappa`` must keep n + κ > 0 (Julier and Uhlmann 1997)."""
     from kftune.filters import UKFSettings
 
-    try:
-        s = UKFSettings(**{k: float(v) for k, v in config.get("ukf", {}).items()})
-        s.check_dim(3)
-    except ValueError as exc:
-        raise ConfigError(f"{_where(config, 'ukf')}: {exc}") from None
+    table = config.get("ukf", {})
+    s = UKFSettings(**{k: float(v) for k, v in table.items()})
+    if not n + s.kappa > 0:
+        where = _in_file(config.get(_FILE, "the configuration"), "ukf.kappa")
+        raise ConfigError(
+            f"{where}: expected a number > {-n} (n + kappa > 0 for the {n}-state filter), "
+            f"got {excerpt(table.get('kappa'))}"
+        )
     return s
 
 

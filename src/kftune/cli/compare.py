@@ -35,6 +35,7 @@ from kftune.cli._common import (
     MAX_BUDGET,
     add_command,
     add_common,
+    budgets,
     burn_in,
     cost_spec,
     emit_json,
@@ -129,8 +130,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--methods: a method listed twice: {args.methods}")
     output_dir(args.out, "--out", command_inputs(args, config))
     dataset = open_dataset(pick(args, config, "dataset", None))
-    fs = filter_spec_of(args, config, dataset.vehicle)  # an unusable model stops here, named
-    methods = args.methods or config.get("methods")
+    fs = filter_spec_of(args, config, dataset.vehicle, dataset=dataset.name)  # stops here, named
+    methods = pick(args, config, "methods", None)
     idle = [m for m, _ in args.budget or [] if m not in (methods or COMPARE_METHODS)]
     if idle:
         raise UsageError(
@@ -141,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     settings = CompareSettings(
         **chosen,
         seed=pick(args, config, "seed"),
-        budgets={**config.get("budgets", {}), **dict(args.budget or [])},
+        budgets=budgets(args.budget, config),
         cost=cost_spec(args, config),
         parameterization=parameterization(args, config, fs.model),  # its tune_model names
         workers=pick(args, config, "workers"),
@@ -149,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         method_options=config.get("options", {}),
         model=model_choice(args, config)[0],
         filter=model_choice(args, config)[1],
-        r0=config.get("r0", {}),
+        r0=pick(args, config, "r0", {}),
     )
     studies = args.out / "studies"
     if args.resume and not any(studies.glob("*.db")):

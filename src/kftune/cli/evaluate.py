@@ -53,7 +53,6 @@ from kftune.cli._common import (
     NON_NEGATIVE_FLOAT,
     add_command,
     add_common,
-    burn_in,
     cost_spec,
     emit_json,
     filter_spec_of,
@@ -61,6 +60,7 @@ from kftune.cli._common import (
     model_file_from,
     parameterization,
     pick,
+    pick_tuned,
     split_model_file,
 )
 from kftune.cli.exit_codes import EXIT_FAILURE, EXIT_OK
@@ -431,7 +431,8 @@ def run(args: argparse.Namespace) -> int:
     if tuned is not None:  # the filter as tuned: for these recordings, on its vehicle
         vehicle, _ = check_recordings(tuned, args.params, dataset, manoeuvres, args.force)
     # unless told otherwise, the model the parameters were tuned for
-    fs = filter_spec_of(args, config, vehicle, None if tuned is None else (args.params, tuned))
+    was = None if tuned is None else (args.params, tuned)
+    fs = filter_spec_of(args, config, vehicle, was, dataset=dataset.name)
     check_units(fs.model, dataset)
     model = fs.model
     # unless told otherwise, score the way the parameters were tuned: what the command line
@@ -439,10 +440,9 @@ def run(args: argparse.Namespace) -> int:
     spec = cost_spec(
         args, config, None if tuned is None else tuned.get("cost_spec", {}), model=model
     )
-    scored_after = burn_in(args, config)
+    # the burn-in the file was scored with, unless the command line or configuration says
+    scored_after = float(pick_tuned(args, config, "burn_in", was))
     if tuned is not None:
-        if args.burn_in is None and "burn_in" not in config:
-            scored_after = float(tuned.get("burn_in", 0.0))
         params = tuned["params"]
         r_scale = float(params.get("r_scale", 1.0))
         ukf = UKFSettings(**tuned["ukf"])
@@ -460,7 +460,7 @@ def run(args: argparse.Namespace) -> int:
                 )
             factors = [1.0] * model.n_measurements
         else:  # a file from before R was recorded: the data's R times the tuned scales
-            r0 = default_r0(model, dataset, config.get("r0"))
+            r0 = default_r0(model, dataset, pick(args, config, "r0", None))
             factors = [
                 r_scale * float(params.get(f"r_{m}_scale", 1.0)) for m in model.measurement_names
             ]
@@ -481,7 +481,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{list(par.q_names)}, got {len(args.q)}"
             )
         x = np.array(args.q) if args.q else manual_point(par)
-        r0 = default_r0(model, dataset, config.get("r0"))
+        r0 = default_r0(model, dataset, pick(args, config, "r0", None))
 
     def problem_for(cost: CostSpec) -> TuningProblem:
         return TuningProblem(

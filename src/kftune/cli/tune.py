@@ -77,6 +77,7 @@ from typing import TYPE_CHECKING, Any
 
 from kftune import __version__
 from kftune.cli._common import (
+    BATCH,
     BUDGET,
     CALIBRATIONS,
     MAX_BUDGET,
@@ -174,7 +175,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--batch",
-        type=BUDGET,
+        type=BATCH,
         help="points evaluated at a time (default: the Dask cluster's workers; 1 without "
         "--scheduler)",
     )
@@ -299,14 +300,14 @@ def run(args: argparse.Namespace) -> int:
                 f"{len(dataset.test)} are all test manoeuvres; see kftune dataset info)"
             )
         method = pick(args, config, "method", DEFAULT_METHOD)  # both checked already
-        fs = filter_spec_of(args, config, dataset.vehicle)
+        fs = filter_spec_of(args, config, dataset.vehicle, dataset=dataset.name)
         check_units(fs.model, dataset)
         scheduler = pick(args, config, "scheduler", None)
         workers = pick(args, config, "workers")
         problem = TuningProblem(
             dataset.train,
             dataset.vehicle,
-            default_r0(fs.model, dataset, config.get("r0")),
+            default_r0(fs.model, dataset, pick(args, config, "r0", None)),
             cost=cost_spec(args, config, model=fs.model),
             parameterization=parameterization(args, config, fs.model),
             workers=1 if scheduler is not None else workers,  # the cluster's processes

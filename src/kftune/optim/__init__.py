@@ -19,8 +19,10 @@ from kftune.optim.base import ExhaustedError, Optimizer, Proposal, Trial
 from kftune.optim.baselines import ManualPoints, RandomSearch
 from kftune.optim.ga import GeneticAlgorithm
 from kftune.optim.minimize import (
+    BATCH_RULE,
     COMPARE_METHODS,
     DEFAULT_METHOD,
+    MAX_BUDGET,
     MAX_TIMEOUT,
     METHODS,
     PAPER_METHODS,
@@ -45,9 +47,11 @@ from kftune.optim.widen import minimize_widening
 from kftune.space import Param, Space
 
 __all__ = [
+    "BATCH_RULE",
     "CMAES",
     "COMPARE_METHODS",
     "DEFAULT_METHOD",
+    "MAX_BUDGET",
     "MAX_TIMEOUT",
     "METHODS",
     "PAPER_METHODS",

@@ -70,6 +70,7 @@ from kftune.optim.result import FAILED, EvalRecord, OptimizeResult
 from kftune.optim.settings import option_names, settings_from
 from kftune.optim.study import Study, StudyError
 from kftune.processes import watch_parent
+from kftune.settings import Rule, SettingError, check
 from kftune.space import Space
 
 #: Tolerance (unit cube, max-norm) for a replayed proposal to count as the stored one.
@@ -78,6 +79,13 @@ REPLAY_ATOL = 1e-9
 #: [s] the longest per-evaluation timeout (11.6 days): waiting on a worker takes a timeout
 #: below 2^31 ms, and a longer one is no limit at all (leave the timeout out instead).
 MAX_TIMEOUT = 1e6
+#: Most cost evaluations a run may be given (a budget, a batch): far beyond any tuning that
+#: ends — the Bayesian methods' step grows as n³ — while a typing slip (``-n 1000000000000``)
+#: would run until killed.
+MAX_BUDGET = 100_000
+#: The rule of a batch's size (``Execution.batch``, a configuration's ``batch``, ``tune
+#: --batch``): points per ``ask(q)``, one rule wherever it is given.
+BATCH_RULE = Rule((int,), low=1, high=MAX_BUDGET)
 
 
 def _registry() -> dict[str, tuple[type[Optimizer], dict[str, Any]]]:
@@ -150,7 +158,7 @@ def make_optimizer(
         allowed = [n for n in params if n not in ("self", "space", "budget", "seed")]
     unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise ValueError(f"method {method!r} has no option(s) {unknown}; its options: {allowed}")
+        raise ConfigError(f"method {method!r} has no option(s) {unknown}; its options: {allowed}")
     clash = sorted(set(options) & set(defaults))
     if clash:
         raise ValueError(f"method {method!r} fixes {clash}; use another method name instead")
@@ -207,10 +215,11 @@ class Execution:
                 f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}] or None, "
                 f"got {timeout!r}"
             )
-        if batch is not None and (
-            isinstance(batch, bool) or not isinstance(batch, int) or batch < 1
-        ):
-            raise ConfigError(f"batch must be a positive integer, got {batch!r}")
+        if batch is not None:
+            try:
+                check(BATCH_RULE, batch, "batch")
+            except SettingError as exc:
+                raise ConfigError(str(exc)) from None
         if timeout is not None and self.batched:
             raise ConfigError(
                 "a per-evaluation timeout runs every evaluation in one local worker process; it "

@@ -13,6 +13,8 @@ from collections.abc import Mapping
 from dataclasses import fields, is_dataclass
 from typing import Any, TypeVar
 
+from kftune.errors import ConfigError
+
 S = TypeVar("S")
 
 
@@ -27,11 +29,12 @@ def settings_from(record_type: type[S], options: Mapping[str, Any], method: str)
     """A ``record_type`` built from keyword ``options`` of method ``method``.
 
     Raises:
-        ValueError: a name the record does not have (the message names it and lists the
-            method's options), or a value its checks refuse.
+        ConfigError: a name the record does not have (the message names it and lists the
+            method's options).
+        SettingError: a value the record's checks refuse, naming its key.
     """
     allowed = option_names(record_type)
     unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise ValueError(f"method {method!r} has no option(s) {unknown}; its options: {allowed}")
+        raise ConfigError(f"method {method!r} has no option(s) {unknown}; its options: {allowed}")
     return record_type(**options)

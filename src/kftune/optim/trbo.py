@@ -102,6 +102,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from kftune.optim.base import SAME_POINT_ATOL, Optimizer, Proposal, Trial, coincides
+from kftune.settings import SettingError
 
 WARPS = ("none", "log", "log-min")
 INIT_DESIGNS = ("auto", "axial", "direct", "sobol")
@@ -137,7 +138,7 @@ def auto_design(param: Any) -> str:
 def _check_number(name: str, value: Any, ok: Any, expected: str) -> None:
     """Refuse ``value`` unless it is a number (not a bool) for which ``ok(value)`` holds."""
     if isinstance(value, bool) or not (isinstance(value, (int, float)) and ok(value)):
-        raise ValueError(f"{name} must be {expected}, got {value!r}")
+        raise SettingError(name, expected, value)
 
 
 @dataclass(frozen=True)
@@ -231,10 +232,11 @@ class TRBOSettings:
     full_fit_until: int = 20
 
     def __post_init__(self) -> None:
-        """Refuse a setting out of its range (ValueError naming it); the checks that need
+        """Refuse a setting out of its range (a :class:`~kftune.settings.SettingError`
+        naming it, which a configuration words with its file and table); the checks that need
         the space (``x0``) are :class:`TrustRegionBO`'s."""
         if self.warp not in WARPS:
-            raise ValueError(f"warp must be one of {WARPS}, got {self.warp!r}")
+            raise SettingError("warp", f"one of {list(WARPS)}", self.warp)
         _check_number(
             "warp_delta", self.warp_delta, lambda v: 0.0 < v < math.inf, "a positive number"
         )
@@ -251,13 +253,14 @@ class TRBOSettings:
             "a number in [0, 1)",
         )
         if self.restart not in RESTARTS:
-            raise ValueError(f"restart must be one of {RESTARTS}, got {self.restart!r}")
+            raise SettingError("restart", f"one of {list(RESTARTS)}", self.restart)
         if self.init_design not in INIT_DESIGNS:
-            raise ValueError(f"init_design must be one of {INIT_DESIGNS}, got {self.init_design!r}")
+            raise SettingError("init_design", f"one of {list(INIT_DESIGNS)}", self.init_design)
         if not 0.0 < self.length_min <= self.length_init <= self.length_max:
-            raise ValueError(
-                "need 0 < length_min <= length_init <= length_max, got "
-                f"{self.length_min!r}, {self.length_init!r}, {self.length_max!r}"
+            raise SettingError(
+                "length_min, length_init, length_max",
+                "0 < length_min <= length_init <= length_max",
+                (self.length_min, self.length_init, self.length_max),
             )
         positive = ("n_init", "success_tol", "failure_tol", "n_candidates", "refit_every")
         counts = (*positive, "global_every", "escape", "probe_after", "full_fit_until")
@@ -267,7 +270,9 @@ class TRBOSettings:
             if val is None and name in ("n_init", "failure_tol"):  # d-dependent defaults
                 continue
             if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {val!r}")
+                raise SettingError(
+                    name, f"an integer >= {low}", val, wrong_type=not isinstance(val, int)
+                )
 
 
 class TrustRegionBO(Optimizer):

@@ -143,6 +143,7 @@ from kftune.optim.base import (
     Trial,
     coincides,
 )
+from kftune.settings import SettingError
 
 #: Relative tolerance for AF ties.
 TIE_RTOL = 1e-9
@@ -322,43 +323,46 @@ class TSBOSettings:
     min_resolution: float | None = None
 
     def __post_init__(self) -> None:
-        """Refuse a setting out of its range (ValueError naming it); the presets of
+        """Refuse a setting out of its range (a :class:`~kftune.settings.SettingError`
+        naming it); the presets of
         ``mode`` are valid, so checking what is given checks what is used."""
         if self.mode not in _MODES:
-            raise ValueError(f"mode must be one of {list(_MODES)}, got {self.mode!r}")
+            raise SettingError("mode", f"one of {list(_MODES)}", self.mode)
         if self.sm_freeze not in ("hyperparameters", "full"):
-            raise ValueError(
-                f"sm_freeze must be 'hyperparameters' or 'full', got {self.sm_freeze!r}"
-            )
+            raise SettingError("sm_freeze", "one of ['hyperparameters', 'full']", self.sm_freeze)
         for name, val in (("max_fe", self.max_fe), ("max_af", self.max_af)):
             if name == "max_af" and val in ("switch", None):
                 continue
             if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 1:
                 extra = " or 'switch'" if name == "max_af" else ""
-                raise ValueError(f"{name} must be a positive integer{extra}, got {val!r}")
+                raise SettingError(
+                    name, f"an integer >= 1{extra}", val, wrong_type=not isinstance(val, int)
+                )
         max_sm = self.max_sm
         if max_sm is not None and (not isinstance(max_sm, (int, np.integer)) or max_sm < 1):
-            raise ValueError(f"max_sm must be a positive integer, got {max_sm!r}")
+            raise SettingError(
+                "max_sm", "an integer >= 1", max_sm, wrong_type=not isinstance(max_sm, int)
+            )
         if not 0.0 < self.alpha < 1.0:
-            raise ValueError(f"alpha must be in (0, 1), got {self.alpha!r}")
-        if not self.beta >= 0.0 or not self.tr_fe >= 0.0:
-            raise ValueError(f"beta and tr_fe must be >= 0, got {self.beta!r}, {self.tr_fe!r}")
+            raise SettingError("alpha", "a number > 0 and < 1", self.alpha)
+        for name, number in (("beta", self.beta), ("tr_fe", self.tr_fe)):
+            if not number >= 0.0:
+                raise SettingError(name, "a number >= 0", number)
         preset = _MODES[self.mode]
         halfwidth = float(self._pick("min_box_halfwidth", preset))
         reserve = float(self._pick("stage2_reserve", preset))
-        if not 0.0 <= halfwidth <= 0.5 or not 0.0 <= reserve < 1.0:
-            raise ValueError(
-                "min_box_halfwidth must be in [0, 0.5] and stage2_reserve in [0, 1); got "
-                f"{halfwidth!r}, {reserve!r}"
-            )
+        if not 0.0 <= halfwidth <= 0.5:
+            raise SettingError("min_box_halfwidth", "a number >= 0 and <= 0.5", halfwidth)
+        if not 0.0 <= reserve < 1.0:
+            raise SettingError("stage2_reserve", "a number >= 0 and < 1", reserve)
         resolution = float(self._pick("min_resolution", preset))
         if not 0.0 <= resolution < 0.25:
-            raise ValueError(f"min_resolution must be in [0, 0.25) (unit cube), got {resolution!r}")
+            raise SettingError("min_resolution", "a number >= 0 and < 0.25 (unit cube)", resolution)
         units = str(self._pick("tr_fe_units", preset))
         if units not in _TR_FE_UNITS:
-            raise ValueError(f"tr_fe_units must be one of {list(_TR_FE_UNITS)}, got {units!r}")
+            raise SettingError("tr_fe_units", f"one of {list(_TR_FE_UNITS)}", units)
         if not isinstance(self.surrogate, str) and not callable(self.surrogate):
-            raise ValueError(f"surrogate must be a name or a factory, got {self.surrogate!r}")
+            raise SettingError("surrogate", "a name or a factory", self.surrogate)
 
     def _pick(self, name: str, preset: Mapping[str, Any]) -> Any:
         """The option ``name`` as given, or the preset's value when it is None."""
