@@ -108,6 +108,11 @@ def dataset(tmp_path: Path) -> Path:
         ('r = "rad/s"', "r = 3", "field 'units.r': expected a unit string, got an integer (3)"),
         ('format = "kftune-dataset"\n', "", "field 'format' is missing"),
         ("dt = 0.01", "dt = 0.01\nsample_rate = 100", "field 'sample_rate': unknown; expected"),
+        (  # every unknown field is named, not the first alone
+            "dt = 0.01",
+            "dt = 0.01\nsample_rate = 100\nrate = 1",
+            "fields 'sample_rate', 'rate': unknown; expected",
+        ),
     ],
 )
 def test_a_manifest_constraint_violation_names_the_manifest_and_field(dataset, old, new, message):
@@ -463,3 +468,12 @@ def test_a_bad_tune_model_box_shows_an_example(tmp_path, capsys):
         f"configuration file {cfg}, [parameters] key 'tune_model.cf': expected [low, high] in "
         "the parameter's unit, e.g. C_af = [20000.0, 400000.0], got [1]"
     ) in capsys.readouterr().err
+
+
+def test_a_null_in_a_tuned_files_cost_names_the_file_and_key():
+    with pytest.raises(SettingError) as info:
+        cost_spec(_args(), {}, {"kind": "nrmse", "estimate": None}, tuned_file="t.json")
+    assert str(info.value) == (
+        "the cost the parameters were tuned with (t.json, key 'cost_spec.estimate'): "
+        "expected a value, got null"
+    )

@@ -646,12 +646,14 @@ def cost_spec(
     config: dict[str, Any],
     tuned: dict[str, Any] | None = None,
     model: Any = None,
+    tuned_file: str | Path | None = None,
 ) -> CostSpec:
-    """The cost from the command line and configuration; ``tuned``: a tuned file's cost,
+    """The cost from the command line and configuration; ``tuned``: a tuned file's cost
+    (``tuned_file``: that file, named where one of its values is bad, e.g. a null),
     whose settings stand where neither gives one (and none of which carries over to
     another kind of cost); ``model`` (a StateSpaceModel): the channels weighed must be
     ones it can score, or the error names where the weights came from."""
-    spec, chosen = _cost_spec(args, config, tuned)
+    spec, chosen = _cost_spec(args, config, tuned, tuned_file)
     if recommended(args, config):
         spec = dataclasses.replace(spec, normalise=RECOMMENDED_NORMALISE)
     if model is not None:
@@ -686,16 +688,21 @@ def _refused(layer: Layer, key: str, problem: str) -> ConfigError:
 
 
 def _cost_spec(
-    args: argparse.Namespace, config: dict[str, Any], tuned: dict[str, Any] | None
+    args: argparse.Namespace,
+    config: dict[str, Any],
+    tuned: dict[str, Any] | None,
+    tuned_file: str | Path | None = None,
 ) -> tuple[CostSpec, dict[str, tuple[Any, Layer]]]:
     """The cost, and where each of its settings came from (:func:`merge`: command line,
     ``[cost]``, the tuned file's cost ``tuned`` when of the same kind)."""
     from kftune.tuning.cost import CostSpec
 
     base = dict(tuned or {})
+    tuned_with = "the cost the parameters were tuned with"
+    in_file = f"{tuned_file}, " if tuned_file is not None else ""
 
     def chosen_from(base: Mapping[str, Any]) -> dict[str, tuple[Any, Layer]]:
-        was = ("the cost the parameters were tuned with", base)
+        was = (lambda k: f"{tuned_with} ({in_file}key 'cost_spec.{k}')", base)
         found = layers(args, config, was, section="cost", options=_COST_OPTIONS)
         return merge(dict.fromkeys(_COST_OPTIONS, _ANY), found)
 
@@ -704,13 +711,14 @@ def _cost_spec(
     if kind != base.get("kind", CostSpec().kind):
         chosen = chosen_from({})  # no setting of another kind of cost carries over
     by = chosen["kind"][1] if "kind" in chosen else None
-    source = (
-        "the default"
-        if by is None
-        else f"--cost {kind}"
-        if by.name == "command line"
-        else by.where("kind") + ("" if by.name == "tuned" else f" = {kind!r}")
-    )
+    if by is None:  # where the kind came from, for messages
+        source = "the default"
+    elif by.name == "command line":
+        source = f"--cost {kind}"
+    elif by.name == "tuned":
+        source = tuned_with
+    else:
+        source = by.where("kind") + f" = {kind!r}"
     mine = {k: layer for k, (_, layer) in chosen.items() if layer.name != "tuned"}
     if kind in ("nis", "pem") and "weights" in mine:  # they would be ignored: say so
         raise _refused(

@@ -438,7 +438,11 @@ def run(args: argparse.Namespace) -> int:
     # unless told otherwise, score the way the parameters were tuned: what the command line
     # and the configuration give replaces that part of the tuned file's cost
     spec = cost_spec(
-        args, config, None if tuned is None else tuned.get("cost_spec", {}), model=model
+        args,
+        config,
+        None if tuned is None else tuned.get("cost_spec", {}),
+        model=model,
+        tuned_file=args.params,
     )
     # the burn-in the file was scored with, unless the command line or configuration says
     scored_after = float(pick_tuned(args, config, "burn_in", was))
