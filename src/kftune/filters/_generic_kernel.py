@@ -1,12 +1,12 @@
 """Compiled UKF and EKF kernels for any state-space model (numba).
 
-Both filters share the time convention of :mod:`kftune.filters.generic` (step 0 updates
-the prior with z[0]; step k ≥ 1 predicts with u[k−1] held, then updates with z[k] and
-h(·, u[k])), the covariance repair, the stop causes and the NaN fill of the single-track
-model's own 3×3 loop (:mod:`kftune.models._sideslip_ukf`), and the measurement update, written with the Cholesky factor
-of the innovation covariance S = L_S·L_Sᵀ instead of S⁻¹ (Simon, *Optimal State Estimation*,
-2006, eqs. 13.48 and 14.80; Särkkä, *Bayesian Filtering and Smoothing*, 2013, Algs. 5.4 and
-5.14, rearranged): with A = L_S⁻¹, W = A·P_xzᵀ and v = A·y,
+Both filters share the time convention of :mod:`kftune.filters.generic` (step 0 updates the
+prior with z[0]; step k ≥ 1 predicts with u[k−1] held, then updates with z[k] and
+h(·, u[k])), the covariance repair, the stop causes and the NaN fill of the single-track model's
+own 3×3 loop (:mod:`kftune.models._sideslip_ukf`), and the measurement update, written with
+the Cholesky factor of the innovation covariance S = L_S·L_Sᵀ instead of S⁻¹ (Simon,
+*Optimal State Estimation*, 2006, eqs. 13.48 and 14.80; Särkkä, *Bayesian Filtering and
+Smoothing*, 2013, Algs. 5.4 and 5.14, rearranged): with A = L_S⁻¹, W = A·P_xzᵀ and v = A·y,
 
     x⁺ = x̄ + Wᵀ·v,   P⁺ = P̄ − Wᵀ·W,   NIS = vᵀ·v.
 

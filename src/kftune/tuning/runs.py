@@ -398,8 +398,7 @@ def filter_spec(
             params = mod.pack_params(vehicle)
         except (TypeError, ValueError, AttributeError) as exc:  # not another vehicle's preset
             raise ModelChoiceError(
-                f"model {mod.name!r} cannot read its parameters from the dataset's vehicle: "
-                f"{exc}",
+                f"model {mod.name!r} cannot read its parameters from the dataset's vehicle: {exc}",
                 None,
             ) from None
     else:
