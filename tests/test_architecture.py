@@ -57,7 +57,7 @@ ALLOWED: dict[str, set[str]] = {
     "space": set(),
     "processes": set(),
     "bo": set(),  # surrogates and acquisitions
-    "optim": {"space", "bo", "processes"},  # optimisers: nothing of vehicles or filters
+    "optim": {"space", "bo", "processes", "settings"},  # optimisers: nothing of vehicles or filters
     "progress": {"optim"},
     "settings": set(),  # typed settings records and their one validator
     # the sideslip problem's physics, the models, the filters
