@@ -125,8 +125,8 @@ class ModelKernels(NamedTuple):
             (data's q, r, x_init, P_init and the buffers with a leading axis B; stop, rep,
             cause (B,) int64).
         lanes: as ``batch`` on one core, the B runs across its vector lanes, or None;
-            it may leave ``out.log_det_s`` unwritten (the result then has none: a log per
-            set and step would cost the single-track lanes about a third of their time).
+            it may leave ``out.log_det_s`` unwritten (the result then has none: three logs
+            per set and step made the single-track lanes 11–14 % slower, BENCHMARKS.md).
         implements: the model's hooks (f, h, check) the loops are written for: a model
             whose hooks are others (a copy of the model with another h, say) runs the
             generic loops (:meth:`StateSpaceModel.own_ukf_kernels`).
