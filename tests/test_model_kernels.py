@@ -2,7 +2,7 @@
 behind the one UKF's interface: the filter calls the model's loop where the model supplies
 one (single runs, threads, vector lanes on request), the generic loop otherwise, and the
 EKF never. The single-track model's own loops give the generic loop's results (its 3×3
-loop to 1e-12, the lanes bit for bit the 3×3 loop's); against FilterPy and the numpy
+loop to 1e-12, the lanes the 3×3 loop's to 1e-12 too); against FilterPy and the numpy
 reference they are tested in tests/test_ukf.py and tests/test_filters_generic.py."""
 
 from __future__ import annotations
@@ -75,7 +75,8 @@ def test_the_ukf_runs_the_models_own_loop_and_the_ekf_does_not(man):
 
 def test_a_model_without_its_own_loops_runs_the_generic_one_and_both_agree(man):
     """The 3×3 loop against the generic loop on the same model (to 1e-12 of each
-    channel's scale), lanes bit for bit against threads, including a set that diverges."""
+    channel's scale), lanes against threads to 1e-12 relative (the same operations in the same
+    order; a tolerance, not bit equality, across CPUs), including a set that diverges."""
     u, z, dt, p, r = man
     generic = dataclasses.replace(SINGLE_TRACK, ukf_kernels=None)
     q = np.array([DEFAULT_Q] * 4) * [[1.0], [30.0], [0.03], [1.0]]
@@ -91,7 +92,9 @@ def test_a_model_without_its_own_loops_runs_the_generic_one_and_both_agree(man):
         scale = np.max(np.abs(b), axis=1, keepdims=True)
         assert np.all(np.abs(a - b) <= 1e-12 * np.where(scale > 0, scale, 1.0)), name
     for name in OUTPUTS:  # (the lanes compute no log det S)
-        np.testing.assert_array_equal(getattr(lanes, name), getattr(own, name))
+        np.testing.assert_allclose(
+            getattr(lanes, name), getattr(own, name), rtol=1e-12, atol=0, equal_nan=True
+        )
     np.testing.assert_array_equal(lanes.diverged_step, own.diverged_step)
 
 
