@@ -254,7 +254,7 @@ def _check_run(
     r_in = np.asarray(r, dtype=np.float64)
     if r_in.ndim <= 1 or not batch:
         r_arr = check_noise("r", r_in, r_units, strictly_positive=True, batch=False, dim=m)
-        r_arr = np.array(np.broadcast_to(r_arr, (n_sets, m)))  # writable: one kernel type
+        r_arr = np.broadcast_to(r_arr, (n_sets, m))
     else:
         r_arr = check_noise("r", r_in, r_units, strictly_positive=True, batch=True, dim=m)
         if r_arr.shape[0] != n_sets:
@@ -277,8 +277,16 @@ def _check_run(
         x_init[b] = dx if given_x is None else given_x
         P_init[b] = dP if given_P is None else given_P
     n_hold = max(1, int(model.hold_time / dt_f + 0.5)) if model.held_causes else 1
+
+    def kernel_array(a: np.ndarray) -> np.ndarray:
+        # C-ordered and writable, the one array type every loop is compiled for (a
+        # read-only z or a broadcast r would compile another version: for the model's own
+        # vector lanes, an unvectorised one); copies only what is not so already
+        return np.require(a, dtype=np.float64, requirements=("C", "W"))
+
     return _Run(
-        model, w, z_arr, p, dt_f, q_arr, r_arr, x_init, P_init, n_hold,
+        model, kernel_array(w), kernel_array(z_arr), kernel_array(p), dt_f,
+        kernel_array(q_arr), kernel_array(r_arr), x_init, P_init, n_hold,
         np.array(model.held_causes, dtype=np.int64),
     )  # fmt: skip
 

@@ -10,6 +10,8 @@ four sigma-point weights and the six output buffers that travelled one by one.
 
 Shapes: N steps, n states, m measurements, n_w prepared inputs, n_p parameters; with B
 noise settings (a batch) q, r, x_init, P_init and every output carry a leading axis B.
+Every array is float64 (held causes int64), C-ordered and writable: the filters hand the
+loops one array type, so that each loop is compiled once.
 """
 
 from __future__ import annotations

@@ -57,7 +57,6 @@ from kftune.models._runaway import (
 from kftune.models._single_track_jacobians import single_track_F, single_track_H
 from kftune.models.base import DataRefused, ModelKernels, PriorRule, StateSpaceModel
 from kftune.models.c_contract import builtin_c_code
-from kftune.models.kernel_io import KernelData
 from kftune.vehicle.params import PARAM_INDEX, PLAUSIBLE_RANGES, PRESETS, G
 from kftune.vehicle.single_track import (
     measure_scalar,
@@ -334,15 +333,9 @@ def single_track_kernels() -> ModelKernels:
     from kftune.models._sideslip_lanes import ensure_compiled, run_kernel_soa
     from kftune.models._sideslip_ukf import run_kernel, run_kernel_batch
 
-    def lanes(data: KernelData, *rest: Any) -> None:
-        ensure_compiled()  # with vectorisation on (see there), for C-ordered writable arrays:
-        # an array of another layout would compile a second, unvectorised version
-        arrays: dict[str, Any] = {
-            k: np.require(v, requirements=("C", "W"))
-            for k, v in data._asdict().items()
-            if isinstance(v, np.ndarray)
-        }
-        run_kernel_soa(data._replace(**arrays), *rest)
+    def lanes(*args: Any) -> None:
+        ensure_compiled()  # with vectorisation on (see there)
+        run_kernel_soa(*args)
 
     return ModelKernels(run_kernel, run_kernel_batch, lanes, (process, measurement, check))
 
