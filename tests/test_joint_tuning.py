@@ -432,6 +432,16 @@ def test_a_joint_tuning_seeds_its_search_with_the_noise_only_optimum(small, tmp_
     for name in ("q_vx", "q_vy", "q_r"):
         assert seed.params[name] == pytest.approx(best.params[name], rel=1e-9)
     assert seed.value == pytest.approx(best.value, rel=1e-9)
+    # the joint design: C_af's two DIRECT thirds on its axis through the seed, the noise held
+    assert joint.settings["options"]["design_centre"] == "x0"
+    assert joint.settings["options"]["design_params"] == ["C_af"]
+    probes = joint.records[1:3]
+    thirds = [20000.0 * 20.0 ** (1 / 6), 20000.0 * 20.0 ** (5 / 6)]
+    assert [r.params["C_af"] for r in probes] == pytest.approx(thirds, rel=1e-9)
+    for r in probes:
+        assert [r.params[n] for n in ("q_vx", "q_vy", "q_r")] == pytest.approx(
+            [seed.params[n] for n in ("q_vx", "q_vy", "q_r")], rel=1e-9
+        )
     doc = json.loads((tmp_path / "t.json").read_text())
     assert doc["cost"] <= best.value
     st = doc["stages"]

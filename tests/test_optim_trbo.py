@@ -389,6 +389,60 @@ def test_x0_is_evaluated_first_and_the_run_ends_no_worse():
     assert "x0" not in make_optimizer("trbo", cube2).options()  # old studies resume
 
 
+def test_a_design_centred_on_x0_probes_only_the_named_axes_through_it():
+    """``design_centre="x0"``, ``design_params=["c"]``: x0 first, then the two design
+    points of c's axis through x0 (DIRECT's thirds of a narrow physical log10 box, by hand:
+    low·(high/low)^(1/6) and ^(5/6)) with every other parameter at x0's value, then the
+    search; n_init 1 + 2·1; the options recorded only where they are not the defaults."""
+    from kftune.space import Param, Space
+
+    space = Space(
+        (
+            Param("q1", 1e-8, 1e2, "log10"),
+            Param("q2", 1e-8, 1e2, "log10"),
+            Param("c", 2e4, 4e5, "log10", physical=True),
+        )
+    )
+    x0 = [1e-3, 1e-5, 7e4]
+    opt = make_optimizer(
+        "trbo", space, budget=20, seed=0, x0=[x0], design_centre="x0", design_params=["c"]
+    )
+    assert opt.n_init == 3
+    asked = []
+    for _ in range(4):
+        t = opt.ask()
+        asked.append(t.x)
+        opt.tell(t, float(np.sum(np.log10(t.x) ** 2)))
+    third = [2e4 * 20 ** (1 / 6), 2e4 * 20 ** (5 / 6)]
+    np.testing.assert_allclose(
+        asked[:3], [x0, [1e-3, 1e-5, third[0]], [1e-3, 1e-5, third[1]]], rtol=1e-12
+    )
+    assert opt.history[3].acquisition != "init"  # the search begins after 1 + 2 points
+    assert opt.options()["design_centre"] == "x0"
+    assert opt.options()["design_params"] == ["c"]
+    plain = make_optimizer("trbo", space, x0=[x0]).options()
+    assert "design_centre" not in plain and "design_params" not in plain  # old studies resume
+    box = make_optimizer("trbo", space, x0=[x0])
+    box.tell(box.ask(), 1.0)
+    np.testing.assert_allclose(box.ask().u, [0.5, 0.5, 0.5], atol=1e-15)  # the box's centre
+
+
+@pytest.mark.parametrize(
+    ("options", "says"),
+    [
+        ({"design_centre": "x0"}, "without x0"),
+        ({"design_centre": "middle", "x0": [0.5, 0.5]}, "one of"),
+        ({"design_params": ["z"], "x0": [0.5, 0.5]}, "names of parameters"),
+        ({"design_params": "a", "x0": [0.5, 0.5]}, "a list of parameter names"),
+    ],
+)
+def test_design_options_are_checked(options, says):
+    from kftune.settings import SettingError
+
+    with pytest.raises(SettingError, match=says):
+        make_optimizer("trbo", {"a": (0.0, 1.0), "b": (0.0, 1.0)}, **options)
+
+
 @pytest.mark.parametrize(
     ("x0", "match"),
     [([0.5], "2 finite numbers"), ([0.5, 2.0], "b = 2 lies outside"), ("ab", "numbers")],

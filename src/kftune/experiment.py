@@ -210,6 +210,10 @@ NOISE_STAGE_SHARE = 0.25
 #: with one of them runs in two stages (:func:`staging`); the others search the joint box
 #: at once.
 SEEDABLE_METHODS: tuple[str, ...] = ("trbo",)
+#: The joint stage's design (TR-BO's options, with ``design_params`` the model parameters):
+#: centred on the first stage's best, probing the model parameters' axes alone
+#: (:class:`kftune.optim.trbo.TRBOSettings`; BENCHMARKS.md, "The joint stage's design").
+JOINT_STAGE_DESIGN: Mapping[str, Any] = {"design_centre": "x0"}
 
 
 @dataclass(frozen=True)
@@ -218,8 +222,9 @@ class Staging:
     alone at the recorded model (stage 1, its study in ``noise_storage``), then
     ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two.
     ``noise_design``, ``joint_design``: the points of TR-BO's initial design in each stage
-    (2d + 1 unless ``n_init`` is given), which a stage's budget should exceed for its
-    search to begin."""
+    (2d + 1 over the noise's d parameters, 1 + 2 per model parameter in the joint stage,
+    unless ``n_init`` is given), which a stage's budget should exceed for its search to
+    begin."""
 
     total: int
     noise_budget: int
@@ -251,7 +256,8 @@ class Staging:
         return (
             f"{self.noise_budget} evaluations of the noise alone and {self.joint_budget} of "
             f"the joint search end within TR-BO's initial designs ({self.noise_design} and "
-            f"{self.joint_design} points, the centre and two per parameter): the search "
+            f"{self.joint_design} points: the centre and two per noise parameter, the seed and "
+            "two per model parameter): the search "
             f"itself never starts and the result is a design point; give -n {need} or more"
         )
 
@@ -297,8 +303,9 @@ def staging(
     def design(dim: int) -> int:
         return int(n_init) if isinstance(n_init, int) and n_init > 0 else 2 * dim + 1
 
+    d_model = d - d_noise
     return Staging(
-        total, noise, total - noise, noise_stage_storage(storage), design(d_noise), design(d)
+        total, noise, total - noise, noise_stage_storage(storage), design(d_noise), design(d_model)
     )
 
 
@@ -422,6 +429,11 @@ def tune(
             noise.close()
         if first.x is not None:  # every evaluation failed: the joint search starts cold
             opts["x0"] = [joint_point(problem, first.x).tolist()]
+            design = {
+                **JOINT_STAGE_DESIGN,
+                "design_params": list(problem.parameterization.model_names),
+            }
+            opts = {**design, **opts}  # a user's own design options stay theirs
         budget = total = stages.joint_budget
         # the joint study is created after the first stage's: a resume starts it then
         resume = resume and storage is not None and Path(storage).exists()

@@ -22,6 +22,14 @@ stage, and a global one — but lets them alternate for the whole budget:
   inside. Q's and R's boxes keep the faces whatever their width (a user's narrow Q box
   too), so a Q-only or Q-and-R search proposes exactly what it did before and its older
   studies resume.
+  A search that continues from a known good point (``x0``, ``design_centre="x0"``)
+  centres the design there and probes only the axes it names (``design_params``): the
+  second stage of a tuning with model parameters, whose first stage tuned the noise at the
+  recorded model, probes each model parameter along its axis through that stage's best
+  (7 points at d = 9 instead of 19). Centred on the box instead, the design's centre put
+  every stiffness at the box's geometric middle (89,443 N/rad for [2e4, 4e5], a car nobody
+  gave), which beat the short first stage's point and pulled the search into its basin
+  (BENCHMARKS.md, "The joint stage's design").
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
   δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
@@ -94,7 +102,7 @@ gathered per default, "Moved from module docstrings", "kftune.optim.trbo".
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
@@ -106,6 +114,8 @@ from kftune.settings import SettingError
 
 WARPS = ("none", "log", "log-min")
 INIT_DESIGNS = ("auto", "axial", "direct", "sobol")
+#: Where the initial design is centred (:class:`TRBOSettings` ``design_centre``).
+DESIGN_CENTRES = ("box", "x0")
 #: Where the design's two points on an axis lie (unit cube): the faces, or DIRECT's thirds.
 DESIGN_AXIS_POINTS = {"axial": (0.0, 1.0), "direct": (1.0 / 6.0, 5.0 / 6.0)}
 #: ``init_design="auto"`` probes the faces of a log10 parameter whose box spans more than
@@ -170,6 +180,14 @@ class TRBOSettings:
             on the recorded model when the model's parameters join the search, so the run
             ends no worse than it (a design point that coincides with one is left out).
             Default None: none.
+        design_centre: ``"box"`` (default: the design's centre is the box's) or ``"x0"``
+            (its centre is the first point of ``x0``, and its axis points lie on the axes
+            through it): a search that continues from a known good point probes around
+            that point, not around the middle of the box. Needs ``x0``.
+        design_params: the names of the parameters whose axes the design probes (default
+            None: every one; ``n_init`` then defaults to 1 + 2 per named parameter). The
+            joint stage of a tuning with model parameters names those alone: the first
+            stage has already searched the noise from the same point.
 
     Trust region (TuRBO):
         length_init, length_min, length_max: the region's side at the start and after a
@@ -215,6 +233,8 @@ class TRBOSettings:
     n_init: int | None = None
     init_design: str = "auto"
     x0: Any = None
+    design_centre: str = "box"
+    design_params: Sequence[str] | None = None
     length_init: float = 0.2
     length_min: float = 2.0**-7
     length_max: float = 1.0
@@ -256,6 +276,17 @@ class TRBOSettings:
             raise SettingError("restart", f"one of {list(RESTARTS)}", self.restart)
         if self.init_design not in INIT_DESIGNS:
             raise SettingError("init_design", f"one of {list(INIT_DESIGNS)}", self.init_design)
+        if self.design_centre not in DESIGN_CENTRES:
+            raise SettingError(
+                "design_centre", f"one of {list(DESIGN_CENTRES)}", self.design_centre
+            )
+        if self.design_centre == "x0" and self.x0 is None:
+            raise SettingError("design_centre", "'box' without x0 (a centre to start at)", "x0")
+        if self.design_params is not None and (
+            isinstance(self.design_params, str)
+            or not all(isinstance(n, str) for n in self.design_params)
+        ):
+            raise SettingError("design_params", "a list of parameter names", self.design_params)
         if not 0.0 < self.length_min <= self.length_init <= self.length_max:
             raise SettingError(
                 "length_min, length_init, length_max",
@@ -315,9 +346,10 @@ class TrustRegionBO(Optimizer):
         if init_design == "auto":  # one kind of parameter: say which (and old studies resume)
             kinds = {auto_design(p) for p in self.space.params}
             init_design = kinds.pop() if len(kinds) == 1 else "auto"
+        axes = self._design_axes(s.design_params)
         s = replace(
             s,
-            n_init=s.n_init if s.n_init is not None else 2 * d + 1,
+            n_init=s.n_init if s.n_init is not None else 2 * len(axes) + 1,
             failure_tol=s.failure_tol if s.failure_tol is not None else max(3, d),
             init_design=init_design,
         )
@@ -353,6 +385,8 @@ class TrustRegionBO(Optimizer):
         )
         self._n_restarts = self.surrogate.n_restarts
         self.x0 = self._check_x0(s.x0)
+        self.design_centre, self._axes = s.design_centre, axes
+        self.design_params = None if s.design_params is None else list(s.design_params)
         design = self._initial_design(np.random.default_rng(seeds[2]))
         if self.x0 is not None:
             u0 = np.clip(self.space.to_unit(self.x0), 0.0, 1.0)
@@ -406,21 +440,42 @@ class TrustRegionBO(Optimizer):
                 )
         return x
 
+    def _design_axes(self, names: Sequence[str] | None) -> list[int]:
+        """The indices of the parameters whose axes the design probes (``design_params``;
+        None: all), in the space's order.
+
+        Raises:
+            SettingError: a name that is no parameter of the space.
+        """
+        if names is None:
+            return list(range(self.space.dim))
+        unknown = [n for n in names if n not in self.space.names]
+        if unknown:
+            raise SettingError(
+                "design_params", f"names of parameters ({', '.join(self.space.names)})", unknown
+            )
+        return [i for i, n in enumerate(self.space.names) if n in set(names)]
+
     def _initial_design(self, rng: np.random.Generator) -> np.ndarray:
-        """(n_init, d): the centre, two points on each axis (the face centres, ``"axial"``,
-        or the centre ± 1/3, ``"direct"``; per parameter with ``"auto"``), then Sobol
+        """(n_init, d): the centre (the box's, or with ``design_centre="x0"`` the first x0
+        point), two points on each probed axis through it (the face centres, ``"axial"``,
+        or the box centre ± 1/3, ``"direct"``; per parameter with ``"auto"``), then Sobol
         points."""
         d = self.space.dim
-        pts = [np.full((1, d), 0.5)]
-        if self.init_design != "sobol":
+        centre = np.full(d, 0.5)
+        if self.design_centre == "x0" and self.x0 is not None:
+            centre = np.clip(self.space.to_unit(self.x0[0]), 0.0, 1.0)
+        pts = [centre[None, :]]
+        if self.init_design != "sobol" and self._axes:
+            axes = np.asarray(self._axes)
             at = [
                 DESIGN_AXIS_POINTS[
                     self.init_design if self.init_design != "auto" else auto_design(p)
                 ]
-                for p in self.space.params
+                for p in (self.space.params[i] for i in axes)
             ]
-            axial = np.full((2 * d, d), 0.5)
-            axial[np.arange(2 * d), np.repeat(np.arange(d), 2)] = np.ravel(at)
+            axial = np.tile(centre, (2 * axes.size, 1))
+            axial[np.arange(2 * axes.size), np.repeat(axes, 2)] = np.ravel(at)
             pts.append(axial)
         n_more = self.n_init - sum(len(p) for p in pts)
         if n_more > 0:  # the first n_more points of 2^m (the same points as random(n_more),
@@ -430,11 +485,15 @@ class TrustRegionBO(Optimizer):
         return np.vstack(pts)[: self.n_init]
 
     def options(self) -> dict[str, Any]:
-        extra = {}  # left out at its default, so studies from before the option resume
+        extra: dict[str, Any] = {}  # left out at its default: studies from before resume
         if self.improvement_rtol != IMPROVEMENT_RTOL:
             extra["improvement_rtol"] = self.improvement_rtol
         if self.x0 is not None:
             extra["x0"] = self.x0.tolist()
+        if self.design_centre != "box":
+            extra["design_centre"] = self.design_centre
+        if self.design_params is not None:
+            extra["design_params"] = list(self.design_params)
         return {
             "surrogate": self.surrogate_name,
             "surrogate_options": {
