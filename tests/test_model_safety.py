@@ -174,7 +174,13 @@ def test_a_real_interrupt_while_a_model_file_loads_is_still_an_interrupt(
         f"import os, signal\nos.kill(os.getpid(), signal.{signal_name})\n"
         "for _ in range(10**8):\n    pass\n"
     )
-    res = kftune("tune", "--model", model, "-n", "2", "-o", tmp_path / "t.json")
+    # a shell that starts the suite in the background makes it ignore SIGINT, and Python
+    # then installs no handler: give this process the one an interactive start gives it
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        res = kftune("tune", "--model", model, "-n", "2", "-o", tmp_path / "t.json")
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert res.returncode == code, res.stderr
     assert "interrupted" in res.stderr and "Traceback" not in res.stderr
     assert not (tmp_path / "t.json").exists()
