@@ -460,6 +460,35 @@ def test_a_joint_tuning_seeds_its_search_with_the_noise_only_optimum(small, tmp_
     )
 
 
+@pytest.mark.parametrize(
+    ("options", "centre", "params"),
+    [('design_centre = "box"', None, None), ('design_params = ["C_af"]', None, ["C_af"])],
+)
+def test_a_users_design_options_are_the_joint_stages_and_not_the_first_stages(
+    small, tmp_path, options, centre, params
+):
+    """``[options.trbo]`` design options from a configuration file are accepted, reach the
+    joint stage alone (the first stage's space has no C_af to name) and replace its default
+    design: with ``design_centre = "box"`` the evaluation after the seed is the box's
+    centre, C_af = √(20000·400000)."""
+    from kftune.optim.study import read_study
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[options.trbo]\n{options}\n")
+    db = tmp_path / "study.db"
+    res = run_cli("tune", str(small), "-n", "24", "--storage", str(db), "-o",
+                  str(tmp_path / "t.json"), "--tune-model", "C_af=20000:400000",
+                  "--cost", "nrmse", "--config", str(cfg))  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    first, joint = read_study(tmp_path / "study.noise-only.db"), read_study(db)
+    assert "design_centre" not in first.settings["options"]
+    assert "design_params" not in first.settings["options"]
+    assert joint.settings["options"].get("design_centre") == centre  # "box": not recorded
+    assert joint.settings["options"].get("design_params") == params
+    if "box" in options:
+        assert joint.records[1].params["C_af"] == pytest.approx((20000.0 * 400000.0) ** 0.5)
+
+
 @pytest.mark.parametrize("stage", [1, 2])
 def test_ctrl_c_in_either_stage_keeps_the_best_so_far_in_the_joint_space(
     small, tmp_path, monkeypatch, stage

@@ -430,7 +430,7 @@ def test_a_design_centred_on_x0_probes_only_the_named_axes_through_it():
 @pytest.mark.parametrize(
     ("options", "says"),
     [
-        ({"design_centre": "x0"}, "without x0"),
+        ({"design_centre": "x0"}, "unless x0 gives the centre"),
         ({"design_centre": "middle", "x0": [0.5, 0.5]}, "one of"),
         ({"design_params": ["z"], "x0": [0.5, 0.5]}, "names of parameters"),
         ({"design_params": "a", "x0": [0.5, 0.5]}, "a list of parameter names"),

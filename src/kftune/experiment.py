@@ -214,6 +214,9 @@ SEEDABLE_METHODS: tuple[str, ...] = ("trbo",)
 #: centred on the first stage's best, probing the model parameters' axes alone
 #: (:class:`kftune.optim.trbo.TRBOSettings`; BENCHMARKS.md, "The joint stage's design").
 JOINT_STAGE_DESIGN: Mapping[str, Any] = {"design_centre": "x0"}
+#: TR-BO's options that shape its design around a point: the joint stage's alone (the first
+#: stage's space has no model parameter to name).
+DESIGN_OPTIONS: tuple[str, ...] = ("design_centre", "design_params")
 
 
 @dataclass(frozen=True)
@@ -221,10 +224,11 @@ class Staging:
     """How a joint tuning splits its budget: ``noise_budget`` evaluations of the noise
     alone at the recorded model (stage 1, its study in ``noise_storage``), then
     ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two.
-    ``noise_design``, ``joint_design``: the points of TR-BO's initial design in each stage
-    (2d + 1 over the noise's d parameters, 1 + 2 per model parameter in the joint stage,
-    unless ``n_init`` is given), which a stage's budget should exceed for its search to
-    begin."""
+    ``noise_design``, ``joint_design``: the evaluations each stage spends before its
+    search begins, which its budget should exceed: TR-BO's initial design, 2d + 1 points
+    over the noise's d parameters; in the joint stage stage 1's best (the design's centre)
+    and two points per model parameter (:data:`JOINT_STAGE_DESIGN`), or, where the user
+    gave design options, stage 1's best and then their design (``n_init`` when given)."""
 
     total: int
     noise_budget: int
@@ -242,16 +246,16 @@ class Staging:
         )
 
     def warning(self) -> str | None:
-        """A sentence when a stage's budget ends within its initial design (stage 2 also
-        spends one evaluation on stage 1's best), with the smallest total that gives each
-        stage at least one search step; None when both search."""
-        if self.noise_budget > self.noise_design and self.joint_budget > self.joint_design + 1:
+        """A sentence when a stage's budget ends within its initial design, with the
+        smallest total that gives each stage at least one search step; None when both
+        search."""
+        if self.noise_budget > self.noise_design and self.joint_budget > self.joint_design:
             return None
         need = self.total
         while True:
             need += 1
             noise = _noise_share(need)
-            if noise > self.noise_design and need - noise > self.joint_design + 1:
+            if noise > self.noise_design and need - noise > self.joint_design:
                 break
         return (
             f"{self.noise_budget} evaluations of the noise alone and {self.joint_budget} of "
@@ -303,9 +307,10 @@ def staging(
     def design(dim: int) -> int:
         return int(n_init) if isinstance(n_init, int) and n_init > 0 else 2 * dim + 1
 
-    d_model = d - d_noise
+    own = any(k in (options or {}) for k in DESIGN_OPTIONS)
+    joint = 1 + design(d) if own else design(d - d_noise)  # the seed is the centre, or first
     return Staging(
-        total, noise, total - noise, noise_stage_storage(storage), design(d_noise), design(d_model)
+        total, noise, total - noise, noise_stage_storage(storage), design(d_noise), joint
     )
 
 
@@ -421,7 +426,7 @@ def tune(
                     callback=bar,
                     objective=with_dataset(noise.fingerprint(), dataset),
                     execution=ex,  # no engine: a Dask engine's tuning runs in one stage
-                    **opts,
+                    **{k: v for k, v in opts.items() if k not in DESIGN_OPTIONS},
                 )
         except OptimizationInterrupted as stop:  # its best so far, as a point of the problem
             raise OptimizationInterrupted(_lifted(problem, stop.result)) from None
@@ -429,11 +434,9 @@ def tune(
             noise.close()
         if first.x is not None:  # every evaluation failed: the joint search starts cold
             opts["x0"] = [joint_point(problem, first.x).tolist()]
-            design = {
-                **JOINT_STAGE_DESIGN,
-                "design_params": list(problem.parameterization.model_names),
-            }
-            opts = {**design, **opts}  # a user's own design options stay theirs
+            if not any(k in opts for k in DESIGN_OPTIONS):  # a user's own design stays theirs
+                opts.update(JOINT_STAGE_DESIGN)
+                opts["design_params"] = list(problem.parameterization.model_names)
         budget = total = stages.joint_budget
         # the joint study is created after the first stage's: a resume starts it then
         resume = resume and storage is not None and Path(storage).exists()

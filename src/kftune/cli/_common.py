@@ -220,9 +220,11 @@ USED_ONLY_BY: dict[str, set[str]] = {
     "seed": {"tune", "compare"},
     "options": {"tune", "compare"},
 }
-#: Method options that hold points of the tuned space, checked by the run (the space's
-#: dimension is not known when the configuration is read).
-_POINT_OPTIONS: frozenset[tuple[str, str]] = frozenset({("manual", "points"), ("trbo", "x0")})
+#: Method options that hold points or names of the tuned space, checked by the run (the
+#: space is not known when the configuration is read).
+_POINT_OPTIONS: frozenset[tuple[str, str]] = frozenset(
+    {("manual", "points"), ("trbo", "x0"), ("trbo", "design_params")}
+)
 
 
 def load_config(path: str | Path | None, command: str | None = None) -> dict[str, Any]:
@@ -256,6 +258,8 @@ def load_config(path: str | Path | None, command: str | None = None) -> dict[str
         # manual method's and TR-BO's start points — depend on the tuned space's
         # dimension: the run checks them)
         checkable = {k: v for k, v in opts.items() if (method, k) not in _POINT_OPTIONS}
+        if method == "trbo" and "x0" in opts:
+            checkable["x0"] = [0.5]  # a point of the check's space: options that need one
         try:
             make_optimizer(method, {"x": (0.0, 1.0)}, seed=0, **checkable)
         except PeerUnavailableError:

@@ -26,10 +26,10 @@ stage, and a global one — but lets them alternate for the whole budget:
   centres the design there and probes only the axes it names (``design_params``): the
   second stage of a tuning with model parameters, whose first stage tuned the noise at the
   recorded model, probes each model parameter along its axis through that stage's best
-  (7 points at d = 9 instead of 19). Centred on the box instead, the design's centre put
-  every stiffness at the box's geometric middle (89,443 N/rad for [2e4, 4e5], a car nobody
-  gave), which beat the short first stage's point and pulled the search into its basin
-  (BENCHMARKS.md, "The joint stage's design").
+  (7 evaluations at d = 9, the seed included, instead of 20). Centred on the box instead,
+  the design's centre put every stiffness at the box's geometric middle (89,443 N/rad for
+  [2e4, 4e5], a car nobody gave), which beat the short first stage's point and pulled the
+  search into its basin (BENCHMARKS.md, "The joint stage's design").
 * **Surrogate**: a GP (Matérn 5/2, ARD, constant mean, fitted noise; ``surrogate="tsp"``
   for the Student-t process) on warped values ``log(y − min y + δ)`` with
   δ = 10 % of (median − min) (``warp="log-min"``, ``warp_delta=0.1``). Cliffs and plateaus
@@ -169,12 +169,13 @@ class TRBOSettings:
 
     Initial design:
         n_init: points of the initial design, ≥ 1 (default None: 2d + 1, the centre and
-            two points on each axis).
+            two points on each axis; 1 + 2 per parameter named in ``design_params``).
         init_design: ``"auto"`` (default; :func:`auto_design`: ``"axial"`` along log10
             variances, ``"direct"`` along linear and narrow physical parameters; recorded
             as ``"axial"`` or ``"direct"`` when all are alike), ``"axial"`` (centre, face
-            centres, then Sobol points), ``"direct"`` (centre, centre ± 1/3 along each
-            axis, then Sobol points) or ``"sobol"`` (centre, then scrambled Sobol points).
+            centres, then Sobol points), ``"direct"`` (centre, the box's centre ± 1/3
+            along each axis — 1/6 and 5/6 of it —, then Sobol points) or ``"sobol"``
+            (centre, then scrambled Sobol points over every axis).
         x0: points (natural units; one (d,) or several (k, d), inside the box) evaluated
             first, before the design — a known good point, such as the optimum of Q tuned
             on the recorded model when the model's parameters join the search, so the run
@@ -182,8 +183,10 @@ class TRBOSettings:
             Default None: none.
         design_centre: ``"box"`` (default: the design's centre is the box's) or ``"x0"``
             (its centre is the first point of ``x0``, and its axis points lie on the axes
-            through it): a search that continues from a known good point probes around
-            that point, not around the middle of the box. Needs ``x0``.
+            through it, each at the position along its own axis that the box-centred
+            design gives it: a face or a third of the box): a search that continues from a
+            known good point probes around that point, not around the middle of the box.
+            Needs ``x0``.
         design_params: the names of the parameters whose axes the design probes (default
             None: every one; ``n_init`` then defaults to 1 + 2 per named parameter). The
             joint stage of a tuning with model parameters names those alone: the first
@@ -281,7 +284,7 @@ class TRBOSettings:
                 "design_centre", f"one of {list(DESIGN_CENTRES)}", self.design_centre
             )
         if self.design_centre == "x0" and self.x0 is None:
-            raise SettingError("design_centre", "'box' without x0 (a centre to start at)", "x0")
+            raise SettingError("design_centre", "'box' unless x0 gives the centre", "x0")
         if self.design_params is not None and (
             isinstance(self.design_params, str)
             or not all(isinstance(n, str) for n in self.design_params)
