@@ -312,14 +312,14 @@ def run_dataset(
             row[f"{part}_mean_abs_ay"] = float(np.mean(np.abs(np.concatenate(_ay(problem, ms)))))
         for crit in criteria:
             row[crit] = calibrated(problem, result.x, test, crit)
-        if tried:
-            row["tried"] = tried_variants(
-                train_runs, test_runs, _ay(problem, problem.manoeuvres), _ay(problem, test)
-            )
             if rerun:  # tried: the UKF rerun with c·Q, c·R and c·P0
                 problem.rerun = True
                 row[f"{crit}-rerun"] = calibrated(problem, result.x, test, crit)
                 problem.rerun = False
+        if tried:
+            row["tried"] = tried_variants(
+                train_runs, test_runs, _ay(problem, problem.manoeuvres), _ay(problem, test)
+            )
         rows.append(row)
         u = row["uncalibrated"]
         print(
@@ -361,7 +361,8 @@ def run_dataset(
 def shift_table(results: list[dict[str, Any]], criteria: list[str]) -> dict[str, Any]:
     """Per dataset and criterion, median over seeds of the training and the test coverages
     after the fit, and of the fitted c relative to the target range's ends (c/lo ≥ 1 and
-    c/hi ≤ 1 when inside); printed, and returned for the JSON."""
+    c/hi ≤ 1 when inside; a seed whose range is empty, lo > hi, counts in both medians);
+    printed, and returned for the JSON."""
     out: dict[str, Any] = {}
     print("\ndataset | criterion | train cov68 / cov95 | test cov68 / cov95 | c / lo | c / hi")
     for res in results:

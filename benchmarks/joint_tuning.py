@@ -502,12 +502,14 @@ def run_tune_splits(
     splits: Sequence[int],
     n: int,
     seeds: Sequence[int],
+    swap: bool = False,
 ) -> dict[str, Any]:
     """``kftune tune`` as a user runs it (tune's default cost, TR-BO at ``n``): noise-only
     on the dataset's own vehicle, and the joint tuning of ``config``'s model parameters on
     the ``wrong`` vehicle (a copy of the dataset saved with it) with the first stage forced
-    to each of ``splits`` (0: unseeded), every seed. Prints each run; returns the rows and
-    per split the median held-out β RMSE [deg] and its ratio to noise-only's."""
+    to each of ``splits`` (0: unseeded), every seed; with ``swap`` on a copy whose training
+    and test manoeuvres trade places. Prints each run; returns the rows and per split the
+    median held-out β RMSE [deg] and its ratio to noise-only's."""
     import dataclasses
     import statistics
     import tempfile
@@ -525,6 +527,13 @@ def run_tune_splits(
     true_path = dataset or str(bundled_dataset_path())
     rows: dict[str, list[dict[str, Any]]] = {}
     with tempfile.TemporaryDirectory(prefix="joint_splits_") as tmp:
+        if swap:
+            ds = open_dataset(true_path)
+            traded = [
+                m.replace(split="test" if m.split == "train" else "train") for m in ds.manoeuvres
+            ]
+            save_dataset(dataclasses.replace(ds, manoeuvres=tuple(traded)), Path(tmp) / "swapped")
+            true_path = str(Path(tmp) / "swapped")
         joint_path = true_path
         if wrong:
             ds = open_dataset(true_path)
@@ -614,6 +623,12 @@ def main(argv: list[str] | None = None) -> int:
         "on the wrong one with the first stage forced to N1 evaluations (0: unseeded)",
     )
     ap.add_argument("--tune-n", type=int, default=100, help="-n of --tune-splits (default 100)")
+    ap.add_argument(
+        "--swap-split",
+        action="store_true",
+        help="with --tune-splits: tune on the dataset's test manoeuvres and hold out its "
+        "training ones (does the held-out verdict depend on which manoeuvres are held out?)",
+    )
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     ap.add_argument("--seed-offset", type=int, default=0, help="first seed (default 0)")
     ap.add_argument("--budgets", type=int, nargs="+", default=None, help="for every config")
@@ -653,7 +668,13 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--tune-splits must lie in [0, --tune-n), got {args.tune_splits}")
         try:
             result = run_tune_splits(
-                args.dataset, wrong, args.configs[0], args.tune_splits, args.tune_n, seeds
+                args.dataset,
+                wrong,
+                args.configs[0],
+                args.tune_splits,
+                args.tune_n,
+                seeds,
+                swap=args.swap_split,
             )
         except KftuneError as exc:
             print(f"joint_tuning: error: {exc}", file=sys.stderr)
@@ -674,6 +695,7 @@ def main(argv: list[str] | None = None) -> int:
                         "config": args.configs[0],
                         "n": args.tune_n,
                         "seeds": seeds,
+                        "swap_split": args.swap_split,
                         **result,
                     }
                 ),
