@@ -34,6 +34,8 @@ OLD_TRBO_DEFAULTS = {
     "n_init": None,
     "init_design": "auto",
     "x0": None,
+    "design_centre": "box",  # options added since: their defaults give the old design
+    "design_params": None,
     "warp": "log-min",
     "warp_delta": 0.1,
     "length_init": 0.2,
