@@ -43,3 +43,16 @@ def test_the_default_budget_and_a_given_design_size(joint):
     small = staging(joint, "trbo", 30, options={"n_init": 4})
     assert small is not None and small.warning() is None
     assert (small.noise_design, small.joint_design) == (4, 4)
+
+
+@pytest.mark.parametrize(
+    ("options", "joint_design"),
+    [
+        ({"design_centre": "box"}, 1 + 17),  # the seed, then the box's design over d = 8
+        ({"design_params": ["C_af"]}, 1 + 3),  # the seed, then the box's centre and C_af's two
+        ({"design_centre": "x0", "design_params": ["q_vx", "C_af"]}, 5),  # the seed is the centre
+    ],
+)
+def test_a_users_design_options_are_counted_as_they_design(joint, options, joint_design):
+    stages = staging(joint, "trbo", 100, options=options)
+    assert stages is not None and stages.joint_design == joint_design

@@ -210,12 +210,11 @@ NOISE_STAGE_SHARE = 0.25
 #: with one of them runs in two stages (:func:`staging`); the others search the joint box
 #: at once.
 SEEDABLE_METHODS: tuple[str, ...] = ("trbo",)
-#: The joint stage's design (TR-BO's options, with ``design_params`` the model parameters):
-#: centred on the first stage's best, probing the model parameters' axes alone
-#: (:class:`kftune.optim.trbo.TRBOSettings`; BENCHMARKS.md, "The joint stage's design").
-JOINT_STAGE_DESIGN: Mapping[str, Any] = {"design_centre": "x0"}
-#: TR-BO's options that shape its design around a point: the joint stage's alone (the first
-#: stage's space has no model parameter to name).
+#: TR-BO's options that shape its design around a point (:class:`~kftune.optim.trbo.
+#: TRBOSettings`): the joint stage's alone (the first stage's space has no model parameter
+#: to name). Unless the user gives either, the joint stage's design is centred on the first
+#: stage's best and probes the model parameters' axes alone (BENCHMARKS.md, "The joint
+#: stage's design").
 DESIGN_OPTIONS: tuple[str, ...] = ("design_centre", "design_params")
 
 
@@ -226,9 +225,9 @@ class Staging:
     ``joint_budget`` of the joint search seeded with stage 1's best; ``total`` = the two.
     ``noise_design``, ``joint_design``: the evaluations each stage spends before its
     search begins, which its budget should exceed: TR-BO's initial design, 2d + 1 points
-    over the noise's d parameters; in the joint stage stage 1's best (the design's centre)
-    and two points per model parameter (:data:`JOINT_STAGE_DESIGN`), or, where the user
-    gave design options, stage 1's best and then their design (``n_init`` when given)."""
+    over the noise's d parameters; in the joint stage stage 1's best and the design through
+    it, two points per model parameter (:data:`DESIGN_OPTIONS`), or the design the user's
+    options give (``n_init`` when given), after stage 1's best unless centred on it."""
 
     total: int
     noise_budget: int
@@ -307,8 +306,12 @@ def staging(
     def design(dim: int) -> int:
         return int(n_init) if isinstance(n_init, int) and n_init > 0 else 2 * dim + 1
 
-    own = any(k in (options or {}) for k in DESIGN_OPTIONS)
-    joint = 1 + design(d) if own else design(d - d_noise)  # the seed is the centre, or first
+    given = options or {}
+    own = any(k in given for k in DESIGN_OPTIONS)  # else: the seed-centred model design
+    centre = given.get("design_centre", "box") if own else "x0"
+    named = given.get("design_params")
+    probed = len(named) if isinstance(named, list) else (d if own else d - d_noise)
+    joint = design(probed) + (0 if centre == "x0" else 1)  # the seed: the centre, or first
     return Staging(
         total, noise, total - noise, noise_stage_storage(storage), design(d_noise), joint
     )
@@ -435,7 +438,7 @@ def tune(
         if first.x is not None:  # every evaluation failed: the joint search starts cold
             opts["x0"] = [joint_point(problem, first.x).tolist()]
             if not any(k in opts for k in DESIGN_OPTIONS):  # a user's own design stays theirs
-                opts.update(JOINT_STAGE_DESIGN)
+                opts["design_centre"] = "x0"
                 opts["design_params"] = list(problem.parameterization.model_names)
         budget = total = stages.joint_budget
         # the joint study is created after the first stage's: a resume starts it then
